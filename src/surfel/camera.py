@@ -1,0 +1,240 @@
+"""Cameras: OpenGL look-at with a vertical field of view, OpenCV pinhole (K, R, t), orthographic.
+
+One representation serves all of them (CONVENTIONS.md, "Coordinates and camera"):
+
+* `world_to_eye`: 4x4 float64 rigid transform into OpenGL eye space (x right, y up,
+  looking down -z).
+* Intrinsics `fx, fy, cx, cy` in pixels, in *continuous* image coordinates: the image's
+  top-left corner is (0, 0) and the centre of pixel (row i, column j) is (j + 0.5, i + 0.5).
+  OpenCV puts pixel centres on integers, so its cx, cy are 0.5 smaller.
+* `ortho_height`: if set, an orthographic camera whose view is that many world units tall.
+
+A point at eye coordinates (X, Y, Z), Z < 0, lands on image position
+    x = cx + fx * X / -Z,     y = cy - fy * Y / -Z      (y grows downwards).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from .errors import SurfelError
+
+VIEWS = ("front", "back", "left", "right", "top", "bottom", "iso")
+
+
+def _unit(v) -> np.ndarray:
+    v = np.asarray(v, dtype=np.float64)
+    n = np.linalg.norm(v)
+    if n == 0 or not np.isfinite(n):
+        raise SurfelError(f"cannot normalise vector {v.tolist()}")
+    return v / n
+
+
+def look_at(eye, target, up) -> np.ndarray:
+    """The OpenGL world-to-eye matrix (gluLookAt), float64."""
+    eye = np.asarray(eye, np.float64)
+    f = _unit(np.asarray(target, np.float64) - eye)
+    s = np.cross(f, _unit(up))
+    if np.linalg.norm(s) < 1e-9:
+        raise SurfelError("camera up vector is parallel to the viewing direction")
+    s = _unit(s)
+    u = np.cross(s, f)
+    m = np.eye(4)
+    m[0, :3], m[1, :3], m[2, :3] = s, u, -f
+    m[:3, 3] = -m[:3, :3] @ eye
+    return m
+
+
+@dataclass(frozen=True, eq=False)
+class Camera:
+    world_to_eye: np.ndarray
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    ortho_height: float | None = None
+    near: float = 0.01
+    far: float = 100.0
+
+    # ---- construction -------------------------------------------------------------
+    @classmethod
+    def look_at(cls, eye, target, up=(0, 1, 0), *, fov: float = 30.0, size=(1024, 1024),
+                ortho_height: float | None = None, near: float = 0.01, far: float = 100.0) -> "Camera":
+        """A look-at camera with vertical field of view `fov` degrees and `size` = (W, H)."""
+        w, h = (int(size[0]), int(size[1]))
+        if w <= 0 or h <= 0:
+            raise SurfelError(f"image size must be positive, got {w}x{h}")
+        if not 0 < fov < 180:
+            raise SurfelError(f"field of view must be in (0, 180) degrees, got {fov}")
+        focal = (h / 2) / math.tan(math.radians(fov) / 2)
+        return cls(look_at(eye, target, up), w, h, focal, focal, w / 2, h / 2,
+                   ortho_height=ortho_height, near=near, far=far)
+
+    @classmethod
+    def from_opencv(cls, K, R, t, size, *, near: float = 0.01, far: float = 100.0) -> "Camera":
+        """From OpenCV intrinsics K (3x3) and world-to-camera extrinsics x_cam = R x_world + t."""
+        K = np.asarray(K, np.float64)
+        cv_to_gl = np.diag([1.0, -1.0, -1.0])  # OpenCV: y down, z forward
+        m = np.eye(4)
+        m[:3, :3] = cv_to_gl @ np.asarray(R, np.float64)
+        m[:3, 3] = cv_to_gl @ np.asarray(t, np.float64).reshape(3)
+        return cls(m, int(size[0]), int(size[1]), K[0, 0], K[1, 1], K[0, 2] + 0.5, K[1, 2] + 0.5,
+                   near=near, far=far)
+
+    def to_opencv(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(K, R, t) such that from_opencv(K, R, t, size) reproduces this camera."""
+        if self.ortho_height is not None:
+            raise SurfelError("an orthographic camera has no pinhole intrinsics")
+        cv_to_gl = np.diag([1.0, -1.0, -1.0])
+        K = np.array([[self.fx, 0, self.cx - 0.5], [0, self.fy, self.cy - 0.5], [0, 0, 1]])
+        return K, cv_to_gl @ self.world_to_eye[:3, :3], cv_to_gl @ self.world_to_eye[:3, 3]
+
+    def with_(self, **changes) -> "Camera":
+        return replace(self, **changes)
+
+    # ---- derived quantities ---------------------------------------------------------
+    @property
+    def size(self) -> tuple[int, int]:
+        return self.width, self.height
+
+    @property
+    def eye(self) -> np.ndarray:
+        r, t = self.world_to_eye[:3, :3], self.world_to_eye[:3, 3]
+        return -r.T @ t
+
+    @property
+    def forward(self) -> np.ndarray:
+        """Unit viewing axis in world coordinates."""
+        return -self.world_to_eye[2, :3]
+
+    @property
+    def fov(self) -> float:
+        return math.degrees(2 * math.atan((self.height / 2) / self.fy))
+
+    def view_matrix(self, origin=None) -> np.ndarray:
+        """World-to-eye for positions given relative to `origin` (float64 math, then float32)."""
+        m = self.world_to_eye.copy()
+        if origin is not None:
+            m[:3, 3] += m[:3, :3] @ np.asarray(origin, np.float64)
+        return m
+
+    def projection_matrix(self) -> np.ndarray:
+        """OpenGL clip-from-eye matrix reproducing the intrinsics; rows flip on readback."""
+        n, f, w, h = self.near, self.far, self.width, self.height
+        p = np.zeros((4, 4))
+        if self.ortho_height is not None:
+            oh = self.ortho_height
+            ow = oh * w / h
+            p[0, 0], p[1, 1] = 2 / ow, 2 / oh
+            p[0, 3] = 1 - 2 * self.cx / w
+            p[1, 3] = 2 * self.cy / h - 1
+            p[2, 2], p[2, 3] = -2 / (f - n), -(f + n) / (f - n)
+            p[3, 3] = 1
+        else:
+            p[0, 0], p[0, 2] = 2 * self.fx / w, 1 - 2 * self.cx / w
+            p[1, 1], p[1, 2] = 2 * self.fy / h, 2 * self.cy / h - 1
+            p[2, 2], p[2, 3] = -(f + n) / (f - n), -2 * f * n / (f - n)
+            p[3, 2] = -1
+        return p
+
+    def pixel_scale(self) -> float:
+        """Pixels per world unit at eye depth 1 (perspective) or everywhere (orthographic)."""
+        if self.ortho_height is not None:
+            return self.height / self.ortho_height
+        return self.fy
+
+    def project(self, points, origin=None) -> tuple[np.ndarray, np.ndarray]:
+        """Image positions (N, 2) in continuous pixel coordinates and eye depths (N,)."""
+        m = self.view_matrix(origin)
+        p = np.asarray(points, np.float64) @ m[:3, :3].T + m[:3, 3]
+        depth = -p[:, 2]
+        if self.ortho_height is not None:
+            s = self.height / self.ortho_height
+            x, y = self.cx + s * p[:, 0], self.cy - s * p[:, 1]
+        else:
+            x = self.cx + self.fx * p[:, 0] / depth
+            y = self.cy - self.fy * p[:, 1] / depth
+        return np.stack([x, y], axis=1), depth
+
+    def rays(self, origin=None) -> tuple[np.ndarray, np.ndarray]:
+        """Per-pixel ray origins and unit directions in eye space, each (H, W, 3) float64.
+
+        Rays go through pixel centres; `origin` is unused in eye space but kept symmetric
+        with `view_matrix` for callers that transform rays to world space themselves.
+        """
+        j, i = np.meshgrid(np.arange(self.width) + 0.5, np.arange(self.height) + 0.5)
+        if self.ortho_height is not None:
+            s = self.ortho_height / self.height
+            o = np.stack([(j - self.cx) * s, (self.cy - i) * s, np.zeros_like(j)], axis=-1)
+            d = np.broadcast_to(np.array([0.0, 0.0, -1.0]), o.shape).copy()
+            return o, d
+        d = np.stack([(j - self.cx) / self.fx, (self.cy - i) / self.fy, -np.ones_like(j)], axis=-1)
+        d /= np.linalg.norm(d, axis=-1, keepdims=True)
+        return np.zeros_like(d), d
+
+    def fit_clip_planes(self, center, radius: float) -> "Camera":
+        """Near/far planes bracketing a bounding sphere (they change no output, only precision)."""
+        d = float(-(self.view_matrix() @ np.append(np.asarray(center, np.float64), 1.0))[2])
+        far = max(d + radius * 1.05, 1e-6)
+        near = max(d - radius * 1.05, far * 1e-4)
+        if self.ortho_height is not None:
+            near = d - radius * 1.05  # may be negative: orthographic needs no positive near
+        return replace(self, near=near, far=far)
+
+
+def default_up(geospatial: bool) -> np.ndarray:
+    """+Z for geospatial data (LAS/LAZ), +Y otherwise."""
+    return np.array([0.0, 0.0, 1.0]) if geospatial else np.array([0.0, 1.0, 0.0])
+
+
+def view_direction(view: str | None, up, azimuth: float | None = None, elevation: float | None = None):
+    """Unit vector from the target to the eye, and the camera up vector, for a named view.
+
+    `front` puts the camera on +Z for +Y-up data and on -Y for +Z-up data; azimuth turns
+    from front towards right about the up axis, elevation lifts towards up.
+    """
+    up = _unit(up)
+    axes = np.eye(3)
+    k = int(np.argmax(np.abs(up)))
+    # front: +Z for Y-up, -Y for Z-up; in general the axis after the up axis, signed so
+    # that right = up x front comes out as +X for both conventions.
+    front = {0: axes[1], 1: axes[2], 2: -axes[1]}[k] * (1 if up[k] > 0 else -1)
+    front = _unit(front - np.dot(front, up) * up)
+    right = np.cross(up, front)
+    named = {"front": (0, 0), "back": (180, 0), "right": (90, 0), "left": (-90, 0),
+             "top": (0, 90), "bottom": (0, -90), "iso": (45, math.degrees(math.atan(1 / math.sqrt(2))))}
+    if azimuth is None and elevation is None:
+        view = view or "front"
+        if view not in named:
+            raise SurfelError(f"unknown view {view!r}; choose one of {', '.join(VIEWS)}")
+        azimuth, elevation = named[view]
+    az, el = math.radians(azimuth or 0.0), math.radians(elevation or 0.0)
+    direction = math.cos(el) * (math.cos(az) * front + math.sin(az) * right) + math.sin(el) * up
+    cam_up = up
+    if abs(math.cos(el)) < 1e-6:  # looking straight down or up: image up is away from front
+        cam_up = -math.copysign(1.0, math.sin(el)) * (math.cos(az) * front + math.sin(az) * right)
+    return _unit(direction), cam_up
+
+
+def frame(center, radius: float, *, view: str | None = "front", azimuth=None, elevation=None,
+          up=None, geospatial: bool = False, fov: float = 30.0, size=(1024, 1024),
+          eye=None, target=None, ortho_height: float | None = None, zoom: float = 1.0) -> Camera:
+    """The camera of CONVENTIONS.md: explicit eye/target, or auto framing of a bounding sphere.
+
+    Auto framing looks at `center` from 1.1x the distance at which the sphere just fills the
+    vertical field of view (times `zoom`, used by benchmarks to move the camera away).
+    """
+    up = default_up(geospatial) if up is None else _unit(up)
+    target = np.asarray(center if target is None else target, np.float64)
+    cam_up = up
+    if eye is None:
+        direction, cam_up = view_direction(view, up, azimuth, elevation)
+        distance = 1.1 * radius / math.sin(math.radians(fov) / 2) * zoom
+        eye = target + direction * distance
+    cam = Camera.look_at(eye, target, cam_up, fov=fov, size=size, ortho_height=ortho_height)
+    return cam.fit_clip_planes(center, radius)

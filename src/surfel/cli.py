@@ -1,0 +1,336 @@
+"""The `surfel` command line. Every user-fixable error is one line on stderr and exit status 2."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import click
+import numpy as np
+
+from .errors import SurfelError
+
+CONTEXT = {"help_option_names": ["-h", "--help"], "max_content_width": 100}
+
+
+def _floats(text: str | None, count: int, name: str):
+    if text is None:
+        return None
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError:
+        raise click.BadParameter(f"{name} needs {count} comma-separated numbers, got {text!r}")
+    if len(values) != count or not all(np.isfinite(values)):
+        raise click.BadParameter(f"{name} needs {count} comma-separated finite numbers, got {text!r}")
+    return values
+
+
+def _size(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise click.BadParameter(f"size must look like 512x512, got {text!r}")
+    if w <= 0 or h <= 0 or w * h > 16384 * 16384:
+        raise click.BadParameter(f"size {text!r} is out of range")
+    return w, h
+
+
+def camera_options(f):
+    """The camera flags of CONVENTIONS.md."""
+    from .camera import VIEWS
+
+    for option in reversed([
+        click.option("--size", default="1024x1024", show_default=True, help="Image size WxH in pixels."),
+        click.option("--view", type=click.Choice(VIEWS), default=None, help="Auto-framing direction (default front)."),
+        click.option("--azimuth", type=float, default=None, help="Degrees from the front view towards the right, about the up axis."),
+        click.option("--elevation", type=float, default=None, help="Degrees above the horizon."),
+        click.option("--eye", default=None, help="Camera position X,Y,Z in file coordinates."),
+        click.option("--target", default=None, help="Look-at point X,Y,Z (default: bounding-box centre)."),
+        click.option("--up", default=None, help="Up vector (default 0,0,1 for LAS/LAZ, 0,1,0 otherwise)."),
+        click.option("--fov", type=float, default=30.0, show_default=True, help="Vertical field of view in degrees."),
+        click.option("--ortho", type=float, default=None, metavar="HEIGHT", help="Orthographic camera showing HEIGHT world units vertically."),
+        click.option("--opencv", type=click.Path(dir_okay=False), default=None,
+                     help='Pinhole camera from a JSON file {"K": 3x3, "R": 3x3, "t": 3} (OpenCV world-to-camera).'),
+        click.option("--zoom", type=float, default=1.0, show_default=True, help="Move the auto-framed camera this many times farther."),
+    ]):
+        f = option(f)
+    return f
+
+
+def render_options(f):
+    from .shading import MODELS
+
+    for option in reversed([
+        click.option("--shading", type=click.Choice(MODELS), default="phong", show_default=True),
+        click.option("--background", default="0,0,0", show_default=True, help="Background R,G,B in [0, 1]."),
+        click.option("--backend", type=click.Choice(["gl", "cpu"]), default=None, help="Default: gl, else cpu where the method has one."),
+        click.option("--supersample", type=click.IntRange(1, 8), default=None, help="Samples per pixel side (method default)."),
+        click.option("--radius-scale", type=float, default=1.0, show_default=True, help="Multiply every splat radius."),
+        click.option("--depth-offset", type=float, default=None, help="Visibility offset z_t as a fraction of the splat radius."),
+        click.option("--backface-culling/--no-backface-culling", default=False, show_default=True),
+        click.option("--ewa-filter/--no-ewa-filter", default=None, help="Screen-space EWA filter approximation (default on for deferred)."),
+        click.option("--lowpass-radius", type=float, default=1.0, show_default=True, help="Screen-space low-pass radius in pixels."),
+        click.option("--lod-error", type=float, default=None, metavar="PX", help="Level of detail: allowed projected error in pixels."),
+        click.option("--dump-passes", type=click.Path(file_okay=False), default=None, help="Write the intermediate passes here as images."),
+        click.option("--shadows", is_flag=True, help="Ray-traced shadows (mls)."),
+        click.option("--reflect", is_flag=True, help="One mirror bounce (mls)."),
+    ]):
+        f = option(f)
+    return f
+
+
+def make_options(kw):
+    from .options import RenderOptions
+
+    background = _floats(kw["background"], 3, "--background")
+    if min(background) < 0 or max(background) > 1:
+        raise click.BadParameter("--background values must lie in [0, 1]")
+    params = {k: True for k in ("shadows", "reflect") if kw.get(k)}
+    return RenderOptions(shading=kw["shading"], background=tuple(background), supersample=kw["supersample"],
+                         radius_scale=kw["radius_scale"], depth_offset=kw["depth_offset"],
+                         backface_culling=kw["backface_culling"], ewa_filter=kw["ewa_filter"],
+                         lowpass_radius=kw["lowpass_radius"], lod_error=kw["lod_error"],
+                         dump_passes=kw["dump_passes"], params=params)
+
+
+def make_camera(cloud, kw):
+    from .camera import Camera, frame
+
+    size = _size(kw["size"])
+    if kw.get("opencv"):
+        path = kw["opencv"]
+        try:
+            spec = json.loads(Path(path).read_text())
+            cam = Camera.from_opencv(np.array(spec["K"], float), np.array(spec["R"], float),
+                                     np.array(spec["t"], float), size)
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            raise SurfelError(f"{path}: not an OpenCV camera JSON with K, R, t ({type(exc).__name__}: {exc})")
+        return cam.fit_clip_planes(cloud.center, cloud.bounding_radius)
+    return frame(cloud.center, cloud.bounding_radius, view=kw["view"], azimuth=kw["azimuth"],
+                 elevation=kw["elevation"], up=_floats(kw["up"], 3, "--up"), geospatial=cloud.geospatial,
+                 fov=kw["fov"], size=size, eye=_floats(kw["eye"], 3, "--eye"),
+                 target=_floats(kw["target"], 3, "--target"), ortho_height=kw["ortho"], zoom=kw["zoom"])
+
+
+def load_input(path):
+    from .io import load
+
+    return load(path)
+
+
+class SurfelGroup(click.Group):
+    """Turns SurfelErrors into one line on stderr and exit status 2, never a traceback."""
+
+    def invoke(self, ctx):
+        try:
+            return super().invoke(ctx)
+        except SurfelError as exc:
+            click.echo(f"surfel: error: {exc}", err=True)
+            ctx.exit(2)
+        except MemoryError:
+            click.echo("surfel: error: out of memory", err=True)
+            ctx.exit(2)
+
+
+@click.group(cls=SurfelGroup, context_settings=CONTEXT)
+@click.version_option(package_name="surfel")
+def main():
+    """surfel: render point clouds as continuous, hole-free, anti-aliased surfaces.
+
+    \b
+    Examples:
+      surfel render --demo -o demo.png
+      surfel render scan.ply -o scan.png --method deferred --view iso
+      surfel compare bunny.obj --method deferred --size 512x512 --shading lambert
+      surfel bench --methods points,deferred --points 1000000 --size 1024x1024
+    """
+
+
+@main.command(context_settings=CONTEXT)
+@click.argument("input", required=False, type=click.Path(dir_okay=False))
+@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False), help="PNG to write.")
+@click.option("--method", "-m", default="deferred", show_default=True, help="Rendering method (see `surfel methods`).")
+@click.option("--demo", is_flag=True, help="Render the bundled demo model (Spot, CC0) instead of INPUT.")
+@click.option("--depth", type=click.Path(dir_okay=False), default=None, help="Write eye depth (H x W float32 .npy).")
+@click.option("--normals", type=click.Path(dir_okay=False), default=None, help="Write eye normals (H x W x 3 float32 .npy).")
+@click.option("--stats", type=click.Path(dir_okay=False), default=None, help="Write render statistics (.json).")
+@camera_options
+@render_options
+def render(input, output, method, demo, depth, normals, stats, **kw):
+    """Render INPUT (PLY, OBJ, LAS/LAZ, XYZ/PTS/TXT, NPZ) to a PNG.
+
+    \b
+    Example:
+      surfel render bunny.obj -o bunny.png --method deferred --size 512x512
+    """
+    from .render import render as do_render
+
+    if demo == (input is not None):
+        raise click.UsageError("give an INPUT file or --demo (not both)")
+    if demo:
+        from .data import demo_cloud
+
+        cloud = demo_cloud()
+    else:
+        cloud = load_input(input)
+    result = do_render(cloud, make_camera(cloud, kw), method, backend=kw["backend"], options=make_options(kw))
+    result.save(output, depth=depth, normals=normals, stats=stats)
+    click.echo(f"{output}: {result.width}x{result.height} {method}@{result.stats['backend']} "
+               f"{result.stats['splats']} splats in {result.stats['ms']:.0f} ms", err=True)
+
+
+@main.command(context_settings=CONTEXT)
+def methods():
+    """List the rendering methods and their backends."""
+    from .methods import METHODS
+
+    for m in METHODS.values():
+        click.echo(f"{m.name:14s} {','.join(m.backends):8s} {m.summary}")
+
+
+@main.command(context_settings=CONTEXT)
+@click.argument("input", type=click.Path(dir_okay=False))
+@click.option("--json", "as_json", is_flag=True, help="Print JSON.")
+def info(input, as_json):
+    """Counts, bounds, attributes, what would be estimated, and the OpenGL renderer.
+
+    \b
+    Example:
+      surfel info scan.laz
+    """
+    from .gl.context import gl_available, renderer_string
+
+    cloud = load_input(input)
+    lo, hi = cloud.bounds
+    estimate = [name for name in ("normals", "radii", "axes") if getattr(cloud, name) is None]
+    report = {
+        "file": str(input), "points": len(cloud), "faces": 0 if cloud.faces is None else len(cloud.faces),
+        "bounds_min": lo.tolist(), "bounds_max": hi.tolist(), "local_origin": cloud.local_origin.tolist(),
+        "attributes": cloud.attributes(), "would_estimate": estimate, "geospatial": cloud.geospatial,
+        "opengl": renderer_string() if gl_available() else None,
+    }
+    if as_json:
+        click.echo(json.dumps(report, indent=2))
+        return
+    for key, value in report.items():
+        click.echo(f"{key:15s} {value if value is not None else 'unavailable (use --backend cpu)'}")
+
+
+@main.command(context_settings=CONTEXT)
+@click.argument("mesh", type=click.Path(dir_okay=False))
+@click.option("--method", "-m", default="deferred", show_default=True)
+@click.option("-o", "--output", type=click.Path(dir_okay=False), default=None,
+              help="Side-by-side PNG: mesh, method, error x4 (default compare-METHOD.png).")
+@click.option("--json", "as_json", is_flag=True, help="Print the metrics as JSON.")
+@camera_options
+@render_options
+def compare(mesh, method, output, as_json, **kw):
+    """Render MESH's ground truth and METHOD on its vertices; print PSNR, holes and spill.
+
+    \b
+    Example:
+      surfel compare bunny.obj --method deferred --size 512x512 --shading lambert --json
+    """
+    from .metrics import compare_results
+    from .render import render as do_render
+
+    cloud = load_input(mesh)
+    if not cloud.is_mesh:
+        raise SurfelError(f"{mesh}: compare needs a mesh (faces) as ground truth")
+    camera = make_camera(cloud, kw)
+    options = make_options(kw)
+    options.background = (0.0, 0.0, 0.0)  # the metrics are defined over black
+    reference = do_render(cloud, camera, "mesh", options=make_options({**kw, "background": "0,0,0", "supersample": None}))
+    result = do_render(cloud.with_(faces=None), camera, method, backend=kw["backend"], options=options)
+    metrics = {"method": method, "backend": result.stats["backend"], **compare_results(reference, result),
+               "ms": result.stats["ms"], "splats": result.stats["splats"]}
+    output = output or f"compare-{method}.png"
+    _side_by_side(reference, result, output)
+    if as_json:
+        click.echo(json.dumps(metrics, indent=2))
+    else:
+        click.echo(f"{method}@{metrics['backend']}: PSNR {metrics['psnr']:.2f} dB, interior PSNR "
+                   f"{metrics['interior_psnr']:.2f} dB, holes {100 * metrics['holes']:.3f}%, "
+                   f"spill {100 * metrics['spill']:.3f}%  ({output})")
+
+
+def _side_by_side(reference, result, path):
+    from PIL import Image
+
+    from .result import _atomic_write
+
+    error = np.abs(reference.color - result.color).mean(axis=-1, keepdims=True)
+    error = np.repeat(np.clip(4 * error, 0, 1), 3, axis=-1)
+    strip = np.concatenate([reference.color, result.color, error], axis=1)
+    import io
+
+    buf = io.BytesIO()
+    Image.fromarray(np.round(strip * 255).astype(np.uint8)).save(buf, format="PNG")
+    _atomic_write(path, buf.getvalue())
+
+
+@main.command(context_settings=CONTEXT)
+@click.argument("input", type=click.Path(dir_okay=False))
+@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False), help="PLY to write.")
+@click.option("-k", "--neighbors", type=click.IntRange(4, 256), default=16, show_default=True, help="Neighbours for normal estimation.")
+@click.option("--viewpoint", default=None, help="Sensor position X,Y,Z to orient normals towards.")
+@click.option("--elliptical", is_flag=True, help="Fit elliptical splats to the neighbourhood (for phong).")
+@click.option("--normal-field", is_flag=True, help="Fit Phong splatting's linear normal fields.")
+def prepare(input, output, neighbors, viewpoint, elliptical, normal_field):
+    """Estimate normals, splat radii and tangent frames; write a PLY.
+
+    \b
+    Example:
+      surfel prepare scan.xyz -o scan.ply --viewpoint 0,0,10
+    """
+    from .io import write_ply
+    from .preprocess import prepare as do_prepare
+
+    cloud = load_input(input)
+    view = _floats(viewpoint, 3, "--viewpoint")
+    prepared, report = do_prepare(cloud.with_(radii=None, axes=None) if elliptical else cloud, k_normals=neighbors,
+                                  viewpoint=None if view is None else np.array(view),
+                                  elliptical=elliptical, normal_field=normal_field)
+    write_ply(prepared, output)
+    click.echo(f"{output}: {len(prepared)} points; " + ", ".join(f"{k}: {v}" for k, v in report.items()), err=True)
+
+
+@main.command(context_settings=CONTEXT)
+@click.option("--input", "input_path", type=click.Path(dir_okay=False), default=None, help="Model to replicate (default: the demo model).")
+@click.option("--points", type=click.IntRange(1), default=1_000_000, show_default=True, help="Replicate and jitter the input to N points.")
+@click.option("--size", default="1024x1024", show_default=True)
+@click.option("--methods", default="points,gaussian,deferred", show_default=True, help="Comma-separated, each NAME or NAME@BACKEND.")
+@click.option("--frames", type=click.IntRange(1), default=5, show_default=True, help="Timed frames per method (after one warm-up).")
+@click.option("--lod-error", type=float, default=None, metavar="PX", help="Add a row per method with this LOD error.")
+@click.option("--zoom", type=float, default=1.0, show_default=True, help="Camera this many times farther than the default framing.")
+@click.option("--json", "as_json", is_flag=True, help="Print a JSON list of rows.")
+def bench(input_path, points, size, methods, frames, lod_error, zoom, as_json):
+    """Median ms per frame and million splats per second of each method, in one process.
+
+    \b
+    Example:
+      surfel bench --methods points@gl,deferred,ewa@cpu --points 1000000 --size 1024x1024 --json
+    """
+    from .bench import run
+
+    if input_path:
+        cloud = load_input(input_path)
+    else:
+        from .data import demo_cloud
+
+        cloud = demo_cloud()
+    rows = run(cloud, [m.strip() for m in methods.split(",") if m.strip()], points=points, size=_size(size),
+               frames=frames, lod_error=lod_error, zoom=zoom)
+    if as_json:
+        click.echo(json.dumps(rows, indent=2))
+        return
+    click.echo(f"{rows[0]['points']} points, {size}, renderer: {rows[0]['renderer']}")
+    for row in rows:
+        lod = f" lod {row['lod']}px" if "lod" in row else ""
+        click.echo(f"{row['method'] + '@' + row['backend'] + lod:24s} {row['ms']:9.1f} ms  "
+                   f"{row['msplats_per_s']:7.2f} Msplats/s  ({row['splats']} splats)")
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,22 @@
+"""Errors surfel reports to users as one line (the CLI turns them into exit status 2)."""
+
+from __future__ import annotations
+
+import os
+
+
+class SurfelError(Exception):
+    """A problem the user can fix; its message is printed as one line, without traceback."""
+
+
+class InputError(SurfelError):
+    """A file that cannot be read: the message names the file and the problem."""
+
+    def __init__(self, path: str | os.PathLike | None, problem: str):
+        self.path = None if path is None else os.fspath(path)
+        self.problem = problem
+        super().__init__(f"{self.path}: {problem}" if self.path else problem)
+
+
+class NoOpenGLError(SurfelError):
+    """No OpenGL context could be created."""

@@ -1,0 +1,26 @@
+// Uniforms and helpers every surfel program shares.
+uniform mat4 u_view;        // world (relative to the cloud's local origin) to eye
+uniform mat4 u_projection;  // eye to clip, reproducing the camera intrinsics
+uniform vec2 u_viewport;    // render target size in pixels (supersampled)
+uniform vec4 u_intrinsics;  // fx, fy, cx, cy in render-target pixels, image y down
+uniform float u_ortho;      // 0: perspective; otherwise pixels per world unit of the orthographic view
+uniform int u_shading;      // shading.glsl model id
+uniform vec2 u_depth_range; // camera near and far, for depth shading
+
+// Eye-space ray through the fragment's pixel centre: origin and (unnormalised) direction.
+void pixel_ray(vec2 frag_coord, out vec3 origin, out vec3 direction) {
+    vec2 image = vec2(frag_coord.x, u_viewport.y - frag_coord.y);  // image y grows downwards
+    if (u_ortho > 0.0) {
+        origin = vec3((image.x - u_intrinsics.z) / u_ortho, (u_intrinsics.w - image.y) / u_ortho, 0.0);
+        direction = vec3(0.0, 0.0, -1.0);
+    } else {
+        origin = vec3(0.0);
+        direction = vec3((image.x - u_intrinsics.z) / u_intrinsics.x, (u_intrinsics.w - image.y) / u_intrinsics.y, -1.0);
+    }
+}
+
+// Window depth in [0, 1] of an eye-space point, for gl_FragDepth.
+float window_depth(vec3 eye) {
+    vec4 clip = u_projection * vec4(eye, 1.0);
+    return 0.5 * clip.z / clip.w + 0.5;
+}

@@ -1,0 +1,62 @@
+"""Float render targets and readback (rows flipped so row 0 is the top of the image)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .context import get_context
+
+
+def read_texture(tex, components: int | None = None) -> np.ndarray:
+    """A float32 texture as an (H, W, C) array with row 0 at the top."""
+    c = components or tex.components
+    data = np.frombuffer(tex.read(), dtype=np.float32).reshape(tex.height, tex.width, tex.components)
+    return np.ascontiguousarray(data[::-1, :, :c])
+
+
+@dataclass
+class GBuffer:
+    """Colour attachments of RGBA32F and a 32-bit float depth buffer, all the same size.
+
+    Methods write attributes (weighted colour, normal, eye depth, weight) to the colour
+    targets with additive blending; the depth buffer carries the visibility pass.
+    """
+
+    width: int
+    height: int
+    count: int = 3
+
+    def __post_init__(self):
+        ctx = get_context()
+        self.textures = [ctx.texture((self.width, self.height), 4, dtype="f4") for _ in range(self.count)]
+        for t in self.textures:
+            t.filter = (0x2600, 0x2600)  # GL_NEAREST: the passes read texels, never interpolate
+        self.depth = ctx.depth_texture((self.width, self.height))
+        self.fbo = ctx.framebuffer(color_attachments=self.textures, depth_attachment=self.depth)
+        self.depth_only = ctx.framebuffer(depth_attachment=self.depth)
+
+    def clear(self, depth: float = 1.0):
+        self.fbo.clear(0.0, 0.0, 0.0, 0.0, depth=depth)
+
+    def read(self, index: int, components: int = 4) -> np.ndarray:
+        return read_texture(self.textures[index], components)
+
+    def release(self):
+        for obj in (*self.textures, self.depth, self.fbo, self.depth_only):
+            obj.release()
+
+
+def gbuffer_result(gbuffer: GBuffer, camera, options, supersample: int, stats: dict):
+    """The RenderResult of a G-buffer laid out as every method writes it:
+    target 0 = shaded RGB and coverage, target 1 = eye normal, target 2 = eye depth."""
+    from ..result import RenderResult
+
+    shaded = gbuffer.read(0)
+    normals = gbuffer.read(1, 3)
+    depth = gbuffer.read(2, 1)[..., 0]
+    coverage = np.clip(shaded[..., 3], 0, 1)
+    depth = np.where(coverage > 0, depth, np.inf)
+    return RenderResult.from_samples(shaded[..., :3], coverage, depth, normals, supersample=supersample,
+                                     background=options.background, stats=stats)

@@ -1,0 +1,50 @@
+"""Every rendering method surfel has, by name and backend: the index to find a paper's code.
+
+Each entry maps a backend to "module:function"; the function takes
+(cloud: PointCloud, camera: Camera, options: RenderOptions) and returns a RenderResult
+whose `stats` hold at least {"splats": ...}. Modules are imported on first use so that
+`surfel --help` stays fast and the CPU paths work without OpenGL.
+"""
+
+from __future__ import annotations
+
+import importlib
+from dataclasses import dataclass
+
+from ..errors import SurfelError
+
+
+@dataclass(frozen=True)
+class Method:
+    name: str
+    summary: str
+    backends: dict[str, str]
+    needs_mesh: bool = False
+    needs_radii: bool = True
+
+    def function(self, backend: str):
+        if backend not in self.backends:
+            raise SurfelError(f"method {self.name!r} has no {backend!r} backend; it has {', '.join(self.backends)}")
+        module, func = self.backends[backend].split(":")
+        return getattr(importlib.import_module(f"{__name__}.{module}"), func)
+
+
+METHODS: dict[str, Method] = {
+    m.name: m
+    for m in [
+        Method("mesh", "the input mesh's triangles, supersampled: the ground truth",
+               {"gl": "mesh:render_mesh"}, needs_mesh=True, needs_radii=False),
+        Method("points", "naive: screen-aligned disks of the projected radius, z-buffer, flat shading (survey Fig. 6 left)",
+               {"gl": "points:render_points"}),
+        Method("gaussian", "Botsch & Kobbelt 2003: three-pass Gaussian splatting, per-splat shading (Fig. 6 middle)",
+               {"gl": "splatting:render_gaussian"}),
+        Method("deferred", "Botsch et al. 2005: deferred shading with the EWA filter approximation",
+               {"gl": "splatting:render_deferred"}),
+    ]
+}
+
+
+def get_method(name: str) -> Method:
+    if name not in METHODS:
+        raise SurfelError(f"unknown method {name!r}; choose one of {', '.join(METHODS)}")
+    return METHODS[name]

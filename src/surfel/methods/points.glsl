@@ -1,0 +1,46 @@
+// Naive point rendering (survey Fig. 6, left): every point a screen-aligned disk of its
+// projected radius (eq. 6), ordinary z-buffer, flat-shaded by its own normal, no filtering.
+#include "common.glsl"
+#include "shading.glsl"
+uniform float u_radius_scale;
+
+#ifdef VERTEX_SHADER
+in vec3 in_center;
+in vec3 in_normal;
+in vec3 in_color;
+in vec3 in_axis_u;
+in vec3 in_axis_v;
+flat out vec3 v_shaded;
+flat out vec3 v_normal;
+flat out float v_depth;
+void main() {
+    vec4 eye = u_view * vec4(in_center, 1.0);
+    vec3 n = normalize(mat3(u_view) * in_normal);
+    vec3 to_eye = u_ortho > 0.0 ? vec3(0.0, 0.0, 1.0) : -eye.xyz;
+    if (dot(n, to_eye) < 0.0) n = -n;
+    float radius = u_radius_scale * max(length(in_axis_u), length(in_axis_v));
+    // eq. 6: size_win = r * n / z_eye * h / (t - b), i.e. r * fy / z_eye pixels.
+    float pixels = u_ortho > 0.0 ? radius * u_ortho : radius * u_intrinsics.y / max(-eye.z, 1e-9);
+    gl_PointSize = max(2.0 * pixels, 1.0);
+    v_shaded = shade(u_shading, in_color, n, -eye.z, u_depth_range.x, u_depth_range.y);
+    v_normal = n;
+    v_depth = -eye.z;
+    gl_Position = u_projection * eye;
+}
+#endif
+
+#ifdef FRAGMENT_SHADER
+flat in vec3 v_shaded;
+flat in vec3 v_normal;
+flat in float v_depth;
+layout(location = 0) out vec4 out_shaded;
+layout(location = 1) out vec4 out_normal;
+layout(location = 2) out vec4 out_depth;
+void main() {
+    vec2 p = 2.0 * gl_PointCoord - 1.0;
+    if (dot(p, p) > 1.0) discard;
+    out_shaded = vec4(v_shaded, 1.0);
+    out_normal = vec4(v_normal, 0.0);
+    out_depth = vec4(v_depth, 0.0, 0.0, 0.0);
+}
+#endif

@@ -1,0 +1,36 @@
+"""`points`: the naive method of the survey's Fig. 6 (left), the baseline splatting beats.
+
+Each point is an OpenGL point sprite of diameter 2 r fy / z_eye pixels (survey eq. 6),
+cut to a disk, depth-tested in an ordinary z-buffer and flat-shaded with the point's own
+normal: no blending, no filtering, one sample per pixel. This is what general viewers do.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from ..gl import splats
+from ..gl.context import get_context
+from ..gl.program import build_program
+from ..gl.targets import GBuffer, gbuffer_result
+from ..gl.uniforms import apply_common
+
+SHADER = Path(__file__).with_suffix(".glsl")
+
+
+def render_points(cloud, camera, options):
+    ctx = get_context()
+    ss = options.supersample or 1
+    program = build_program(SHADER)
+    apply_common(program, camera, cloud.local_origin, ss, options.shading, u_radius_scale=options.radius_scale)
+    gbuffer = GBuffer(camera.width * ss, camera.height * ss)
+    try:
+        gbuffer.fbo.use()
+        gbuffer.clear()
+        ctx.disable(ctx.BLEND | ctx.CULL_FACE)
+        ctx.enable(ctx.DEPTH_TEST | ctx.PROGRAM_POINT_SIZE)
+        splats.draw(ctx, cloud, program, ctx.POINTS, instanced=False)
+        ctx.finish()
+        return gbuffer_result(gbuffer, camera, options, ss, {"splats": len(cloud)})
+    finally:
+        gbuffer.release()

@@ -1,0 +1,184 @@
+// GPU surface splatting (Botsch & Kobbelt 2003; Botsch, Hornung, Zwicker & Kobbelt 2005).
+// One source, passes chosen by #define:
+//   PASS_VISIBILITY  eye depth + z_t of every splat fragment, MIN-blended: the nearest surface
+//   PASS_ATTRIBUTE   additive blending of weighted attributes of fragments within z_t of it
+//   PASS_NORMALIZE   full-screen: divide by the accumulated weight, then (deferred) shade
+// Variants: PER_SPLAT_SHADING (the 2003 Gouraud look: colours shaded per splat before
+// blending) or deferred shading from blended normals (2005); EWA_FILTER (2005 screen-space
+// filter approximation: the union of the object-space disk and a screen-space low-pass).
+#include "common.glsl"
+#include "shading.glsl"
+
+#define DEPTH_CLAMP 32.0  // splat radii: how far the plane's depth may stray from the centre's
+
+uniform float u_radius_scale;
+uniform float u_depth_offset;    // z_t as a fraction of the splat radius
+uniform float u_lowpass_radius;  // pixels
+uniform int u_backface_culling;
+uniform sampler2D u_kernel;      // Gaussian weight exp(-2 d^2), indexed by d^2 in [0, 1]
+uniform sampler2D u_visibility;  // PASS_ATTRIBUTE: nearest depth + z_t per pixel
+uniform sampler2D u_accum_color; // PASS_NORMALIZE: (sum w rgb, sum w)
+uniform sampler2D u_accum_normal;// PASS_NORMALIZE: (sum w n, sum w z)
+
+#ifdef VERTEX_SHADER
+#ifndef PASS_NORMALIZE
+in vec3 in_center;
+in vec3 in_normal;
+in vec3 in_color;
+in vec3 in_axis_u;
+in vec3 in_axis_v;
+flat out vec3 v_center;     // eye space
+flat out vec3 v_normal;     // eye space, facing the camera
+flat out vec3 v_u;          // axis_u / |axis_u|^2: dot(q - c, v_u) is the local coordinate u
+flat out vec3 v_v;
+flat out vec3 v_color;      // albedo, or the per-splat shaded colour
+flat out vec2 v_center_px;  // projected centre in image pixels (for the low-pass)
+flat out float v_offset;    // z_t in eye units
+flat out float v_radius;    // largest semi-axis
+
+vec2 to_pixels(vec3 eye) {
+    if (u_ortho > 0.0) return vec2(u_intrinsics.z + u_ortho * eye.x, u_intrinsics.w - u_ortho * eye.y);
+    return vec2(u_intrinsics.z + u_intrinsics.x * eye.x / -eye.z, u_intrinsics.w - u_intrinsics.y * eye.y / -eye.z);
+}
+
+void main() {
+    const vec2 corners[4] = vec2[4](vec2(0.0, 0.0), vec2(1.0, 0.0), vec2(0.0, 1.0), vec2(1.0, 1.0));
+    vec3 c = (u_view * vec4(in_center, 1.0)).xyz;
+    vec3 n = normalize(mat3(u_view) * in_normal);
+    vec3 au = mat3(u_view) * in_axis_u * u_radius_scale;
+    vec3 av = mat3(u_view) * in_axis_v * u_radius_scale;
+    vec3 to_eye = u_ortho > 0.0 ? vec3(0.0, 0.0, 1.0) : -c;
+    bool back = dot(n, to_eye) < 0.0;
+    if (back) n = -n;
+    float near = u_depth_range.x;
+    if ((back && u_backface_culling != 0) || (u_ortho == 0.0 && -c.z < near * 0.5 && -c.z + length(au) + length(av) < near)) {
+        gl_Position = vec4(2.0, 2.0, 2.0, 1.0);  // outside the clip volume: no fragments
+        return;
+    }
+    // Conservative screen bounding box: the projected corners of the disk's bounding square
+    // (exact for the rasterized disk, unlike eq. 6's sphere approximation). A splat crossing
+    // the near plane gets the whole viewport, so it is never chopped.
+    vec2 lo = vec2(1e30), hi = vec2(-1e30);
+    bool crosses_near = false;
+    for (int i = 0; i < 4; ++i) {
+        vec3 p = c + (i % 2 == 0 ? -au : au) + (i < 2 ? -av : av);
+        if (u_ortho == 0.0 && -p.z < near) { crosses_near = true; break; }
+        vec2 s = to_pixels(p);
+        lo = min(lo, s); hi = max(hi, s);
+    }
+    vec2 center_px = to_pixels(c);
+#ifdef EWA_FILTER
+    lo = min(lo, center_px - u_lowpass_radius); hi = max(hi, center_px + u_lowpass_radius);
+#endif
+    if (crosses_near) { lo = vec2(0.0); hi = u_viewport; }
+    lo = max(lo, vec2(-1.0)); hi = min(hi, u_viewport + 1.0);
+    vec2 image = mix(lo, hi, corners[gl_VertexID]);
+    gl_Position = vec4(2.0 * image.x / u_viewport.x - 1.0, 1.0 - 2.0 * image.y / u_viewport.y, 0.0, 1.0);
+
+    v_center = c;
+    v_normal = n;
+    v_u = au / max(dot(au, au), 1e-30);
+    v_v = av / max(dot(av, av), 1e-30);
+#ifdef PER_SPLAT_SHADING
+    v_color = shade(u_shading, in_color, n, -c.z, u_depth_range.x, u_depth_range.y);
+#else
+    v_color = in_color;
+#endif
+    v_center_px = center_px;
+    v_radius = max(length(au), length(av));
+    v_offset = u_depth_offset * v_radius;
+}
+#else
+void main() {  // full-screen triangle
+    vec2 p = vec2((gl_VertexID << 1) & 2, gl_VertexID & 2);
+    gl_Position = vec4(2.0 * p - 1.0, 0.0, 1.0);
+}
+#endif
+#endif
+
+#ifdef FRAGMENT_SHADER
+#ifndef PASS_NORMALIZE
+flat in vec3 v_center;
+flat in vec3 v_normal;
+flat in vec3 v_u;
+flat in vec3 v_v;
+flat in vec3 v_color;
+flat in vec2 v_center_px;
+flat in float v_offset;
+flat in float v_radius;
+
+// Squared distance of the fragment to the splat centre in the kernel's unit domain, and the
+// eye depth of the splat's plane seen there: the exact ray-plane intersection (perspective
+// accurate). Low-pass fragments outside the disk keep the plane's depth too, so coplanar
+// neighbours agree at grazing angles, where a pixel's footprint spans many splat radii in
+// depth; only near-parallel rays are clamped to the splat's depth range.
+float splat_distance(out float eye_depth) {
+    vec3 o, d;
+    pixel_ray(gl_FragCoord.xy, o, d);
+    float denom = dot(d, v_normal);
+    float rho2 = 1e30;
+    float extent = DEPTH_CLAMP * v_radius;
+    eye_depth = -v_center.z;
+    if (abs(denom) > 1e-12) {
+        vec3 q = o + d * (dot(v_center - o, v_normal) / denom);
+        vec3 local = q - v_center;
+        float u = dot(local, v_u), v = dot(local, v_v);
+        rho2 = u * u + v * v;
+        eye_depth = clamp(-q.z, -v_center.z - extent, -v_center.z + extent);
+    }
+#ifdef EWA_FILTER
+    vec2 image = vec2(gl_FragCoord.x, u_viewport.y - gl_FragCoord.y);
+    vec2 delta = (image - v_center_px) / u_lowpass_radius;
+    rho2 = min(rho2, dot(delta, delta));  // union of reconstruction kernel and low-pass
+#endif
+    return rho2;
+}
+#endif
+
+#ifdef PASS_VISIBILITY
+layout(location = 0) out vec4 out_depth;
+void main() {
+    float z;
+    if (splat_distance(z) > 1.0) discard;
+    out_depth = vec4(z + v_offset, 0.0, 0.0, 0.0);
+}
+#endif
+
+#ifdef PASS_ATTRIBUTE
+layout(location = 0) out vec4 out_color;   // (w rgb, w)
+layout(location = 1) out vec4 out_normal;  // (w n, w z)
+void main() {
+    float z;
+    float rho2 = splat_distance(z);
+    if (rho2 > 1.0) discard;
+    if (z > texelFetch(u_visibility, ivec2(gl_FragCoord.xy), 0).r) discard;  // behind the visible surface
+    float w = texture(u_kernel, vec2(rho2, 0.5)).r;
+    out_color = vec4(w * v_color, w);
+    out_normal = vec4(w * v_normal, w * z);
+}
+#endif
+
+#ifdef PASS_NORMALIZE
+layout(location = 0) out vec4 out_shaded;
+layout(location = 1) out vec4 out_normal;
+layout(location = 2) out vec4 out_depth;
+void main() {
+    ivec2 texel = ivec2(gl_FragCoord.xy);
+    vec4 acc = texelFetch(u_accum_color, texel, 0);
+    vec4 accn = texelFetch(u_accum_normal, texel, 0);
+    if (acc.a <= 0.0) {
+        out_shaded = vec4(0.0); out_normal = vec4(0.0); out_depth = vec4(0.0);
+        return;
+    }
+    vec3 color = acc.rgb / acc.a;
+    float z = accn.a / acc.a;
+    vec3 n = length(accn.xyz) > 0.0 ? normalize(accn.xyz) : vec3(0.0, 0.0, 1.0);
+#ifndef PER_SPLAT_SHADING
+    color = shade(u_shading, color, n, z, u_depth_range.x, u_depth_range.y);  // deferred shading
+#endif
+    out_shaded = vec4(color, 1.0);
+    out_normal = vec4(n, 0.0);
+    out_depth = vec4(z, 0.0, 0.0, 0.0);
+}
+#endif
+#endif

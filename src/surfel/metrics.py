@@ -1,0 +1,46 @@
+"""Image metrics every method is judged by (issue 2): PSNR, interior PSNR, holes and spill.
+
+All compare a method's render against the mesh render under the same camera:
+* psnr          : RGB composited over black, whole image, 8-bit peak.
+* interior_psnr : the same over the mesh silhouette (alpha >= 0.5) eroded by 2 pixels.
+* holes         : fraction of pixels inside the silhouette eroded by 1 pixel that the method
+                  leaves uncovered (alpha < 0.5).
+* spill         : fraction of pixels outside the silhouette (the complement of the dilated
+                  silhouette, i.e. the background eroded by 1 pixel) that the method covers.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import ndimage
+
+
+def psnr(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None = None) -> float:
+    """PSNR in dB of two 8-bit-valued float images, optionally over a boolean mask."""
+    diff = (a - b) ** 2
+    if mask is not None:
+        diff = diff[mask]
+    mse = float(diff.mean()) if diff.size else 0.0
+    return float("inf") if mse == 0 else 10 * np.log10(255.0**2 / mse)
+
+
+def compare_images(reference_rgb, reference_alpha, rgb, alpha) -> dict:
+    """The four metrics for float RGB in [0, 1] composited over black and alpha in [0, 1]."""
+    ref8 = np.round(np.clip(reference_rgb, 0, 1) * 255)
+    img8 = np.round(np.clip(rgb, 0, 1) * 255)
+    silhouette = reference_alpha >= 0.5
+    inner1 = ndimage.binary_erosion(silhouette, iterations=1)
+    inner2 = ndimage.binary_erosion(silhouette, iterations=2)
+    outside = ndimage.binary_erosion(~silhouette, iterations=1)
+    covered = alpha >= 0.5
+    return {
+        "psnr": psnr(ref8, img8),
+        "interior_psnr": psnr(ref8, img8, inner2),
+        "holes": float((~covered & inner1).sum() / max(inner1.sum(), 1)),
+        "spill": float((covered & outside).sum() / max(outside.sum(), 1)),
+    }
+
+
+def compare_results(reference, result) -> dict:
+    """compare_images on two RenderResults rendered over a black background."""
+    return compare_images(reference.color, reference.alpha, result.color, result.alpha)

@@ -1,0 +1,86 @@
+"""`render()`: one entry point for every method and backend (numpy in, RenderResult out)."""
+
+from __future__ import annotations
+
+import sys
+import time
+
+
+from .camera import Camera, frame
+from .cloud import PointCloud
+from .errors import SurfelError
+from .methods import get_method
+from .options import RenderOptions
+from .result import RenderResult
+from .shading import check_model
+
+
+def default_camera(cloud: PointCloud, size=(1024, 1024), **framing) -> Camera:
+    """The auto-framing camera of CONVENTIONS.md for this cloud."""
+    return frame(cloud.center, cloud.bounding_radius, geospatial=cloud.geospatial, size=size, **framing)
+
+
+def complete(cloud: PointCloud, *, need_radii: bool = True, elliptical: bool = False,
+             normal_field: bool = False) -> tuple[PointCloud, dict]:
+    """Estimate whatever attributes the method needs and the cloud lacks (reported)."""
+    missing = cloud.normals is None or (need_radii and (cloud.radii is None or cloud.axes is None))
+    missing = missing or (normal_field and "phong_alpha" not in cloud.extras)
+    if not missing:
+        return cloud, {}
+    from .preprocess import prepare
+
+    return prepare(cloud, elliptical=elliptical, normal_field=normal_field)
+
+
+def resolve_backend(method_name: str, backend: str | None) -> str:
+    """The backend to use: as asked, else OpenGL, else the CPU with a one-line notice."""
+    method = get_method(method_name)
+    if backend is not None:
+        method.function(backend)  # validates
+        return backend
+    if "gl" in method.backends:
+        from .gl.context import gl_available, get_context
+
+        if gl_available():
+            return "gl"
+        if "cpu" in method.backends:
+            print(f"surfel: no OpenGL context, rendering {method_name} on the CPU", file=sys.stderr)
+            return "cpu"
+        get_context()  # raises NoOpenGLError with the install hint
+    return next(iter(method.backends))
+
+
+def render(cloud: PointCloud, camera: Camera | None = None, method: str = "deferred", *,
+           backend: str | None = None, size=(1024, 1024), options: RenderOptions | None = None,
+           **option_values) -> RenderResult:
+    """Render `cloud` with `method`; options as a RenderOptions or as keyword arguments."""
+    options = options or RenderOptions(**option_values)
+    check_model(options.shading)
+    m = get_method(method)
+    if m.needs_mesh and not cloud.is_mesh:
+        raise SurfelError(f"method {method!r} needs a mesh input (faces); {cloud.source or 'this cloud'} has none")
+    camera = camera or default_camera(cloud, size)
+    backend = resolve_backend(method, backend)
+    cloud, estimated = complete(cloud, need_radii=m.needs_radii,
+                                elliptical=method == "phong", normal_field=method == "phong")
+    function = m.function(backend)
+    start = time.perf_counter()
+    result = function(cloud, camera, options)
+    ms = (time.perf_counter() - start) * 1000
+    if backend == "gl":
+        from .gl.context import renderer_string
+
+        renderer = renderer_string()
+    else:
+        renderer = "cpu"
+    stats = {"method": method, "backend": backend, "renderer": renderer, "points": len(cloud),
+             "splats": len(cloud), "width": camera.width, "height": camera.height, "ms": round(ms, 3),
+             "shading": options.shading}
+    stats.update(result.stats)
+    if estimated:
+        stats["estimated"] = estimated
+    result.stats = stats
+    return result
+
+
+__all__ = ["render", "default_camera", "complete", "resolve_backend"]

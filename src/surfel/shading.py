@@ -1,0 +1,49 @@
+"""Shading models (CONVENTIONS.md "Shading"), numpy side; gl/shading.glsl is the GPU twin.
+
+lambert : albedo * (0.2 + 0.8 |n . v|), v the camera's viewing axis (a head-light). The
+          comparable one: tests and `compare` use it.
+phong   : the default for pretty pictures: a key light from the upper left plus a
+          Blinn-Phong specular highlight, two-sided.
+none    : unlit albedo.  normals: eye-space normal as colour.  depth: near white, far black
+          between the camera's near and far planes.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .errors import SurfelError
+
+MODELS = ("lambert", "phong", "none", "normals", "depth")
+MODEL_IDS = {"lambert": 0, "phong": 1, "none": 2, "normals": 3, "depth": 4}
+DEFAULT = "phong"
+
+_LIGHT = np.array([-0.4, 0.6, 0.8]) / np.linalg.norm([-0.4, 0.6, 0.8])
+_HALFWAY = (_LIGHT + [0, 0, 1]) / np.linalg.norm(_LIGHT + [0, 0, 1])
+
+
+def check_model(model: str) -> int:
+    if model not in MODEL_IDS:
+        raise SurfelError(f"unknown shading model {model!r}; choose one of {', '.join(MODELS)}")
+    return MODEL_IDS[model]
+
+
+def shade(model: str, albedo: np.ndarray, normals: np.ndarray, depth: np.ndarray,
+          near: float, far: float) -> np.ndarray:
+    """Shaded RGB (..., 3) float32 from albedo (..., 3), unit eye normals (..., 3), eye depth (...)."""
+    check_model(model)
+    albedo = np.asarray(albedo, np.float32)
+    n = np.asarray(normals, np.float32)
+    if model == "lambert":
+        return albedo * (0.2 + 0.8 * np.abs(n[..., 2:3]))
+    if model == "phong":
+        nf = np.where(n[..., 2:3] < 0, -n, n)
+        diffuse = 0.25 + 0.75 * np.maximum(nf @ _LIGHT.astype(np.float32), 0)[..., None]
+        specular = 0.3 * np.maximum(nf @ _HALFWAY.astype(np.float32), 0) ** 40
+        return (albedo * diffuse + specular[..., None]).astype(np.float32)
+    if model == "normals":
+        return 0.5 * n + 0.5
+    if model == "depth":
+        t = np.clip((np.asarray(depth, np.float32) - near) / max(far - near, 1e-12), 0, 1)
+        return np.repeat((1 - t)[..., None], 3, axis=-1).astype(np.float32)
+    return albedo
