@@ -1,15 +1,27 @@
 // Uniforms and helpers every surfel program shares.
 uniform mat4 u_view;        // world (relative to the cloud's local origin) to eye
 uniform mat4 u_projection;  // eye to clip, reproducing the camera intrinsics
-uniform vec2 u_viewport;    // render target size in pixels (supersampled)
+uniform vec2 u_viewport;    // image size in pixels (supersampled)
+uniform float u_guard;      // guard band: the render target is the image plus this many pixels per side
 uniform vec4 u_intrinsics;  // fx, fy, cx, cy in render-target pixels, image y down
 uniform float u_ortho;      // 0: perspective; otherwise pixels per world unit of the orthographic view
 uniform int u_shading;      // shading.glsl model id
 uniform vec2 u_depth_range; // camera near and far, for depth shading
 
+// Image coordinates (y down, origin at the image's top-left corner) of a fragment.
+vec2 image_coord(vec2 frag_coord) {
+    return vec2(frag_coord.x - u_guard, u_viewport.y + u_guard - frag_coord.y);
+}
+
+// Clip-space position (w = 1) of an image position, on the guard-banded render target.
+vec4 image_to_clip(vec2 image) {
+    vec2 target = u_viewport + 2.0 * u_guard;
+    return vec4(2.0 * (image.x + u_guard) / target.x - 1.0, 1.0 - 2.0 * (image.y + u_guard) / target.y, 0.0, 1.0);
+}
+
 // Eye-space ray through the fragment's pixel centre: origin and (unnormalised) direction.
 void pixel_ray(vec2 frag_coord, out vec3 origin, out vec3 direction) {
-    vec2 image = vec2(frag_coord.x, u_viewport.y - frag_coord.y);  // image y grows downwards
+    vec2 image = image_coord(frag_coord);
     if (u_ortho > 0.0) {
         origin = vec3((image.x - u_intrinsics.z) / u_ortho, (u_intrinsics.w - image.y) / u_ortho, 0.0);
         direction = vec3(0.0, 0.0, -1.0);

@@ -5,6 +5,7 @@ Every splat method reads the same layout (see splat_common.glsl):
     in_normal (3) unit normal
     in_color  (3) RGB albedo
     in_axis_u (3), in_axis_v (3) tangent axes scaled to the ellipse semi-axes
+    in_field  (2) Phong splatting's normal-field slopes (alpha, beta), 0 when absent
 Clouds larger than CHUNK points are drawn one chunk at a time so 10M+ points fit in memory;
 buffers are cached per cloud (weakly) so benchmarks measure drawing, not uploading.
 """
@@ -19,17 +20,19 @@ from ..cloud import PointCloud
 from .context import get_context
 
 CHUNK = 2_000_000
-ATTRIBUTES = ("in_center", "in_normal", "in_color", "in_axis_u", "in_axis_v")
+ATTRIBUTES = ("in_center", "in_normal", "in_color", "in_axis_u", "in_axis_v", "in_field")
+WIDTHS = (3, 3, 3, 3, 3, 2)
+FLOATS = sum(WIDTHS)
 CACHE_LIMIT_BYTES = 2_000_000_000
 
 _cache: "weakref.WeakKeyDictionary[PointCloud, list]" = weakref.WeakKeyDictionary()
 
 
 def pack(cloud: PointCloud, start: int = 0, stop: int | None = None) -> np.ndarray:
-    """(n, 15) float32 interleaved attributes for points [start, stop)."""
+    """(n, FLOATS) float32 interleaved attributes for points [start, stop)."""
     stop = len(cloud) if stop is None else stop
     n = stop - start
-    out = np.empty((n, 15), np.float32)
+    out = np.empty((n, FLOATS), np.float32)
     out[:, 0:3] = cloud.positions[start:stop] - cloud.local_origin
     out[:, 3:6] = cloud.normals[start:stop] if cloud.normals is not None else (0, 0, 1)
     out[:, 6:9] = cloud.colors[start:stop] if cloud.colors is not None else 1.0
@@ -37,6 +40,8 @@ def pack(cloud: PointCloud, start: int = 0, stop: int | None = None) -> np.ndarr
         out[:, 9:15] = cloud.axes[start:stop].reshape(n, 6)
     else:
         out[:, 9:15] = 0.0
+    for column, key in ((15, "phong_alpha"), (16, "phong_beta")):
+        out[:, column] = cloud.extras[key][start:stop] if key in cloud.extras else 0.0
     return out
 
 
@@ -48,7 +53,7 @@ def chunks(cloud: PointCloud):
         return
     ctx = get_context()
     n = len(cloud)
-    keep = n * 15 * 4 <= CACHE_LIMIT_BYTES
+    keep = n * FLOATS * 4 <= CACHE_LIMIT_BYTES
     buffers = []
     for start in range(0, n, CHUNK):
         stop = min(start + CHUNK, n)
@@ -65,12 +70,12 @@ def chunks(cloud: PointCloud):
 def vertex_array(ctx, program, vbo, *, instanced: bool):
     """A VAO over a packed chunk; attributes the compiler dropped from `program` become padding."""
     fmt, names = [], []
-    for name in ATTRIBUTES:
+    for name, width in zip(ATTRIBUTES, WIDTHS):
         if name in program:
-            fmt.append("3f")
+            fmt.append(f"{width}f")
             names.append(name)
         else:
-            fmt.append("12x")
+            fmt.append(f"{4 * width}x")
     layout = " ".join(fmt) + ("/i" if instanced else "")
     return ctx.vertex_array(program, [(vbo, layout, *names)])
 

@@ -40,6 +40,8 @@ METHODS: dict[str, Method] = {
                {"gl": "splatting:render_gaussian"}),
         Method("deferred", "Botsch et al. 2005: deferred shading with the EWA filter approximation",
                {"gl": "splatting:render_deferred"}),
+        Method("phong", "Botsch et al. 2004: Phong splatting, elliptical splats with linear normal fields",
+               {"gl": "splatting:render_phong"}),
     ]
 }
 

@@ -5,7 +5,9 @@
 //   PASS_NORMALIZE   full-screen: divide by the accumulated weight, then (deferred) shade
 // Variants: PER_SPLAT_SHADING (the 2003 Gouraud look: colours shaded per splat before
 // blending) or deferred shading from blended normals (2005); EWA_FILTER (2005 screen-space
-// filter approximation: the union of the object-space disk and a screen-space low-pass).
+// filter approximation: the union of the object-space disk and a screen-space low-pass);
+// NORMAL_FIELD (Botsch, Spernat & Kobbelt 2004, Phong splatting: the blended normal is the
+// splat's linear normal field N(u, v) = n + u alpha u_j + v beta v_j, eq. 8, per fragment).
 #include "common.glsl"
 #include "shading.glsl"
 
@@ -27,6 +29,7 @@ in vec3 in_normal;
 in vec3 in_color;
 in vec3 in_axis_u;
 in vec3 in_axis_v;
+in vec2 in_field;
 flat out vec3 v_center;     // eye space
 flat out vec3 v_normal;     // eye space, facing the camera
 flat out vec3 v_u;          // axis_u / |axis_u|^2: dot(q - c, v_u) is the local coordinate u
@@ -35,6 +38,9 @@ flat out vec3 v_color;      // albedo, or the per-splat shaded colour
 flat out vec2 v_center_px;  // projected centre in image pixels (for the low-pass)
 flat out float v_offset;    // z_t in eye units
 flat out float v_radius;    // largest semi-axis
+flat out float v_weight;    // EWA_FILTER: min(1, projected disk area / low-pass area)
+flat out vec3 v_field_u;    // alpha u_j and beta v_j: the normal field's slopes (eye space)
+flat out vec3 v_field_v;
 
 vec2 to_pixels(vec3 eye) {
     if (u_ortho > 0.0) return vec2(u_intrinsics.z + u_ortho * eye.x, u_intrinsics.w - u_ortho * eye.y);
@@ -50,6 +56,9 @@ void main() {
     vec3 to_eye = u_ortho > 0.0 ? vec3(0.0, 0.0, 1.0) : -c;
     bool back = dot(n, to_eye) < 0.0;
     if (back) n = -n;
+    // the normal field turns with the normal when the splat is seen from its back
+    v_field_u = (back ? -1.0 : 1.0) * in_field.x * normalize(au + 1e-30);
+    v_field_v = (back ? -1.0 : 1.0) * in_field.y * normalize(av + 1e-30);
     float near = u_depth_range.x;
     if ((back && u_backface_culling != 0) || (u_ortho == 0.0 && -c.z < near * 0.5 && -c.z + length(au) + length(av) < near)) {
         gl_Position = vec4(2.0, 2.0, 2.0, 1.0);  // outside the clip volume: no fragments
@@ -69,11 +78,26 @@ void main() {
     vec2 center_px = to_pixels(c);
 #ifdef EWA_FILTER
     lo = min(lo, center_px - u_lowpass_radius); hi = max(hi, center_px + u_lowpass_radius);
+    // A splat's total weight should follow its projected area, as EWA's 1/|J^-1| factor makes
+    // it: without this, edge-on and minified splats would weigh as much as a full low-pass disk.
+    vec2 ju = to_pixels(c + au) - center_px, jv = to_pixels(c + av) - center_px;
+    float disk_area = abs(ju.x * jv.y - ju.y * jv.x);  // pi cancels
+    v_weight = crosses_near ? 1.0 : min(1.0, disk_area / (u_lowpass_radius * u_lowpass_radius));
+#else
+    v_weight = 1.0;
 #endif
+#ifdef POINT_SPRITES
+    // One vertex per splat: a square sprite around the box, on a render target with a guard
+    // band so that sprites centred outside the image still reach into it (OpenGL drops a
+    // point whose centre is clipped). The driver picks quads when a splat could outgrow
+    // the guard band or the largest point size, or cross the near plane.
+    gl_Position = image_to_clip(0.5 * (lo + hi));
+    gl_PointSize = max(hi.x - lo.x, hi.y - lo.y) + 1.0;
+#else
     if (crosses_near) { lo = vec2(0.0); hi = u_viewport; }
     lo = max(lo, vec2(-1.0)); hi = min(hi, u_viewport + 1.0);
-    vec2 image = mix(lo, hi, corners[gl_VertexID]);
-    gl_Position = vec4(2.0 * image.x / u_viewport.x - 1.0, 1.0 - 2.0 * image.y / u_viewport.y, 0.0, 1.0);
+    gl_Position = image_to_clip(mix(lo, hi, corners[gl_VertexID]));
+#endif
 
     v_center = c;
     v_normal = n;
@@ -106,29 +130,33 @@ flat in vec3 v_color;
 flat in vec2 v_center_px;
 flat in float v_offset;
 flat in float v_radius;
+flat in float v_weight;
+flat in vec3 v_field_u;
+flat in vec3 v_field_v;
 
 // Squared distance of the fragment to the splat centre in the kernel's unit domain, and the
 // eye depth of the splat's plane seen there: the exact ray-plane intersection (perspective
 // accurate). Low-pass fragments outside the disk keep the plane's depth too, so coplanar
 // neighbours agree at grazing angles, where a pixel's footprint spans many splat radii in
 // depth; only near-parallel rays are clamped to the splat's depth range.
-float splat_distance(out float eye_depth) {
+float splat_distance(out float eye_depth, out vec2 local_uv) {
     vec3 o, d;
     pixel_ray(gl_FragCoord.xy, o, d);
     float denom = dot(d, v_normal);
     float rho2 = 1e30;
     float extent = DEPTH_CLAMP * v_radius;
     eye_depth = -v_center.z;
+    local_uv = vec2(0.0);
     if (abs(denom) > 1e-12) {
         vec3 q = o + d * (dot(v_center - o, v_normal) / denom);
         vec3 local = q - v_center;
         float u = dot(local, v_u), v = dot(local, v_v);
         rho2 = u * u + v * v;
+        local_uv = vec2(u, v);
         eye_depth = clamp(-q.z, -v_center.z - extent, -v_center.z + extent);
     }
 #ifdef EWA_FILTER
-    vec2 image = vec2(gl_FragCoord.x, u_viewport.y - gl_FragCoord.y);
-    vec2 delta = (image - v_center_px) / u_lowpass_radius;
+    vec2 delta = (image_coord(gl_FragCoord.xy) - v_center_px) / u_lowpass_radius;
     rho2 = min(rho2, dot(delta, delta));  // union of reconstruction kernel and low-pass
 #endif
     return rho2;
@@ -139,7 +167,11 @@ float splat_distance(out float eye_depth) {
 layout(location = 0) out vec4 out_depth;
 void main() {
     float z;
-    if (splat_distance(z) > 1.0) discard;
+    vec2 uv;
+    if (splat_distance(z, uv) > 1.0) discard;
+    // a low-pass fragment lies off the disk: it must not hide surfaces nearer than the disk's
+    // far end, or edge-on splats punch wrong normals into the visible surface
+    if (dot(uv, uv) > 1.0) z = max(z, -v_center.z + v_radius);
     out_depth = vec4(z + v_offset, 0.0, 0.0, 0.0);
 }
 #endif
@@ -149,12 +181,18 @@ layout(location = 0) out vec4 out_color;   // (w rgb, w)
 layout(location = 1) out vec4 out_normal;  // (w n, w z)
 void main() {
     float z;
-    float rho2 = splat_distance(z);
+    vec2 uv;
+    float rho2 = splat_distance(z, uv);
     if (rho2 > 1.0) discard;
     if (z > texelFetch(u_visibility, ivec2(gl_FragCoord.xy), 0).r) discard;  // behind the visible surface
-    float w = texture(u_kernel, vec2(rho2, 0.5)).r;
+    float w = v_weight * texture(u_kernel, vec2(rho2, 0.5)).r;
     out_color = vec4(w * v_color, w);
-    out_normal = vec4(w * v_normal, w * z);
+#ifdef NORMAL_FIELD
+    vec3 n = normalize(v_normal + uv.x * v_field_u + uv.y * v_field_v);
+#else
+    vec3 n = v_normal;
+#endif
+    out_normal = vec4(w * n, w * z);
 }
 #endif
 
@@ -163,7 +201,7 @@ layout(location = 0) out vec4 out_shaded;
 layout(location = 1) out vec4 out_normal;
 layout(location = 2) out vec4 out_depth;
 void main() {
-    ivec2 texel = ivec2(gl_FragCoord.xy);
+    ivec2 texel = ivec2(gl_FragCoord.xy) + ivec2(u_guard);  // accumulators carry the guard band
     vec4 acc = texelFetch(u_accum_color, texel, 0);
     vec4 accn = texelFetch(u_accum_normal, texel, 0);
     if (acc.a <= 0.0) {

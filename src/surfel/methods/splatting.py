@@ -18,6 +18,13 @@ normalized normal and depth. With the EWA filter approximation (on by default) a
 distance is min(|(u, v)|², |x - m(c)|² / r_lp²): the union of the object-space
 reconstruction kernel and a screen-space low-pass of radius r_lp ≈ 1 pixel, so every
 splat covers at least 2x2 pixels and minified textures do not alias (Fig. 10).
+
+`phong` -- Botsch, Spernat & Kobbelt 2004, "Phong splatting" (survey 2.1.4): elliptical
+splats (c_j, u_j, v_j), the per-fragment ray-plane intersection q = q_n (cᵀn)/(q_nᵀn) and
+local (u, v) = (u_jᵀ(q - c_j), v_jᵀ(q - c_j)) / |axis|² (eq. 7), discarding u² + v² > 1,
+exact per-pixel depth, and the linear normal field N_j(u, v) = n̄_j + u α_j û_j + v β_j v̂_j
+(eq. 8, α_j and β_j fitted in preprocessing: surfel.preprocess.fit_normal_field), blended
+with Gaussian weights, normalized and lit per pixel as in `deferred`.
 """
 
 from __future__ import annotations
@@ -35,8 +42,25 @@ from ..gl.uniforms import apply_common
 SHADER = Path(__file__).with_suffix(".glsl")
 KERNEL_SIZE = 256
 DEFAULT_DEPTH_OFFSET = 1.0   # z_t = one splat radius
-DEFAULT_SUPERSAMPLE = 2      # anti-aliased silhouettes; the EWA filter handles texture
+DEFAULT_SUPERSAMPLE = 1      # as in the papers; --supersample 2 smooths silhouettes further
 GAUSSIAN_SHARPNESS = 2.0     # w = exp(-2 d²): the disk boundary sits at two standard deviations
+GUARD = 128                  # guard band in pixels: half of llvmpipe's (and most GPUs') 255 px point limit
+MAX_SPRITE = 255
+
+
+def use_point_sprites(cloud, camera, radius_scale: float, supersample: int, lowpass: float) -> bool:
+    """Point sprites (one vertex a splat) unless a splat could cross the near plane or need
+    a sprite larger than the guard band allows; then instanced quads (four vertices a splat)."""
+    max_radius = float(np.linalg.norm(cloud.axes, axis=2).max()) * radius_scale
+    if camera.ortho_height is not None:
+        pixels = max_radius * camera.height * supersample / camera.ortho_height
+    else:
+        distance = float(-(camera.view_matrix() @ np.append(cloud.center, 1.0))[2])
+        nearest = distance - cloud.bounding_radius - max_radius
+        if nearest <= camera.near:
+            return False
+        pixels = max_radius * camera.fy * supersample / nearest * 1.5  # 1.5: off-axis stretch
+    return 2 * (pixels + lowpass) + 2 <= min(2 * GUARD, MAX_SPRITE)
 
 
 def gaussian_kernel_texture(ctx):
@@ -57,24 +81,34 @@ def render_deferred(cloud, camera, options):
                    ewa_filter=options.ewa_filter is None or bool(options.ewa_filter))
 
 
-def _render(cloud, camera, options, *, per_splat_shading: bool, ewa_filter: bool):
+def render_phong(cloud, camera, options):
+    return _render(cloud, camera, options, per_splat_shading=False, normal_field=True,
+                   ewa_filter=bool(options.ewa_filter) if options.ewa_filter is not None else False)
+
+
+def _render(cloud, camera, options, *, per_splat_shading: bool, ewa_filter: bool, normal_field: bool = False):
     ctx = get_context()
     ss = options.supersample or DEFAULT_SUPERSAMPLE
     width, height = camera.width * ss, camera.height * ss
-    variant = {"PER_SPLAT_SHADING": per_splat_shading, "EWA_FILTER": ewa_filter}
+    lowpass = options.lowpass_radius * ss if ewa_filter else 0.0
+    sprites = use_point_sprites(cloud, camera, options.radius_scale, ss, lowpass)
+    guard = GUARD if sprites else 0
+    variant = {"PER_SPLAT_SHADING": per_splat_shading, "EWA_FILTER": ewa_filter, "NORMAL_FIELD": normal_field,
+               "POINT_SPRITES": sprites}
     programs = {p: build_program(SHADER, {p: True, **variant})
                 for p in ("PASS_VISIBILITY", "PASS_ATTRIBUTE", "PASS_NORMALIZE")}
     depth_offset = DEFAULT_DEPTH_OFFSET if options.depth_offset is None else options.depth_offset
     for program in programs.values():
         apply_common(program, camera, cloud.local_origin, ss, options.shading,
                      u_radius_scale=options.radius_scale, u_depth_offset=depth_offset,
-                     u_lowpass_radius=options.lowpass_radius * ss,
+                     u_lowpass_radius=options.lowpass_radius * ss, u_guard=float(guard),
                      u_backface_culling=int(options.backface_culling),
                      u_kernel=0, u_visibility=1, u_accum_color=2, u_accum_normal=3)
 
     kernel = gaussian_kernel_texture(ctx)
-    visibility = ctx.texture((width, height), 1, dtype="f4")
-    accum = [ctx.texture((width, height), 4, dtype="f4") for _ in range(2)]
+    target = (width + 2 * guard, height + 2 * guard)
+    visibility = ctx.texture(target, 1, dtype="f4")
+    accum = [ctx.texture(target, 4, dtype="f4") for _ in range(2)]
     for tex in (visibility, *accum):
         tex.filter = (ctx.NEAREST, ctx.NEAREST)
     vis_fbo = ctx.framebuffer(color_attachments=[visibility])
@@ -83,20 +117,21 @@ def _render(cloud, camera, options, *, per_splat_shading: bool, ewa_filter: bool
     empty = ctx.vertex_array(programs["PASS_NORMALIZE"], [])
     try:
         ctx.disable(ctx.DEPTH_TEST | ctx.CULL_FACE)
-        ctx.enable(ctx.BLEND)
+        ctx.enable(ctx.BLEND | ctx.PROGRAM_POINT_SIZE)
+        mode = ctx.POINTS if sprites else ctx.TRIANGLE_STRIP
         kernel.use(0)
 
         vis_fbo.use()
         vis_fbo.clear(3.0e38, 0, 0, 0)
         ctx.blend_equation = ctx.MIN
-        splats.draw(ctx, cloud, programs["PASS_VISIBILITY"], ctx.TRIANGLE_STRIP, instanced=True)
+        splats.draw(ctx, cloud, programs["PASS_VISIBILITY"], mode, instanced=not sprites)
 
         accum_fbo.use()
         accum_fbo.clear(0, 0, 0, 0)
         ctx.blend_equation = ctx.FUNC_ADD
         ctx.blend_func = ctx.ONE, ctx.ONE
         visibility.use(1)
-        splats.draw(ctx, cloud, programs["PASS_ATTRIBUTE"], ctx.TRIANGLE_STRIP, instanced=True)
+        splats.draw(ctx, cloud, programs["PASS_ATTRIBUTE"], mode, instanced=not sprites)
 
         ctx.disable(ctx.BLEND)
         out.fbo.use()
@@ -105,10 +140,11 @@ def _render(cloud, camera, options, *, per_splat_shading: bool, ewa_filter: bool
         accum[1].use(3)
         empty.render(ctx.TRIANGLES, vertices=3)
         ctx.finish()
-        stats = {"splats": len(cloud), "supersample": ss, "ewa_filter": ewa_filter}
+        stats = {"splats": len(cloud), "supersample": ss, "ewa_filter": ewa_filter,
+                 "primitive": "point sprites" if sprites else "quads"}
         result = gbuffer_result(out, camera, options, ss, stats)
         if options.dump_passes:
-            dump_passes(options.dump_passes, visibility, accum, result)
+            dump_passes(options.dump_passes, visibility, accum, result, guard)
         return result
     finally:
         ctx.blend_equation = ctx.FUNC_ADD
@@ -117,19 +153,20 @@ def _render(cloud, camera, options, *, per_splat_shading: bool, ewa_filter: bool
         out.release()
 
 
-def dump_passes(folder, visibility, accum, result) -> None:
+def dump_passes(folder, visibility, accum, result, guard: int) -> None:
     """The survey's Fig. 5: visibility depth, accumulated weight and colour, normalized result."""
     from PIL import Image
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    depth = read_texture(visibility)[..., 0]
+    inner = (slice(guard, visibility.height - guard), slice(guard, visibility.width - guard))
+    depth = read_texture(visibility)[inner][..., 0]
     valid = depth < 1e37
     gray = np.zeros_like(depth)
     if valid.any():
         lo, hi = depth[valid].min(), depth[valid].max()
         gray[valid] = 1 - 0.8 * (depth[valid] - lo) / max(hi - lo, 1e-12)
-    color = read_texture(accum[0])
+    color = read_texture(accum[0])[inner]
     weight = color[..., 3] / max(float(color[..., 3].max()), 1e-12)
 
     def save(name, image):

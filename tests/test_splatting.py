@@ -1,0 +1,110 @@
+"""GPU splatting (gaussian, deferred, phong) and the two reference renderers, on real data."""
+
+import numpy as np
+import pytest
+
+from conftest import data_file, requires_gl
+from scenes import checker_plane, checker_reference, far_half_rms, grazing_camera
+from surfel.camera import frame
+from surfel.metrics import compare_results
+from surfel.render import render
+from surfel.shading import MODELS, shade
+
+pytestmark = requires_gl
+SIZE = (512, 512)
+
+
+@pytest.fixture(scope="module")
+def views(bunny):
+    cams = {v: frame(bunny.center, bunny.bounding_radius, view=v, size=SIZE) for v in ("front", "right")}
+    refs = {v: render(bunny, cam, "mesh", shading="lambert") for v, cam in cams.items()}
+    return cams, refs
+
+
+@pytest.mark.parametrize("view", ["front", "right"])
+def test_deferred_and_gaussian_against_mesh(bunny, views, view):
+    cams, refs = views
+    cloud = bunny.with_(faces=None)
+    points = compare_results(refs[view], render(cloud, cams[view], "points", shading="lambert"))
+    deferred = compare_results(refs[view], render(cloud, cams[view], "deferred", shading="lambert"))
+    gaussian = compare_results(refs[view], render(cloud, cams[view], "gaussian", shading="lambert"))
+    assert deferred["psnr"] >= 27 and deferred["holes"] <= 0.001
+    assert deferred["psnr"] >= points["psnr"] + 3
+    assert gaussian["psnr"] >= 25 and gaussian["holes"] <= 0.001
+    assert points["holes"] <= 0.02
+
+
+def test_phong_splatting_against_mesh(bunny, views):
+    cams, refs = views
+    metrics = compare_results(refs["front"], render(bunny.with_(faces=None), cams["front"], "phong", shading="lambert"))
+    assert metrics["psnr"] >= 27 and metrics["holes"] <= 0.001
+
+
+def test_mesh_shading_models_match_numpy(bunny):
+    """The GLSL shading models and their numpy twins give the same colours."""
+    cam = frame(bunny.center, bunny.bounding_radius, size=(128, 128))
+    for model in MODELS:
+        result = render(bunny, cam, "mesh", shading=model, supersample=1)
+        covered = result.alpha == 1
+        expected = shade(model, np.ones_like(result.color), result.normals, result.depth, cam.near, cam.far)
+        assert np.abs(result.color[covered] - expected[covered]).max() < 2e-3, model
+
+
+def test_buffers_follow_the_contract(bunny):
+    cam = frame(bunny.center, bunny.bounding_radius, size=(96, 64))
+    mesh = render(bunny, cam, "mesh", shading="lambert")
+    splat = render(bunny.with_(faces=None), cam, "deferred", shading="lambert")
+    for r in (mesh, splat):
+        assert r.color.shape == (64, 96, 3) and r.depth.shape == (64, 96) and r.normals.shape == (64, 96, 3)
+        assert np.isinf(r.depth[r.alpha == 0]).all() and (r.normals[r.alpha == 0] == 0).all()
+        covered = r.alpha > 0
+        assert np.allclose(np.linalg.norm(r.normals[covered], axis=-1), 1, atol=1e-3)
+        assert (r.normals[covered][:, 2] >= -1e-3).all()  # facing the viewer
+    both = (mesh.alpha == 1) & (splat.alpha == 1)
+    rel = np.abs(splat.depth[both] - mesh.depth[both]) / mesh.depth[both]
+    assert np.median(rel) < 2e-3
+    # depth is the eye distance along the viewing axis: inside the camera's clip range
+    assert (mesh.depth[both] > cam.near).all() and (mesh.depth[both] < cam.far).all()
+
+
+def test_orthographic_camera_for_every_splat_method(bunny):
+    r = bunny.bounding_radius
+    cam = frame(bunny.center, r, size=(128, 128), ortho_height=2.2 * r)
+    ref = render(bunny, cam, "mesh", shading="lambert")
+    assert ref.alpha.mean() > 0.1
+    for method in ("points", "gaussian", "deferred", "phong"):
+        metrics = compare_results(ref, render(bunny.with_(faces=None), cam, method, shading="lambert"))
+        assert metrics["holes"] <= 0.01 and metrics["psnr"] > 22, method
+
+
+def test_lidar_colours_are_splatted(tmp_path):
+    from surfel.io import load
+    from surfel.render import default_camera
+
+    cloud = load(data_file("autzen_trim.laz"))
+    cam = default_camera(cloud, (256, 256), view="top")
+    result = render(cloud, cam, "deferred", shading="none")
+    covered = result.alpha > 0.99
+    assert covered.mean() > 0.5
+    # continuous, not speckled: neighbouring covered pixels differ little on average
+    diff = np.abs(np.diff(result.color, axis=1)).mean(-1)
+    both = covered[:, 1:] & covered[:, :-1]
+    assert np.median(diff[both]) < 0.06
+    # colours, not grey: the tile has green and brown
+    assert result.color[covered].std(axis=0).mean() > 0.03
+
+
+def test_ewa_filter_reduces_minification_error():
+    cam = grazing_camera((256, 256))
+    plane = checker_plane(304)
+    reference = checker_reference(cam, samples=8)
+    points = far_half_rms(reference, render(plane, cam, "points", shading="none"))
+    filtered = far_half_rms(reference, render(plane, cam, "deferred", shading="none", ewa_filter=True))
+    assert filtered < 0.5 * points
+
+
+def test_dump_passes_writes_the_three_passes(bunny, tmp_path):
+    cam = frame(bunny.center, bunny.bounding_radius, size=(64, 64))
+    render(bunny.with_(faces=None), cam, "deferred", dump_passes=str(tmp_path))
+    names = sorted(p.name for p in tmp_path.iterdir())
+    assert names == ["1-visibility-depth.png", "2-accumulated-weight.png", "3-accumulated-color.png", "4-normalized.png"]
