@@ -18,7 +18,7 @@ uniform float u_depth_offset;    // z_t as a fraction of the splat radius
 uniform float u_lowpass_radius;  // pixels
 uniform int u_backface_culling;
 uniform sampler2D u_kernel;      // Gaussian weight exp(-2 d^2), indexed by d^2 in [0, 1]
-uniform sampler2D u_visibility;  // PASS_ATTRIBUTE: nearest depth + z_t per pixel
+uniform sampler2D u_visibility;  // nearest depth + z_t, and 1 - coverage, per pixel
 uniform sampler2D u_accum_color; // PASS_NORMALIZE: (sum w rgb, sum w)
 uniform sampler2D u_accum_normal;// PASS_NORMALIZE: (sum w n, sum w z)
 
@@ -38,7 +38,7 @@ flat out vec3 v_color;      // albedo, or the per-splat shaded colour
 flat out vec2 v_center_px;  // projected centre in image pixels (for the low-pass)
 flat out float v_offset;    // z_t in eye units
 flat out float v_radius;    // largest semi-axis
-flat out float v_weight;    // EWA_FILTER: min(1, projected disk area / low-pass area)
+flat out float v_weight;    // EWA_FILTER: the resampling kernel's relative amplitude
 flat out vec3 v_field_u;    // alpha u_j and beta v_j: the normal field's slopes (eye space)
 flat out vec3 v_field_v;
 
@@ -78,11 +78,15 @@ void main() {
     vec2 center_px = to_pixels(c);
 #ifdef EWA_FILTER
     lo = min(lo, center_px - u_lowpass_radius); hi = max(hi, center_px + u_lowpass_radius);
-    // A splat's total weight should follow its projected area, as EWA's 1/|J^-1| factor makes
-    // it: without this, edge-on and minified splats would weigh as much as a full low-pass disk.
+    // EWA's normalization: the resampling kernel G_{S + r²I} has amplitude
+    // sqrt(det S / det(S + r²I)) relative to the reconstruction kernel G_S, S = J V Jᵀ the
+    // projected splat. Without it, edge-on and minified splats would weigh as much as a
+    // full-size splat wherever the low-pass widens them.
     vec2 ju = to_pixels(c + au) - center_px, jv = to_pixels(c + av) - center_px;
-    float disk_area = abs(ju.x * jv.y - ju.y * jv.x);  // pi cancels
-    v_weight = crosses_near ? 1.0 : min(1.0, disk_area / (u_lowpass_radius * u_lowpass_radius));
+    float r2 = u_lowpass_radius * u_lowpass_radius;
+    float det_s = pow(ju.x * jv.y - ju.y * jv.x, 2.0);
+    float trace_s = dot(ju, ju) + dot(jv, jv);
+    v_weight = crosses_near ? 1.0 : sqrt(det_s / (det_s + r2 * trace_s + r2 * r2));
 #else
     v_weight = 1.0;
 #endif
@@ -168,11 +172,17 @@ layout(location = 0) out vec4 out_depth;
 void main() {
     float z;
     vec2 uv;
-    if (splat_distance(z, uv) > 1.0) discard;
+    float rho2 = splat_distance(z, uv);
+    // Coverage for anti-aliased silhouettes: the pixel centre's signed distance to the
+    // splat's edge in pixels, from the screen-space gradient of the kernel distance (taken
+    // before any discard, while the whole 2x2 fragment quad is alive).
+    float rho = sqrt(rho2);
+    float coverage = clamp(0.5 + (1.0 - rho) / max(length(vec2(dFdx(rho), dFdy(rho))), 1e-6), 0.0, 1.0);
+    if (rho2 > 1.0) discard;
     // a low-pass fragment lies off the disk: it must not hide surfaces nearer than the disk's
     // far end, or edge-on splats punch wrong normals into the visible surface
     if (dot(uv, uv) > 1.0) z = max(z, -v_center.z + v_radius);
-    out_depth = vec4(z + v_offset, 0.0, 0.0, 0.0);
+    out_depth = vec4(z + v_offset, 1.0 - coverage, 0.0, 0.0);  // MIN blending: nearest, most covering
 }
 #endif
 
@@ -203,6 +213,7 @@ layout(location = 2) out vec4 out_depth;
 void main() {
     ivec2 texel = ivec2(gl_FragCoord.xy) + ivec2(u_guard);  // accumulators carry the guard band
     vec4 acc = texelFetch(u_accum_color, texel, 0);
+    float coverage = 1.0 - texelFetch(u_visibility, texel, 0).g;
     vec4 accn = texelFetch(u_accum_normal, texel, 0);
     if (acc.a <= 0.0) {
         out_shaded = vec4(0.0); out_normal = vec4(0.0); out_depth = vec4(0.0);
@@ -214,7 +225,7 @@ void main() {
 #ifndef PER_SPLAT_SHADING
     color = shade(u_shading, color, n, z, u_depth_range.x, u_depth_range.y);  // deferred shading
 #endif
-    out_shaded = vec4(color, 1.0);
+    out_shaded = vec4(color, coverage);
     out_normal = vec4(n, 0.0);
     out_depth = vec4(z, 0.0, 0.0, 0.0);
 }

@@ -107,7 +107,7 @@ def _render(cloud, camera, options, *, per_splat_shading: bool, ewa_filter: bool
 
     kernel = gaussian_kernel_texture(ctx)
     target = (width + 2 * guard, height + 2 * guard)
-    visibility = ctx.texture(target, 1, dtype="f4")
+    visibility = ctx.texture(target, 2, dtype="f4")
     accum = [ctx.texture(target, 4, dtype="f4") for _ in range(2)]
     for tex in (visibility, *accum):
         tex.filter = (ctx.NEAREST, ctx.NEAREST)
@@ -122,7 +122,7 @@ def _render(cloud, camera, options, *, per_splat_shading: bool, ewa_filter: bool
         kernel.use(0)
 
         vis_fbo.use()
-        vis_fbo.clear(3.0e38, 0, 0, 0)
+        vis_fbo.clear(3.0e38, 1.0, 0, 0)
         ctx.blend_equation = ctx.MIN
         splats.draw(ctx, cloud, programs["PASS_VISIBILITY"], mode, instanced=not sprites)
 
@@ -136,6 +136,7 @@ def _render(cloud, camera, options, *, per_splat_shading: bool, ewa_filter: bool
         ctx.disable(ctx.BLEND)
         out.fbo.use()
         out.clear()
+        visibility.use(1)
         accum[0].use(2)
         accum[1].use(3)
         empty.render(ctx.TRIANGLES, vertices=3)
