@@ -296,6 +296,30 @@ def prepare(input, output, neighbors, viewpoint, elliptical, normal_field):
     click.echo(f"{output}: {len(prepared)} points; " + ", ".join(f"{k}: {v}" for k, v in report.items()), err=True)
 
 
+@main.group(context_settings=CONTEXT)
+def lod():
+    """Level of detail: sequential point trees (Dachsbacher et al. 2003)."""
+
+
+@lod.command("build", context_settings=CONTEXT)
+@click.argument("input", type=click.Path(dir_okay=False))
+@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False), help="Hierarchy to write (.lod.npz).")
+@click.option("--stats", type=click.Path(dir_okay=False), default=None, help="Write build statistics (.json).")
+def lod_build(input, output, stats):
+    """Build the point-tree hierarchy of INPUT; render the result with --lod-error PX.
+
+    \b
+    Example:
+      surfel lod build scan.laz -o scan.lod.npz --stats build.json
+      surfel render scan.lod.npz -o far.png --lod-error 1 --zoom 4
+    """
+    from .lod import build_command
+
+    result = build_command(input, output, stats)
+    click.echo(f"{output}: {result['points']} points, {result['nodes']} nodes in {result['ms']:.0f} ms "
+               f"({result['points_per_s'] / 1e6:.2f} M points/s)", err=True)
+
+
 @main.command(context_settings=CONTEXT)
 @click.option("--input", "input_path", type=click.Path(dir_okay=False), default=None, help="Model to replicate (default: the demo model).")
 @click.option("--points", type=click.IntRange(1), default=1_000_000, show_default=True, help="Replicate and jitter the input to N points.")

@@ -5,6 +5,8 @@ from __future__ import annotations
 import sys
 import time
 
+import numpy as np
+
 
 from .camera import Camera, frame
 from .cloud import PointCloud
@@ -60,9 +62,19 @@ def render(cloud: PointCloud, camera: Camera | None = None, method: str = "defer
     if m.needs_mesh and not cloud.is_mesh:
         raise SurfelError(f"method {method!r} needs a mesh input (faces); {cloud.source or 'this cloud'} has none")
     camera = camera or default_camera(cloud, size)
+    input_points = len(cloud)
     backend = resolve_backend(method, backend)
     cloud, estimated = complete(cloud, need_radii=m.needs_radii,
                                 elliptical=method == "phong", normal_field=method == "phong")
+    if options.lod_error is not None and m.needs_radii:
+        from .lod import as_sequential, lod_subset
+
+        cloud = as_sequential(cloud)
+        if backend != "gl":  # no vertex shader to run the per-point test: select on the CPU
+            cloud = lod_subset(cloud, camera, options.lod_error)
+    if cloud.axes is not None:  # clip planes around the splats themselves, not only their centres
+        reach = float(np.sqrt((cloud.axes.astype(np.float32) ** 2).sum(axis=2)).max()) * options.radius_scale
+        camera = camera.fit_clip_planes(cloud.center, cloud.bounding_radius + reach)
     function = m.function(backend)
     start = time.perf_counter()
     result = function(cloud, camera, options)
@@ -73,7 +85,7 @@ def render(cloud: PointCloud, camera: Camera | None = None, method: str = "defer
         renderer = renderer_string()
     else:
         renderer = "cpu"
-    stats = {"method": method, "backend": backend, "renderer": renderer, "points": len(cloud),
+    stats = {"method": method, "backend": backend, "renderer": renderer, "points": input_points,
              "splats": len(cloud), "width": camera.width, "height": camera.height, "ms": round(ms, 3),
              "shading": options.shading}
     stats.update(result.stats)

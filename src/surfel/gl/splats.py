@@ -6,6 +6,8 @@ Every splat method reads the same layout (see splat_common.glsl):
     in_color  (3) RGB albedo
     in_axis_u (3), in_axis_v (3) tangent axes scaled to the ellipse semi-axes
     in_field  (2) Phong splatting's normal-field slopes (alpha, beta), 0 when absent
+    in_lod    (3) sequential point tree node: e_g, parent's e_g, distance to the parent
+                  (surfel.lod; a cloud without them is all leaves that always pass)
 Clouds larger than CHUNK points are drawn one chunk at a time so 10M+ points fit in memory;
 buffers are cached per cloud (weakly) so benchmarks measure drawing, not uploading.
 """
@@ -20,8 +22,9 @@ from ..cloud import PointCloud
 from .context import get_context
 
 CHUNK = 2_000_000
-ATTRIBUTES = ("in_center", "in_normal", "in_color", "in_axis_u", "in_axis_v", "in_field")
-WIDTHS = (3, 3, 3, 3, 3, 2)
+ATTRIBUTES = ("in_center", "in_normal", "in_color", "in_axis_u", "in_axis_v", "in_field", "in_lod")
+WIDTHS = (3, 3, 3, 3, 3, 2, 3)
+LOD_EXTRAS = ("lod_emin", "lod_emax", "lod_dparent")
 FLOATS = sum(WIDTHS)
 CACHE_LIMIT_BYTES = 2_000_000_000
 
@@ -42,6 +45,10 @@ def pack(cloud: PointCloud, start: int = 0, stop: int | None = None) -> np.ndarr
         out[:, 9:15] = 0.0
     for column, key in ((15, "phong_alpha"), (16, "phong_beta")):
         out[:, column] = cloud.extras[key][start:stop] if key in cloud.extras else 0.0
+    if all(key in cloud.extras for key in LOD_EXTRAS):
+        out[:, 17:20] = np.stack([cloud.extras[key][start:stop] for key in LOD_EXTRAS], axis=1)
+    else:
+        out[:, 17:20] = (0.0, np.finfo(np.float32).max, 0.0)
     return out
 
 
@@ -80,12 +87,32 @@ def vertex_array(ctx, program, vbo, *, instanced: bool):
     return ctx.vertex_array(program, [(vbo, layout, *names)])
 
 
-def draw(ctx, cloud, program, mode, *, instanced: bool):
-    """Draw the whole cloud with `program`: instanced 4-vertex strips, or one vertex a point."""
-    for vbo, count in chunks(cloud):
+def draw(ctx, cloud, program, mode, *, instanced: bool, count: int | None = None):
+    """Draw the cloud's first `count` points (all by default) with `program`: instanced
+    4-vertex strips, or one vertex a point."""
+    remaining = len(cloud) if count is None else count
+    for vbo, chunk in chunks(cloud):
+        count = min(chunk, remaining)
+        remaining -= count
+        if count <= 0:
+            continue
         vao = vertex_array(ctx, program, vbo, instanced=instanced)
         if instanced:
             vao.render(mode, vertices=4, instances=count)
         else:
             vao.render(mode, vertices=count)
         vao.release()
+
+
+def lod_frame(cloud: PointCloud, camera, lod_error: float | None):
+    """Per-frame sequential point tree parameters: (u_lod_k, prefix to draw, drawn mask).
+
+    Without LOD: k = 0 (the shader test passes everything), the whole cloud, mask None.
+    The mask is the CPU twin of the shader test, for the stats and the sprite-size bound.
+    """
+    if lod_error is None:
+        return 0.0, None, None
+    from ..lod import frame_parameters, select_sequential
+
+    prefix, k = frame_parameters(cloud, camera, lod_error)
+    return k, prefix, select_sequential(cloud, camera, lod_error)

@@ -1,6 +1,7 @@
 // Naive point rendering (survey Fig. 6, left): every point a screen-aligned disk of its
 // projected radius (eq. 6), ordinary z-buffer, flat-shaded by its own normal, no filtering.
 #include "common.glsl"
+#include "lod.glsl"
 #include "shading.glsl"
 uniform float u_radius_scale;
 
@@ -10,11 +11,13 @@ in vec3 in_normal;
 in vec3 in_color;
 in vec3 in_axis_u;
 in vec3 in_axis_v;
+in vec3 in_lod;
 flat out vec3 v_shaded;
 flat out vec3 v_normal;
 flat out float v_depth;
 void main() {
     vec4 eye = u_view * vec4(in_center, 1.0);
+    if (!lod_visible(eye.xyz, in_lod.x, in_lod.y, in_lod.z)) { gl_Position = LOD_CULLED; return; }
     vec3 n = normalize(mat3(u_view) * in_normal);
     vec3 to_eye = u_ortho > 0.0 ? vec3(0.0, 0.0, 1.0) : -eye.xyz;
     if (dot(n, to_eye) < 0.0) n = -n;

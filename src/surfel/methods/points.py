@@ -22,15 +22,18 @@ def render_points(cloud, camera, options):
     ctx = get_context()
     ss = options.supersample or 1
     program = build_program(SHADER)
-    apply_common(program, camera, cloud.local_origin, ss, options.shading, u_radius_scale=options.radius_scale)
+    lod_k, prefix, drawn = splats.lod_frame(cloud, camera, options.lod_error)
+    apply_common(program, camera, cloud.local_origin, ss, options.shading, u_radius_scale=options.radius_scale,
+                 u_lod_k=lod_k)
     gbuffer = GBuffer(camera.width * ss, camera.height * ss)
     try:
         gbuffer.fbo.use()
         gbuffer.clear()
         ctx.disable(ctx.BLEND | ctx.CULL_FACE)
         ctx.enable(ctx.DEPTH_TEST | ctx.PROGRAM_POINT_SIZE)
-        splats.draw(ctx, cloud, program, ctx.POINTS, instanced=False)
+        splats.draw(ctx, cloud, program, ctx.POINTS, instanced=False, count=prefix)
         ctx.finish()
-        return gbuffer_result(gbuffer, camera, options, ss, {"splats": len(cloud)})
+        return gbuffer_result(gbuffer, camera, options, ss,
+                              {"splats": len(cloud) if drawn is None else int(drawn.sum())})
     finally:
         gbuffer.release()

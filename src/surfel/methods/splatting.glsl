@@ -9,6 +9,7 @@
 // NORMAL_FIELD (Botsch, Spernat & Kobbelt 2004, Phong splatting: the blended normal is the
 // splat's linear normal field N(u, v) = n + u alpha u_j + v beta v_j, eq. 8, per fragment).
 #include "common.glsl"
+#include "lod.glsl"
 #include "shading.glsl"
 
 #define DEPTH_CLAMP 32.0  // splat radii: how far the plane's depth may stray from the centre's
@@ -29,6 +30,7 @@ in vec3 in_normal;
 in vec3 in_color;
 in vec3 in_axis_u;
 in vec3 in_axis_v;
+in vec3 in_lod;
 in vec2 in_field;
 flat out vec3 v_center;     // eye space
 flat out vec3 v_normal;     // eye space, facing the camera
@@ -50,6 +52,7 @@ vec2 to_pixels(vec3 eye) {
 void main() {
     const vec2 corners[4] = vec2[4](vec2(0.0, 0.0), vec2(1.0, 0.0), vec2(0.0, 1.0), vec2(1.0, 1.0));
     vec3 c = (u_view * vec4(in_center, 1.0)).xyz;
+    if (!lod_visible(c, in_lod.x, in_lod.y, in_lod.z)) { gl_Position = LOD_CULLED; return; }
     vec3 n = normalize(mat3(u_view) * in_normal);
     vec3 au = mat3(u_view) * in_axis_u * u_radius_scale;
     vec3 av = mat3(u_view) * in_axis_v * u_radius_scale;

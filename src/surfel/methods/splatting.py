@@ -48,10 +48,14 @@ GUARD = 128                  # guard band in pixels: half of llvmpipe's (and mos
 MAX_SPRITE = 255
 
 
-def use_point_sprites(cloud, camera, radius_scale: float, supersample: int, lowpass: float) -> bool:
+def use_point_sprites(cloud, camera, radius_scale: float, supersample: int, lowpass: float, drawn=None) -> bool:
     """Point sprites (one vertex a splat) unless a splat could cross the near plane or need
-    a sprite larger than the guard band allows; then instanced quads (four vertices a splat)."""
-    max_radius = float(np.linalg.norm(cloud.axes, axis=2).max()) * radius_scale
+    a sprite larger than the guard band allows; then instanced quads (four vertices a splat).
+    `drawn`: mask of the splats a level-of-detail cut draws (None: all)."""
+    axes = cloud.axes if drawn is None else cloud.axes[drawn]
+    if len(axes) == 0:
+        return True
+    max_radius = float(np.linalg.norm(axes, axis=2).max()) * radius_scale
     if camera.ortho_height is not None:
         pixels = max_radius * camera.height * supersample / camera.ortho_height
     else:
@@ -91,7 +95,8 @@ def _render(cloud, camera, options, *, per_splat_shading: bool, ewa_filter: bool
     ss = options.supersample or DEFAULT_SUPERSAMPLE
     width, height = camera.width * ss, camera.height * ss
     lowpass = options.lowpass_radius * ss if ewa_filter else 0.0
-    sprites = use_point_sprites(cloud, camera, options.radius_scale, ss, lowpass)
+    lod_k, prefix, drawn = splats.lod_frame(cloud, camera, options.lod_error)
+    sprites = use_point_sprites(cloud, camera, options.radius_scale, ss, lowpass, drawn)
     guard = GUARD if sprites else 0
     variant = {"PER_SPLAT_SHADING": per_splat_shading, "EWA_FILTER": ewa_filter, "NORMAL_FIELD": normal_field,
                "POINT_SPRITES": sprites}
@@ -103,7 +108,7 @@ def _render(cloud, camera, options, *, per_splat_shading: bool, ewa_filter: bool
                      u_radius_scale=options.radius_scale, u_depth_offset=depth_offset,
                      u_lowpass_radius=options.lowpass_radius * ss, u_guard=float(guard),
                      u_backface_culling=int(options.backface_culling),
-                     u_kernel=0, u_visibility=1, u_accum_color=2, u_accum_normal=3)
+                     u_kernel=0, u_visibility=1, u_accum_color=2, u_accum_normal=3, u_lod_k=lod_k)
 
     kernel = gaussian_kernel_texture(ctx)
     target = (width + 2 * guard, height + 2 * guard)
@@ -124,14 +129,14 @@ def _render(cloud, camera, options, *, per_splat_shading: bool, ewa_filter: bool
         vis_fbo.use()
         vis_fbo.clear(3.0e38, 1.0, 0, 0)
         ctx.blend_equation = ctx.MIN
-        splats.draw(ctx, cloud, programs["PASS_VISIBILITY"], mode, instanced=not sprites)
+        splats.draw(ctx, cloud, programs["PASS_VISIBILITY"], mode, instanced=not sprites, count=prefix)
 
         accum_fbo.use()
         accum_fbo.clear(0, 0, 0, 0)
         ctx.blend_equation = ctx.FUNC_ADD
         ctx.blend_func = ctx.ONE, ctx.ONE
         visibility.use(1)
-        splats.draw(ctx, cloud, programs["PASS_ATTRIBUTE"], mode, instanced=not sprites)
+        splats.draw(ctx, cloud, programs["PASS_ATTRIBUTE"], mode, instanced=not sprites, count=prefix)
 
         ctx.disable(ctx.BLEND)
         out.fbo.use()
@@ -141,7 +146,7 @@ def _render(cloud, camera, options, *, per_splat_shading: bool, ewa_filter: bool
         accum[1].use(3)
         empty.render(ctx.TRIANGLES, vertices=3)
         ctx.finish()
-        stats = {"splats": len(cloud), "supersample": ss, "ewa_filter": ewa_filter,
+        stats = {"splats": len(cloud) if drawn is None else int(drawn.sum()), "supersample": ss, "ewa_filter": ewa_filter,
                  "primitive": "point sprites" if sprites else "quads"}
         result = gbuffer_result(out, camera, options, ss, stats)
         if options.dump_passes:

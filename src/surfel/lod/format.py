@@ -1,0 +1,135 @@
+"""The LOD file: a sequential point tree stored as an uncompressed NumPy .npz (format 1).
+
+A LOD file is an ordinary surfel point-cloud NPZ (`surfel.io.npz`), so `surfel.io.load`
+reads it as a cloud whose extras carry the LOD data; by convention it is named *.lod.npz.
+Every array has one row per tree node, in sequential order (r_max decreasing at 8-bit
+mantissa resolution, see sequential.py):
+
+    positions    (M, 3) float64   node centre (leaves: the input point)
+    normals      (M, 3) float32   unit normal (inner nodes: area-weighted average)
+    colors       (M, 3) float32   RGB in [0, 1] (absent if the input had none)
+    radii        (M,)   float32   disk radius (inner nodes: encloses all children's disks)
+    axes         (M, 2, 3) float32 tangent axes scaled to the ellipse semi-axes
+                                  (inner nodes: circular)
+    lod_emin     (M,)   float32   e_g of the node: r_min = lod_emin * k
+    lod_emax     (M,)   float32   e_g of the parent: r_max = lod_emax * k (the root stores
+                                  the largest float32 for infinity); r_max_bucket(lod_emax)
+                                  is non-increasing
+    lod_dparent  (M,)   float32   distance from the node's centre to its parent's (0: root)
+    lod_dsuffix  (M,)   float32   max of lod_dparent over this row and all later ones
+    surfel_lod_version ()  int64  FORMAT_VERSION
+    geospatial   ()     bool      the input's up axis is +Z (LAS/LAZ)
+
+with k = fy / eps per frame (`sequential.py` gives the selection rule). Errors are in the
+units of the positions. Scalars are ignored by the generic NPZ reader; nothing is pickled,
+and files are written to a temporary name first and renamed, so a reader never sees half
+a file.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..cloud import PointCloud
+from ..errors import InputError
+from .build import LodTree, build_lod
+from .sequential import EXTRAS, is_sequential, r_max_bucket, to_sequential_cloud
+
+FORMAT_VERSION = 1
+
+
+def _atomic_write(path: str | os.PathLike, write) -> None:
+    """Call write(file) on a temporary file beside `path`, then rename it over `path`."""
+    target = Path(path)
+    fd, tmp = tempfile.mkstemp(dir=target.parent or ".", prefix=f".{target.name}.", suffix=".tmp")
+    umask = os.umask(0)
+    os.umask(umask)
+    try:
+        os.chmod(tmp, 0o666 & ~umask)  # mkstemp creates 0600; give the file normal permissions
+        with os.fdopen(fd, "wb") as file:
+            write(file)
+        os.replace(tmp, target)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def save_lod(lod: LodTree | PointCloud, path: str | os.PathLike) -> None:
+    """Write a tree (sequentialised first) or a sequential cloud as a LOD file."""
+    seq = to_sequential_cloud(lod) if isinstance(lod, LodTree) else lod
+    if not is_sequential(seq):
+        raise ValueError("save_lod needs a LodTree or a cloud from to_sequential_cloud")
+    arrays = {"positions": seq.positions, "normals": seq.normals, "radii": seq.radii,
+              "axes": seq.axes, **{name: seq.extras[name] for name in EXTRAS},
+              "surfel_lod_version": np.int64(FORMAT_VERSION), "geospatial": np.bool_(seq.geospatial)}
+    if seq.colors is not None:
+        arrays["colors"] = seq.colors
+    _atomic_write(path, lambda file: np.savez(file, **arrays))
+
+
+def load_lod(path: str | os.PathLike) -> PointCloud:
+    """Read a LOD file as a sequential cloud (InputError if it is not one)."""
+    from ..io.npz import read_npz
+
+    path = str(path)
+    cloud = read_npz(path)
+    with np.load(path, allow_pickle=False) as archive:
+        if "surfel_lod_version" not in archive.files:
+            raise InputError(path, "not a surfel LOD file (no surfel_lod_version)")
+        version = int(archive["surfel_lod_version"])
+        geospatial = bool(archive["geospatial"]) if "geospatial" in archive.files else False
+    if version != FORMAT_VERSION:
+        raise InputError(path, f"LOD format version {version} is not supported (need {FORMAT_VERSION})")
+    if not is_sequential(cloud) or cloud.normals is None or cloud.axes is None:
+        raise InputError(path, "LOD file lacks normals, axes or lod_* arrays")
+    if np.any(np.diff(r_max_bucket(cloud.extras["lod_emax"]).astype(np.int32)) > 0):
+        raise InputError(path, "LOD file is not sorted by lod_emax")
+    return cloud.with_(geospatial=geospatial) if geospatial else cloud
+
+
+def build_command(in_path: str | os.PathLike, out_path: str | os.PathLike,
+                  stats_path: str | os.PathLike | None = None, *, progress: bool | None = None) -> dict:
+    """`surfel lod build IN -o OUT [--stats FILE.json]`: load, complete, build, save.
+
+    Stats: points, nodes, ms (building the hierarchy and sequentialising it; not file I/O,
+    attribute estimation, or jit_ms: loading the compiled numba kernels, once per process),
+    points_per_s (points / ms).
+    """
+    from ..io import load
+    from ..render import complete
+
+    cloud, estimated = complete(load(in_path))
+    points = len(cloud)
+    start = time.perf_counter()
+    warm_up()
+    jit_ms = (time.perf_counter() - start) * 1000
+    start = time.perf_counter()
+    tree = build_lod(cloud, progress=progress)
+    del cloud  # the input is not needed while the tree is sequentialised: lower peak memory
+    seq = to_sequential_cloud(tree)
+    ms = (time.perf_counter() - start) * 1000
+    nodes = len(tree)
+    del tree
+    save_lod(seq, out_path)
+    stats = {"points": points, "nodes": nodes, "ms": round(ms, 3),
+             "points_per_s": round(points / max(ms / 1000, 1e-9)), "jit_ms": round(jit_ms, 3)}
+    if estimated:
+        stats["estimated"] = estimated
+    if stats_path is not None:
+        text = json.dumps(stats, indent=2, default=str) + "\n"
+        _atomic_write(stats_path, lambda file: file.write(text.encode()))
+    return stats
+
+
+def warm_up() -> None:
+    """Load (or compile) the numba kernels and start their thread pool on a tiny tree."""
+    positions = np.array([[0.0, 0, 0], [1.0, 0, 0], [0, 1.0, 0]])
+    tiny = PointCloud(positions, normals=np.tile([0.0, 0, 1], (3, 1)), colors=np.full((3, 3), 0.5),
+                      axes=np.tile([[[0.5, 0, 0], [0, 0.5, 0]]], (3, 1, 1)))
+    to_sequential_cloud(build_lod(tiny, progress=False))
