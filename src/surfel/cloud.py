@@ -67,11 +67,16 @@ class PointCloud:
 
         normals = per_point("normals", self.normals, (3,))
         if normals is not None:
-            length = np.linalg.norm(normals, axis=1)
+            # float64 so huge inputs cannot overflow; rescale only what is not already unit
+            # length, so that unit normals survive a write/read round trip bit for bit
+            length = np.linalg.norm(normals.astype(np.float64), axis=1)
             zero = length < 1e-12
             if zero.any():
                 raise InputError(src, f"{int(zero.sum())} points have zero-length normals")
-            normals = (normals / length[:, None]).astype(np.float32)
+            off = np.abs(length - 1) > 1e-6
+            if off.any():
+                normals = normals.copy()
+                normals[off] = (normals[off] / length[off, None]).astype(np.float32)
         colors = per_point("colors", self.colors, (3,))
         if colors is not None and (colors.min() < 0 or colors.max() > 1):
             raise InputError(src, "colors must lie in [0, 1]")

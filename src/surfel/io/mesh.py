@@ -1,0 +1,83 @@
+"""Turning mesh inputs into points: polygon triangulation, referenced vertices, vertex normals.
+
+The rendering contract says a mesh yields its referenced vertices as points, with
+area-weighted vertex normals from the faces; the OBJ and PLY readers share these steps.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import InputError
+from ._parse import ragged_arange
+
+
+def triangles_from_polygons(counts: np.ndarray, indices: np.ndarray, vertex_count: int,
+                            path: str) -> np.ndarray:
+    """(F, 3) int64 triangles from polygons given as vertex counts and concatenated indices.
+
+    Indices are 0-based. Polygons are fan-triangulated around their first vertex. A polygon
+    with fewer than 3 vertices, or an index outside [0, vertex_count), raises InputError.
+    """
+    counts = np.asarray(counts, dtype=np.int64)
+    indices = np.asarray(indices, dtype=np.int64)
+    if len(counts) and counts.min() < 3:
+        raise InputError(path, f"{int((counts < 3).sum())} faces have fewer than 3 vertices")
+    outside = (indices < 0) | (indices >= vertex_count)
+    if outside.any():
+        raise InputError(path, f"{int(outside.sum())} face corners refer to vertices that do not "
+                               f"exist (the file has {vertex_count})")
+    if (counts == 3).all():
+        return indices.reshape(-1, 3)
+    # Polygon k (vertices a0..a{n-1}) becomes triangles (a0, ai, ai+1) for i = 1..n-2.
+    fan = counts - 2
+    first = np.repeat(np.cumsum(counts) - counts, fan)
+    step = ragged_arange(fan) + 1
+    return np.stack([indices[first], indices[first + step], indices[first + step + 1]], axis=1)
+
+
+def referenced_vertices(faces: np.ndarray, vertex_count: int) -> tuple[np.ndarray, np.ndarray]:
+    """The vertices the faces use (ascending ids) and the faces re-indexed into that subset."""
+    used = np.zeros(vertex_count, dtype=bool)
+    used[faces.ravel()] = True
+    keep = np.flatnonzero(used)
+    new_id = np.cumsum(used) - 1
+    return keep, new_id[faces]
+
+
+def area_weighted_vertex_normals(positions: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(N, 3) float64 unit vertex normals: each the sum of its faces' normals weighted by area.
+
+    The cross product of two triangle edges is the face normal scaled by twice the area, so
+    summing the raw cross products gives the area weighting. Counter-clockwise faces (seen
+    from outside) give outward normals. A vertex whose faces have no area (degenerate
+    triangles, or faces cancelling exactly) takes the summed normals of its face neighbours;
+    vertices no face touches, or isolated degenerate patches, are left as zero vectors.
+    """
+    positions = np.asarray(positions, dtype=np.float64)
+    faces = np.asarray(faces, dtype=np.int64)
+    n = len(positions)
+    corners = positions[faces]
+    face_normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    normals = _sum_per_vertex(faces, face_normals, n)
+    length = np.linalg.norm(normals, axis=1)
+    defined = length > 0
+    normals[defined] /= length[defined, None]
+    undefined = ~defined & (np.bincount(faces.ravel(), minlength=n) > 0)
+    while undefined.any():
+        neighbours = _sum_per_vertex(faces, normals[faces].sum(axis=1), n)
+        length = np.linalg.norm(neighbours, axis=1)
+        fixed = undefined & (length > 0)
+        if not fixed.any():
+            break
+        normals[fixed] = neighbours[fixed] / length[fixed, None]
+        undefined &= ~fixed
+    return normals
+
+
+def _sum_per_vertex(faces: np.ndarray, per_face: np.ndarray, n: int) -> np.ndarray:
+    """(n, 3): for each vertex, the sum of the (F, 3) per-face vectors of the faces using it."""
+    corner_vertex = faces.ravel()
+    per_corner = np.repeat(per_face, 3, axis=0)
+    return np.stack([np.bincount(corner_vertex, weights=per_corner[:, k], minlength=n)
+                     for k in range(3)], axis=1)

@@ -1,0 +1,99 @@
+"""NumPy .npz point clouds: `read_npz`.
+
+Arrays, by key:
+
+- ``positions`` (or ``points``, or ``xyz``): (N, 3), required;
+- ``normals`` (N, 3); ``radii`` (N,); ``axes`` (N, 2, 3);
+- ``colors`` (N, 3): floats in [0, 1], or integers: 0..65535 for 16-bit types, 0..255 for
+  the others (uint8 above all);
+- ``faces`` (F, 3) integer vertex indices. An NPZ is a container for a cloud, not a mesh
+  format, so faces are kept as stored: no vertices dropped, no normals computed;
+- ``geospatial``: an optional boolean scalar (as LOD files store it) marking the cloud
+  geospatial (up axis +Z);
+- any other numeric array whose first dimension is N becomes ``extras[key]``; anything
+  else (other scalars, metadata) is ignored.
+
+Pickles are never loaded: arrays are read with ``allow_pickle=False``, and an object array
+is refused with InputError before numpy reads it. Each array's header is also checked
+against the member's sizes in the archive first, so a crafted shape cannot make numpy
+allocate more than the archive can hold.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import zipfile
+
+import numpy as np
+
+from ..cloud import PointCloud
+from ..errors import InputError
+
+_POSITION_KEYS = ("positions", "points", "xyz")
+_ATTRIBUTE_KEYS = {"normals", "colors", "radii", "axes", "faces"}
+# Deflate cannot expand data more than about 1032 times.
+_MAX_EXPANSION = 1100
+_HEADER_READERS = {(1, 0): np.lib.format.read_array_header_1_0,
+                   (2, 0): np.lib.format.read_array_header_2_0}
+
+
+def read_npz(path: str) -> PointCloud:
+    """Read an NPZ point cloud (see the module docstring); errors raise InputError."""
+    try:
+        arrays = _read_arrays(path)
+    except InputError:
+        raise
+    except Exception as error:  # zipfile, its decompressors and numpy raise many types for damaged archives
+        message = (str(error).splitlines() or [type(error).__name__])[0][:120]
+        raise InputError(path, f"cannot read NPZ: {message}") from error
+    for key, value in arrays.items():
+        if value.dtype.kind not in "biuf" and (key in _ATTRIBUTE_KEYS or key in _POSITION_KEYS):
+            raise InputError(path, f"NPZ array '{key}' is not numeric ({value.dtype})")
+    position_key = next((key for key in _POSITION_KEYS if key in arrays), None)
+    if position_key is None:
+        raise InputError(path, "NPZ has no 'positions' array")
+    positions = arrays[position_key]
+    if positions.ndim != 2 or positions.shape[1] != 3:
+        raise InputError(path, f"NPZ positions must have shape (N, 3), got {positions.shape}")
+    n = len(positions)
+    colors = arrays.get("colors")
+    if colors is not None and colors.dtype.kind in "iu":
+        colors = colors / (65535.0 if colors.dtype.itemsize == 2 else 255.0)
+    faces = arrays.get("faces")
+    if faces is not None and faces.dtype.kind not in "iu":
+        raise InputError(path, f"NPZ faces must be integers, got {faces.dtype}")
+    flag = arrays.get("geospatial")
+    geospatial = flag is not None and flag.shape == () and flag.dtype.kind in "biu" and bool(flag)
+    extras = {key: value for key, value in arrays.items()
+              if key not in _ATTRIBUTE_KEYS and key not in _POSITION_KEYS
+              and value.dtype.kind in "biuf" and value.ndim >= 1 and len(value) == n}
+    return PointCloud(positions=positions, normals=arrays.get("normals"), colors=colors,
+                      radii=arrays.get("radii"), axes=arrays.get("axes"), faces=faces,
+                      extras=extras, geospatial=geospatial, source=path)
+
+
+def _read_arrays(path: str) -> dict[str, np.ndarray]:
+    size = os.path.getsize(path)
+    arrays = {}
+    with zipfile.ZipFile(path) as archive:
+        for info in archive.infolist():
+            if not info.filename.endswith(".npy"):
+                continue  # numpy writes only .npy members; anything else is not ours
+            key = info.filename[:-len(".npy")]
+            if (info.header_offset + info.compress_size > size
+                    or info.file_size > _MAX_EXPANSION * max(info.compress_size, 1)):
+                raise InputError(path, f"NPZ member '{key}' claims more data than the file holds")
+            with archive.open(info) as member:
+                read_header = _HEADER_READERS.get(np.lib.format.read_magic(member))
+                if read_header is None:
+                    raise InputError(path, f"NPZ array '{key}' has an unsupported .npy version")
+                shape, _, dtype = read_header(member)
+            if dtype.hasobject:
+                raise InputError(path, f"NPZ array '{key}' holds Python objects, which are "
+                                       f"never unpickled")
+            if math.prod(shape) * dtype.itemsize > info.file_size:
+                raise InputError(path, f"NPZ array '{key}' is truncated")
+            with archive.open(info) as member:
+                arrays[key] = np.lib.format.read_array(member, allow_pickle=False)
+    return arrays

@@ -1,0 +1,533 @@
+"""PLY point clouds and meshes: `read_ply` and `write_ply`.
+
+Reading
+-------
+Bodies in ascii, binary_little_endian and binary_big_endian. The ``vertex`` element gives
+the points; its properties, by name:
+
+- ``x y z`` (required, any numeric type; kept as float64);
+- ``nx ny nz``: normals. Files whose normals include zero vectors (the "no normal"
+  placeholder some exporters write) count as having no normals;
+- ``red green blue``: colours. 8-bit integer types are divided by 255, 16-bit ones by
+  65535, wider integers are read as 0..255 values, floats are taken as they are; all are
+  clipped to [0, 1]. ``alpha`` is ignored;
+- ``radius``: splat radii; ``ux uy uz vx vy vz``: splat tangent axes;
+- the properties a ``comment surfel_extra NAME [D1 D2 ...]`` header line declares (as
+  `write_ply` writes them) come back as ``extras[NAME]`` with per-point shape (D1, D2, ...);
+- any other property is skipped.
+
+A ``face`` element with a list property ``vertex_indices`` (or ``vertex_index``) makes the
+file a mesh: polygons are fan-triangulated, only the vertices the faces reference are kept,
+and vertex normals are area-weighted from the faces unless the file has its own. Other
+elements (edges, materials, ...) are skipped. A ``comment surfel_geospatial`` header line
+marks the cloud geospatial (up axis +Z).
+
+Elements are decoded whole, with no per-point Python loop: binary ones through numpy
+structured dtypes over a memory map of the file, ascii ones through one vectorised
+tokenisation of the body. The one exception is a binary element with list properties whose
+lengths differ between records (e.g. mixed triangles and quads): its record boundaries can
+only be found record by record. Every size a header claims is checked against what the
+file holds before anything is decoded, so a lying header cannot cause a large allocation.
+
+Writing
+-------
+`write_ply` writes x y z (double), nx ny nz (float), red green blue (uchar), radius,
+ux uy uz vx vy vz (float) and the extras (float: an (N,) array as NAME, an (N, k) one as
+NAME_0 .. NAME_{k-1}, higher ranks flattened likewise, each declared by a surfel_extra
+comment), each only when the cloud has it, and the faces as ``vertex_indices`` lists of
+3 ints. The geospatial flag becomes a surfel_geospatial comment.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import mmap
+import os
+import re
+import secrets
+import struct
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import BinaryIO, NamedTuple
+
+import numpy as np
+
+from ..cloud import PointCloud
+from ..errors import InputError, SurfelError
+from ._parse import numbers_by_line, ragged_arange
+from .mesh import area_weighted_vertex_normals, referenced_vertices, triangles_from_polygons
+
+_TYPES = {
+    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
+    "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2",
+    "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
+}
+_TYPE_NAMES = {"u1": "uchar", "f4": "float", "f8": "double"}
+_STRUCT_CODES = {"i1": "b", "u1": "B", "i2": "h", "u2": "H", "i4": "i", "u4": "I"}
+_FORMATS = {"ascii": "ascii", "binary_little_endian": "<", "binary_big_endian": ">"}
+_FACE_LISTS = ("vertex_indices", "vertex_index")
+_EXTRA_COMMENT = "surfel_extra"
+_GEOSPATIAL_COMMENT = "surfel_geospatial"
+_POSITION = ("x", "y", "z")
+_NORMAL = ("nx", "ny", "nz")
+_COLOR = ("red", "green", "blue")
+_AXES = ("ux", "uy", "uz", "vx", "vy", "vz")
+_RESERVED = {*_POSITION, *_NORMAL, *_COLOR, "radius", *_AXES}
+_COUNT = re.compile(r"[0-9]+")
+
+
+@dataclass(frozen=True)
+class _Property:
+    name: str
+    type: str  # numpy type code without byte order, e.g. "f4"
+    length_type: str | None = None  # set for list properties: numpy code of the length
+
+    @property
+    def is_list(self) -> bool:
+        return self.length_type is not None
+
+
+@dataclass
+class _Element:
+    name: str
+    count: int
+    properties: dict[str, _Property] = field(default_factory=dict)
+
+
+@dataclass
+class _Header:
+    format: str  # "ascii", or the byte order ("<" or ">") of a binary body
+    elements: list[_Element]
+    extras: dict[str, tuple[int, ...]]  # surfel_extra name -> per-point shape
+    geospatial: bool
+    body_offset: int
+
+
+class _List(NamedTuple):
+    """A list property of an element: each record's list length, and all items in order."""
+
+    lengths: np.ndarray
+    items: np.ndarray
+
+
+_Columns = dict[str, "np.ndarray | _List"]
+
+
+def read_ply(path: str) -> PointCloud:
+    """Read a PLY point cloud or mesh (see the module docstring); errors raise InputError."""
+    with open(path, "rb") as file:
+        # Not closed explicitly: the map lives while arrays view it, and a traceback may
+        # still hold such views when an error propagates.
+        data = mmap.mmap(file.fileno(), 0, access=mmap.ACCESS_READ)
+    header = _parse_header(data, path)
+    wanted = {"vertex", "face"} & {element.name for element in header.elements}
+    if header.format == "ascii":
+        found = _read_ascii(data, header, wanted, path)
+    else:
+        found = _read_binary(data, header, wanted, path)
+    return _cloud(header, found, path)
+
+
+# --- header -----------------------------------------------------------------------------
+
+def _parse_header(data: mmap.mmap, path: str) -> _Header:
+    if data[:4] not in (b"ply\n", b"ply\r"):
+        raise InputError(path, "not a PLY file (it does not start with 'ply')")
+    end = data.find(b"\nend_header")
+    if end < 0:
+        raise InputError(path, "PLY header has no end_header line")
+    body = end + len(b"\nend_header")
+    if data[body:body + 2] == b"\r\n":
+        body += 2
+    elif data[body:body + 1] == b"\n":
+        body += 1
+    elif body != len(data):
+        raise InputError(path, "malformed end_header line")
+
+    fmt = None
+    elements: list[_Element] = []
+    extras: dict[str, tuple[int, ...]] = {}
+    geospatial = False
+    for line in data[:end].decode("latin-1").splitlines()[1:]:
+        words = line.split()
+        if not words or words[0] == "obj_info":
+            continue
+        keyword = words[0]
+        if keyword == "comment":
+            if words[1:2] == [_GEOSPATIAL_COMMENT]:
+                geospatial = True
+            elif words[1:2] == [_EXTRA_COMMENT]:
+                if len(words) < 3 or not all(_COUNT.fullmatch(w) for w in words[3:]):
+                    raise _bad_line(line, path)
+                extras[words[2]] = tuple(int(w) for w in words[3:])
+        elif keyword == "format":
+            if fmt is not None or len(words) != 3 or words[1] not in _FORMATS:
+                raise _bad_line(line, path)
+            fmt = _FORMATS[words[1]]
+        elif keyword == "element":
+            if len(words) != 3 or not _COUNT.fullmatch(words[2]):
+                raise _bad_line(line, path)
+            if any(element.name == words[1] for element in elements):
+                raise InputError(path, f"PLY header declares element '{words[1]}' twice")
+            elements.append(_Element(words[1], int(words[2])))
+        elif keyword == "property":
+            if not elements:
+                raise InputError(path, "PLY header has a property before any element")
+            prop = _parse_property(words, line, path)
+            if prop.name in elements[-1].properties:
+                raise InputError(path, f"PLY element '{elements[-1].name}' declares "
+                                       f"property '{prop.name}' twice")
+            elements[-1].properties[prop.name] = prop
+        else:
+            raise _bad_line(line, path)
+    if fmt is None:
+        raise InputError(path, "PLY header has no format line")
+    if not any(element.name == "vertex" for element in elements):
+        raise InputError(path, "PLY file has no vertex element")
+    return _Header(fmt, elements, extras, geospatial, body)
+
+
+def _parse_property(words: list[str], line: str, path: str) -> _Property:
+    if len(words) == 3 and words[1] in _TYPES:
+        return _Property(words[2], _TYPES[words[1]])
+    if (len(words) == 5 and words[1] == "list" and words[2] in _TYPES and words[3] in _TYPES
+            and _TYPES[words[2]][0] in "iu"):
+        return _Property(words[4], _TYPES[words[3]], _TYPES[words[2]])
+    raise _bad_line(line, path)
+
+
+def _bad_line(line: str, path: str) -> InputError:
+    return InputError(path, f"bad PLY header line {line.strip()[:60]!r}")
+
+
+# --- binary body ------------------------------------------------------------------------
+
+def _read_binary(data: mmap.mmap, header: _Header, wanted: set[str], path: str) -> dict[str, _Columns]:
+    found: dict[str, _Columns] = {}
+    offset = header.body_offset
+    for element in header.elements:
+        if wanted <= found.keys():
+            break
+        columns, offset = _binary_element(data, offset, element, header.format, path)
+        if element.name in wanted:
+            found[element.name] = columns
+    return found
+
+
+def _binary_element(data: mmap.mmap, offset: int, element: _Element, order: str,
+                    path: str) -> tuple[_Columns, int]:
+    """The element's columns (views into `data` where possible) and the offset after it."""
+    props = list(element.properties.values())
+    n = element.count
+    if not props:
+        return {}, offset
+    smallest = sum(np.dtype(p.length_type or p.type).itemsize for p in props)  # empty lists
+    _check_fits(element, n * smallest, len(data) - offset, path)
+    lists = [p for p in props if p.is_list]
+    if n and lists:
+        # Guess that every record's lists are as long as the first record's (all faces
+        # triangles, say): then the element is one fixed-size record array.
+        _, first_lengths, _ = _walk_records(data, offset, props, 1, order, element.name, path)
+        lengths = {p.name: int(first_lengths[p.name][0]) for p in lists}
+    else:
+        lengths = {p.name: 0 for p in lists}
+    dtype = np.dtype([field for p in props for field in _record_fields(p, order, lengths)])
+    size = n * dtype.itemsize
+    if size <= len(data) - offset:
+        records = np.frombuffer(data, dtype=dtype, count=n, offset=offset)
+        if all((records[_length_field(p)] == lengths[p.name]).all() for p in lists):
+            columns: _Columns = {
+                p.name: _List(np.full(n, lengths[p.name], dtype=np.int64), records[p.name].reshape(-1))
+                if p.is_list else records[p.name] for p in props}
+            return columns, offset + size
+    starts, list_lengths, end = _walk_records(data, offset, props, n, order, element.name, path)
+    codes = np.frombuffer(data, dtype=np.uint8)
+    columns = {}
+    for p in props:
+        item = np.dtype(order + p.type)
+        begin = np.array(starts[p.name], dtype=np.int64)
+        if p.length_type is not None:
+            counts = np.array(list_lengths[p.name], dtype=np.int64)
+            first_item = begin + np.dtype(p.length_type).itemsize
+            positions = np.repeat(first_item, counts) + ragged_arange(counts) * item.itemsize
+            columns[p.name] = _List(counts, _gather(codes, positions, item))
+        else:
+            columns[p.name] = _gather(codes, begin, item)
+    return columns, end
+
+
+def _record_fields(prop: _Property, order: str, lengths: dict[str, int]) -> list[tuple]:
+    if prop.length_type is None:
+        return [(prop.name, order + prop.type)]
+    return [(_length_field(prop), order + prop.length_type),
+            (prop.name, order + prop.type, (lengths[prop.name],))]
+
+
+def _length_field(prop: _Property) -> str:
+    return f"{prop.name} length"  # PLY names have no spaces, so this never collides
+
+
+def _walk_records(data: mmap.mmap, offset: int, props: list[_Property], count: int, order: str,
+                  element: str, path: str) -> tuple[dict[str, list[int]], dict[str, list[int]], int]:
+    """Record by record: where each property starts, each list's length, and the end offset."""
+    end = len(data)
+    starts: dict[str, list[int]] = {p.name: [] for p in props}
+    lengths: dict[str, list[int]] = {p.name: [] for p in props}  # stays empty for scalars
+    steps = [(starts[p.name], np.dtype(p.type).itemsize,
+              None if p.length_type is None else struct.Struct(order + _STRUCT_CODES[p.length_type]),
+              lengths[p.name]) for p in props]
+    for _ in range(count):
+        for begin, item_size, length_reader, record_lengths in steps:
+            begin.append(offset)
+            if length_reader is None:
+                offset += item_size
+                continue
+            if offset + length_reader.size > end:
+                raise _truncated(element, path)
+            (length,) = length_reader.unpack_from(data, offset)
+            if length < 0:
+                raise InputError(path, f"PLY element '{element}' has a list of negative length")
+            record_lengths.append(length)
+            offset += length_reader.size + length * item_size
+        if offset > end:
+            raise _truncated(element, path)
+    return starts, lengths, offset
+
+
+def _gather(codes: np.ndarray, starts: np.ndarray, dtype: np.dtype) -> np.ndarray:
+    """The values of `dtype` stored at the byte offsets `starts` of `codes`."""
+    return codes[starts[:, None] + np.arange(dtype.itemsize)].view(dtype).reshape(-1)
+
+
+def _check_fits(element: _Element, need: int, have: int, path: str) -> None:
+    if need > have:
+        raise InputError(path, f"PLY file is truncated: element '{element.name}' "
+                               f"({element.count} records) needs at least {need} bytes, "
+                               f"{max(have, 0)} remain")
+
+
+def _truncated(element: str, path: str) -> InputError:
+    return InputError(path, f"PLY file is truncated inside element '{element}'")
+
+
+# --- ascii body -------------------------------------------------------------------------
+
+def _read_ascii(data: mmap.mmap, header: _Header, wanted: set[str], path: str) -> dict[str, _Columns]:
+    values, per_line, _ = numbers_by_line(data[header.body_offset:], np.float64, path)
+    counts = per_line[per_line > 0]  # one record per non-blank line
+    firsts = np.cumsum(counts) - counts
+    found: dict[str, _Columns] = {}
+    record = 0
+    for element in header.elements:
+        if wanted <= found.keys():
+            break
+        n = element.count if element.properties else 0  # an element without properties has no lines
+        if n > len(counts) - record:
+            raise InputError(path, f"PLY file is truncated: element '{element.name}' has {n} "
+                                   f"records but only {len(counts) - record} lines remain")
+        if element.name in wanted:
+            found[element.name] = _ascii_element(values, firsts[record:record + n],
+                                                 counts[record:record + n], element, path)
+        record += n
+    return found
+
+
+def _ascii_element(values: np.ndarray, firsts: np.ndarray, counts: np.ndarray,
+                   element: _Element, path: str) -> _Columns:
+    """Columns of an element from its lines, walking all lines' properties at once."""
+    position = firsts.copy()
+    end = firsts + counts
+    columns: _Columns = {}
+    for prop in element.properties.values():
+        if (position >= end).any():
+            raise _wrong_count(element, path)
+        if not prop.is_list:
+            columns[prop.name] = values[position]
+            position = position + 1
+            continue
+        lengths = values[position]
+        position = position + 1
+        if not ((lengths >= 0) & (lengths <= end - position) & (lengths == np.round(lengths))).all():
+            raise _wrong_count(element, path)
+        lengths = lengths.astype(np.int64)
+        columns[prop.name] = _List(lengths, values[np.repeat(position, lengths) + ragged_arange(lengths)])
+        position = position + lengths
+    if (position != end).any():
+        raise _wrong_count(element, path)
+    return columns
+
+
+def _wrong_count(element: _Element, path: str) -> InputError:
+    return InputError(path, f"PLY element '{element.name}': a line does not match its properties")
+
+
+# --- building the cloud -----------------------------------------------------------------
+
+def _cloud(header: _Header, found: dict[str, _Columns], path: str) -> PointCloud:
+    vertex = next(element for element in header.elements if element.name == "vertex")
+    columns = found["vertex"]
+
+    def stacked(names: tuple[str, ...], dtype: type = np.float32) -> np.ndarray | None:
+        present = [columns.get(name) for name in names]
+        if any(isinstance(column, _List) for column in present):
+            raise InputError(path, f"PLY vertex properties {' '.join(names)} must not be lists")
+        arrays = [column for column in present if isinstance(column, np.ndarray)]
+        return np.column_stack(arrays).astype(dtype) if len(arrays) == len(names) else None
+
+    positions = stacked(_POSITION, np.float64)
+    if positions is None:
+        raise InputError(path, "PLY vertex element lacks x, y or z")
+    n = len(positions)
+    normals = stacked(_NORMAL)
+    if normals is not None and not normals.any(axis=1).all():
+        normals = None
+    colors = stacked(_COLOR)
+    if colors is not None:
+        scale = [_color_scale(vertex.properties[name].type) for name in _COLOR]
+        colors = np.clip(colors / scale, 0.0, 1.0)
+    radius = stacked(("radius",))
+    radii = None if radius is None else radius[:, 0]
+    axes = stacked(_AXES)
+    if axes is not None:
+        axes = axes.reshape(n, 2, 3)
+    extras = {name: _extra(name, shape, stacked, vertex, n, path) for name, shape in header.extras.items()}
+
+    faces = None
+    face_columns = found.get("face", {})
+    lists = [column for name in _FACE_LISTS if isinstance(column := face_columns.get(name), _List)]
+    if lists and len(lists[0].lengths):
+        indices = lists[0]
+        items = _integers(indices.items, path)
+        faces = triangles_from_polygons(indices.lengths, items, n, path)
+        keep, faces = referenced_vertices(faces, n)
+        if len(keep) < n:
+            positions = positions[keep]
+            normals, colors, radii, axes = (
+                None if a is None else a[keep] for a in (normals, colors, radii, axes))
+            extras = {name: value[keep] for name, value in extras.items()}
+        if normals is None:
+            normals = area_weighted_vertex_normals(positions, faces)
+    return PointCloud(positions=positions, normals=normals, colors=colors, radii=radii, axes=axes,
+                      faces=faces, extras=extras, geospatial=header.geospatial, source=path)
+
+
+def _extra(name: str, shape: tuple[int, ...], stacked: Callable[..., np.ndarray | None],
+           vertex: _Element, n: int, path: str) -> np.ndarray:
+    """The extra `name` of per-point `shape`, from NAME or NAME_0 .. NAME_{size-1}."""
+    size = math.prod(shape)
+    if size == 0:
+        return np.zeros((n, *shape), dtype=np.float32)
+    # Compare with the property count first: a comment must not make us build huge name lists.
+    values = None
+    if size <= len(vertex.properties):
+        values = stacked((name,) if not shape else tuple(f"{name}_{i}" for i in range(size)))
+    if values is None:
+        raise InputError(path, f"PLY header declares extra '{name}' but its vertex properties are missing")
+    return values.reshape(n, *shape)
+
+
+def _color_scale(code: str) -> float:
+    if code[0] == "f":
+        return 1.0
+    return 65535.0 if code[1] == "2" else 255.0
+
+
+def _integers(values: np.ndarray, path: str) -> np.ndarray:
+    """Face indices as int64; float-typed ones (ascii, or a float list) must be whole numbers."""
+    if values.dtype.kind == "f" and not (np.isfinite(values) & (values == np.round(values))
+                                         & (np.abs(values) < 2.0 ** 62)).all():
+        raise InputError(path, "PLY face indices are not integers")
+    return values.astype(np.int64)
+
+
+# --- writing ----------------------------------------------------------------------------
+
+def write_ply(cloud: PointCloud, path: str | os.PathLike, *, binary: bool = True) -> None:
+    """Write `cloud` as PLY (binary little-endian by default), atomically.
+
+    Everything the cloud holds is written (see the module docstring), so `read_ply` gives it
+    back: positions bit-exact, float attributes exact, colours quantised to 8 bits. The file
+    appears complete or not at all: it is written to a temporary file beside it and renamed.
+    Raises ValueError for an extras key that cannot be a PLY property name, SurfelError when
+    the file cannot be written.
+    """
+    n = len(cloud)
+    columns: list[tuple[str, str, np.ndarray]] = [
+        (name, "f8", cloud.positions[:, k]) for k, name in enumerate(_POSITION)]
+    if cloud.normals is not None:
+        columns += [(name, "f4", cloud.normals[:, k]) for k, name in enumerate(_NORMAL)]
+    if cloud.colors is not None:
+        rgb = np.round(cloud.colors * 255).astype(np.uint8)
+        columns += [(name, "u1", rgb[:, k]) for k, name in enumerate(_COLOR)]
+    if cloud.radii is not None:
+        columns.append(("radius", "f4", cloud.radii))
+    if cloud.axes is not None:
+        flat_axes = cloud.axes.reshape(n, 6)
+        columns += [(name, "f4", flat_axes[:, k]) for k, name in enumerate(_AXES)]
+    comments = ["written by surfel"]
+    if cloud.geospatial:
+        comments.append(_GEOSPATIAL_COMMENT)
+    for key, value in cloud.extras.items():
+        if not re.fullmatch(r"[!-~]+", key) or key in _RESERVED:
+            raise ValueError(f"extras key {key!r} cannot be written as a PLY property name")
+        shape = value.shape[1:]
+        comments.append(" ".join([_EXTRA_COMMENT, key, *map(str, shape)]))
+        if not shape:
+            columns.append((key, "f4", value))
+        else:
+            flat = value.reshape(n, -1)
+            columns += [(f"{key}_{i}", "f4", flat[:, i]) for i in range(flat.shape[1])]
+    names = [name for name, _, _ in columns]
+    if len(set(names)) != len(names):
+        raise ValueError("extras keys give duplicate PLY property names")
+
+    faces = cloud.faces if cloud.faces is not None and len(cloud.faces) else None
+    lines = ["ply", f"format {'binary_little_endian' if binary else 'ascii'} 1.0"]
+    lines += [f"comment {comment}" for comment in comments]
+    lines.append(f"element vertex {n}")
+    lines += [f"property {_TYPE_NAMES[code]} {name}" for name, code, _ in columns]
+    if faces is not None:
+        lines += [f"element face {len(faces)}", "property list uchar int vertex_indices"]
+    lines.append("end_header")
+    header = ("\n".join(lines) + "\n").encode("ascii")
+
+    def write_body(file: BinaryIO) -> None:
+        file.write(header)
+        if binary:
+            records = np.empty(n, dtype=[(name, "<" + code) for name, code, _ in columns])
+            for name, _, values in columns:
+                records[name] = values
+            records.tofile(file)
+            if faces is not None:
+                face_records = np.empty(len(faces), dtype=[("n", "u1"), ("v", "<i4", (3,))])
+                face_records["n"] = 3
+                face_records["v"] = faces
+                face_records.tofile(file)
+        else:
+            # 17 significant digits read back to the same double, 9 to the same float.
+            formats = {"f8": "%.17g", "f4": "%.9g", "u1": "%d"}
+            table = np.column_stack([values.astype(np.float64) for _, _, values in columns])
+            np.savetxt(file, table, fmt=[formats[code] for _, code, _ in columns])
+            if faces is not None:
+                np.savetxt(file, np.column_stack([np.full(len(faces), 3), faces]), fmt="%d")
+
+    _write_atomically(os.fspath(path), write_body)
+
+
+def _write_atomically(path: str, write_body: Callable[[BinaryIO], None]) -> None:
+    directory, name = os.path.split(os.path.abspath(path))
+    temporary = os.path.join(directory, f".{name}.{os.getpid()}.{secrets.token_hex(4)}.tmp")
+    try:
+        # Mode 0o666 lets the umask decide the permissions, as a plain open() would.
+        descriptor = os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+        with os.fdopen(descriptor, "wb") as file:
+            write_body(file)
+        os.replace(temporary, path)
+    except BaseException as error:
+        with contextlib.suppress(OSError):
+            os.unlink(temporary)
+        if isinstance(error, OSError):
+            raise SurfelError(f"{path}: cannot write: {error.strerror or error}") from error
+        raise
