@@ -34,7 +34,7 @@ def checker_plane(n_side: int = 608, seed: int = 0) -> PointCloud:
 
 
 def grazing_camera(size=(512, 512)) -> Camera:
-    cam = Camera.look_at([0, -1.3, 0.1], [0, 1.0, 0], [0, 0, 1], fov=20, size=size)
+    cam = Camera.look_at([0, -3.5, 0.3], [0, 0.3, 0], [0, 0, 1], fov=30, size=size)
     return cam.fit_clip_planes([0, 0, 0], 1.5)
 
 
