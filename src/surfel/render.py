@@ -87,7 +87,7 @@ def render(cloud: PointCloud, camera: Camera | None = None, method: str = "defer
         renderer = "cpu"
     stats = {"method": method, "backend": backend, "renderer": renderer, "points": input_points,
              "splats": len(cloud), "width": camera.width, "height": camera.height, "ms": round(ms, 3),
-             "shading": options.shading}
+             "shading": options.shading, "near": camera.near, "far": camera.far}
     stats.update(result.stats)
     if estimated:
         stats["estimated"] = estimated

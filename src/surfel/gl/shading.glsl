@@ -13,8 +13,8 @@ vec3 shade(int model, vec3 albedo, vec3 n, float eye_depth, float near_depth, fl
     }
     if (model == SHADING_PHONG) {
         vec3 nf = n.z < 0.0 ? -n : n;  // two-sided
-        const vec3 light = vec3(-0.3713907, 0.5570860, 0.7427813);  // normalize(-0.4, 0.6, 0.8)
-        const vec3 halfway = vec3(-0.1897430, 0.2846146, 0.9396926);  // normalize(light + v)
+        const vec3 light = normalize(vec3(-0.4, 0.6, 0.8));  // key light from the upper left
+        const vec3 halfway = normalize(light + vec3(0.0, 0.0, 1.0));
         float diffuse = 0.25 + 0.75 * max(dot(nf, light), 0.0);
         float specular = 0.3 * pow(max(dot(nf, halfway), 0.0), 40.0);
         return albedo * diffuse + vec3(specular);

@@ -63,7 +63,8 @@ void main() {
     v_field_u = (back ? -1.0 : 1.0) * in_field.x * normalize(au + 1e-30);
     v_field_v = (back ? -1.0 : 1.0) * in_field.y * normalize(av + 1e-30);
     float near = u_depth_range.x;
-    if ((back && u_backface_culling != 0) || (u_ortho == 0.0 && -c.z < near * 0.5 && -c.z + length(au) + length(av) < near)) {
+    bool before_near = u_ortho == 0.0 && -c.z + length(au) + length(av) < near;  // wholly behind the camera's near plane
+    if ((back && u_backface_culling != 0) || before_near) {
         gl_Position = vec4(2.0, 2.0, 2.0, 1.0);  // outside the clip volume: no fragments
         return;
     }
@@ -96,7 +97,7 @@ void main() {
 #ifdef POINT_SPRITES
     // One vertex per splat: a square sprite around the box, on a render target with a guard
     // band so that sprites centred outside the image still reach into it (OpenGL drops a
-    // point whose centre is clipped). The driver picks quads when a splat could outgrow
+    // point whose centre is clipped). splatting.py picks quads when a splat could outgrow
     // the guard band or the largest point size, or cross the near plane.
     gl_Position = image_to_clip(0.5 * (lo + hi));
     gl_PointSize = max(hi.x - lo.x, hi.y - lo.y) + 1.0;
