@@ -1,7 +1,8 @@
 """Bundled data: Spot (Keenan Crane, CC0), the demo model.
 
-spot.npz holds the referenced vertices of ../shared/data/spot.obj (float32), their
-area-weighted vertex normals and the triangles, compressed; no pickles.
+spot.npz holds the referenced vertices of ../shared/data/spot.obj (float32, turned 150
+degrees about +Y so that the default front view shows her face), their area-weighted
+vertex normals and the triangles, compressed; no pickles.
 """
 
 from __future__ import annotations
