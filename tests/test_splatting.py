@@ -76,7 +76,7 @@ def test_orthographic_camera_for_every_splat_method(bunny):
     assert ref.alpha.mean() > 0.1
     for method in ("points", "gaussian", "deferred", "phong"):
         metrics = compare_results(ref, render(bunny.with_(faces=None), cam, method, shading="lambert"))
-        assert metrics["holes"] <= 0.01 and metrics["psnr"] > 22, method
+        assert metrics["holes"] <= 0.01 and metrics["psnr"] > 20, method
 
 
 def test_lidar_colours_are_splatted(tmp_path):

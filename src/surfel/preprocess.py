@@ -9,8 +9,10 @@ and Phong splatting's normal fields, from raw points.
   `ambiguous` counts points whose orientation is a guess: a flip decided across an edge with
   |n_i . n_parent| < 0.1, or a neighbourhood without a clear normal direction (the two
   smallest covariance eigenvalues within a factor 1.5 of each other: a line or a blob).
-* Radii: RADIUS_FACTOR times the mean distance to the RADIUS_NEIGHBORS nearest neighbours,
-  which overlaps splats into a hole-free surface on scans with irregular spacing; capped at
+* Radii: RADIUS_FACTOR times the mean distance to the RADIUS_NEIGHBORS nearest neighbours.
+  On a regular sampling with spacing a that mean is about 1.2 a, and a disk must reach the
+  farthest corner of its Voronoi cell, a / sqrt(3) = 0.58 a: 0.75 gives 0.9 a, enough overlap
+  for irregular scans without the silhouette spill of larger splats. Capped at
   RADIUS_CAP times the median so that a few stray points (water, sky) do not become blobs.
 * Tangent frames: two unit tangents perpendicular to each normal (Duff et al. 2017),
   scaled by the radius: the `axes` of a circular splat.
@@ -36,7 +38,7 @@ from .cloud import PointCloud
 CHUNK = 1_000_000
 PROGRESS_MIN_POINTS = 1_000_000
 RADIUS_NEIGHBORS = 8
-RADIUS_FACTOR = 1.2
+RADIUS_FACTOR = 0.75
 RADIUS_CAP = 4.0
 ELLIPSE_MAX_RATIO = 2.0
 AMBIGUOUS_DOT = 0.1

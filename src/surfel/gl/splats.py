@@ -74,8 +74,9 @@ def chunks(cloud: PointCloud):
         _cache[cloud] = buffers
 
 
-def vertex_array(ctx, program, vbo, *, instanced: bool):
-    """A VAO over a packed chunk; attributes the compiler dropped from `program` become padding."""
+def vertex_array(ctx, program, vbo, *, instanced: bool, extra=()):
+    """A VAO over a packed chunk; attributes the compiler dropped from `program` become padding.
+    `extra`: further (buffer, name) pairs of one float per point."""
     fmt, names = [], []
     for name, width in zip(ATTRIBUTES, WIDTHS):
         if name in program:
@@ -83,25 +84,33 @@ def vertex_array(ctx, program, vbo, *, instanced: bool):
             names.append(name)
         else:
             fmt.append(f"{4 * width}x")
-    layout = " ".join(fmt) + ("/i" if instanced else "")
-    return ctx.vertex_array(program, [(vbo, layout, *names)])
+    step = "/i" if instanced else ""
+    return ctx.vertex_array(program, [(vbo, " ".join(fmt) + step, *names)]
+                            + [(buffer, "1f" + step, name) for buffer, name in extra])
 
 
-def draw(ctx, cloud, program, mode, *, instanced: bool, count: int | None = None):
+def draw(ctx, cloud, program, mode, *, instanced: bool, count: int | None = None,
+         extra: dict[str, np.ndarray] | None = None):
     """Draw the cloud's first `count` points (all by default) with `program`: instanced
-    4-vertex strips, or one vertex a point."""
+    4-vertex strips, or one vertex a point. `extra` maps attribute names to per-point floats
+    computed per frame (uploaded chunk by chunk beside the cached attributes)."""
     remaining = len(cloud) if count is None else count
+    start = 0
     for vbo, chunk in chunks(cloud):
         count = min(chunk, remaining)
         remaining -= count
-        if count <= 0:
-            continue
-        vao = vertex_array(ctx, program, vbo, instanced=instanced)
-        if instanced:
-            vao.render(mode, vertices=4, instances=count)
-        else:
-            vao.render(mode, vertices=count)
-        vao.release()
+        if count > 0:
+            buffers = [(ctx.buffer(np.ascontiguousarray(values[start:start + count], np.float32)), name)
+                       for name, values in (extra or {}).items() if name in program]
+            vao = vertex_array(ctx, program, vbo, instanced=instanced, extra=buffers)
+            if instanced:
+                vao.render(mode, vertices=4, instances=count)
+            else:
+                vao.render(mode, vertices=count)
+            vao.release()
+            for buffer, _ in buffers:
+                buffer.release()
+        start += chunk
 
 
 def lod_frame(cloud: PointCloud, camera, lod_error: float | None):

@@ -42,6 +42,12 @@ METHODS: dict[str, Method] = {
                {"gl": "splatting:render_deferred"}),
         Method("phong", "Botsch et al. 2004: Phong splatting, elliptical splats with linear normal fields",
                {"gl": "splatting:render_phong"}),
+        Method("object-space", "Ren, Pfister & Zwicker 2002: object-space EWA splatting with textured quads",
+               {"gl": "object_space:render_object_space"}),
+        Method("ewa", "Zwicker et al. 2001: software EWA surface splatting, the full resampling filter",
+               {"cpu": "ewa:render_ewa_cpu"}),
+        Method("mls", "Adamson & Alexa 2003: ray tracing the MLS point set surface",
+               {"cpu": "mls:render_mls_cpu"}, needs_radii=False),
     ]
 }
 

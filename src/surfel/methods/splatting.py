@@ -35,8 +35,8 @@ import numpy as np
 
 from ..gl import splats
 from ..gl.context import get_context
-from ..gl.program import build_program, set_uniforms
-from ..gl.targets import GBuffer, gbuffer_result, read_texture
+from ..gl.program import build_program
+from ..gl.passes import UNIFORM_UNITS, SplatPasses
 from ..gl.uniforms import apply_common
 
 SHADER = Path(__file__).with_suffix(".glsl")
@@ -108,77 +108,22 @@ def _render(cloud, camera, options, *, per_splat_shading: bool, ewa_filter: bool
                      u_radius_scale=options.radius_scale, u_depth_offset=depth_offset,
                      u_lowpass_radius=options.lowpass_radius * ss, u_guard=float(guard),
                      u_backface_culling=int(options.backface_culling),
-                     u_kernel=0, u_visibility=1, u_accum_color=2, u_accum_normal=3, u_lod_k=lod_k)
+                     u_kernel=0, u_lod_k=lod_k, **UNIFORM_UNITS)
 
     kernel = gaussian_kernel_texture(ctx)
-    target = (width + 2 * guard, height + 2 * guard)
-    visibility = ctx.texture(target, 2, dtype="f4")
-    accum = [ctx.texture(target, 4, dtype="f4") for _ in range(2)]
-    for tex in (visibility, *accum):
-        tex.filter = (ctx.NEAREST, ctx.NEAREST)
-    vis_fbo = ctx.framebuffer(color_attachments=[visibility])
-    accum_fbo = ctx.framebuffer(color_attachments=accum)
-    out = GBuffer(width, height)
-    empty = ctx.vertex_array(programs["PASS_NORMALIZE"], [])
+    mode = ctx.POINTS if sprites else ctx.TRIANGLE_STRIP
+
+    def draw(program):
+        return lambda: splats.draw(ctx, cloud, program, mode, instanced=not sprites, count=prefix)
+
     try:
-        ctx.disable(ctx.DEPTH_TEST | ctx.CULL_FACE)
-        ctx.enable(ctx.BLEND | ctx.PROGRAM_POINT_SIZE)
-        mode = ctx.POINTS if sprites else ctx.TRIANGLE_STRIP
-        kernel.use(0)
-
-        vis_fbo.use()
-        vis_fbo.clear(3.0e38, 1.0, 0, 0)
-        ctx.blend_equation = ctx.MIN
-        splats.draw(ctx, cloud, programs["PASS_VISIBILITY"], mode, instanced=not sprites, count=prefix)
-
-        accum_fbo.use()
-        accum_fbo.clear(0, 0, 0, 0)
-        ctx.blend_equation = ctx.FUNC_ADD
-        ctx.blend_func = ctx.ONE, ctx.ONE
-        visibility.use(1)
-        splats.draw(ctx, cloud, programs["PASS_ATTRIBUTE"], mode, instanced=not sprites, count=prefix)
-
-        ctx.disable(ctx.BLEND)
-        out.fbo.use()
-        out.clear()
-        visibility.use(1)
-        accum[0].use(2)
-        accum[1].use(3)
-        empty.render(ctx.TRIANGLES, vertices=3)
-        ctx.finish()
-        stats = {"splats": len(cloud) if drawn is None else int(drawn.sum()), "supersample": ss, "ewa_filter": ewa_filter,
-                 "primitive": "point sprites" if sprites else "quads"}
-        result = gbuffer_result(out, camera, options, ss, stats)
-        if options.dump_passes:
-            dump_passes(options.dump_passes, visibility, accum, result, guard)
-        return result
+        with SplatPasses(width, height, guard) as passes:
+            kernel.use(0)
+            passes.visibility_pass(draw(programs["PASS_VISIBILITY"]))
+            passes.attribute_pass(draw(programs["PASS_ATTRIBUTE"]))
+            passes.normalize_pass(programs["PASS_NORMALIZE"])
+            stats = {"splats": len(cloud) if drawn is None else int(drawn.sum()), "supersample": ss,
+                     "ewa_filter": ewa_filter, "primitive": "point sprites" if sprites else "quads"}
+            return passes.result(camera, options, ss, stats)
     finally:
-        ctx.blend_equation = ctx.FUNC_ADD
-        for obj in (kernel, visibility, *accum, vis_fbo, accum_fbo, empty):
-            obj.release()
-        out.release()
-
-
-def dump_passes(folder, visibility, accum, result, guard: int) -> None:
-    """The survey's Fig. 5: visibility depth, accumulated weight and colour, normalized result."""
-    from PIL import Image
-
-    folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
-    inner = (slice(guard, visibility.height - guard), slice(guard, visibility.width - guard))
-    depth = read_texture(visibility)[inner][..., 0]
-    valid = depth < 1e37
-    gray = np.zeros_like(depth)
-    if valid.any():
-        lo, hi = depth[valid].min(), depth[valid].max()
-        gray[valid] = 1 - 0.8 * (depth[valid] - lo) / max(hi - lo, 1e-12)
-    color = read_texture(accum[0])[inner]
-    weight = color[..., 3] / max(float(color[..., 3].max()), 1e-12)
-
-    def save(name, image):
-        Image.fromarray(np.round(np.clip(image, 0, 1) * 255).astype(np.uint8)).save(folder / name)
-
-    save("1-visibility-depth.png", gray)
-    save("2-accumulated-weight.png", weight)
-    save("3-accumulated-color.png", np.clip(color[..., :3], 0, 1))
-    save("4-normalized.png", result.color)
+        kernel.release()

@@ -1,0 +1,113 @@
+"""The render targets and blend states of three-pass splatting, shared by every method that
+splats with a visibility pass (Ren et al. 2002; Botsch & Kobbelt 2003; Botsch et al. 2005):
+
+1. visibility: MIN blending into an RG32F target: (eye depth + z_t, 1 - coverage), i.e. the
+   nearest surface pushed back by z_t, and how much of the pixel some splat covers;
+2. attribute: additive blending into two RGBA32F accumulators: (w rgb, w) and (w n, w z),
+   of fragments no farther than the visibility depth;
+3. normalization: a full-screen triangle turns the sums into the G-buffer layout of
+   targets.gbuffer_result (shaded RGB + coverage, eye normal, eye depth).
+
+Texture units seen by the shaders: 1 visibility, 2 (w rgb, w), 3 (w n, w z); unit 0 is the
+method's kernel texture. `guard` pixels of margin on each side of the splat targets let point
+sprites centred outside the image reach into it; the output has the image's size.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from .context import get_context
+from .targets import GBuffer, gbuffer_result, read_texture
+
+UNIFORM_UNITS = {"u_visibility": 1, "u_accum_color": 2, "u_accum_normal": 3}
+FAR = 3.0e38
+
+
+class SplatPasses:
+    def __init__(self, width: int, height: int, guard: int = 0):
+        ctx = self.ctx = get_context()
+        self.guard = guard
+        target = (width + 2 * guard, height + 2 * guard)
+        self.visibility = ctx.texture(target, 2, dtype="f4")
+        self.accum = [ctx.texture(target, 4, dtype="f4") for _ in range(2)]
+        for tex in (self.visibility, *self.accum):
+            tex.filter = (ctx.NEAREST, ctx.NEAREST)
+        self.visibility_fbo = ctx.framebuffer(color_attachments=[self.visibility])
+        self.accum_fbo = ctx.framebuffer(color_attachments=self.accum)
+        self.out = GBuffer(width, height)
+        ctx.disable(ctx.DEPTH_TEST | ctx.CULL_FACE)
+        ctx.enable(ctx.BLEND | ctx.PROGRAM_POINT_SIZE)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.ctx.blend_equation = self.ctx.FUNC_ADD
+        for obj in (self.visibility, *self.accum, self.visibility_fbo, self.accum_fbo):
+            obj.release()
+        self.out.release()
+
+    def visibility_pass(self, draw) -> None:
+        ctx = self.ctx
+        self.visibility_fbo.use()
+        self.visibility_fbo.clear(FAR, 1.0, 0.0, 0.0)
+        ctx.enable(ctx.BLEND)
+        ctx.blend_equation = ctx.MIN
+        draw()
+
+    def attribute_pass(self, draw) -> None:
+        ctx = self.ctx
+        self.accum_fbo.use()
+        self.accum_fbo.clear(0.0, 0.0, 0.0, 0.0)
+        ctx.enable(ctx.BLEND)
+        ctx.blend_equation = ctx.FUNC_ADD
+        ctx.blend_func = ctx.ONE, ctx.ONE
+        self.visibility.use(1)
+        draw()
+
+    def normalize_pass(self, program) -> None:
+        ctx = self.ctx
+        ctx.disable(ctx.BLEND)
+        self.out.fbo.use()
+        self.out.clear()
+        self.visibility.use(1)
+        self.accum[0].use(2)
+        self.accum[1].use(3)
+        triangle = ctx.vertex_array(program, [])
+        triangle.render(ctx.TRIANGLES, vertices=3)
+        triangle.release()
+        ctx.finish()
+
+    def result(self, camera, options, supersample: int, stats: dict):
+        result = gbuffer_result(self.out, camera, options, supersample, stats)
+        if options.dump_passes:
+            self.dump(options.dump_passes, result)
+        return result
+
+    def dump(self, folder, result) -> None:
+        """The survey's Fig. 5: visibility depth, accumulated weight and colour, final image."""
+        from PIL import Image
+
+        folder = Path(folder)
+        folder.mkdir(parents=True, exist_ok=True)
+        g = self.guard
+        inner = (slice(g, self.visibility.height - g), slice(g, self.visibility.width - g))
+        depth = read_texture(self.visibility)[inner][..., 0]
+        valid = depth < FAR / 10
+        gray = np.zeros_like(depth)
+        if valid.any():
+            lo, hi = depth[valid].min(), depth[valid].max()
+            gray[valid] = 1 - 0.8 * (depth[valid] - lo) / max(hi - lo, 1e-12)
+        color = read_texture(self.accum[0])[inner]
+        weight = color[..., 3] / max(float(color[..., 3].max()), 1e-12)
+
+        def save(name, image):
+            Image.fromarray(np.round(np.clip(image, 0, 1) * 255).astype(np.uint8)).save(folder / name)
+
+        save("1-visibility-depth.png", gray)
+        save("2-accumulated-weight.png", weight)
+        save("3-accumulated-color.png", np.clip(color[..., :3], 0, 1))
+        save("4-normalized.png", result.color)

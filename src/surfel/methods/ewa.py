@@ -1,0 +1,180 @@
+"""`ewa`: software EWA surface splatting (Zwicker, Pfister, van Baar & Gross, SIGGRAPH 2001).
+
+The full screen-space resampling filter of the paper (survey Sec. 3.2), not the 2005
+approximation of Botsch et al. Every splat k has a centre c_k, tangent axes u_k, v_k (scaled
+to the ellipse semi-axes, times `radius_scale`) and an elliptical Gaussian reconstruction
+kernel r_k(s, t) = G_V(s, t) in its local coordinates (s, t), V = sigma^2 I (s = t = 1 at the
+ellipse's rim). Per splat, at its centre:
+
+    J   = dP/dx(c_k) [u_k v_k]           the local affine approximation of the projective
+                                          mapping P (eye space -> pixels): 2x2, from the
+                                          camera's derivative times the tangent frame;
+                                          constant for an orthographic camera
+    M   = J V J^T + L,  L = l^2 I         the resampling kernel's covariance: the warped
+                                          reconstruction kernel convolved with the screen
+                                          low-pass of radius l = options.lowpass_radius
+    rho_k(x) = 1/|J^-1| G_M(x - m_k)      the EWA resampling filter (eq. 19 of the paper),
+             = |det J| / (2 pi sqrt(det M)) exp(-1/2 (x - m_k)^T M^-1 (x - m_k))
+
+(the constant 2 pi cancels in the normalisation and is dropped). The kernel is cut where
+(x - m)^T M^-1 (x - m) > R^2 with R^2 = -2 ln(1 - mass), so `cutoff_mass` (default 0.99) of
+its mass is kept; the pixel box of the cut ellipse has half-sizes R sqrt(M_00), R sqrt(M_11).
+
+Visibility follows the paper's A-buffer-like rule with a depth threshold z_t = depth_offset *
+splat radius: pass 1 takes per pixel Z = min over fragments of (depth + z_t); pass 2 blends
+the fragments with depth <= Z. A fragment's depth is the splat plane's eye depth, linear in
+the pixel offset through J^-1 (clamped to the kernel's extent where J is near singular).
+Pass 2 accumulates w, w*albedo, w*normal, w*depth; the pixel's albedo, normal and depth are
+the normalised sums (per-pixel normalisation) and are shaded afterwards (deferred shading).
+Normals are flipped to face the viewer per splat. Colours are thus filtered exactly as the
+paper prescribes, which is what anti-aliases texture under minification.
+
+Coverage (alpha): the accumulated weight sum W = sum_k rho_k(x) does not depend on the view
+inside a surface (it is the number of splats per unit of local (s, t) area, a property of the
+sampling), so alpha = clamp(W / (coverage * W_full)) with W_full the typical W of fully covered
+pixels (a high percentile of W over the image) gives a soft, anti-aliased silhouette.
+
+Pass 1 uses a narrower visibility footprint, J V J^T + v^2 I with v = `visibility` pixels
+(default 0.2), instead of M: the low-pass fringe of a splat seen edge-on (tiny weight, but a
+plane depth extrapolated far off) must not hide the surface behind it.
+
+The CPU backend `render_ewa_cpu` (numba, parallel over screen tiles, see ewa_kernels.py) ends
+in `resolve_accumulators`, which a GL backend reading back its accumulators is meant to share.
+
+Method parameters (options.params): sigma (reconstruction std dev in semi-axis units, default
+0.5), cutoff_mass (0.99), coverage (fraction of W_full at which alpha reaches 1, default 0.5),
+visibility (0.2 px), depth_clamp (cap of a fragment's plane-depth offset, in radii, default 4).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..cloud import PointCloud
+from ..camera import Camera
+from ..options import RenderOptions
+from ..result import RenderResult
+from ..shading import shade
+
+DEFAULT_SIGMA = 0.5
+DEFAULT_CUTOFF_MASS = 0.99
+DEFAULT_COVERAGE = 0.5
+DEFAULT_DEPTH_OFFSET = 1.0
+DEFAULT_DEPTH_CLAMP = 4.0
+DEFAULT_VISIBILITY = 0.2
+# The percentile of the nonzero weight sums taken as the weight of a fully covered pixel.
+FULL_WEIGHT_PERCENTILE = 75.0
+
+
+@dataclass(frozen=True)
+class EwaParams:
+    """The filter's settings, resolved from RenderOptions (defaults above)."""
+
+    sigma: float
+    cutoff2: float  # R^2, squared Mahalanobis cutoff radius of the resampling kernel
+    lowpass: float  # std dev of the screen low-pass, in render-target pixels
+    visibility: float  # std dev in pixels added to the kernel for the visibility footprint
+    depth_offset: float  # z_t as a fraction of the splat radius
+    coverage: float
+    depth_clamp: float  # cap of a fragment's depth offset from its centre, in splat radii
+    supersample: int
+
+    @classmethod
+    def from_options(cls, options: RenderOptions) -> "EwaParams":
+        p = options.params
+        mass = float(p.get("cutoff_mass", DEFAULT_CUTOFF_MASS))
+        if not 0 < mass < 1:
+            raise ValueError(f"ewa cutoff_mass must be in (0, 1), got {mass}")
+        return cls(sigma=float(p.get("sigma", DEFAULT_SIGMA)), cutoff2=-2.0 * math.log(1.0 - mass),
+                   lowpass=float(options.lowpass_radius),
+                   visibility=float(p.get("visibility", DEFAULT_VISIBILITY)),
+                   depth_offset=DEFAULT_DEPTH_OFFSET if options.depth_offset is None else float(options.depth_offset),
+                   coverage=float(p.get("coverage", DEFAULT_COVERAGE)),
+                   depth_clamp=float(p.get("depth_clamp", DEFAULT_DEPTH_CLAMP)), supersample=int(options.supersample or 1))
+
+
+def target_camera(camera: Camera, supersample: int) -> Camera:
+    """The camera of the (supersampled) render target."""
+    s = supersample
+    if s == 1:
+        return camera
+    return camera.with_(width=camera.width * s, height=camera.height * s, fx=camera.fx * s, fy=camera.fy * s,
+                        cx=camera.cx * s, cy=camera.cy * s)
+
+
+def ortho_scale(camera: Camera) -> float:
+    """Pixels per world unit of an orthographic camera, 0 for a perspective one."""
+    return 0.0 if camera.ortho_height is None else camera.height / camera.ortho_height
+
+
+def splat_colors(cloud: PointCloud) -> np.ndarray:
+    """(N, 3) albedo, or (1, 3) white for a cloud without colours."""
+    return cloud.colors if cloud.colors is not None else np.ones((1, 3), np.float32)
+
+
+def splat_axes(cloud: PointCloud) -> np.ndarray:
+    """(N, 2, 3) tangent axes; from normals and radii when the cloud has none."""
+    if cloud.axes is not None:
+        return cloud.axes
+    n = cloud.normals.astype(np.float64)
+    helper = np.where(np.abs(n[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]])
+    u = np.cross(n, helper)
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    v = np.cross(n, u)
+    r = cloud.radii.astype(np.float64)[:, None]
+    return np.stack([u * r, v * r], axis=1).astype(np.float32)
+
+
+def resolve_accumulators(acc: np.ndarray, camera: Camera, options: RenderOptions, params: EwaParams,
+                         stats: dict) -> RenderResult:
+    """Normalise the accumulated (H, W, 8) = w*rgb, w, w*normal, w*depth and shade (deferred).
+
+    Shared by both backends so that they differ only by the rasterization itself.
+    """
+    weight = acc[..., 3]
+    covered = weight > 0
+    safe = np.where(covered, weight, 1.0)[..., None]
+    albedo = acc[..., 0:3] / safe
+    nsum = acc[..., 4:7]
+    length = np.linalg.norm(nsum, axis=-1, keepdims=True)
+    normals = np.where(length > 1e-20, nsum / np.maximum(length, 1e-20), 0.0).astype(np.float32)
+    depth = np.where(covered, acc[..., 7] / safe[..., 0], np.inf).astype(np.float32)
+    full = float(np.percentile(weight[covered], FULL_WEIGHT_PERCENTILE)) if covered.any() else 1.0
+    coverage = np.clip(weight / max(params.coverage * full, 1e-30), 0.0, 1.0).astype(np.float32)
+    shaded = shade(options.shading, albedo, normals, depth, camera.near, camera.far)
+    stats = dict(stats, full_weight=full)
+    return RenderResult.from_samples(shaded, coverage, depth, normals, supersample=params.supersample,
+                                     background=options.background, stats=stats)
+
+
+def render_ewa_cpu(cloud: PointCloud, camera: Camera, options: RenderOptions) -> RenderResult:
+    """EWA splatting on the CPU: numba kernels, parallel over screen tiles."""
+    from . import ewa_kernels as k
+
+    params = EwaParams.from_options(options)
+    target = target_camera(camera, params.supersample)
+    w, h = target.width, target.height
+    intr = np.array([target.fx, target.fy, target.cx, target.cy], np.float64)
+    splats, box = k.setup_splats(cloud.positions, np.asarray(cloud.local_origin, np.float64),
+                                 np.asarray(target.world_to_eye, np.float64), cloud.normals, splat_colors(cloud),
+                                 splat_axes(cloud), intr, ortho_scale(target), float(target.near),
+                                 np.float32(options.radius_scale), np.float32(params.sigma ** 2),
+                                 np.float32(params.lowpass ** 2), np.float32(params.visibility ** 2),
+                                 np.float32(params.cutoff2),
+                                 np.float32(params.depth_offset), np.float32(params.depth_clamp), bool(options.backface_culling), w, h)
+    tiles_x, tiles_y = -(-w // k.TILE), -(-h // k.TILE)
+    offsets, index = k.bin_splats(box, tiles_x, tiles_y)
+    acc, fragments = k.rasterize_tiles(splats, box, offsets, index, tile_order(tiles_x, tiles_y), tiles_x,
+                                       w, h, np.float32(params.cutoff2))
+    drawn = int(np.count_nonzero(box[:, 0] <= box[:, 1]))
+    return resolve_accumulators(acc, target, options, params, {"splats": drawn, "fragments": int(fragments)})
+
+
+def tile_order(tiles_x: int, tiles_y: int) -> np.ndarray:
+    """Tile indices interleaved so that the contiguous chunks numba hands each thread
+    each get a spread of the screen (objects are rarely spread evenly over it)."""
+    n = tiles_x * tiles_y
+    return np.concatenate([np.arange(s, n, 7) for s in range(7)]).astype(np.int64)

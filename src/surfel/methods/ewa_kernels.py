@@ -1,0 +1,237 @@
+"""Numba kernels of the CPU EWA splatting backend (the equations are stated in ewa.py).
+
+Three stages, none of them a Python loop over splats:
+
+1. `setup_splats` (parallel over splats): eye-space centre, the Jacobian J of the
+   projective mapping at the centre, the resampling kernel's conic M^-1, its 1/|J^-1|
+   scale, the screen-space depth gradient and the pixel bounding box; one row of
+   `SPLAT_FIELDS` float32 values per splat plus an int32 box.
+2. `bin_splats` (serial, O(splats + tile overlaps)): count, prefix sum and scatter the
+   splats into screen tiles of TILE x TILE pixels, keeping draw order inside a tile.
+3. `rasterize_tiles` (parallel over tiles): each tile owns its pixels, so threads never
+   write the same memory. Two passes per tile in tile-local buffers: visibility (the
+   nearest fragment depth plus its splat's threshold), then accumulation of
+   w, w*albedo, w*normal, w*depth for the fragments not behind that depth.
+
+Everything per fragment is float32 (fastmath); float64 is used only to move centres into
+eye space, so LiDAR coordinates keep their precision.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba as nb
+import numpy as np
+
+TILE = 32
+# Columns of the per-splat parameter table.
+MX, MY, CA, CB, CC, WS, ZC, GX, GY, DZ, ZT, R, G, B, NX, NY, NZ, VA, VB, VC = range(20)
+SPLAT_FIELDS = 20
+# Accumulator channels, the order of the GL backend's two RGBA32F targets.
+ACC_CHANNELS = 8  # w*r, w*g, w*b, w, w*nx, w*ny, w*nz, w*depth
+
+
+@nb.njit(parallel=True, fastmath=True, cache=True)
+def setup_splats(positions, origin, view, normals, colors, axes, intr, ortho, near,
+                 radius_scale, sigma2, lowpass2, vis2, cutoff2, depth_offset, depth_clamp, backface,
+                 width, height):
+    """Per-splat parameter table (N, SPLAT_FIELDS) float32 and pixel boxes (N, 4) int32
+    (x0, x1, y0, y1 inclusive; x0 > x1 marks a culled splat).
+
+    positions (N,3) f64, origin (3,) f64, view (4,4) f64 world-to-eye, normals (N,3) f32,
+    colors (N,3) f32 or (1,3) for a constant colour, axes (N,2,3) f32, intr = fx, fy, cx, cy;
+    ortho > 0 is the orthographic pixels-per-unit scale.
+    """
+    n = positions.shape[0]
+    out = np.empty((n, SPLAT_FIELDS), np.float32)
+    box = np.empty((n, 4), np.int32)
+    fx, fy, cx, cy = np.float32(intr[0]), np.float32(intr[1]), np.float32(intr[2]), np.float32(intr[3])
+    # eye = R (p - origin) + t: fold the origin into t in float64 once.
+    t0 = view[0, 3] + view[0, 0] * origin[0] + view[0, 1] * origin[1] + view[0, 2] * origin[2]
+    t1 = view[1, 3] + view[1, 0] * origin[0] + view[1, 1] * origin[1] + view[1, 2] * origin[2]
+    t2 = view[2, 3] + view[2, 0] * origin[0] + view[2, 1] * origin[1] + view[2, 2] * origin[2]
+    rot = view[:3, :3].astype(np.float32)
+    color_step = 1 if colors.shape[0] > 1 else 0  # (1, 3) colours: one for all
+    cutoff = np.float32(math.sqrt(cutoff2))
+    for i in nb.prange(n):
+        box[i, 0], box[i, 1], box[i, 2], box[i, 3] = 1, 0, 1, 0
+        px, py, pz = positions[i, 0] - origin[0], positions[i, 1] - origin[1], positions[i, 2] - origin[2]
+        ex = np.float32(view[0, 0] * px + view[0, 1] * py + view[0, 2] * pz + t0)
+        ey = np.float32(view[1, 0] * px + view[1, 1] * py + view[1, 2] * pz + t1)
+        ez = np.float32(view[2, 0] * px + view[2, 1] * py + view[2, 2] * pz + t2)
+        d = -ez
+        if ortho <= 0 and d <= near:
+            continue  # behind the camera: the affine approximation is meaningless there
+        nx = rot[0, 0] * normals[i, 0] + rot[0, 1] * normals[i, 1] + rot[0, 2] * normals[i, 2]
+        ny = rot[1, 0] * normals[i, 0] + rot[1, 1] * normals[i, 1] + rot[1, 2] * normals[i, 2]
+        nz = rot[2, 0] * normals[i, 0] + rot[2, 1] * normals[i, 1] + rot[2, 2] * normals[i, 2]
+        facing = nz if ortho > 0 else -(nx * ex + ny * ey + nz * ez)
+        if facing < 0:
+            if backface:
+                continue
+            nx, ny, nz = -nx, -ny, -nz
+        ux = radius_scale * (rot[0, 0] * axes[i, 0, 0] + rot[0, 1] * axes[i, 0, 1] + rot[0, 2] * axes[i, 0, 2])
+        uy = radius_scale * (rot[1, 0] * axes[i, 0, 0] + rot[1, 1] * axes[i, 0, 1] + rot[1, 2] * axes[i, 0, 2])
+        uz = radius_scale * (rot[2, 0] * axes[i, 0, 0] + rot[2, 1] * axes[i, 0, 1] + rot[2, 2] * axes[i, 0, 2])
+        vx = radius_scale * (rot[0, 0] * axes[i, 1, 0] + rot[0, 1] * axes[i, 1, 1] + rot[0, 2] * axes[i, 1, 2])
+        vy = radius_scale * (rot[1, 0] * axes[i, 1, 0] + rot[1, 1] * axes[i, 1, 1] + rot[1, 2] * axes[i, 1, 2])
+        vz = radius_scale * (rot[2, 0] * axes[i, 1, 0] + rot[2, 1] * axes[i, 1, 1] + rot[2, 2] * axes[i, 1, 2])
+        # J = dproject/deye (2x3) times [u v] (3x2): local tangent coordinates -> pixels.
+        if ortho > 0:
+            mx, my = cx + ortho * ex, cy - ortho * ey
+            j00, j01 = ortho * ux, ortho * vx
+            j10, j11 = -ortho * uy, -ortho * vy
+        else:
+            inv = np.float32(1.0) / d
+            mx, my = cx + fx * ex * inv, cy - fy * ey * inv
+            a0, a2 = fx * inv, fx * ex * inv * inv
+            b1, b2 = -fy * inv, -fy * ey * inv * inv
+            j00, j01 = a0 * ux + a2 * uz, a0 * vx + a2 * vz
+            j10, j11 = b1 * uy + b2 * uz, b1 * vy + b2 * vz
+        # Resampling kernel covariance M = J V J^T + L, V = sigma^2 I, L = lowpass^2 I.
+        m00 = sigma2 * (j00 * j00 + j01 * j01) + lowpass2
+        m01 = sigma2 * (j00 * j10 + j01 * j11)
+        m11 = sigma2 * (j10 * j10 + j11 * j11) + lowpass2
+        det_m = m00 * m11 - m01 * m01
+        det_j = j00 * j11 - j01 * j10
+        hx, hy = cutoff * math.sqrt(m00), cutoff * math.sqrt(m11)
+        x0 = max(int(math.ceil(mx - hx - 0.5)), 0)
+        x1 = min(int(math.floor(mx + hx - 0.5)), width - 1)
+        y0 = max(int(math.ceil(my - hy - 0.5)), 0)
+        y1 = min(int(math.floor(my + hy - 0.5)), height - 1)
+        if x0 > x1 or y0 > y1:
+            continue
+        # Eye depth on the splat plane, linear in the pixel offset: h J^-1 with h = d depth/d(s,t).
+        h0, h1 = -uz, -vz
+        if abs(det_j) > 1e-12:
+            gx = (h0 * j11 - h1 * j10) / det_j
+            gy = (h1 * j00 - h0 * j01) / det_j
+        else:
+            gx, gy = np.float32(0.0), np.float32(0.0)
+        row = out[i]
+        row[MX], row[MY] = mx, my
+        row[CA], row[CB], row[CC] = m11 / det_m, -m01 / det_m, m00 / det_m
+        row[WS] = abs(det_j) / math.sqrt(det_m)
+        row[ZC], row[GX], row[GY] = d, gx, gy
+        radius = max(math.sqrt(ux * ux + uy * uy + uz * uz), math.sqrt(vx * vx + vy * vy + vz * vz))
+        # The plane's depth range over the cut ellipse is +-R sqrt(g^T M g); capped so that a
+        # splat seen edge-on (J near singular, g huge) cannot claim absurd depths.
+        # The visibility footprint: the reconstruction kernel itself, J V J^T + v^2 I with a small
+        # v, so the low-pass fringe of a splat seen edge-on cannot hide the surface behind it.
+        n00, n11 = m00 - lowpass2 + vis2, m11 - lowpass2 + vis2
+        det_n = n00 * n11 - m01 * m01
+        row[VA], row[VB], row[VC] = n11 / det_n, -m01 / det_n, n00 / det_n
+        # The plane's depth range over that footprint is +-R sqrt(g^T N g); capped so that a
+        # splat seen edge-on (J near singular, g huge) cannot claim absurd depths.
+        row[DZ] = min(cutoff * math.sqrt(gx * gx * n00 + 2 * gx * gy * m01 + gy * gy * n11), depth_clamp * radius)
+        row[ZT] = depth_offset * radius
+        c = i * color_step
+        row[R], row[G], row[B] = colors[c, 0], colors[c, 1], colors[c, 2]
+        row[NX], row[NY], row[NZ] = nx, ny, nz
+        box[i, 0], box[i, 1], box[i, 2], box[i, 3] = x0, x1, y0, y1
+    return out, box
+
+
+@nb.njit(cache=True)
+def bin_splats(box, tiles_x, tiles_y):
+    """Tile offsets (tiles+1,) int64 and splat indices sorted by tile (draw order kept)."""
+    n = box.shape[0]
+    counts = np.zeros(tiles_x * tiles_y + 1, np.int64)
+    for i in range(n):
+        if box[i, 0] > box[i, 1]:
+            continue
+        for ty in range(box[i, 2] // TILE, box[i, 3] // TILE + 1):
+            for tx in range(box[i, 0] // TILE, box[i, 1] // TILE + 1):
+                counts[ty * tiles_x + tx + 1] += 1
+    offsets = np.cumsum(counts)
+    fill = offsets[:-1].copy()
+    index = np.empty(offsets[-1], np.int32)
+    for i in range(n):
+        if box[i, 0] > box[i, 1]:
+            continue
+        for ty in range(box[i, 2] // TILE, box[i, 3] // TILE + 1):
+            for tx in range(box[i, 0] // TILE, box[i, 1] // TILE + 1):
+                t = ty * tiles_x + tx
+                index[fill[t]] = i
+                fill[t] += 1
+    return offsets, index
+
+
+@nb.njit(inline="always", fastmath=True)
+def _span(s, conic, yc, x_lo, x_hi, cutoff2):
+    """Pixel columns [x0, x1] of row centre yc inside the ellipse of the conic at columns
+    conic..conic+2, a dx^2 + 2 b dx dy + c dy^2 <= cutoff2 (empty when x0 > x1)."""
+    dy = yc - s[MY]
+    a, b = s[conic], s[conic + 1]
+    disc = b * b * dy * dy - a * (s[conic + 2] * dy * dy - cutoff2)
+    if disc < 0:
+        return 1, 0, dy
+    root = math.sqrt(disc)
+    left = s[MX] + (-b * dy - root) / a
+    right = s[MX] + (-b * dy + root) / a
+    return max(int(math.ceil(left - 0.5)), x_lo), min(int(math.floor(right - 0.5)), x_hi), dy
+
+
+@nb.njit(parallel=True, fastmath=True, cache=True)
+def rasterize_tiles(splats, box, offsets, index, order, tiles_x, width, height, cutoff2):
+    """Accumulators (H, W, ACC_CHANNELS) float32 and the fragment count.
+
+    Visibility (A-buffer in the spirit of Zwicker et al. 2001, Sec. 5): pass 1 stores per
+    pixel Z = min over fragments of (depth + threshold of its splat); pass 2 blends every
+    fragment with depth <= Z. A nearer surface thus replaces, one within the threshold of
+    the nearest is blended, a farther one is dropped, independent of drawing order.
+    """
+    acc = np.zeros((height, width, ACC_CHANNELS), np.float32)
+    fragments = np.zeros(order.shape[0], np.int64)
+    half = np.float32(0.5)
+    for k in nb.prange(order.shape[0]):
+        t = order[k]
+        start, stop = offsets[t], offsets[t + 1]
+        if start == stop:
+            continue
+        ox, oy = (t % tiles_x) * TILE, (t // tiles_x) * TILE
+        tw, th = min(TILE, width - ox), min(TILE, height - oy)
+        zbuf = np.full((TILE, TILE), np.inf, np.float32)
+        local = np.zeros((TILE, TILE, ACC_CHANNELS), np.float32)
+        for j in range(start, stop):
+            i = index[j]
+            s = splats[i]
+            for y in range(max(box[i, 2], oy), min(box[i, 3], oy + th - 1) + 1):
+                x0, x1, dy = _span(s, VA, np.float32(y) + half, max(box[i, 0], ox), min(box[i, 1], ox + tw - 1), cutoff2)
+                zrow = zbuf[y - oy]
+                for x in range(x0, x1 + 1):
+                    dx = np.float32(x) + half - s[MX]
+                    dz = min(max(s[GX] * dx + s[GY] * dy, -s[DZ]), s[DZ])
+                    z = s[ZC] + dz + s[ZT]
+                    if z < zrow[x - ox]:
+                        zrow[x - ox] = z
+        count = 0
+        for j in range(start, stop):
+            i = index[j]
+            s = splats[i]
+            for y in range(max(box[i, 2], oy), min(box[i, 3], oy + th - 1) + 1):
+                x0, x1, dy = _span(s, CA, np.float32(y) + half, max(box[i, 0], ox), min(box[i, 1], ox + tw - 1), cutoff2)
+                zrow = zbuf[y - oy]
+                lrow = local[y - oy]
+                for x in range(x0, x1 + 1):
+                    dx = np.float32(x) + half - s[MX]
+                    dz = min(max(s[GX] * dx + s[GY] * dy, -s[DZ]), s[DZ])
+                    z = s[ZC] + dz
+                    if z > zrow[x - ox]:
+                        continue
+                    q = s[CA] * dx * dx + np.float32(2.0) * s[CB] * dx * dy + s[CC] * dy * dy
+                    w = s[WS] * math.exp(np.float32(-0.5) * q)
+                    cell = lrow[x - ox]
+                    cell[0] += w * s[R]
+                    cell[1] += w * s[G]
+                    cell[2] += w * s[B]
+                    cell[3] += w
+                    cell[4] += w * s[NX]
+                    cell[5] += w * s[NY]
+                    cell[6] += w * s[NZ]
+                    cell[7] += w * z
+                    count += 1
+        acc[oy:oy + th, ox:ox + tw] = local[:th, :tw]
+        fragments[k] = count
+    return acc, fragments.sum()

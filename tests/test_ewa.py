@@ -1,0 +1,95 @@
+"""EWA splatting (Zwicker et al. 2001), CPU backend: filter maths and renders of the bunny."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from surfel.camera import frame
+from surfel.cloud import PointCloud
+from surfel.methods import ewa_kernels as k
+from surfel.methods.ewa import EwaParams, render_ewa_cpu, splat_axes
+from surfel.options import RenderOptions
+
+BUNNY = Path(__file__).resolve().parents[2] / "shared" / "data" / "stanford-bunny.obj"
+
+
+def _plane(n: int = 40) -> PointCloud:
+    """A jittered grid of tilted splats, radius 1.2x the spacing."""
+    rng = np.random.default_rng(1)
+    g = (np.stack(np.meshgrid(np.arange(n), np.arange(n)), -1).reshape(-1, 2) + rng.uniform(-0.2, 0.2, (n * n, 2))) / n
+    pos = np.column_stack([g[:, 0] - 0.5, g[:, 1] - 0.5, np.zeros(n * n)])
+    normals = np.tile([0.0, 0.0, 1.0], (n * n, 1))
+    r = 1.2 / n
+    axes = np.tile([[[r, 0, 0], [0, r, 0]]], (n * n, 1, 1))
+    return PointCloud(pos, normals=normals, radii=np.full(n * n, r), axes=axes)
+
+
+def _setup(cloud, camera, sigma=0.5, lowpass=1.0):
+    intr = np.array([camera.fx, camera.fy, camera.cx, camera.cy])
+    ortho = 0.0 if camera.ortho_height is None else camera.height / camera.ortho_height
+    return k.setup_splats(cloud.positions, cloud.local_origin, camera.world_to_eye, cloud.normals,
+                          np.ones((1, 3), np.float32), splat_axes(cloud), intr, ortho, camera.near,
+                          np.float32(1), np.float32(sigma ** 2), np.float32(lowpass ** 2), np.float32(0.04),
+                          np.float32(9.21), np.float32(1), np.float32(4), False, camera.width, camera.height)
+
+
+@pytest.mark.parametrize("ortho", [None, 1.5])
+def test_conic_matches_finite_differences_of_project(ortho):
+    cloud = _plane(8)
+    cam = frame(cloud.center, 0.7, azimuth=35, elevation=20, size=(128, 128), ortho_height=ortho)
+    sigma, lowpass = 0.5, 1.0
+    splats, _ = _setup(cloud, cam, sigma, lowpass)
+    eps = 1e-6
+    for i in (0, 17, 40):
+        c, (u, v) = cloud.positions[i], cloud.axes[i].astype(np.float64)
+        m0 = cam.project(c[None])[0][0]
+        jac = np.column_stack([(cam.project((c + eps * a)[None])[0][0] - m0) / eps for a in (u, v)])
+        cov = sigma ** 2 * jac @ jac.T + lowpass ** 2 * np.eye(2)
+        conic = np.linalg.inv(cov)
+        got = splats[i]
+        np.testing.assert_allclose(got[[k.MX, k.MY]], m0, rtol=1e-5)
+        np.testing.assert_allclose([got[k.CA], got[k.CB], got[k.CC]], [conic[0, 0], conic[0, 1], conic[1, 1]],
+                                   rtol=2e-3, atol=1e-6)
+        np.testing.assert_allclose(got[k.WS], abs(np.linalg.det(jac)) / math.sqrt(np.linalg.det(cov)), rtol=2e-3)
+
+
+def test_default_cutoff_keeps_99_percent_of_the_mass():
+    params = EwaParams.from_options(RenderOptions())
+    assert 1 - math.exp(-params.cutoff2 / 2) == pytest.approx(0.99)
+    assert EwaParams.from_options(RenderOptions(params={"cutoff_mass": 0.9})).cutoff2 < params.cutoff2
+
+
+@pytest.mark.parametrize("ortho", [None, 1.5])
+def test_plane_is_covered_without_holes(ortho):
+    cloud = _plane()
+    cam = frame(cloud.center, 0.7, size=(96, 96), ortho_height=ortho)
+    res = render_ewa_cpu(cloud, cam, RenderOptions(shading="lambert"))
+    inner = res.alpha[30:66, 30:66]
+    assert inner.min() > 0.99
+    np.testing.assert_allclose(res.color[30:66, 30:66], 1.0, atol=1e-3)  # lambert, facing the camera
+    assert res.alpha[0, 0] == 0 and np.isinf(res.depth[0, 0])
+    np.testing.assert_allclose(res.normals[48, 48], [0, 0, 1], atol=1e-4)
+    assert res.stats["splats"] == len(cloud)
+
+
+@pytest.mark.skipif(not BUNNY.exists(), reason="shared test data missing")
+def test_bunny_against_mesh():
+    from surfel.gl.context import gl_available
+    if not gl_available():
+        pytest.skip("the mesh reference needs OpenGL")
+    from surfel.io import load
+    from surfel.metrics import compare_results
+    from surfel.render import complete, default_camera, render
+
+    cloud = load(str(BUNNY))
+    cam = default_camera(cloud, (512, 512))
+    ref = render(cloud, cam, "mesh", shading="lambert")
+    res = render_ewa_cpu(complete(cloud)[0], cam, RenderOptions(shading="lambert"))
+    m = compare_results(ref, res)
+    assert m["psnr"] >= 26 and m["holes"] <= 0.02
+    both = (ref.alpha > 0.99) & (res.alpha > 0.99)
+    assert np.median(np.abs(ref.depth[both] - res.depth[both])) < 0.01 * np.median(ref.depth[both])

@@ -1,0 +1,73 @@
+"""MLS point set surface (Adamson & Alexa 2003): projection operator and the CPU ray tracer."""
+
+import numpy as np
+from scipy import ndimage
+
+from surfel.camera import frame
+from surfel.cloud import PointCloud
+from surfel.mls import surface as S
+from surfel.mls.raytrace import prepare_scene, render_mls_cpu, trace
+from surfel.options import RenderOptions
+
+
+def sphere_points(n: int) -> np.ndarray:
+    i = np.arange(n) + 0.5
+    phi, theta = np.arccos(1 - 2 * i / n), np.pi * (1 + 5**0.5) * i
+    return np.stack([np.cos(theta) * np.sin(phi), np.sin(theta) * np.sin(phi), np.cos(phi)], 1)
+
+
+SPHERE = PointCloud(sphere_points(40000), normals=sphere_points(40000))
+
+
+def test_projection_onto_sphere():
+    surf = S.build_surface(SPHERE)
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=(200, 3))
+    x *= (1 + rng.uniform(-0.01, 0.01, (200, 1))) / np.linalg.norm(x, axis=1, keepdims=True)
+    pr = S.project(surf, x - surf.origin)
+    assert (pr.status == S.FIT_OK).all()
+    assert np.abs(np.linalg.norm(pr.points + surf.origin, axis=1) - 1).max() < 1e-5
+    assert 1 <= pr.iterations.max() <= 5
+
+
+def test_fit_failure_statuses():
+    few = PointCloud(np.array([[0, 0, 0], [1e-3, 0, 0], [0, 1e-3, 0], [1e-3, 1e-3, 0.0]]))
+    assert S.project(S.build_surface(few), np.zeros((1, 3))).status[0] == S.FIT_TOO_FEW
+    surf = S.build_surface(SPHERE)
+    far = S.project(surf, np.array([[0.0, 0.0, 0.0]]) - surf.origin)  # centre: no sample near
+    assert far.status[0] in (S.FIT_TOO_FEW, S.FIT_OUTSIDE)
+
+
+def test_sphere_depth_accuracy():
+    cam = frame(SPHERE.center, SPHERE.bounding_radius, size=(256, 256))
+    res = render_mls_cpu(SPHERE, cam, RenderOptions(shading="lambert"))
+    o, d = cam.rays()
+    c = (cam.world_to_eye @ np.r_[0, 0, 0, 1.0])[:3]
+    b = (d * (o - c)).sum(-1)
+    disc = b * b - ((o - c) ** 2).sum(-1) + 1
+    t = -b - np.sqrt(np.maximum(disc, 0))
+    exact = np.where(disc > 0, t * -d[..., 2], np.inf)
+    both = np.isfinite(exact) & np.isfinite(res.depth)
+    assert np.median(np.abs(res.depth[both] - exact[both]) / exact[both]) <= 1e-3
+    inner = ndimage.binary_erosion(np.isfinite(exact), iterations=2)
+    assert not (inner & (res.alpha < 0.5)).any()
+    assert res.stats["hits"] > 0 and res.stats["iterations_mean"] >= 1
+
+
+def test_domain_test_keeps_holes_open():
+    p = sphere_points(40000)
+    cloud = PointCloud(p[p[:, 2] < 0.8])  # cap removed: a hole of radius 0.6 around +z
+    scene = prepare_scene(cloud)
+    o = np.array([[0.0, 0.0, 3.0], [0.0, 0.0, -3.0]]) - scene.surface.origin
+    hits = trace(scene, o, np.array([[0, 0, -1.0], [0, 0, 1.0]]), 0.0, 10.0)
+    assert abs(hits.t[0] - 4.0) < 1e-3  # through the hole, onto the far side at z = -1
+    assert abs(hits.t[1] - 2.0) < 1e-3
+
+
+def test_shadows_darken():
+    cam = frame(SPHERE.center, SPHERE.bounding_radius, size=(64, 64))
+    lit = render_mls_cpu(SPHERE, cam, RenderOptions(shading="phong"))
+    shadowed = render_mls_cpu(SPHERE, cam, RenderOptions(shading="phong", params={"shadows": True}))
+    assert shadowed.stats["shadowed"] > 0
+    assert (shadowed.color.sum(-1) < lit.color.sum(-1) - 0.05).any()
+    assert (shadowed.color <= lit.color + 1e-6).all()
