@@ -73,8 +73,9 @@ def render_options(f):
         click.option("--lowpass-radius", type=float, default=1.0, show_default=True, help="Screen-space low-pass radius in pixels."),
         click.option("--lod-error", type=float, default=None, metavar="PX", help="Level of detail: allowed projected error in pixels."),
         click.option("--dump-passes", type=click.Path(file_okay=False), default=None, help="Write the intermediate passes here as images."),
-        click.option("--per-pixel-normalization", is_flag=True,
-                     help="object-space: divide by the accumulated weight per pixel instead of per surfel."),
+        click.option("--per-pixel-normalization/--per-surfel-normalization", default=True, show_default=True,
+                     help="object-space: divide by the accumulated weight per pixel (Botsch & Kobbelt 2003), "
+                          "or Ren et al.'s precomputed per-surfel weights."),
         click.option("--shadows", is_flag=True, help="Ray-traced shadows (mls)."),
         click.option("--reflect", is_flag=True, help="One mirror bounce (mls)."),
     ]):
@@ -88,7 +89,8 @@ def make_options(kw):
     background = _floats(kw["background"], 3, "--background")
     if min(background) < 0 or max(background) > 1:
         raise click.BadParameter("--background values must lie in [0, 1]")
-    params = {k: True for k in ("shadows", "reflect", "per_pixel_normalization") if kw.get(k)}
+    params = {k: True for k in ("shadows", "reflect") if kw.get(k)}
+    params["normalization"] = "per-pixel" if kw.get("per_pixel_normalization", True) else "per-surfel"
     return RenderOptions(shading=kw["shading"], background=tuple(background), supersample=kw["supersample"],
                          radius_scale=kw["radius_scale"], depth_offset=kw["depth_offset"],
                          backface_culling=kw["backface_culling"], ewa_filter=kw["ewa_filter"],

@@ -1,30 +1,66 @@
-"""Preprocessing the splatting papers assume: normals, splat radii, tangent frames, ellipses
-and Phong splatting's normal fields, from raw points.
+"""What surface splatting assumes of its points: normals, splat sizes, tangent frames, ellipses
+and Phong splatting's normal fields, estimated from raw positions.
 
-* Normals: PCA over the k nearest neighbours (the eigenvector of the smallest eigenvalue of
-  the neighbourhood covariance), oriented towards a viewpoint when one is known, otherwise
-  consistently by propagation along a minimum spanning tree of the neighbour graph with
-  weights 1 - |n_i . n_j| (Hoppe et al. 1992), each connected component seeded at its point
-  farthest from its centroid with the normal pointing away from the centroid.
-  `ambiguous` counts points whose orientation is a guess: a flip decided across an edge with
-  |n_i . n_parent| < 0.1, or a neighbourhood without a clear normal direction (the two
-  smallest covariance eigenvalues within a factor 1.5 of each other: a line or a blob).
-* Radii: RADIUS_FACTOR times the mean distance to the RADIUS_NEIGHBORS nearest neighbours.
-  On a regular sampling with spacing a that mean is about 1.2 a, and a disk must reach the
-  farthest corner of its Voronoi cell, a / sqrt(3) = 0.58 a: 0.75 gives 0.9 a, enough overlap
-  for irregular scans without the silhouette spill of larger splats. Capped at
-  RADIUS_CAP times the median so that a few stray points (water, sky) do not become blobs.
-* Tangent frames: two unit tangents perpendicular to each normal (Duff et al. 2017),
-  scaled by the radius: the `axes` of a circular splat.
-* Ellipses (Phong splatting, Botsch, Spernat & Kobbelt 2004): the neighbourhood's principal
-  directions in the tangent plane; the minor semi-axis keeps the circular radius and the
-  major one grows with the spread ratio (at most ELLIPSE_MAX_RATIO), so coverage only grows.
-* Normal fields (ibid., survey eq. 8): N_j(u, v) = n_j + u alpha_j û_j + v beta_j v̂_j with
-  (u, v) the neighbour's local coordinates in units of the semi-axes; alpha_j and beta_j by
-  least squares over the neighbours' normals: alpha = sum(u_i (n_i . û)) / sum(u_i²).
+Normals (`estimate_normals`)
+    PCA over the k nearest neighbours: the eigenvector of the smallest eigenvalue of the
+    neighbourhood covariance. Orientation: towards a viewpoint when the sensor position is
+    known; otherwise consistently by propagation (Hoppe, DeRose, Duchamp, McDonald & Stuetzle
+    1992, "Surface reconstruction from unorganized points"): a minimum spanning tree of the
+    kNN graph with edge weights 1 - |n_i . n_j| (so flips propagate across nearly parallel
+    normals first), walked breadth-first, every node taking the sign that agrees with its
+    parent. Each connected component then faces outward as a whole: it is flipped when the
+    flux sum_i n_i . (p_i - centroid) is negative, which by the divergence theorem (the flux
+    of p - c through a closed surface is 3 x its volume) is the outward choice for closed
+    scans, and does not hinge on one seed point's normal.
+
+    `ambiguous` counts the points whose orientation is a guess:
+      * degenerate neighbourhoods without a tangent plane: the two smallest covariance
+        eigenvalues within a factor 1/DEGENERATE_RATIO of each other (a line, a blob, the
+        crossing of two surfaces), or a neighbourhood that is a line or a single point;
+      * sign decisions taken against a nearly perpendicular reference, |cos| < AMBIGUOUS_COS:
+        the tree parent's normal, the direction to the viewpoint, or, for a component's
+        seed, the component's outward flux (|flux| < AMBIGUOUS_COS x sum_i |n_i . (p_i - c)|,
+        e.g. a flat patch, which has no outside).
+
+Radii (`estimate_radii`): each splat covers its own Voronoi cell.
+    The union of disks covers a surface exactly when every sample's disk contains the part of
+    the surface nearer to it than to any other sample: its Voronoi cell. So the radius is the
+    distance from the point to the farthest vertex of its cell, computed in its tangent plane
+    among its k nearest neighbours (the half-planes nearer to it than to each neighbour,
+    clipped to the disk of the k-th neighbour's distance), times RADIUS_MARGIN for curvature
+    and normal noise. Unlike a fixed multiple of a neighbour distance, this adapts to the
+    anisotropic spacing of LiDAR scan lines (a cell is long across the lines, short along
+    them) and to jittered sampling, without inflating the splats of regular regions.
+    Neighbours more than 45 degrees off the tangent plane (the far side of a thin sheet) do
+    not cut the cell. A point whose radius exceeds ISOLATED_FACTOR x the median radius of its
+    neighbours (an outlier) is capped there so it does not become a blob.
+
+Tangent frames (`tangent_frames`): the branch-free orthonormal basis of Duff, Burgess,
+    Christensen, Hery, Kensler, Liani & Villemin 2017, "Building an orthonormal basis,
+    revisited", scaled by the radius; (u, v, n) is right-handed.
+
+Ellipses (`fit_ellipses`, for Phong splatting, Botsch, Spernat & Kobbelt 2004):
+    axis directions are the principal directions of the neighbours projected into the tangent
+    plane; the semi-axes take the aspect ratio of the Voronoi cell's second moments along
+    those directions (at most ELLIPSE_MAX_ASPECT) and are scaled so the ellipse contains the
+    cell, times RADIUS_MARGIN: the same covering rule as the radii, with less area. u is the
+    major axis.
+
+Normal fields (`fit_normal_field`, Botsch et al. 2004; survey eq. 8):
+    N_j(u, v) = n_j + u alpha_j û_j + v beta_j v̂_j, where û_j, v̂_j are the UNIT axis
+    directions and (u, v) = (u_j . (q - c_j) / |u_j|^2, v_j . (q - c_j) / |v_j|^2) are local
+    coordinates that reach 1 on the ellipse's rim, so alpha and beta are dimensionless (the
+    tangent of the normal's tilt at the rim). Fitted by least squares over the neighbours'
+    normals, each slope a 1-D problem with a closed form.
+
+Memory stays bounded: the neighbour lists (N x k indices) are the only O(N k) arrays; all
+per-neighbour work runs in numba kernels or in chunks of CHUNK points.
 """
 
 from __future__ import annotations
+
+import math
+from dataclasses import dataclass
 
 import numba
 import numpy as np
@@ -35,215 +71,539 @@ from tqdm import tqdm
 
 from .cloud import PointCloud
 
-CHUNK = 1_000_000
+CHUNK = 1 << 18
 PROGRESS_MIN_POINTS = 1_000_000
-RADIUS_NEIGHBORS = 8
-RADIUS_FACTOR = 0.75
-RADIUS_CAP = 4.0
-ELLIPSE_MAX_RATIO = 2.0
-AMBIGUOUS_DOT = 0.1
-DEGENERATE_RATIO = 1.5
+AMBIGUOUS_COS = 0.1
+DEGENERATE_RATIO = 0.5
+ORIENT_NEIGHBOURS = 8
+RADIUS_NEIGHBOURS = 16
+RADIUS_MARGIN = 1.2
+ISOLATED_FACTOR = 2.0
+ELLIPSE_MAX_ASPECT = 4.0
+FIELD_NEIGHBOURS = 16
+_CAP_SIDES = 8  # the initial cell: a regular octagon inscribed in the k-th neighbour's circle
 
 
-def _progress(n: int, progress: bool | None, desc: str):
-    show = n > PROGRESS_MIN_POINTS if progress is None else progress
-    return tqdm(total=n, desc=desc, unit="pt", unit_scale=True, disable=not show, leave=False)
+# ---------------------------------------------------------------------------------------------
+# neighbourhoods
 
 
-def neighbors(positions: np.ndarray, k: int, workers: int = -1) -> tuple[np.ndarray, np.ndarray]:
-    """Distances and indices of the k nearest neighbours of every point, itself excluded."""
-    k = min(k, len(positions) - 1)
-    if k < 1:
-        return np.zeros((len(positions), 0)), np.zeros((len(positions), 0), np.int64)
-    dist, idx = cKDTree(positions).query(positions, k=k + 1, workers=workers)
-    return dist[:, 1:], idx[:, 1:]
+@dataclass(frozen=True)
+class _Neighbourhood:
+    """Positions relative to their centroid (georeferenced coordinates keep their precision in
+    differences) and the k nearest neighbours of every point, nearest first (itself first)."""
+
+    points: np.ndarray  # (N, 3) float64
+    index: np.ndarray   # (N, k) int32 or int64
+
+    def first(self, k: int) -> np.ndarray:
+        return self.index[:, :min(k, self.index.shape[1])]
 
 
-def pca_normals(positions: np.ndarray, idx: np.ndarray, progress: bool | None = None):
-    """Unit normals (N, 3) and a degenerate-neighbourhood mask from neighbour indices (N, k)."""
-    n = len(positions)
-    normals = np.empty((n, 3), np.float32)
-    degenerate = np.zeros(n, bool)
-    with _progress(n, progress, "normals") as bar:
-        for start in range(0, n, CHUNK):
-            stop = min(start + CHUNK, n)
-            nb = positions[idx[start:stop]]  # (c, k, 3)
-            nb = np.concatenate([positions[start:stop, None], nb], axis=1)
-            nb -= nb.mean(axis=1, keepdims=True)
-            cov = np.einsum("nki,nkj->nij", nb, nb)
-            values, vectors = np.linalg.eigh(cov)
-            normals[start:stop] = vectors[:, :, 0]
-            degenerate[start:stop] = values[:, 1] <= DEGENERATE_RATIO * values[:, 0]
+def _bar(total: int, progress: bool | None, desc: str) -> tqdm:
+    show = total > PROGRESS_MIN_POINTS if progress is None else bool(progress)
+    return tqdm(total=total, desc=f"surfel: {desc}", unit="pt", unit_scale=True, disable=not show, leave=False)
+
+
+def _chunks(n: int):
+    for start in range(0, n, CHUNK):
+        yield start, min(start + CHUNK, n)
+
+
+def _points(positions: np.ndarray) -> np.ndarray:
+    pts = np.asarray(positions, np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) == 0:
+        raise ValueError(f"positions must have shape (N, 3) with N > 0, got {pts.shape}")
+    return pts
+
+
+def _neighbourhood(positions: np.ndarray, k: int, workers: int, progress: bool | None) -> _Neighbourhood:
+    pts = _points(positions)
+    pts = pts - pts.mean(axis=0)
+    n = len(pts)
+    k = max(1, min(k, n))
+    tree = cKDTree(pts)
+    index = np.empty((n, k), np.int32 if n < 2**31 else np.int64)
+    with _bar(n, progress, "neighbours") as bar:
+        for start, stop in _chunks(n):
+            _, idx = tree.query(pts[start:stop], k=k, workers=workers)
+            index[start:stop] = idx.reshape(stop - start, k)
+            bar.update(stop - start)
+    return _Neighbourhood(pts, index)
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-300)
+
+
+# ---------------------------------------------------------------------------------------------
+# normals
+
+
+@numba.njit(parallel=True, cache=True)
+def _covariances(points, index, start):  # pragma: no cover - compiled
+    """Covariance (m, 3, 3) of each neighbourhood, from offsets to the point itself so the
+    one-pass formula subtracts small numbers (no gathered (m, k, 3) array)."""
+    m, k = index.shape
+    cov = np.empty((m, 3, 3))
+    for i in numba.prange(m):
+        p = start + i
+        s = np.zeros(3)
+        ss = np.zeros((3, 3))
+        for j in range(k):
+            q = index[i, j]
+            for a in range(3):
+                da = points[q, a] - points[p, a]
+                s[a] += da
+                for b in range(a + 1):
+                    ss[a, b] += da * (points[q, b] - points[p, b])
+        for a in range(3):
+            for b in range(a + 1):
+                c = ss[a, b] / k - s[a] * s[b] / (k * k)
+                cov[i, a, b] = c
+                cov[i, b, a] = c
+    return cov
+
+
+def _pca_normals(nbh: _Neighbourhood, k: int, progress: bool | None) -> tuple[np.ndarray, np.ndarray]:
+    """Unoriented unit normals (N, 3) float64 and the degenerate-neighbourhood mask."""
+    n = len(nbh.points)
+    index = nbh.first(k)
+    normals = np.empty((n, 3))
+    degenerate = np.empty(n, bool)
+    with _bar(n, progress, "normals") as bar:
+        for start, stop in _chunks(n):
+            values, vectors = np.linalg.eigh(_covariances(nbh.points, index[start:stop], start))
+            normals[start:stop] = vectors[:, :, 0]  # eigenvalues ascending: the normal direction first
+            # No tangent plane: the two smallest spreads alike (line with noise, blob, crossing
+            # surfaces), or the neighbourhood is a line or a point (both nearly zero).
+            degenerate[start:stop] = ((values[:, 0] > DEGENERATE_RATIO * values[:, 1])
+                                      | (values[:, 1] <= 1e-12 * values[:, 2]))
             bar.update(stop - start)
     return normals, degenerate
 
 
+def _orient_towards(normals: np.ndarray, towards: np.ndarray) -> np.ndarray:
+    """Flip normals (in place) to face `towards` ((3,) or (N, 3)); returns the ambiguous mask."""
+    towards = np.broadcast_to(towards, normals.shape)
+    dot = np.einsum("ij,ij->i", normals, towards)
+    normals[dot < 0] *= -1
+    return np.abs(dot) < AMBIGUOUS_COS * np.linalg.norm(towards, axis=1)
+
+
 @numba.njit(cache=True)
-def _propagate(order, parents, normals, flip_dot):
-    """Walk the BFS order: each node takes the sign that agrees with its (already oriented)
-    parent. Returns the number of near-perpendicular decisions."""
-    ambiguous = 0
+def _cumulative_sign(order, parent, relative):  # pragma: no cover - compiled
+    """Product of the relative signs along the path to the root: BFS order puts every parent
+    before its children, so one pass suffices."""
+    sign = relative.copy()
     for node in order:
-        parent = parents[node]
-        if parent < 0:
-            continue
-        d = normals[node, 0] * normals[parent, 0] + normals[node, 1] * normals[parent, 1] + normals[node, 2] * normals[parent, 2]
-        if d < 0:
-            normals[node, 0] = -normals[node, 0]
-            normals[node, 1] = -normals[node, 1]
-            normals[node, 2] = -normals[node, 2]
-        if abs(d) < flip_dot:
-            ambiguous += 1
+        p = parent[node]
+        if p >= 0:
+            sign[node] *= sign[p]
+    return sign
+
+
+def _orient_by_propagation(nbh: _Neighbourhood, normals: np.ndarray) -> np.ndarray:
+    """Orient normals (in place) consistently over the kNN graph (Hoppe et al. 1992); returns
+    the mask of points whose sign decision was ambiguous."""
+    pts = nbh.points
+    n = len(pts)
+    cols = np.ascontiguousarray(nbh.first(ORIENT_NEIGHBOURS + 1)[:, 1:])
+    kg = cols.shape[1]
+    ambiguous = np.zeros(n, bool)
+    if kg == 0:
+        ambiguous[:] = True
+        return ambiguous
+    weights = np.empty((n, kg))
+    for start, stop in _chunks(n):
+        dots = np.einsum("ij,ikj->ik", normals[start:stop], normals[cols[start:stop]])
+        # + epsilon: a weight of 0 would be no edge in a sparse graph
+        weights[start:stop] = 1.0 - np.abs(dots) + 1e-6
+    # Rows are sorted already: build the CSR directly instead of sorting N k COO entries.
+    graph = sparse.csr_matrix((weights.ravel(), cols.ravel(), np.arange(0, n * kg + 1, kg)), shape=(n, n))
+    tree = csgraph.minimum_spanning_tree(graph).tocoo()
+    count, labels = csgraph.connected_components(tree, directed=False)
+    seeds = np.unique(labels, return_index=True)[1]
+    # One breadth-first walk over all components: a virtual root (node n) joined to every seed.
+    root = n
+    rows = np.concatenate([tree.row, np.full(count, root, tree.row.dtype)])
+    cols_t = np.concatenate([tree.col, seeds.astype(tree.col.dtype)])
+    forest = sparse.csr_matrix((np.ones(len(rows)), (rows, cols_t)), shape=(n + 1, n + 1))
+    order, parent = csgraph.breadth_first_order(forest, root, directed=False, return_predecessors=True)
+    parent = parent[:n].astype(np.int64)
+    parent[parent == root] = -1
+    order = order[order != root]
+    has_parent = parent >= 0
+    dots = np.ones(n)
+    for start, stop in _chunks(n):
+        p = np.where(has_parent[start:stop], parent[start:stop], np.arange(start, stop))
+        dots[start:stop] = np.einsum("ij,ij->i", normals[start:stop], normals[p])
+    relative = np.where(dots < 0, -1, 1).astype(np.int8)
+    ambiguous |= has_parent & (np.abs(dots) < AMBIGUOUS_COS)
+    sign = _cumulative_sign(order, parent, relative)
+    # Each component as a whole faces outward: positive flux of (p - centroid).
+    size = np.bincount(labels, minlength=count)
+    centroid = np.stack([np.bincount(labels, pts[:, a], count) for a in range(3)], axis=1) / size[:, None]
+    radial = np.einsum("ij,ij->i", normals, pts - centroid[labels])
+    flux = np.bincount(labels, sign * radial, count)
+    total = np.bincount(labels, np.abs(radial), count)
+    sign = np.where(flux[labels] < 0, -sign, sign)
+    ambiguous[seeds[np.abs(flux) <= AMBIGUOUS_COS * total]] = True
+    normals *= sign[:, None]
     return ambiguous
 
 
-def orient_by_propagation(positions: np.ndarray, normals: np.ndarray, idx: np.ndarray) -> int:
-    """Orient `normals` in place consistently over the neighbour graph; returns ambiguous flips."""
-    n, k = idx.shape
-    rows = np.repeat(np.arange(n), k)
-    cols = idx.ravel()
-    dots = np.abs(np.einsum("ij,ij->i", normals[rows], normals[cols]))
-    weights = 1.0 - dots + 1e-6  # > 0: sparse matrices drop explicit zeros
-    graph = sparse.coo_matrix((weights, (rows, cols)), shape=(n, n)).tocsr()
-    tree = csgraph.minimum_spanning_tree(graph)
-    count, labels = csgraph.connected_components(tree, directed=False)
-    # Seed of each component: its point farthest from the component centroid, normal outward.
-    centroid = np.zeros((count, 3))
-    np.add.at(centroid, labels, positions)
-    centroid /= np.bincount(labels, minlength=count)[:, None]
-    offset = positions - centroid[labels]
-    reach = np.einsum("ij,ij->i", offset, offset)
-    seeds = np.full(count, -1)
-    order_by_reach = np.lexsort((reach, labels))
-    seeds[labels[order_by_reach]] = order_by_reach  # the last write per label is the farthest point
-    outward = np.einsum("ij,ij->i", normals[seeds], offset[seeds]) < 0
-    normals[seeds[outward]] *= -1
-    # One BFS over all components: a virtual root joined to every seed.
-    root = n
-    tree = tree.tocoo()
-    edges_r = np.concatenate([tree.row, np.full(count, root)])
-    edges_c = np.concatenate([tree.col, seeds])
-    forest = sparse.coo_matrix((np.ones(len(edges_r)), (edges_r, edges_c)), shape=(n + 1, n + 1)).tocsr()
-    order, parents = csgraph.breadth_first_order(forest, root, directed=False, return_predecessors=True)
-    parents = parents[:n].astype(np.int64)
-    parents[parents == root] = -1
-    parents[parents < 0] = -1
-    order = order[order != root].astype(np.int64)
-    return int(_propagate(order, parents, normals, AMBIGUOUS_DOT))
-
-
-def estimate_normals(positions: np.ndarray, k: int = 16, viewpoint=None, workers: int = -1,
-                     progress: bool | None = None) -> tuple[np.ndarray, int]:
-    """PCA normals over k neighbours, oriented; returns (normals (N, 3) float32, ambiguous)."""
-    positions = np.asarray(positions, np.float64)
-    local = positions - positions.mean(axis=0)
-    _, idx = neighbors(local, k, workers)
-    if idx.shape[1] < 2:
-        return np.tile(np.float32([0, 0, 1]), (len(positions), 1)), len(positions)
-    normals, degenerate = pca_normals(local, idx, progress)
-    if viewpoint is not None:
-        towards = np.asarray(viewpoint, np.float64) - positions
-        flip = np.einsum("ij,ij->i", normals, towards) < 0
-        normals[flip] *= -1
-        ambiguous = int(degenerate.sum())
+def _normals(nbh: _Neighbourhood, k: int, towards: np.ndarray | None,
+             progress: bool | None) -> tuple[np.ndarray, np.ndarray]:
+    normals, ambiguous = _pca_normals(nbh, k, progress)
+    if towards is not None:
+        ambiguous |= _orient_towards(normals, towards)
     else:
-        ambiguous = orient_by_propagation(local, normals, idx) + int(degenerate.sum())
+        ambiguous |= _orient_by_propagation(nbh, normals)
     return normals, ambiguous
 
 
-def estimate_radii(positions: np.ndarray, k: int = RADIUS_NEIGHBORS, workers: int = -1) -> np.ndarray:
-    """Splat radii (N,) float32 from the mean distance to the k nearest neighbours."""
-    positions = np.asarray(positions, np.float64)
-    dist, _ = neighbors(positions - positions.mean(axis=0), k, workers)
-    if dist.shape[1] == 0:
-        return np.ones(len(positions), np.float32)
-    radii = RADIUS_FACTOR * dist.mean(axis=1)
-    positive = radii > 0
-    floor = radii[positive].min() if positive.any() else 1.0
-    radii = np.maximum(radii, floor)  # duplicates still get a splat
-    return np.minimum(radii, RADIUS_CAP * np.median(radii)).astype(np.float32)
+def estimate_normals(positions: np.ndarray, k: int = 16, viewpoint: np.ndarray | None = None,
+                     workers: int = -1, progress: bool | None = None) -> tuple[np.ndarray, int]:
+    """PCA normals over the k nearest neighbours, oriented: (normals (N, 3) float32, ambiguous).
+
+    viewpoint: sensor position (3,) or per-point sensor positions (N, 3) to face; None orients
+    consistently by minimum-spanning-tree propagation, each component facing outward.
+    ambiguous: the number of points whose orientation is a guess (see the module docstring).
+    progress: None shows a progress bar above PROGRESS_MIN_POINTS points; True/False force it.
+    """
+    pts = _points(positions)
+    nbh = _neighbourhood(pts, k, workers, progress)
+    towards = None if viewpoint is None else np.asarray(viewpoint, np.float64) - pts
+    normals, ambiguous = _normals(nbh, k, towards, progress)
+    return normals.astype(np.float32), int(ambiguous.sum())
+
+
+# ---------------------------------------------------------------------------------------------
+# tangent frames
+
+
+def _orthonormal_basis(normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unit tangents t, s with (t, s, n) right-handed, float64 (Duff et al. 2017, listing 3)."""
+    n = np.asarray(normals, np.float64)
+    x, y, z = n[:, 0], n[:, 1], n[:, 2]
+    sign = np.copysign(1.0, z)
+    a = -1.0 / (sign + z)
+    b = x * y * a
+    t = np.stack([1.0 + sign * x * x * a, sign * b, -sign * x], axis=1)
+    s = np.stack([b, sign + y * y * a, -y], axis=1)
+    return t, s
 
 
 def tangent_frames(normals: np.ndarray, radii: np.ndarray) -> np.ndarray:
-    """(N, 2, 3) float32 tangent axes scaled by the radius (Duff et al. 2017, branch-free)."""
-    n = np.asarray(normals, np.float64)
-    sign = np.where(n[:, 2] >= 0, 1.0, -1.0)
-    a = -1.0 / (sign + n[:, 2])
-    b = n[:, 0] * n[:, 1] * a
-    t = np.stack([1 + sign * n[:, 0] ** 2 * a, sign * b, -sign * n[:, 0]], axis=1)
-    s = np.stack([b, sign + n[:, 1] ** 2 * a, -n[:, 1]], axis=1)
+    """Circular splat axes (N, 2, 3) float32: orthonormal tangents of the (unit) normals, scaled
+    by the radii; (u, v, n) is right-handed."""
+    t, s = _orthonormal_basis(_unit(np.asarray(normals, np.float64)))
     r = np.asarray(radii, np.float64)[:, None]
     return np.stack([t * r, s * r], axis=1).astype(np.float32)
 
 
-def fit_ellipses(positions: np.ndarray, normals: np.ndarray, radii: np.ndarray, k: int = 12,
-                 workers: int = -1) -> np.ndarray:
-    """Elliptical splat axes (N, 2, 3) aligned with the neighbourhood's tangent spread."""
-    positions = np.asarray(positions, np.float64)
-    _, idx = neighbors(positions - positions.mean(axis=0), k, workers)
-    frames = tangent_frames(normals, np.ones(len(positions))).astype(np.float64)
-    axes = np.empty((len(positions), 2, 3), np.float32)
-    for start in range(0, len(positions), CHUNK):
-        stop = min(start + CHUNK, len(positions))
-        offset = positions[idx[start:stop]] - positions[start:stop, None]
-        uv = np.einsum("nkj,ntj->nkt", offset, frames[start:stop])  # (c, k, 2) tangent coordinates
-        cov = np.einsum("nki,nkj->nij", uv, uv)
-        values, vectors = np.linalg.eigh(cov)  # ascending: minor, major
-        ratio = np.sqrt(np.maximum(values[:, 1], 1e-30) / np.maximum(values[:, 0], 1e-30))
-        ratio = np.clip(ratio, 1.0, ELLIPSE_MAX_RATIO)
-        major = np.einsum("nt,ntj->nj", vectors[:, :, 1], frames[start:stop])
-        minor = np.einsum("nt,ntj->nj", vectors[:, :, 0], frames[start:stop])
-        r = np.asarray(radii[start:stop], np.float64)[:, None]
-        axes[start:stop, 0] = major * r * ratio[:, None]
-        axes[start:stop, 1] = minor * r
-    return axes
+# ---------------------------------------------------------------------------------------------
+# radii and ellipses: tangent-plane Voronoi cells
 
 
-def fit_normal_field(positions: np.ndarray, normals: np.ndarray, axes: np.ndarray, k: int = 12,
-                     workers: int = -1) -> tuple[np.ndarray, np.ndarray]:
-    """Phong splatting's normal-field slopes (alpha, beta), each (N,) float32 (survey eq. 8)."""
-    positions = np.asarray(positions, np.float64)
-    _, idx = neighbors(positions - positions.mean(axis=0), k, workers)
-    alpha = np.empty(len(positions), np.float32)
-    beta = np.empty(len(positions), np.float32)
-    for start in range(0, len(positions), CHUNK):
-        stop = min(start + CHUNK, len(positions))
-        ax = np.asarray(axes[start:stop], np.float64)  # (c, 2, 3)
-        length2 = np.einsum("ntj,ntj->nt", ax, ax)
-        offset = positions[idx[start:stop]] - positions[start:stop, None]
-        local = np.einsum("nkj,ntj->nkt", offset, ax) / length2[:, None, :]  # (u, v) per neighbour
-        nb_normals = np.asarray(normals, np.float64)[idx[start:stop]]
-        nb_normals *= np.sign(np.einsum("nkj,nj->nk", nb_normals, normals[start:stop]))[..., None]
-        unit_axes = ax / np.sqrt(length2)[..., None]
-        tilt = np.einsum("nkj,ntj->nkt", nb_normals, unit_axes)  # (n_i . û, n_i . v̂)
-        slope = (local * tilt).sum(axis=1) / np.maximum((local**2).sum(axis=1), 1e-12)
-        alpha[start:stop], beta[start:stop] = slope[:, 0], slope[:, 1]
+@numba.njit(cache=True)
+def _clip(px, py, count, a, b, c, qx, qy):  # pragma: no cover - compiled
+    """Clip the convex polygon (px, py)[:count] to the half-plane a x + b y <= c into (qx, qy)."""
+    out = 0
+    for i in range(count):
+        j = i + 1 if i + 1 < count else 0
+        si = a * px[i] + b * py[i] - c
+        sj = a * px[j] + b * py[j] - c
+        if si <= 0:
+            qx[out] = px[i]
+            qy[out] = py[i]
+            out += 1
+        if (si <= 0) != (sj <= 0):
+            t = si / (si - sj)
+            qx[out] = px[i] + t * (px[j] - px[i])
+            qy[out] = py[i] + t * (py[j] - py[i])
+            out += 1
+    return out
+
+
+@numba.njit(cache=True)
+def _ellipse_scale2(px, py, count, tau):  # pragma: no cover - compiled
+    """Squared scale by which the ellipse with semi-axes (e^(tau/2), e^(-tau/2)) must grow to
+    contain the polygon (px, py)[:count]."""
+    wx = math.exp(-tau)
+    wy = math.exp(tau)
+    scale2 = 0.0
+    for c in range(count):
+        scale2 = max(scale2, px[c] * px[c] * wx + py[c] * py[c] * wy)
+    return scale2
+
+
+@numba.njit(parallel=True, cache=True)
+def _tangent_cells(points, index, start, normals, t, s, ellipse, max_aspect):  # pragma: no cover - compiled
+    """For each point start + i: the farthest vertex distance of its Voronoi cell among its
+    neighbours in the tangent frame (t, s) (the covering radius), and if `ellipse` the
+    semi-axes and direction (cos, sin in the frame) of the cell-covering ellipse aligned with
+    the neighbours' principal directions."""
+    m, k = index.shape
+    radius = np.zeros(m)
+    semi = np.zeros((m, 2))
+    direction = np.zeros((m, 2))
+    direction[:, 0] = 1.0
+    size = _CAP_SIDES + k + 1
+    for i in numba.prange(m):
+        p = start + i
+        xs = np.empty(k)
+        ys = np.empty(k)
+        used = 0
+        reach = 0.0
+        for j in range(k):
+            q = index[i, j]
+            d0 = points[q, 0] - points[p, 0]
+            d1 = points[q, 1] - points[p, 1]
+            d2 = points[q, 2] - points[p, 2]
+            x = d0 * t[i, 0] + d1 * t[i, 1] + d2 * t[i, 2]
+            y = d0 * s[i, 0] + d1 * s[i, 1] + d2 * s[i, 2]
+            z = d0 * normals[i, 0] + d1 * normals[i, 1] + d2 * normals[i, 2]
+            planar = x * x + y * y
+            reach = max(reach, math.sqrt(planar + z * z))
+            if planar > 0 and z * z <= planar:  # skip duplicates and the far side of thin sheets
+                xs[used] = x
+                ys[used] = y
+                used += 1
+        if reach == 0.0:
+            continue
+        px = np.empty(size)
+        py = np.empty(size)
+        qx = np.empty(size)
+        qy = np.empty(size)
+        for c in range(_CAP_SIDES):
+            angle = 2.0 * math.pi * c / _CAP_SIDES
+            px[c] = reach * math.cos(angle)
+            py[c] = reach * math.sin(angle)
+        count = _CAP_SIDES
+        for j in range(used):  # nearer to the point than to neighbour j: x.d <= |d|^2 / 2
+            count = _clip(px, py, count, xs[j], ys[j], 0.5 * (xs[j] * xs[j] + ys[j] * ys[j]), qx, qy)
+            px, qx = qx, px
+            py, qy = qy, py
+        far = 0.0
+        for c in range(count):
+            far = max(far, px[c] * px[c] + py[c] * py[c])
+        radius[i] = math.sqrt(far)
+        if not ellipse or count < 3:
+            continue
+        # principal directions of the projected neighbours
+        mx = 0.0
+        my = 0.0
+        for j in range(used):
+            mx += xs[j]
+            my += ys[j]
+        mx /= max(used, 1)
+        my /= max(used, 1)
+        sxx = 0.0
+        syy = 0.0
+        sxy = 0.0
+        for j in range(used):
+            sxx += (xs[j] - mx) ** 2
+            syy += (ys[j] - my) ** 2
+            sxy += (xs[j] - mx) * (ys[j] - my)
+        theta = 0.5 * math.atan2(2.0 * sxy, sxx - syy)
+        co = math.cos(theta)
+        si = math.sin(theta)
+        # Rotate the cell into those directions; the smallest ellipse x^2/a^2 + y^2/b^2 <= 1
+        # with a b = 1 containing it: with a = e^(tau/2), b = e^(-tau/2) the needed scale^2 is
+        # a maximum of functions convex in tau, so golden-section search finds the optimum.
+        for c in range(count):
+            x0 = px[c] * co + py[c] * si
+            py[c] = -px[c] * si + py[c] * co
+            px[c] = x0
+        lo = -math.log(max_aspect)
+        hi = math.log(max_aspect)
+        for _ in range(40):
+            t1 = hi - 0.618033988749895 * (hi - lo)
+            t2 = lo + 0.618033988749895 * (hi - lo)
+            if _ellipse_scale2(px, py, count, t1) <= _ellipse_scale2(px, py, count, t2):
+                hi = t2
+            else:
+                lo = t1
+        tau = 0.5 * (lo + hi)
+        scale = math.sqrt(_ellipse_scale2(px, py, count, tau))
+        a = math.exp(0.5 * tau)
+        b = math.exp(-0.5 * tau)
+        semi[i, 0] = a * scale
+        semi[i, 1] = b * scale
+        direction[i, 0] = co
+        direction[i, 1] = si
+    return radius, semi, direction
+
+
+def _cells(nbh: _Neighbourhood, normals: np.ndarray, k: int, ellipse: bool,
+           progress: bool | None, desc: str) -> tuple[np.ndarray, np.ndarray | None]:
+    """Radii (N,) float64 and, if `ellipse`, axes (N, 2, 3) float64, both including the margin
+    and the outlier cap."""
+    n = len(nbh.points)
+    index = nbh.first(k)
+    normals = _unit(np.asarray(normals, np.float64))
+    raw = np.empty(n)
+    axes = np.empty((n, 2, 3)) if ellipse else None
+    with _bar(n, progress, desc) as bar:
+        for start, stop in _chunks(n):
+            t, s = _orthonormal_basis(normals[start:stop])
+            radius, semi, direction = _tangent_cells(nbh.points, index[start:stop], start, normals[start:stop],
+                                                     t, s, ellipse, ELLIPSE_MAX_ASPECT)
+            raw[start:stop] = radius
+            if ellipse:
+                co, si = direction[:, 0:1], direction[:, 1:2]
+                major = semi[:, 0] >= semi[:, 1]
+                e1 = co * t + si * s
+                e2 = -si * t + co * s
+                # u is the major axis; (e2, -e1) keeps (u, v, n) right-handed
+                u = np.where(major[:, None], e1 * semi[:, 0:1], e2 * semi[:, 1:2])
+                v = np.where(major[:, None], e2 * semi[:, 1:2], -e1 * semi[:, 0:1])
+                axes[start:stop] = np.stack([u, v], axis=1)
+            bar.update(stop - start)
+    # Points all of whose neighbours coincide with them have no cell: borrow a typical size.
+    positive = raw > 0
+    raw[~positive] = np.median(raw[positive]) if positive.any() else 1.0
+    if ellipse:
+        circle = ~positive | (np.linalg.norm(axes, axis=2).min(axis=1) <= 0)
+        t, s = _orthonormal_basis(normals[circle])
+        axes[circle] = np.stack([t, s], axis=1) * raw[circle][:, None, None]
+    scale = np.full(n, RADIUS_MARGIN)
+    if index.shape[1] > 1:
+        for start, stop in _chunks(n):
+            typical = np.median(raw[index[start:stop, 1:]], axis=1)
+            scale[start:stop] *= np.minimum(1.0, ISOLATED_FACTOR * typical / raw[start:stop])
+    if ellipse:
+        axes *= scale[:, None, None]
+    return raw * scale, axes
+
+
+def estimate_radii(positions: np.ndarray, k: int = RADIUS_NEIGHBOURS, normals: np.ndarray | None = None,
+                   workers: int = -1, progress: bool | None = None) -> np.ndarray:
+    """Splat radii (N,) float32 that cover the surface without holes: each point's covering
+    radius of its tangent-plane Voronoi cell among its k nearest neighbours, times
+    RADIUS_MARGIN, outliers capped (see the module docstring). Normals only define the tangent
+    planes; without them unoriented PCA normals over the same neighbours are used."""
+    nbh = _neighbourhood(positions, k, workers, progress)
+    if normals is None:
+        normals, _ = _pca_normals(nbh, k, progress)
+    radii, _ = _cells(nbh, normals, k, False, progress, "radii")
+    return radii.astype(np.float32)
+
+
+def fit_ellipses(positions: np.ndarray, normals: np.ndarray, k: int = RADIUS_NEIGHBOURS, workers: int = -1,
+                 progress: bool | None = None) -> np.ndarray:
+    """Elliptical splat axes (N, 2, 3) float32 (u major, (u, v, n) right-handed): principal
+    directions of the neighbours in the tangent plane, semi-axes covering the point's
+    Voronoi cell like the radius rule (see the module docstring)."""
+    nbh = _neighbourhood(positions, k, workers, progress)
+    _, axes = _cells(nbh, normals, k, True, progress, "ellipses")
+    return axes.astype(np.float32)
+
+
+# ---------------------------------------------------------------------------------------------
+# Phong splatting's normal field
+
+
+def _normal_field(nbh: _Neighbourhood, normals: np.ndarray, axes: np.ndarray, k: int,
+                  progress: bool | None) -> tuple[np.ndarray, np.ndarray]:
+    n = len(nbh.points)
+    index = nbh.first(k)[:, 1:]
+    normals = _unit(np.asarray(normals, np.float64))
+    alpha = np.zeros(n, np.float32)
+    beta = np.zeros(n, np.float32)
+    if index.shape[1] == 0:
+        return alpha, beta
+    with _bar(n, progress, "normal field") as bar:
+        for start, stop in _chunks(n):
+            ax = np.asarray(axes[start:stop], np.float64)                       # (c, 2, 3)
+            length2 = np.maximum(np.einsum("ctj,ctj->ct", ax, ax), 1e-300)
+            centre = normals[start:stop]
+            offset = nbh.points[index[start:stop]] - nbh.points[start:stop, None]
+            uv = np.einsum("ckj,ctj->ckt", offset, ax) / length2[:, None, :]    # rim at 1
+            nb = normals[index[start:stop]]
+            along = np.einsum("ckj,cj->ck", nb, centre)
+            # The model's normal has component 1 along n_j: compare n_i / (n_i . n_j), whose
+            # tangential part is exactly (u alpha, v beta). Neighbours across a crease (more
+            # than 60 degrees off) would only bend the fit; their sign is irrelevant.
+            weight = (np.abs(along) >= 0.5).astype(np.float64)
+            tilt = np.einsum("ckj,ctj->ckt", nb, ax / np.sqrt(length2)[..., None])
+            tilt /= np.where(weight > 0, along, 1.0)[..., None]
+            num = np.einsum("ck,ckt,ckt->ct", weight, uv, tilt)
+            den = np.einsum("ck,ckt,ckt->ct", weight, uv, uv)
+            slope = np.where(den > 1e-12, num / np.maximum(den, 1e-12), 0.0)
+            alpha[start:stop], beta[start:stop] = slope[:, 0], slope[:, 1]
+            bar.update(stop - start)
     return alpha, beta
 
 
-def prepare(cloud: PointCloud, *, k_normals: int = 16, viewpoint=None, elliptical: bool = False,
-            normal_field: bool = False, progress: bool | None = None) -> tuple[PointCloud, dict]:
-    """Fill in what the cloud lacks; the report says what was estimated."""
+def fit_normal_field(positions: np.ndarray, normals: np.ndarray, axes: np.ndarray, k: int = FIELD_NEIGHBOURS,
+                     workers: int = -1, progress: bool | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Phong splatting's linear normal field (alpha, beta), each (N,) float32:
+    N_j(u, v) = n_j + u alpha_j û_j + v beta_j v̂_j with unit axis directions û_j, v̂_j and
+    (u, v) in semi-axis units, least squares over the k - 1 nearest neighbours' normals."""
+    nbh = _neighbourhood(positions, k, workers, progress)
+    return _normal_field(nbh, normals, axes, k, progress)
+
+
+# ---------------------------------------------------------------------------------------------
+# clouds
+
+
+def prepare(cloud: PointCloud, *, k_normals: int = 16, viewpoint: np.ndarray | None = None,
+            elliptical: bool = False, normal_field: bool = False,
+            progress: bool | None = None) -> tuple[PointCloud, dict]:
+    """Fill in what `cloud` lacks for splatting; returns (cloud, report).
+
+    normals: estimated if None (towards `viewpoint` if given; geospatial clouds, aerial scans
+    seen from above, face +Z; otherwise propagated and outward).
+    radii: estimated if None (covering radii of the tangent-plane Voronoi cells).
+    axes: if None, fitted ellipses when `elliptical`, else circular frames of the radii.
+    normal_field: also fit extras["phong_alpha"], extras["phong_beta"] if missing.
+    The report names every estimated attribute and how (for `surfel info`, `prepare`, stats).
+    """
     report: dict = {}
     changes: dict = {}
+    need_field = normal_field and not {"phong_alpha", "phong_beta"} <= set(cloud.extras)
+    if cloud.normals is not None and cloud.radii is not None and cloud.axes is not None and not need_field:
+        return cloud, report
+    k = max(k_normals, RADIUS_NEIGHBOURS, FIELD_NEIGHBOURS if need_field else 1)
+    nbh = _neighbourhood(cloud.positions, k, -1, progress)
     normals = cloud.normals
-    if normals is None:
-        normals, ambiguous = estimate_normals(cloud.positions, k_normals, viewpoint, progress=progress)
+    if normals is None and cloud.axes is not None:
+        # Splats carry their own orientation; a PCA normal could tilt against them.
+        normals = _unit(np.cross(cloud.axes[:, 0].astype(np.float64), cloud.axes[:, 1].astype(np.float64)))
         changes["normals"] = normals
-        report["normals"] = f"estimated (PCA, k={k_normals}, " + ("towards viewpoint)" if viewpoint is not None else "propagated)")
-        report["ambiguous_normals"] = ambiguous
+        report["normals"] = "from the splat axes (u x v)"
+    elif normals is None:
+        if viewpoint is not None:
+            towards, how = np.asarray(viewpoint, np.float64) - cloud.positions, "facing the viewpoint"
+        elif cloud.geospatial:
+            towards, how = np.array([0.0, 0.0, 1.0]), "facing up (+Z)"
+        else:
+            towards, how = None, "oriented by MST propagation, outward"
+        normals, ambiguous = _normals(nbh, k_normals, towards, progress)
+        changes["normals"] = normals
+        report["normals"] = f"estimated (PCA, k={k_normals}, {how})"
+        report["ambiguous_normals"] = int(ambiguous.sum())
     radii = cloud.radii
     if radii is None:
-        radii = estimate_radii(cloud.positions)
+        radii, _ = _cells(nbh, normals, RADIUS_NEIGHBOURS, False, progress, "radii")
         changes["radii"] = radii
-        report["radii"] = f"estimated ({RADIUS_FACTOR} x mean distance to {RADIUS_NEIGHBORS} neighbours)"
+        report["radii"] = (f"estimated (Voronoi covering radius, k={RADIUS_NEIGHBOURS}, "
+                           f"x{RADIUS_MARGIN}, mean {float(np.mean(radii)):.4g})")
     axes = cloud.axes
-    if axes is None:
-        axes = fit_ellipses(cloud.positions, normals, radii) if elliptical else tangent_frames(normals, radii)
+    if axes is None and elliptical:
+        _, axes = _cells(nbh, normals, RADIUS_NEIGHBOURS, True, progress, "ellipses")
         changes["axes"] = axes
-        report["axes"] = "fitted ellipses" if elliptical else "circular tangent frames"
-    if normal_field and "phong_alpha" not in cloud.extras:
-        alpha, beta = fit_normal_field(cloud.positions, normals, axes)
+        report["axes"] = f"fitted ellipses (k={RADIUS_NEIGHBOURS})"
+    elif axes is None:
+        axes = tangent_frames(normals, radii)
+        changes["axes"] = axes
+        report["axes"] = "circular (tangent frames of the radii)"
+    if need_field:
+        alpha, beta = _normal_field(nbh, normals, axes, FIELD_NEIGHBOURS, progress)
         changes["extras"] = {**cloud.extras, "phong_alpha": alpha, "phong_beta": beta}
-        report["normal_field"] = "fitted (least squares over 12 neighbours)"
-    return (cloud.with_(**changes) if changes else cloud), report
+        report["normal_field"] = f"fitted (least squares, k={FIELD_NEIGHBOURS})"
+    return cloud.with_(**changes), report

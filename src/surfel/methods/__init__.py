@@ -45,7 +45,7 @@ METHODS: dict[str, Method] = {
         Method("object-space", "Ren, Pfister & Zwicker 2002: object-space EWA splatting with textured quads",
                {"gl": "object_space:render_object_space"}),
         Method("ewa", "Zwicker et al. 2001: software EWA surface splatting, the full resampling filter",
-               {"cpu": "ewa:render_ewa_cpu"}),
+               {"cpu": "ewa:render_ewa_cpu", "gl": "ewa_gl:render_ewa_gl"}),
         Method("mls", "Adamson & Alexa 2003: ray tracing the MLS point set surface",
                {"cpu": "mls:render_mls_cpu"}, needs_radii=False),
     ]

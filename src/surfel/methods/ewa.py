@@ -60,11 +60,15 @@ from ..result import RenderResult
 from ..shading import shade
 
 DEFAULT_SIGMA = 0.5
-DEFAULT_CUTOFF_MASS = 0.99
-DEFAULT_COVERAGE = 0.5
+DEFAULT_CUTOFF_MASS = 0.9
+DEFAULT_COVERAGE = 0.75
 DEFAULT_DEPTH_OFFSET = 1.0
 DEFAULT_DEPTH_CLAMP = 4.0
 DEFAULT_VISIBILITY = 0.2
+# options.lowpass_radius is the low-pass's radius in pixels, taken as LOWPASS_SIGMAS std devs:
+# std 0.4 px at the default 1 px, close to a one-pixel box (std 0.29 px) and thus little blur,
+# while still band-limiting minified splats (the paper's unit std over-blurs, see ewa.py).
+LOWPASS_SIGMAS = 2.5
 # The percentile of the nonzero weight sums taken as the weight of a fully covered pixel.
 FULL_WEIGHT_PERCENTILE = 75.0
 
@@ -89,7 +93,7 @@ class EwaParams:
         if not 0 < mass < 1:
             raise ValueError(f"ewa cutoff_mass must be in (0, 1), got {mass}")
         return cls(sigma=float(p.get("sigma", DEFAULT_SIGMA)), cutoff2=-2.0 * math.log(1.0 - mass),
-                   lowpass=float(options.lowpass_radius),
+                   lowpass=float(options.lowpass_radius) / LOWPASS_SIGMAS,
                    visibility=float(p.get("visibility", DEFAULT_VISIBILITY)),
                    depth_offset=DEFAULT_DEPTH_OFFSET if options.depth_offset is None else float(options.depth_offset),
                    coverage=float(p.get("coverage", DEFAULT_COVERAGE)),
@@ -130,23 +134,35 @@ def splat_axes(cloud: PointCloud) -> np.ndarray:
 
 def resolve_accumulators(acc: np.ndarray, camera: Camera, options: RenderOptions, params: EwaParams,
                          stats: dict) -> RenderResult:
-    """Normalise the accumulated (H, W, 8) = w*rgb, w, w*normal, w*depth and shade (deferred).
+    """Normalise the accumulated (H, W, 8 or 16) = w*rgb, w, w*normal, w*depth and shade (deferred).
 
+    With 16 channels the second 8 are the back layer (the nearest surface behind the front
+    one), composited under the front layer with the front layer's coverage, so a pixel at an
+    occlusion contour that the front surface only partly covers shows the surface behind it.
     Shared by both backends so that they differ only by the rasterization itself.
     """
-    weight = acc[..., 3]
-    covered = weight > 0
-    safe = np.where(covered, weight, 1.0)[..., None]
-    albedo = acc[..., 0:3] / safe
-    nsum = acc[..., 4:7]
-    length = np.linalg.norm(nsum, axis=-1, keepdims=True)
-    normals = np.where(length > 1e-20, nsum / np.maximum(length, 1e-20), 0.0).astype(np.float32)
-    depth = np.where(covered, acc[..., 7] / safe[..., 0], np.inf).astype(np.float32)
-    full = float(np.percentile(weight[covered], FULL_WEIGHT_PERCENTILE)) if covered.any() else 1.0
-    coverage = np.clip(weight / max(params.coverage * full, 1e-30), 0.0, 1.0).astype(np.float32)
+    from .ewa_kernels import normalise_layers
+
+    front = acc[..., 3]
+    nonzero = front[front > 0]
+    # The weight of a fully covered pixel: a high percentile of the front layer's weights.
+    full = float(np.percentile(nonzero, FULL_WEIGHT_PERCENTILE)) if nonzero.size else 1.0
+    albedo, normals, depth, layer_alpha = normalise_layers(np.ascontiguousarray(acc, np.float32),
+                                                          np.float32(1.0 / max(params.coverage * full, 1e-30)))
     shaded = shade(options.shading, albedo, normals, depth, camera.near, camera.far)
+    # Front-to-back "over": layer l contributes (1 - alpha so far) * alpha_l.
+    contribution = layer_alpha.copy()
+    for layer in range(1, len(layer_alpha)):
+        contribution[layer] *= 1.0 - contribution[:layer].sum(axis=0)
+    alpha = contribution.sum(axis=0)
+    premult = (contribution[..., None] * shaded).sum(axis=0)
+    color = premult / np.maximum(alpha, 1e-30)[..., None]
+    # Depth and normal of the layer that contributes most to the pixel.
+    top = np.argmax(contribution, axis=0)[None]
+    depth_out = np.take_along_axis(depth, top, axis=0)[0]
+    normals_out = np.take_along_axis(normals, top[..., None], axis=0)[0]
     stats = dict(stats, full_weight=full)
-    return RenderResult.from_samples(shaded, coverage, depth, normals, supersample=params.supersample,
+    return RenderResult.from_samples(color, alpha, depth_out, normals_out, supersample=params.supersample,
                                      background=options.background, stats=stats)
 
 

@@ -29,7 +29,10 @@ TILE = 32
 MX, MY, CA, CB, CC, WS, ZC, GX, GY, DZ, ZT, R, G, B, NX, NY, NZ, VA, VB, VC = range(20)
 SPLAT_FIELDS = 20
 # Accumulator channels, the order of the GL backend's two RGBA32F targets.
-ACC_CHANNELS = 8  # w*r, w*g, w*b, w, w*nx, w*ny, w*nz, w*depth
+LAYER = 8  # w*r, w*g, w*b, w, w*nx, w*ny, w*nz, w*depth
+ACC_CHANNELS = 2 * LAYER  # front layer, then back layer
+# Finite "no depth yet" sentinel: fastmath may assume no infinities.
+FAR = np.float32(3e38)
 
 
 @nb.njit(parallel=True, fastmath=True, cache=True)
@@ -125,7 +128,7 @@ def setup_splats(positions, origin, view, normals, colors, axes, intr, ortho, ne
         # The plane's depth range over that footprint is +-R sqrt(g^T N g); capped so that a
         # splat seen edge-on (J near singular, g huge) cannot claim absurd depths.
         row[DZ] = min(cutoff * math.sqrt(gx * gx * n00 + 2 * gx * gy * m01 + gy * gy * n11), depth_clamp * radius)
-        row[ZT] = depth_offset * radius
+        row[ZT] = depth_offset * radius + row[DZ]
         c = i * color_step
         row[R], row[G], row[B] = colors[c, 0], colors[c, 1], colors[c, 2]
         row[NX], row[NY], row[NZ] = nx, ny, nz
@@ -192,7 +195,8 @@ def rasterize_tiles(splats, box, offsets, index, order, tiles_x, width, height, 
             continue
         ox, oy = (t % tiles_x) * TILE, (t // tiles_x) * TILE
         tw, th = min(TILE, width - ox), min(TILE, height - oy)
-        zbuf = np.full((TILE, TILE), np.inf, np.float32)
+        zbuf = np.full((TILE, TILE), FAR, np.float32)
+        zback = np.full((TILE, TILE), FAR, np.float32)
         local = np.zeros((TILE, TILE, ACC_CHANNELS), np.float32)
         for j in range(start, stop):
             i = index[j]
@@ -213,25 +217,63 @@ def rasterize_tiles(splats, box, offsets, index, order, tiles_x, width, height, 
             for y in range(max(box[i, 2], oy), min(box[i, 3], oy + th - 1) + 1):
                 x0, x1, dy = _span(s, CA, np.float32(y) + half, max(box[i, 0], ox), min(box[i, 1], ox + tw - 1), cutoff2)
                 zrow = zbuf[y - oy]
+                brow = zback[y - oy]
                 lrow = local[y - oy]
                 for x in range(x0, x1 + 1):
                     dx = np.float32(x) + half - s[MX]
                     dz = min(max(s[GX] * dx + s[GY] * dy, -s[DZ]), s[DZ])
                     z = s[ZC] + dz
+                    cell = lrow[x - ox]
+                    base = 0
                     if z > zrow[x - ox]:
-                        continue
+                        # Behind the front surface: the back layer, a running z-buffer with the
+                        # same threshold rule (nearer by more than z_t replaces, within blends).
+                        zb = brow[x - ox]
+                        if z > zb + s[ZT]:
+                            continue
+                        base = LAYER
+                        if z < zb - s[ZT]:
+                            cell[LAYER:] = 0
+                        if z < zb:
+                            brow[x - ox] = z
                     q = s[CA] * dx * dx + np.float32(2.0) * s[CB] * dx * dy + s[CC] * dy * dy
                     w = s[WS] * math.exp(np.float32(-0.5) * q)
-                    cell = lrow[x - ox]
-                    cell[0] += w * s[R]
-                    cell[1] += w * s[G]
-                    cell[2] += w * s[B]
-                    cell[3] += w
-                    cell[4] += w * s[NX]
-                    cell[5] += w * s[NY]
-                    cell[6] += w * s[NZ]
-                    cell[7] += w * z
+                    cell[base] += w * s[R]
+                    cell[base + 1] += w * s[G]
+                    cell[base + 2] += w * s[B]
+                    cell[base + 3] += w
+                    cell[base + 4] += w * s[NX]
+                    cell[base + 5] += w * s[NY]
+                    cell[base + 6] += w * s[NZ]
+                    cell[base + 7] += w * z
                     count += 1
         acc[oy:oy + th, ox:ox + tw] = local[:th, :tw]
         fragments[k] = count
     return acc, fragments.sum()
+
+
+@nb.njit(parallel=True, fastmath=True, cache=True)
+def normalise_layers(acc, scale):
+    """Per layer of the (H, W, 8 * layers) accumulators: albedo (L, H, W, 3), unit normal
+    (L, H, W, 3), depth (L, H, W) (inf where empty) and coverage alpha = clamp(w * scale)."""
+    h, w = acc.shape[0], acc.shape[1]
+    layers = acc.shape[2] // LAYER
+    albedo = np.zeros((layers, h, w, 3), np.float32)
+    normals = np.zeros((layers, h, w, 3), np.float32)
+    depth = np.full((layers, h, w), np.inf, np.float32)
+    alpha = np.zeros((layers, h, w), np.float32)
+    for y in nb.prange(h):
+        for x in range(w):
+            for l in range(layers):
+                c = acc[y, x, l * LAYER:(l + 1) * LAYER]
+                weight = c[3]
+                if weight <= 0:
+                    continue
+                inv = np.float32(1.0) / weight
+                albedo[l, y, x, 0], albedo[l, y, x, 1], albedo[l, y, x, 2] = c[0] * inv, c[1] * inv, c[2] * inv
+                length = math.sqrt(c[4] * c[4] + c[5] * c[5] + c[6] * c[6])
+                if length > 1e-20:
+                    normals[l, y, x, 0], normals[l, y, x, 1], normals[l, y, x, 2] = c[4] / length, c[5] / length, c[6] / length
+                depth[l, y, x] = c[7] * inv
+                alpha[l, y, x] = min(weight * scale, np.float32(1.0))
+    return albedo, normals, depth, alpha

@@ -18,7 +18,7 @@ uniform float u_radius_scale;
 uniform float u_depth_offset;    // z_t as a fraction of the splat radius
 uniform float u_lowpass_radius;  // pixels
 uniform int u_backface_culling;
-uniform sampler2D u_kernel;      // Gaussian weight exp(-2 d^2), indexed by d^2 in [0, 1]
+uniform sampler2D u_kernel;      // Gaussian weight exp(-GAUSSIAN_SHARPNESS d^2) (splatting.py), indexed by d^2 in [0, 1]
 uniform sampler2D u_visibility;  // nearest depth + z_t, and 1 - coverage, per pixel
 uniform sampler2D u_accum_color; // PASS_NORMALIZE: (sum w rgb, sum w)
 uniform sampler2D u_accum_normal;// PASS_NORMALIZE: (sum w n, sum w z)

@@ -43,7 +43,7 @@ SHADER = Path(__file__).with_suffix(".glsl")
 KERNEL_SIZE = 256
 DEFAULT_DEPTH_OFFSET = 1.0   # z_t = one splat radius
 DEFAULT_SUPERSAMPLE = 1      # as in the papers; --supersample 2 smooths silhouettes further
-GAUSSIAN_SHARPNESS = 2.0     # w = exp(-2 d²): the disk boundary sits at two standard deviations
+GAUSSIAN_SHARPNESS = 3.0     # w = exp(-3 d²): the disk rim at 2.4 standard deviations
 GUARD = 128                  # guard band in pixels: half of llvmpipe's (and most GPUs') 255 px point limit
 MAX_SPRITE = 255
 

@@ -1,0 +1,112 @@
+"""`ewa`, OpenGL backend: EWA surface splatting (Zwicker, Pfister, van Baar & Gross 2001).
+
+The same full screen-space resampling filter as the CPU backend (equations in ewa.py):
+per splat k, at its centre, J = dP/dx(c_k) [u_k v_k], M = J V J^T + l^2 I with V = sigma^2 I,
+and the resampling filter
+
+    rho_k(x) = |det J| / sqrt(det M) exp(-1/2 (x - m_k)^T M^-1 (x - m_k)),
+
+cut where (x - m_k)^T M^-1 (x - m_k) > R^2. The vertex stage of ewa_gl.glsl computes J, the
+conic M^-1, the amplitude |det J| / sqrt(det M), the splat plane's depth gradient h J^-1 and
+the pixel box of the cut ellipse for each instance and draws a screen-aligned quad over the
+box; the fragment stage evaluates the conic at the pixel centre. The CPU's visibility, as
+three draws (z_t here is depth_offset x radius widened by the clamped depth range):
+
+1. visibility: Z = min over fragments of (clamped plane depth + z_t), over the narrow
+   footprint N = J V J^T + v^2 I (gl/passes.py, MIN blending);
+2. back layer: Z_b = min plane depth over the fragments behind Z (MIN blending);
+3. accumulation: w rgb, w, w n, w z of the fragments with depth <= Z into the front layer, of
+   those with Z < depth <= Z_b + z_t into the back layer (additive blending into four RGBA32F
+   targets, the channel order of ewa_kernels.ACC_CHANNELS). The CPU keeps the back layer as a
+   running z-buffer in draw order; this order-independent form is its end state, so the two
+   differ only where draw order mattered there.
+
+The accumulators are read back and resolved by ewa.resolve_accumulators (normalisation,
+coverage from the weight sum, deferred shading), so both backends share that step exactly.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..camera import Camera
+from ..cloud import PointCloud
+from ..gl import splats
+from ..gl.context import get_context
+from ..gl.passes import FAR, UNIFORM_UNITS, SplatPasses
+from ..gl.program import build_program
+from ..gl.targets import read_texture
+from ..gl.uniforms import apply_common
+from ..options import RenderOptions
+from ..result import RenderResult
+from .ewa import EwaParams, resolve_accumulators, target_camera
+
+SHADER = Path(__file__).with_suffix(".glsl")
+PASSES = ("PASS_VISIBILITY", "PASS_BACK", "PASS_ATTRIBUTE")
+BACK_UNIT = 4  # texture unit of the back layer's depth (units 1-3 are gl/passes.py's)
+
+
+class BackLayer:
+    """The targets of the back layer, beside SplatPasses' front-layer ones: its depth (MIN
+    blended) and a framebuffer accumulating both layers at once (front targets first)."""
+
+    def __init__(self, passes: SplatPasses):
+        ctx = passes.ctx
+        size = passes.visibility.size
+        self.depth = ctx.texture(size, 1, dtype="f4")
+        self.accum = [ctx.texture(size, 4, dtype="f4") for _ in range(2)]
+        for tex in (self.depth, *self.accum):
+            tex.filter = (ctx.NEAREST, ctx.NEAREST)
+        self.depth_fbo = ctx.framebuffer(color_attachments=[self.depth])
+        self.accum_fbo = ctx.framebuffer(color_attachments=[*passes.accum, *self.accum])
+
+    def release(self) -> None:
+        for obj in (self.depth_fbo, self.accum_fbo, self.depth, *self.accum):
+            obj.release()
+
+
+def render_ewa_gl(cloud: PointCloud, camera: Camera, options: RenderOptions) -> RenderResult:
+    """EWA splatting with instanced quads on the OpenGL pipeline; see the module docstring."""
+    ctx = get_context()
+    params = EwaParams.from_options(options)
+    target = target_camera(camera, params.supersample)
+    programs = {p: build_program(SHADER, {p: True}) for p in PASSES}
+    for program in programs.values():
+        # The target camera already carries the supersampling: factor 1 here.
+        apply_common(program, target, cloud.local_origin, 1, options.shading,
+                     u_radius_scale=float(options.radius_scale), u_sigma2=params.sigma ** 2,
+                     u_lowpass2=params.lowpass ** 2, u_vis2=params.visibility ** 2, u_cutoff2=params.cutoff2,
+                     u_depth_offset=params.depth_offset, u_depth_clamp=params.depth_clamp,
+                     u_backface_culling=int(options.backface_culling), u_back=BACK_UNIT, **UNIFORM_UNITS)
+    fragments = ctx.query(samples=True)
+
+    def draw(name: str):
+        return lambda: splats.draw(ctx, cloud, programs[name], ctx.TRIANGLE_STRIP, instanced=True)
+
+    with SplatPasses(target.width, target.height) as passes:
+        back = BackLayer(passes)
+        try:
+            passes.visibility_pass(draw("PASS_VISIBILITY"))
+            # The back layer's depth: the same MIN blending, reading the front visibility.
+            back.depth_fbo.use()
+            back.depth_fbo.clear(FAR, 0.0, 0.0, 0.0)
+            passes.visibility.use(1)
+            draw("PASS_BACK")()
+            # Both layers accumulate in one pass: SplatPasses' additive blend state, our targets.
+            back.depth.use(BACK_UNIT)
+            back.accum_fbo.clear(0.0, 0.0, 0.0, 0.0)
+            ctx.blend_equation = ctx.FUNC_ADD
+            ctx.blend_func = ctx.ONE, ctx.ONE
+            back.accum_fbo.use()
+            with fragments:  # the fragments blended into either layer, as the CPU's count
+                draw("PASS_ATTRIBUTE")()
+            acc = np.concatenate([read_texture(t) for t in (*passes.accum, *back.accum)], axis=-1)
+        finally:
+            back.release()
+        stats = {"splats": len(cloud), "fragments": int(fragments.samples)}
+        result = resolve_accumulators(acc, target, options, params, stats)
+        if options.dump_passes:
+            passes.dump(options.dump_passes, result)
+    return result

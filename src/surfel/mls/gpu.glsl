@@ -1,0 +1,416 @@
+// GPU ray casting of the MLS point set surface (Tejada, Gois, Nonato, Castelo & Ertl 2006;
+// survey section 2.3.2). One source, the passes chosen by #define (see gpu.py for the flow):
+//   PASS_INTERSECT   discs of the bounding spheres: pixel ray meets the point's polynomial,
+//                    nearest t kept by MIN blending
+//   PASS_COVARIANCE  discs of the kernel supports: weighted sums about the hit point r
+//   PASS_FRAME       full screen: weighted mean q and smallest eigenvector n of the covariance
+//   PASS_SYSTEM      discs of the kernel supports: moments of the quadratic's normal equations
+//   PASS_SOLVE       full screen: solve the 6x6 system, re-intersect the ray with the quadratic
+//   PASS_SHADE       full screen: normal, colour and depth into the G-buffer layout
+// Lengths inside a fit are in units of u_scale (the median kernel width), like surface.py.
+#include "common.glsl"
+#include "shading.glsl"
+
+#define SUPPORT 2.5
+#define FAR 3.0e38
+#define MISS 1.0e38
+#define MIN_NEIGHBOURS 6.0
+
+uniform mat4 u_view_inv;  // eye to local world
+uniform float u_scale;    // median kernel width h
+uniform float u_domain;   // domain test / bounding sphere radius in units of the spacing s_i
+uniform float u_window;   // re-intersection window around the current t (SUPPORT * u_scale)
+
+// Two vec4 per point: (p_i, h_i), (colour, s_i).
+layout(std430, binding = 0) readonly buffer Points { vec4 points[]; };
+// Six vec4 per point (the CPU pre-pass's polynomial): (q, valid), (n, 0), (e1, 0), (e2, 0),
+// (c0, c1, c2, c3), (c4, c5, 0, 0).
+layout(std430, binding = 1) readonly buffer Polys { vec4 polys[]; };
+
+struct Quadratic {
+    vec3 q, n, e1, e2;   // origin and frame of the reference plane H
+    float c[6];          // g(u, v) = c0 + c1 u + c2 v + c3 u^2 + c4 u v + c5 v^2, in units of u_scale
+};
+
+// Smallest t in [lo, hi] where o + t d meets the quadratic (poly_ray of surface.py); the
+// caller puts o near the surface so the coefficients stay small in float32.
+bool ray_quadratic(Quadratic g, vec3 o, vec3 d, float lo, float hi, out float t) {
+    vec3 r = (o - g.q) / u_scale;
+    vec3 ds = d / u_scale;
+    float u0 = dot(r, g.e1), v0 = dot(r, g.e2), f0 = dot(r, g.n);
+    float du = dot(ds, g.e1), dv = dot(ds, g.e2), df = dot(ds, g.n);
+    float qa = g.c[3] * du * du + g.c[4] * du * dv + g.c[5] * dv * dv;
+    float qb = g.c[1] * du + g.c[2] * dv + 2.0 * g.c[3] * u0 * du + g.c[4] * (u0 * dv + v0 * du)
+             + 2.0 * g.c[5] * v0 * dv - df;
+    float qc = g.c[0] + g.c[1] * u0 + g.c[2] * v0 + g.c[3] * u0 * u0 + g.c[4] * u0 * v0 + g.c[5] * v0 * v0 - f0;
+    if (abs(qa) * (hi - lo) < 1e-6 * abs(qb)) {
+        if (qb == 0.0) return false;
+        t = -qc / qb;
+        return t >= lo && t <= hi;
+    }
+    float disc = qb * qb - 4.0 * qa * qc;
+    if (disc < 0.0) return false;
+    float k = -0.5 * (qb + (qb >= 0.0 ? sqrt(disc) : -sqrt(disc)));  // stable pair of roots
+    float t1 = k / qa;
+    float t2 = k != 0.0 ? qc / k : t1;
+    if (t1 > t2) { float s = t1; t1 = t2; t2 = s; }
+    if (t1 >= lo && t1 <= hi) { t = t1; return true; }
+    if (t2 >= lo && t2 <= hi) { t = t2; return true; }
+    return false;
+}
+
+// Unit normal of the quadratic at (the foot point of) x: n - g_u e1 - g_v e2.
+vec3 quadratic_normal(Quadratic g, vec3 x) {
+    vec3 r = (x - g.q) / u_scale;
+    float u = dot(r, g.e1), v = dot(r, g.e2);
+    float gu = g.c[1] + 2.0 * g.c[3] * u + g.c[4] * v;
+    float gv = g.c[2] + g.c[4] * u + 2.0 * g.c[5] * v;
+    return normalize(g.n - gu * g.e1 - gv * g.e2);
+}
+
+// The deterministic tangent basis of surface.tangent_frame.
+void tangent_frame(vec3 n, out vec3 e1, out vec3 e2) {
+    vec3 a = abs(n.x) < 0.6 ? vec3(1.0, 0.0, 0.0) : vec3(0.0, 1.0, 0.0);
+    e1 = normalize(cross(a, n));
+    e2 = cross(n, e1);
+}
+
+#if defined(PASS_INTERSECT) || defined(PASS_COVARIANCE) || defined(PASS_SYSTEM)
+#define DISC
+#endif
+
+// ---------------------------------------------------------------------------------------------
+#ifdef VERTEX_SHADER
+#ifdef DISC
+flat out int v_index;
+// One instanced quad per point covering the exact screen bounding box of the sphere of
+// radius R about p_i (the bounding sphere in PASS_INTERSECT, the kernel support otherwise):
+// for an eye-space centre (a, z) the tangent lines give a/z ratios (a z -+ R sqrt(a^2 + z^2 - R^2)) / (z^2 - R^2).
+void main() {
+    int i = gl_InstanceID;
+    v_index = i;
+    vec4 ph = points[2 * i];
+#ifdef PASS_INTERSECT
+    float radius = u_domain * points[2 * i + 1].w;
+    if (polys[6 * i].w == 0.0) { gl_Position = vec4(2.0, 2.0, 2.0, 1.0); return; }  // failed fit
+#else
+    float radius = SUPPORT * ph.w;
+#endif
+    vec3 c = (u_view * vec4(ph.xyz, 1.0)).xyz;
+    vec2 corner = vec2(float(gl_VertexID & 1), float(gl_VertexID >> 1));
+    vec2 lo, hi;  // image-space box, y down
+    if (u_ortho > 0.0) {
+        lo = vec2(u_intrinsics.z + (c.x - radius) * u_ortho, u_intrinsics.w - (c.y + radius) * u_ortho);
+        hi = vec2(u_intrinsics.z + (c.x + radius) * u_ortho, u_intrinsics.w - (c.y - radius) * u_ortho);
+    } else {
+        float z = -c.z;
+        if (z < -radius) { gl_Position = vec4(2.0, 2.0, 2.0, 1.0); return; }  // behind the camera
+        if (z <= radius * 1.001) {  // the sphere contains the eye: the whole image
+            lo = vec2(-1.0);
+            hi = u_viewport + 1.0;
+        } else {
+            float k = z * z - radius * radius;
+            vec2 s = radius * sqrt(c.xy * c.xy + k);
+            vec2 rlo = (c.xy * z - s) / k, rhi = (c.xy * z + s) / k;
+            lo = vec2(u_intrinsics.z + u_intrinsics.x * rlo.x, u_intrinsics.w - u_intrinsics.y * rhi.y);
+            hi = vec2(u_intrinsics.z + u_intrinsics.x * rhi.x, u_intrinsics.w - u_intrinsics.y * rlo.y);
+        }
+    }
+    // half a pixel of margin: rasterisation samples pixel centres
+    gl_Position = image_to_clip(mix(lo - 0.5, hi + 0.5, corner));
+#ifndef PASS_INTERSECT
+    // The quad lies at the near end of the support: |p - r| < R needs z_p - R < t, so the depth
+    // test against the hit depths (LEQUAL) drops the supports wholly behind the surface, e.g.
+    // the far side of a closed object, before the fragment shader runs.
+    float near_end = -c.z - 1.05 * radius;
+    gl_Position.z = near_end <= u_depth_range.x ? -1.0 : clamp(2.0 * window_depth(vec3(0.0, 0.0, -near_end)) - 1.0, -1.0, 1.0);
+#endif
+}
+#else
+void main() {  // full-screen triangle
+    vec2 p = vec2(float((gl_VertexID & 1) * 4 - 1), float((gl_VertexID >> 1) * 4 - 1));
+    gl_Position = vec4(p, 0.0, 1.0);
+}
+#endif
+#endif
+
+// ---------------------------------------------------------------------------------------------
+#ifdef FRAGMENT_SHADER
+#ifdef DISC
+flat in int v_index;
+#endif
+#if defined(PASS_COVARIANCE) || defined(PASS_SYSTEM)
+layout(early_fragment_tests) in;  // the depth test culls before shading (no depth is written)
+#endif
+// Ray of the fragment's pixel in local world coordinates; d.z in eye space is -1, so the
+// ray parameter t is the eye depth.
+void local_ray(out vec3 o, out vec3 d) {
+    vec3 oe, de;
+    pixel_ray(gl_FragCoord.xy, oe, de);
+    o = (u_view_inv * vec4(oe, 1.0)).xyz;
+    d = mat3(u_view_inv) * de;
+}
+
+uniform sampler2D u_state;  // r: current ray parameter t (>= MISS: no surface), g: last step / scale
+
+Quadratic point_quadratic(int i) {
+    Quadratic g;
+    g.q = polys[6 * i].xyz;
+    g.n = polys[6 * i + 1].xyz;
+    g.e1 = polys[6 * i + 2].xyz;
+    g.e2 = polys[6 * i + 3].xyz;
+    vec4 a = polys[6 * i + 4], b = polys[6 * i + 5];
+    g.c = float[6](a.x, a.y, a.z, a.w, b.x, b.y);
+    return g;
+}
+
+// The current hit r of the fragment's pixel; false where the pixel has no surface.
+bool current_hit(out vec3 r, out float t) {
+    t = texelFetch(u_state, ivec2(gl_FragCoord.xy), 0).r;
+    if (t >= MISS) return false;
+    vec3 o, d;
+    local_ray(o, d);
+    r = o + t * d;
+    return true;
+}
+
+#ifdef PASS_INTERSECT
+layout(location = 0) out vec4 out_t;
+void main() {
+    vec3 o, d;
+    local_ray(o, d);
+    int i = v_index;
+    vec3 oc = o - points[2 * i].xyz;
+    float radius = u_domain * points[2 * i + 1].w;
+    float a = dot(d, d), b = dot(oc, d), c = dot(oc, oc) - radius * radius;
+    float disc = b * b - a * c;
+    if (disc < 0.0) discard;
+    float t_in = max((-b - sqrt(disc)) / a, 0.0), t_out = (-b + sqrt(disc)) / a;
+    if (t_out < 0.0) discard;
+    float dt;
+    // solved from the sphere entry so the quadratic's coefficients stay small
+    if (!ray_quadratic(point_quadratic(i), o + t_in * d, d, 0.0, t_out - t_in, dt)) discard;
+    float t = t_in + dt;
+    out_t = vec4(t, 0.0, 0.0, 0.0);
+    gl_FragDepth = window_depth(vec3(0.0, 0.0, -t));  // the hit depths for the passes' depth test
+}
+#endif
+
+#if defined(PASS_COVARIANCE) || defined(PASS_SYSTEM)
+// Gaussian weight of sample i at r (surface.fit): w = exp(-|p - r|^2 / h^2) within SUPPORT h.
+bool kernel(int i, vec3 r, out float w, out float d2) {
+    vec4 ph = points[2 * i];
+    vec3 delta = ph.xyz - r;
+    d2 = dot(delta, delta);
+    if (d2 >= SUPPORT * SUPPORT * ph.w * ph.w) return false;
+    w = exp(-d2 / (ph.w * ph.w));
+    return true;
+}
+#endif
+
+#ifdef PASS_COVARIANCE
+layout(location = 0) out vec4 out_sum;    // w x, w                   x = (p - r) / scale
+layout(location = 1) out vec4 out_xx;     // w (xx, xy, xz, yy)
+layout(location = 2) out vec4 out_yz;     // w (yz, zz), count, samples passing the domain test
+layout(location = 3) out vec4 out_color;  // w rgb
+void main() {
+    vec3 r;
+    float t, w, d2;
+    if (!current_hit(r, t) || !kernel(v_index, r, w, d2)) discard;
+    int i = v_index;
+    vec3 x = (points[2 * i].xyz - r) / u_scale;
+    float s = u_domain * points[2 * i + 1].w;
+    out_sum = vec4(w * x, w);
+    out_xx = w * vec4(x.x * x.x, x.x * x.y, x.x * x.z, x.y * x.y);
+    out_yz = vec4(w * x.y * x.z, w * x.z * x.z, 1.0, d2 < s * s ? 1.0 : 0.0);
+    out_color = vec4(w * points[2 * i + 1].rgb, 0.0);
+}
+#endif
+
+#ifdef PASS_FRAME
+uniform sampler2D u_sum;
+uniform sampler2D u_xx;
+uniform sampler2D u_yz;
+layout(location = 0) out vec4 out_q;  // q = r + mean, 1 (0: the fit failed)
+layout(location = 1) out vec4 out_n;  // n, 0
+
+// Unit eigenvector of the symmetric 3x3 for the smallest eigenvalue (surface.smallest_eigenvector:
+// trigonometric eigenvalue, then the largest cross product of two rows of C - l I).
+bool smallest_eigenvector(float c00, float c01, float c02, float c11, float c12, float c22, out vec3 n) {
+    float p1 = c01 * c01 + c02 * c02 + c12 * c12;
+    float q = (c00 + c11 + c22) / 3.0;
+    float p2 = (c00 - q) * (c00 - q) + (c11 - q) * (c11 - q) + (c22 - q) * (c22 - q) + 2.0 * p1;
+    if (p2 <= 1e-12 * q * q) return false;
+    float p = sqrt(p2 / 6.0);
+    mat3 b = mat3(c00 - q, c01, c02, c01, c11 - q, c12, c02, c12, c22 - q) / p;
+    float phi = acos(clamp(0.5 * determinant(b), -1.0, 1.0)) / 3.0;
+    float lam = q + 2.0 * p * cos(phi + 2.0943951023931953);
+    vec3 r0 = vec3(c00 - lam, c01, c02), r1 = vec3(c01, c11 - lam, c12), r2 = vec3(c02, c12, c22 - lam);
+    vec3 x0 = cross(r0, r1), x1 = cross(r0, r2), x2 = cross(r1, r2);
+    float n0 = dot(x0, x0), n1 = dot(x1, x1), n2 = dot(x2, x2);
+    vec3 x = n0 >= n1 && n0 >= n2 ? x0 : (n1 >= n2 ? x1 : x2);
+    float nn = max(n0, max(n1, n2));
+    if (nn <= 1e-14 * p * p * p * p) return false;
+    n = x * inversesqrt(nn);
+    return true;
+}
+
+void main() {
+    out_q = vec4(0.0);
+    out_n = vec4(0.0);
+    vec3 r;
+    float t;
+    ivec2 pix = ivec2(gl_FragCoord.xy);
+    vec4 sum = texelFetch(u_sum, pix, 0), xx = texelFetch(u_xx, pix, 0), yz = texelFetch(u_yz, pix, 0);
+    // the fit's failure statuses: too few neighbours, outside the domain
+    if (!current_hit(r, t) || yz.b < MIN_NEIGHBOURS || yz.a == 0.0) return;
+    vec3 m = sum.xyz / sum.w;
+    // sum w (x - m)(x - m)^T = sum w x x^T - W m m^T
+    vec3 n;
+    if (!smallest_eigenvector(xx.x - sum.w * m.x * m.x, xx.y - sum.w * m.x * m.y, xx.z - sum.w * m.x * m.z,
+                              xx.w - sum.w * m.y * m.y, yz.x - sum.w * m.y * m.z, yz.y - sum.w * m.z * m.z, n))
+        return;
+    out_q = vec4(r + m * u_scale, 1.0);
+    out_n = vec4(n, 0.0);
+}
+#endif
+
+#if defined(PASS_SYSTEM) || defined(PASS_SOLVE)
+uniform sampler2D u_q;
+uniform sampler2D u_n;
+#endif
+
+#ifdef PASS_SYSTEM
+// The normal equations of the weighted quadratic fit need only the 15 moments w u^i v^j
+// (i + j <= 4) and the 6 right-hand sides w f u^i v^j (i + j <= 2): 21 sums in 6 targets.
+layout(location = 0) out vec4 out_m0;  // 1, u, v, uu
+layout(location = 1) out vec4 out_m1;  // uv, vv, uuu, uuv
+layout(location = 2) out vec4 out_m2;  // uvv, vvv, u4, u3v
+layout(location = 3) out vec4 out_m3;  // u2v2, uv3, v4, f
+layout(location = 4) out vec4 out_m4;  // fu, fv, fuu, fuv
+layout(location = 5) out vec4 out_m5;  // fvv
+void main() {
+    vec3 r;
+    float t, w, d2;
+    if (!current_hit(r, t) || !kernel(v_index, r, w, d2)) discard;
+    ivec2 pix = ivec2(gl_FragCoord.xy);
+    vec4 q = texelFetch(u_q, pix, 0);
+    if (q.w == 0.0) discard;
+    vec3 n = texelFetch(u_n, pix, 0).xyz, e1, e2;
+    tangent_frame(n, e1, e2);
+    vec3 x = (points[2 * v_index].xyz - q.xyz) / u_scale;
+    float u = dot(x, e1), v = dot(x, e2), f = dot(x, n);
+    float uu = u * u, uv = u * v, vv = v * v;
+    out_m0 = w * vec4(1.0, u, v, uu);
+    out_m1 = w * vec4(uv, vv, uu * u, uu * v);
+    out_m2 = w * vec4(u * vv, v * vv, uu * uu, uu * uv);
+    out_m3 = w * vec4(uu * vv, uv * vv, vv * vv, f);
+    out_m4 = w * f * vec4(u, v, uu, uv);
+    out_m5 = vec4(w * f * vv, 0.0, 0.0, 0.0);
+}
+#endif
+
+#ifdef PASS_SOLVE
+uniform sampler2D u_m0;
+uniform sampler2D u_m1;
+uniform sampler2D u_m2;
+uniform sampler2D u_m3;
+uniform sampler2D u_m4;
+uniform sampler2D u_m5;
+uniform sampler2D u_color;  // w rgb of the covariance pass
+uniform sampler2D u_weight; // (w x, w) of the covariance pass
+layout(location = 0) out vec4 out_state;   // new t (MISS if the fit failed), |step| / scale
+layout(location = 1) out vec4 out_normal;  // local world normal of the surface at the new point
+layout(location = 2) out vec4 out_albedo;  // weighted mean colour of the neighbours
+
+void main() {
+    out_state = vec4(FAR, 0.0, 0.0, 0.0);
+    out_normal = vec4(0.0);
+    out_albedo = vec4(0.0);
+    gl_FragDepth = 0.0;  // a miss: the next disc passes skip the pixel
+    vec3 r;
+    float t;
+    ivec2 pix = ivec2(gl_FragCoord.xy);
+    vec4 q = texelFetch(u_q, pix, 0);
+    if (!current_hit(r, t) || q.w == 0.0) return;
+    vec4 m0 = texelFetch(u_m0, pix, 0), m1 = texelFetch(u_m1, pix, 0), m2 = texelFetch(u_m2, pix, 0);
+    vec4 m3 = texelFetch(u_m3, pix, 0), m4 = texelFetch(u_m4, pix, 0), m5 = texelFetch(u_m5, pix, 0);
+    // moments by degree k and power of v j at index k (k + 1) / 2 + j
+    double mom[15] = double[15](m0.x, m0.y, m0.z, m0.w, m1.x, m1.y, m1.z, m1.w, m2.x, m2.y, m2.z, m2.w,
+                                m3.x, m3.y, m3.z);
+    double b[6] = double[6](m3.w, m4.x, m4.y, m4.z, m4.w, m5.x);
+    const ivec2 basis[6] = ivec2[6](ivec2(0, 0), ivec2(1, 0), ivec2(0, 1), ivec2(2, 0), ivec2(1, 1), ivec2(0, 2));
+    double a[6][6];
+    for (int i = 0; i < 6; i++) {
+        for (int j = 0; j < 6; j++) {
+            ivec2 e = basis[i] + basis[j];
+            int k = e.x + e.y;
+            a[i][j] = mom[k * (k + 1) / 2 + e.y];
+        }
+    }
+    // Cholesky (surface.solve_spd), in double: the moment matrix spans several decades
+    for (int j = 0; j < 6; j++) {
+        double d = a[j][j];
+        for (int k = 0; k < j; k++) d -= a[j][k] * a[j][k];
+        if (d <= 1e-12 * a[0][0]) return;  // degenerate
+        d = sqrt(d);
+        a[j][j] = d;
+        for (int i = j + 1; i < 6; i++) {
+            double s = a[i][j];
+            for (int k = 0; k < j; k++) s -= a[i][k] * a[j][k];
+            a[i][j] = s / d;
+        }
+    }
+    for (int i = 0; i < 6; i++) {
+        double s = b[i];
+        for (int k = 0; k < i; k++) s -= a[i][k] * b[k];
+        b[i] = s / a[i][i];
+    }
+    for (int i = 5; i >= 0; i--) {
+        double s = b[i];
+        for (int k = i + 1; k < 6; k++) s -= a[k][i] * b[k];
+        b[i] = s / a[i][i];
+    }
+    Quadratic g;
+    g.q = q.xyz;
+    g.n = texelFetch(u_n, pix, 0).xyz;
+    tangent_frame(g.n, g.e1, g.e2);
+    g.c = float[6](float(b[0]), float(b[1]), float(b[2]), float(b[3]), float(b[4]), float(b[5]));
+    // the ray meets the new quadratic near r (raytrace.trace_ray's window), solved from r
+    vec3 o, d;
+    local_ray(o, d);
+    float dt;
+    if (!ray_quadratic(g, r, d, max(-u_window, -t), u_window, dt)) return;
+    vec3 x = r + dt * d;
+    vec4 weight = texelFetch(u_weight, pix, 0);
+    out_state = vec4(t + dt, length(dt * d) / u_scale, 0.0, 0.0);
+    gl_FragDepth = window_depth(vec3(0.0, 0.0, -(t + dt)));
+    out_normal = vec4(quadratic_normal(g, x), 1.0);
+    out_albedo = vec4(texelFetch(u_color, pix, 0).rgb / weight.w, 1.0);
+}
+#endif
+
+#ifdef PASS_SHADE
+uniform sampler2D u_normal;
+uniform sampler2D u_albedo;
+layout(location = 0) out vec4 out_shaded;
+layout(location = 1) out vec4 out_eye_normal;
+layout(location = 2) out vec4 out_depth;
+void main() {
+    ivec2 pix = ivec2(gl_FragCoord.xy);
+    float t = texelFetch(u_state, pix, 0).r;
+    out_shaded = vec4(0.0);
+    out_eye_normal = vec4(0.0);
+    out_depth = vec4(0.0);
+    if (t >= MISS) return;
+    vec3 oe, de;
+    pixel_ray(gl_FragCoord.xy, oe, de);
+    vec3 n = normalize(mat3(u_view) * texelFetch(u_normal, pix, 0).xyz);
+    if (dot(n, -de) < 0.0) n = -n;  // two-sided: face the viewer
+    vec3 albedo = texelFetch(u_albedo, pix, 0).rgb;
+    out_shaded = vec4(shade(u_shading, albedo, n, t, u_depth_range.x, u_depth_range.y), 1.0);
+    out_eye_normal = vec4(n, 0.0);
+    out_depth = vec4(t, 0.0, 0.0, 0.0);
+}
+#endif
+#endif
