@@ -300,6 +300,30 @@ def prepare(input, output, neighbors, viewpoint, elliptical, normal_field):
     click.echo(f"{output}: {len(prepared)} points; " + ", ".join(f"{k}: {v}" for k, v in report.items()), err=True)
 
 
+@main.command(context_settings=CONTEXT)
+@click.argument("input", type=click.Path(dir_okay=False))
+@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False), help="Animation to write (.gif, or .mp4 with the video extra).")
+@click.option("--frames", type=click.IntRange(1, 3600), default=36, show_default=True)
+@click.option("--method", "-m", default="deferred", show_default=True)
+@click.option("--size", default="512x512", show_default=True)
+@click.option("--elevation", type=float, default=15.0, show_default=True, help="Degrees above the horizon.")
+@click.option("--fps", type=float, default=12.0, show_default=True)
+@click.option("--shading", type=click.Choice(["lambert", "phong", "none", "normals", "depth"]), default="phong", show_default=True)
+def turntable(input, output, frames, method, size, elevation, fps, shading):
+    """Render an orbit around INPUT to an animated GIF or MP4.
+
+    \b
+    Example:
+      surfel turntable bunny.obj -o bunny.gif --frames 24 --method phong
+    """
+    from .turntable import turntable as do_turntable
+
+    cloud = load_input(input)
+    do_turntable(cloud, output, frames=frames, method=method, size=_size(size), elevation=elevation, fps=fps,
+                 shading=shading)
+    click.echo(f"{output}: {frames} frames of {method}", err=True)
+
+
 @main.group(context_settings=CONTEXT)
 def lod():
     """Level of detail: sequential point trees (Dachsbacher et al. 2003)."""

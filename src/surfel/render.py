@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import sys
 import time
+import weakref
 
 import numpy as np
 
@@ -22,16 +23,26 @@ def default_camera(cloud: PointCloud, size=(1024, 1024), **framing) -> Camera:
     return frame(cloud.center, cloud.bounding_radius, geospatial=cloud.geospatial, size=size, **framing)
 
 
+_completed: "weakref.WeakKeyDictionary[PointCloud, dict]" = weakref.WeakKeyDictionary()
+
+
 def complete(cloud: PointCloud, *, need_radii: bool = True, elliptical: bool = False,
              normal_field: bool = False) -> tuple[PointCloud, dict]:
-    """Estimate whatever attributes the method needs and the cloud lacks (reported)."""
+    """Estimate whatever attributes the method needs and the cloud lacks (reported).
+
+    Cached per cloud, so repeated renders of one cloud (turntables, benchmarks) estimate once.
+    """
     missing = cloud.normals is None or (need_radii and (cloud.radii is None or cloud.axes is None))
     missing = missing or (normal_field and "phong_alpha" not in cloud.extras)
     if not missing:
         return cloud, {}
-    from .preprocess import prepare
+    key = (need_radii, elliptical, normal_field)
+    cached = _completed.setdefault(cloud, {})
+    if key not in cached:
+        from .preprocess import prepare
 
-    return prepare(cloud, elliptical=elliptical, normal_field=normal_field)
+        cached[key] = prepare(cloud, elliptical=elliptical, normal_field=normal_field)
+    return cached[key]
 
 
 def resolve_backend(method_name: str, backend: str | None) -> str:

@@ -12,17 +12,25 @@ ellipse's rim). Per splat, at its centre:
                                           constant for an orthographic camera
     M   = J V J^T + L,  L = l^2 I         the resampling kernel's covariance: the warped
                                           reconstruction kernel convolved with the screen
-                                          low-pass of radius l = options.lowpass_radius
+                                          low-pass of std dev l = options.lowpass_radius / 2.5
+                                          (the paper's l = 1 px over-blurs: a one-pixel box
+                                          has std 0.29 px; 0.4 px still anti-aliases)
     rho_k(x) = 1/|J^-1| G_M(x - m_k)      the EWA resampling filter (eq. 19 of the paper),
              = |det J| / (2 pi sqrt(det M)) exp(-1/2 (x - m_k)^T M^-1 (x - m_k))
 
 (the constant 2 pi cancels in the normalisation and is dropped). The kernel is cut where
-(x - m)^T M^-1 (x - m) > R^2 with R^2 = -2 ln(1 - mass), so `cutoff_mass` (default 0.99) of
+(x - m)^T M^-1 (x - m) > R^2 with R^2 = -2 ln(1 - mass), so `cutoff_mass` (default 0.9) of
 its mass is kept; the pixel box of the cut ellipse has half-sizes R sqrt(M_00), R sqrt(M_11).
 
-Visibility follows the paper's A-buffer-like rule with a depth threshold z_t = depth_offset *
-splat radius: pass 1 takes per pixel Z = min over fragments of (depth + z_t); pass 2 blends
-the fragments with depth <= Z. A fragment's depth is the splat plane's eye depth, linear in
+Visibility follows the paper's A-buffer-like rule with a depth threshold
+z_t = depth_offset * splat radius + dz, dz the splat plane's own depth range over its
+visibility footprint (below), so the fragments of one surface seen at a grazing angle, whose
+depths at a pixel spread over more than a radius, are still blended: pass 1 takes per pixel
+Z = min over fragments of (depth + z_t); pass 2 blends the fragments with depth <= Z into the
+front layer and the others into a back layer, a running z-buffer with the same rule (a
+fragment nearer than its depth minus z_t replaces the layer, one within z_t blends). The two
+layers are composited front to back ("over") with their coverages, so at an occlusion contour,
+where the front surface covers a pixel only partly, the surface behind fills the rest. A fragment's depth is the splat plane's eye depth, linear in
 the pixel offset through J^-1 (clamped to the kernel's extent where J is near singular).
 Pass 2 accumulates w, w*albedo, w*normal, w*depth; the pixel's albedo, normal and depth are
 the normalised sums (per-pixel normalisation) and are shaded afterwards (deferred shading).
@@ -32,7 +40,8 @@ paper prescribes, which is what anti-aliases texture under minification.
 Coverage (alpha): the accumulated weight sum W = sum_k rho_k(x) does not depend on the view
 inside a surface (it is the number of splats per unit of local (s, t) area, a property of the
 sampling), so alpha = clamp(W / (coverage * W_full)) with W_full the typical W of fully covered
-pixels (a high percentile of W over the image) gives a soft, anti-aliased silhouette.
+pixels (the 75th percentile of the front layer's W over the image) gives a soft, anti-aliased
+silhouette; per layer, alpha = a_front + (1 - a_front) a_back.
 
 Pass 1 uses a narrower visibility footprint, J V J^T + v^2 I with v = `visibility` pixels
 (default 0.2), instead of M: the low-pass fringe of a splat seen edge-on (tiny weight, but a
@@ -42,7 +51,7 @@ The CPU backend `render_ewa_cpu` (numba, parallel over screen tiles, see ewa_ker
 in `resolve_accumulators`, which a GL backend reading back its accumulators is meant to share.
 
 Method parameters (options.params): sigma (reconstruction std dev in semi-axis units, default
-0.5), cutoff_mass (0.99), coverage (fraction of W_full at which alpha reaches 1, default 0.5),
+0.5), cutoff_mass (0.9), coverage (fraction of W_full at which alpha reaches 1, default 0.6),
 visibility (0.2 px), depth_clamp (cap of a fragment's plane-depth offset, in radii, default 4).
 """
 
@@ -61,7 +70,7 @@ from ..shading import shade
 
 DEFAULT_SIGMA = 0.5
 DEFAULT_CUTOFF_MASS = 0.9
-DEFAULT_COVERAGE = 0.75
+DEFAULT_COVERAGE = 0.6
 DEFAULT_DEPTH_OFFSET = 1.0
 DEFAULT_DEPTH_CLAMP = 4.0
 DEFAULT_VISIBILITY = 0.2

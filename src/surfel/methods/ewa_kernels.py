@@ -11,7 +11,9 @@ Three stages, none of them a Python loop over splats:
 3. `rasterize_tiles` (parallel over tiles): each tile owns its pixels, so threads never
    write the same memory. Two passes per tile in tile-local buffers: visibility (the
    nearest fragment depth plus its splat's threshold), then accumulation of
-   w, w*albedo, w*normal, w*depth for the fragments not behind that depth.
+   w, w*albedo, w*normal, w*depth into the front layer for the fragments not behind that
+   depth and into the back layer (the nearest surface behind it) for the others.
+4. `normalise_layers` (parallel over rows): per-layer albedo, normal, depth and coverage.
 
 Everything per fragment is float32 (fastmath); float64 is used only to move centres into
 eye space, so LiDAR coordinates keep their precision.
@@ -128,6 +130,7 @@ def setup_splats(positions, origin, view, normals, colors, axes, intr, ortho, ne
         # The plane's depth range over that footprint is +-R sqrt(g^T N g); capped so that a
         # splat seen edge-on (J near singular, g huge) cannot claim absurd depths.
         row[DZ] = min(cutoff * math.sqrt(gx * gx * n00 + 2 * gx * gy * m01 + gy * gy * n11), depth_clamp * radius)
+        # Threshold: the splat's own depth range over its footprint is one surface, plus z_t.
         row[ZT] = depth_offset * radius + row[DZ]
         c = i * color_step
         row[R], row[G], row[B] = colors[c, 0], colors[c, 1], colors[c, 2]
@@ -182,8 +185,9 @@ def rasterize_tiles(splats, box, offsets, index, order, tiles_x, width, height, 
 
     Visibility (A-buffer in the spirit of Zwicker et al. 2001, Sec. 5): pass 1 stores per
     pixel Z = min over fragments of (depth + threshold of its splat); pass 2 blends every
-    fragment with depth <= Z. A nearer surface thus replaces, one within the threshold of
-    the nearest is blended, a farther one is dropped, independent of drawing order.
+    fragment with depth <= Z into the front layer (channels 0-7), independent of drawing
+    order, and the others into the back layer (channels 8-15) with a running threshold
+    z-buffer, so partly covered front pixels can be composited over the surface behind.
     """
     acc = np.zeros((height, width, ACC_CHANNELS), np.float32)
     fragments = np.zeros(order.shape[0], np.int64)

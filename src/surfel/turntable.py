@@ -1,0 +1,61 @@
+"""Turntable animations: the camera orbits the cloud about its up axis, rendered headless."""
+
+from __future__ import annotations
+
+import io
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from .camera import frame
+from .errors import SurfelError
+from .result import _atomic_write
+
+
+def orbit_cameras(cloud, frames: int, *, size=(512, 512), elevation: float = 15.0, fov: float = 30.0):
+    """`frames` auto-framed cameras at evenly spaced azimuths, starting from the front view."""
+    for i in range(frames):
+        yield frame(cloud.center, cloud.bounding_radius, azimuth=360.0 * i / frames, elevation=elevation,
+                    geospatial=cloud.geospatial, size=size, fov=fov)
+
+
+def write_animation(images: list[np.ndarray], path, fps: float = 12.0) -> None:
+    """RGBA uint8 frames to a GIF (Pillow) or MP4 (imageio with its ffmpeg plugin, optional)."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix == ".gif":
+        from PIL import Image
+
+        pictures = [Image.fromarray(image[..., :3]) for image in images]
+        buffer = io.BytesIO()
+        pictures[0].save(buffer, format="GIF", save_all=True, append_images=pictures[1:],
+                         duration=round(1000 / fps), loop=0)
+        _atomic_write(path, buffer.getvalue())
+    elif suffix == ".mp4":
+        try:
+            import imageio.v3 as iio
+        except ImportError:
+            raise SurfelError("mp4 output needs the video extra: pip install 'surfel[video]'") from None
+        temporary = path.with_name(f".{path.name}.tmp.mp4")
+        try:
+            iio.imwrite(temporary, np.stack([image[..., :3] for image in images]), fps=fps, codec="libx264")
+            temporary.replace(path)
+        finally:
+            temporary.unlink(missing_ok=True)
+    else:
+        raise SurfelError(f"{path}: turntable output must be .gif or .mp4")
+
+
+def turntable(cloud, path, *, frames: int = 36, method: str = "deferred", size=(512, 512),
+              elevation: float = 15.0, fps: float = 12.0, progress: bool | None = None, **options) -> None:
+    from .render import render
+
+    if frames < 1:
+        raise SurfelError("a turntable needs at least one frame")
+    images = []
+    cameras = orbit_cameras(cloud, frames, size=size, elevation=elevation)
+    for camera in tqdm(cameras, total=frames, desc="turntable", unit="frame", disable=progress is False,
+                       leave=False):
+        images.append(render(cloud, camera, method, **options).rgba8())
+    write_animation(images, path, fps)
