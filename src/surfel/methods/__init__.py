@@ -48,6 +48,8 @@ METHODS: dict[str, Method] = {
                {"cpu": "ewa:render_ewa_cpu", "gl": "ewa_gl:render_ewa_gl"}),
         Method("mls", "Adamson & Alexa 2003: ray tracing the MLS point set surface",
                {"cpu": "mls:render_mls_cpu"}, needs_radii=False),
+        Method("mls-gpu", "Tejada et al. 2006: multi-pass GPU ray casting of the MLS surface",
+               {"gl": "mls_gpu:render_mls_gl"}, needs_radii=False),
     ]
 }
 

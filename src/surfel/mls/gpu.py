@@ -15,14 +15,19 @@ point's screen-space disc is the set of pixels whose ray or hit it can influence
 Then `iterations` times (default 3), at r = o + t d:
 2. covariance: per point, a quad over its kernel support 2.5 h_i; fragments with |p_i - r| <
    2.5 h_i add w (x, 1), w x x^T, the neighbour count, the domain-test count and w rgb
-   (x = (p_i - r) / h, h the median kernel width) with additive blending;
+   (x = (p_i - r) / h, h the median kernel width) with additive blending. Each quad lies at
+   the near end of its support and is depth tested (read only) against the hits' depths, so
+   supports wholly behind the surface (the far side of a closed object) never reach the
+   fragment shader -- a third of the cost on llvmpipe;
 3. frame (full screen): q = r + mean, C = sum w x x^T - W m m^T, n its smallest eigenvector;
    too few neighbours, the domain test failing or a degenerate C make the pixel a miss;
 4. system: the supports again; with (u, v, f) the coordinates of (p_i - q) / h in (e1, e2, n),
    the normal equations of  min sum w (g(u, v) - f)^2  need only the 15 moments w u^a v^b
    (a + b <= 4) and the 6 sums w f u^a v^b (a + b <= 2): six RGBA32F targets, full system;
 5. solve + re-intersect (full screen): Cholesky of the 6x6 (double precision), then the ray
-   meets the new quadratic within 2.5 h of r (the CPU tracer's window) -- the next t.
+   meets the new quadratic within 2.5 h of r (the CPU tracer's window) -- the next t, whose
+   window depth is rewritten for the next culling test. Where the CPU tracer moves on to the
+   next bounding sphere after a failed fit, a pixel here becomes a miss.
 6. shading (full screen): normal n - g_u e1 - g_v e2 of the last quadratic, the fit's weighted
    neighbour colour, eye depth t, into the G-buffer layout; supersampled 2x2 by default and
    box filtered (RenderResult.from_samples) for anti-aliased silhouettes.
@@ -37,17 +42,21 @@ from pathlib import Path
 
 import numpy as np
 
+from ..camera import Camera
+from ..cloud import PointCloud
 from ..gl.context import get_context
 from ..gl.program import build_program
 from ..gl.targets import GBuffer, gbuffer_result, read_texture
 from ..gl.uniforms import apply_common
+from ..options import RenderOptions
+from ..result import RenderResult
 from .raytrace import MLSScene, prepare_scene
 from .surface import P_C, P_E1, P_E2, P_N, P_Q, SUPPORT
 
 SHADER = Path(__file__).with_suffix(".glsl")
 FAR = 3.0e38
 
-_buffers: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+_buffers: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
 def pack_points(scene: MLSScene) -> np.ndarray:
@@ -82,7 +91,7 @@ def scene_buffers(ctx, scene: MLSScene) -> tuple:
     return _buffers[scene]
 
 
-def _bind(program, ctx, textures: dict) -> None:
+def _bind(program, textures: dict) -> None:
     """Bind sampler uniforms to consecutive texture units (those the program uses)."""
     unit = 0
     for name, texture in textures.items():
@@ -92,7 +101,7 @@ def _bind(program, ctx, textures: dict) -> None:
             unit += 1
 
 
-def render_mls_gl(cloud, camera, options):
+def render_mls_gl(cloud: PointCloud, camera: Camera, options: RenderOptions) -> RenderResult:
     ctx = get_context()
     p = options.params
     ss = options.supersample or 2
@@ -161,25 +170,25 @@ def render_mls_gl(cloud, camera, options):
             ctx.blend_func = ctx.ONE, ctx.ONE
             fbos["covariance"].use()
             fbos["covariance"].clear(0.0, 0.0, 0.0, 0.0)
-            _bind(programs["covariance"], ctx, {"u_state": state[current]})
+            _bind(programs["covariance"], {"u_state": state[current]})
             discs("covariance")
             # 3. reference plane
             ctx.disable(ctx.BLEND | ctx.DEPTH_TEST)
             fbos["frame"].use()
-            _bind(programs["frame"], ctx, {"u_state": state[current], "u_sum": cov[0], "u_xx": cov[1],
+            _bind(programs["frame"], {"u_state": state[current], "u_sum": cov[0], "u_xx": cov[1],
                                            "u_yz": cov[2]})
             full_screen("frame")
             # 4. normal equations of the quadratic
             ctx.enable(ctx.BLEND | ctx.DEPTH_TEST)
             fbos["system"].use()
             fbos["system"].clear(0.0, 0.0, 0.0, 0.0)
-            _bind(programs["system"], ctx, {"u_state": state[current], "u_q": frame[0], "u_n": frame[1]})
+            _bind(programs["system"], {"u_state": state[current], "u_q": frame[0], "u_n": frame[1]})
             discs("system")
             # 5. solve and move along the ray onto the quadratic, rewriting the hit depths
             ctx.disable(ctx.BLEND)
             ctx.depth_func = "1"
             fbos["state"][1 - current].use()
-            _bind(programs["solve"], ctx, {"u_state": state[current], "u_q": frame[0], "u_n": frame[1],
+            _bind(programs["solve"], {"u_state": state[current], "u_q": frame[0], "u_n": frame[1],
                                            **{f"u_m{k}": system[k] for k in range(6)},
                                            "u_color": cov[3], "u_weight": cov[0]})
             full_screen("solve")
@@ -188,7 +197,7 @@ def render_mls_gl(cloud, camera, options):
         ctx.disable(ctx.BLEND | ctx.DEPTH_TEST)
         gbuffer.fbo.use()
         gbuffer.clear()
-        _bind(programs["shade"], ctx, {"u_state": state[current], "u_normal": surf[0], "u_albedo": surf[1]})
+        _bind(programs["shade"], {"u_state": state[current], "u_normal": surf[0], "u_albedo": surf[1]})
         full_screen("shade")
         ctx.finish()
         final = read_texture(state[current], 2)
