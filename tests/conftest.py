@@ -26,6 +26,6 @@ def data_file(name: str) -> Path:
 @pytest.fixture(scope="session")
 def bunny():
     from surfel.io import load
-    from surfel.render import complete
+    from surfel.rendering import complete
 
     return complete(load(data_file("stanford-bunny.obj")))[0]

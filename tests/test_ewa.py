@@ -84,7 +84,7 @@ def test_bunny_against_mesh(view):
         pytest.skip("the mesh reference needs OpenGL")
     from surfel.io import load
     from surfel.metrics import compare_results
-    from surfel.render import complete, default_camera, render
+    from surfel.rendering import complete, default_camera, render
 
     cloud = load(str(BUNNY))
     cam = default_camera(cloud, (512, 512), view=view)
@@ -102,7 +102,7 @@ def test_minification_error_at_most_that_of_deferred_ewa():
     from surfel.gl.context import gl_available
     if not gl_available():
         pytest.skip("the deferred comparison needs OpenGL")
-    from surfel.render import render
+    from surfel.rendering import render
     from scenes import checker_plane, checker_reference, far_half_rms, grazing_camera
 
     cam = grazing_camera((512, 512))

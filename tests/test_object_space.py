@@ -7,7 +7,7 @@ from conftest import requires_gl
 from surfel.camera import frame
 from surfel.methods.object_space import ResamplingFilter, decompose, resampling_matrix
 from surfel.metrics import compare_results
-from surfel.render import render
+from surfel.rendering import render
 
 
 def test_eigen_decomposition_reproduces_the_filter():

@@ -8,7 +8,7 @@ from conftest import data_file, requires_gl
 from surfel.camera import frame
 from surfel.io import load
 from surfel.metrics import psnr
-from surfel.render import render
+from surfel.rendering import render
 
 pytestmark = requires_gl
 

@@ -7,7 +7,7 @@ from conftest import data_file, requires_gl
 from scenes import checker_plane, checker_reference, far_half_rms, grazing_camera
 from surfel.camera import frame
 from surfel.metrics import compare_results
-from surfel.render import render
+from surfel.rendering import render
 from surfel.shading import MODELS, shade
 
 pytestmark = requires_gl
@@ -81,7 +81,7 @@ def test_orthographic_camera_for_every_splat_method(bunny):
 
 def test_lidar_colours_are_splatted(tmp_path):
     from surfel.io import load
-    from surfel.render import default_camera
+    from surfel.rendering import default_camera
 
     cloud = load(data_file("autzen_trim.laz"))
     cam = default_camera(cloud, (256, 256), view="top")

@@ -15,7 +15,7 @@ import numpy as np
 
 from .cloud import PointCloud
 from .options import RenderOptions
-from .render import complete, default_camera, render
+from .rendering import complete, default_camera, render
 
 
 def replicate(cloud: PointCloud, points: int, seed: int = 0) -> PointCloud:

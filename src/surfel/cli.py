@@ -168,7 +168,7 @@ def render(input, output, method, demo, depth, normals, stats, **kw):
     Example:
       surfel render bunny.obj -o bunny.png --method deferred --size 512x512
     """
-    from .render import render as do_render
+    from .rendering import render as do_render
 
     if demo == (input is not None):
         raise click.UsageError("give an INPUT file or --demo (not both)")
@@ -237,7 +237,7 @@ def compare(mesh, method, output, as_json, **kw):
       surfel compare bunny.obj --method deferred --size 512x512 --shading lambert --json
     """
     from .metrics import compare_results
-    from .render import render as do_render
+    from .rendering import render as do_render
 
     cloud = load_input(mesh)
     if not cloud.is_mesh:

@@ -49,7 +49,7 @@ def write_animation(images: list[np.ndarray], path, fps: float = 12.0) -> None:
 
 def turntable(cloud, path, *, frames: int = 36, method: str = "deferred", size=(512, 512),
               elevation: float = 15.0, fps: float = 12.0, progress: bool | None = None, **options) -> None:
-    from .render import render
+    from .rendering import render
 
     if frames < 1:
         raise SurfelError("a turntable needs at least one frame")

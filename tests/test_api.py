@@ -1,0 +1,50 @@
+"""The Python API as a notebook user meets it, adapters, and the turntable."""
+
+import numpy as np
+import pytest
+
+import surfel
+from conftest import data_file, requires_gl
+from surfel.adapters import from_numpy, from_trimesh, to_numpy, to_trimesh
+
+
+@requires_gl
+def test_render_returns_a_result_that_shows_itself_as_png():
+    result = surfel.render(surfel.load(data_file("stanford-bunny.obj")), method="deferred", size=(128, 128))
+    png = result._repr_png_()
+    assert png.startswith(b"\x89PNG\r\n\x1a\n")
+    assert result.color.shape == (128, 128, 3) and 0.1 < result.alpha.mean() < 0.6
+
+
+def test_numpy_round_trip():
+    rng = np.random.default_rng(0)
+    cloud = from_numpy(rng.normal(size=(50, 3)), colors=rng.integers(0, 256, (50, 3)).astype(np.uint8))
+    arrays = to_numpy(cloud)
+    assert np.array_equal(arrays["positions"], cloud.positions) and arrays["colors"].max() <= 1
+
+
+def test_trimesh_round_trip_keeps_the_mesh():
+    cloud = surfel.load(data_file("spot.obj"))
+    back = from_trimesh(to_trimesh(cloud))
+    assert back.is_mesh and len(back) == len(cloud)
+    assert np.allclose(back.positions, cloud.positions)
+    assert np.einsum("ij,ij->i", back.normals, cloud.normals).min() > 0.999
+
+
+def test_open3d_adapter_is_optional():
+    o3d = pytest.importorskip("open3d")
+    cloud = surfel.load(data_file("spot.obj"))
+    from surfel.adapters import from_open3d, to_open3d
+
+    assert np.allclose(from_open3d(to_open3d(cloud)).positions, cloud.positions)
+
+
+@requires_gl
+def test_turntable_gif_has_the_frames(tmp_path):
+    from PIL import Image
+
+    from surfel.turntable import turntable
+
+    out = tmp_path / "t.gif"
+    turntable(surfel.load(data_file("stanford-bunny.obj")), out, frames=12, size=(64, 64), progress=False)
+    assert Image.open(out).n_frames == 12
