@@ -7,6 +7,7 @@ precision; renderers subtract `local_origin` before converting to float32 for th
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 
 import numpy as np
 
@@ -103,9 +104,17 @@ class PointCloud:
         """A copy with some fields replaced (validated again)."""
         return replace(self, **changes)
 
-    @property
+    @cached_property
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """(min, max) corners; computed once, since renderers ask every frame."""
         return self.positions.min(axis=0), self.positions.max(axis=0)
+
+    @cached_property
+    def max_splat_radius(self) -> float:
+        """The longest tangent semi-axis (or radius): how far splats reach past their centres."""
+        if self.axes is not None:
+            return float(np.sqrt((self.axes.astype(np.float32) ** 2).sum(axis=2)).max())
+        return float(self.radii.max()) if self.radii is not None else 0.0
 
     @property
     def center(self) -> np.ndarray:

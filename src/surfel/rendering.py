@@ -6,7 +6,6 @@ import sys
 import time
 import weakref
 
-import numpy as np
 
 
 from .camera import Camera, frame
@@ -83,9 +82,9 @@ def render(cloud: PointCloud, camera: Camera | None = None, method: str = "defer
         cloud = as_sequential(cloud)
         if backend != "gl":  # no vertex shader to run the per-point test: select on the CPU
             cloud = lod_subset(cloud, camera, options.lod_error)
-    if cloud.axes is not None:  # clip planes around the splats themselves, not only their centres
-        reach = float(np.sqrt((cloud.axes.astype(np.float32) ** 2).sum(axis=2)).max()) * options.radius_scale
-        camera = camera.fit_clip_planes(cloud.center, cloud.bounding_radius + reach)
+    # clip planes around the splats themselves, not only their centres
+    reach = cloud.max_splat_radius * options.radius_scale
+    camera = camera.fit_clip_planes(cloud.center, cloud.bounding_radius + reach)
     function = m.function(backend)
     start = time.perf_counter()
     result = function(cloud, camera, options)

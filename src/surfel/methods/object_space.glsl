@@ -11,6 +11,7 @@
 // by the accumulated weight).
 #include "common.glsl"
 #include "shading.glsl"
+#include "passes.glsl"
 
 #define MAX_EXTENT 16.0   // splat radii: bound on the filter's object-space std (grazing views)
 
@@ -21,9 +22,6 @@ uniform float u_cutoff;           // c: the kernel is cut off at |y| = c standar
 uniform float u_lowpass_std;      // screen-space low-pass std in render-target pixels
 uniform int u_backface_culling;
 uniform sampler2D u_kernel;       // exp(-y.y/2) over the quad, zero beyond the cutoff
-uniform sampler2D u_visibility;   // nearest depth + z_t, and 1 - coverage, per pixel
-uniform sampler2D u_accum_color;  // PASS_NORMALIZE: (sum w rgb, sum w)
-uniform sampler2D u_accum_normal; // PASS_NORMALIZE: (sum w n, sum w z)
 
 #ifdef VERTEX_SHADER
 #ifndef PASS_NORMALIZE
@@ -111,11 +109,6 @@ void main() {
     v_color = in_color;
     gl_Position = u_projection * vec4(p, 1.0);
 }
-#else
-void main() {  // full-screen triangle
-    vec2 p = vec2((gl_VertexID << 1) & 2, gl_VertexID & 2);
-    gl_Position = vec4(2.0 * p - 1.0, 0.0, 1.0);
-}
 #endif
 #endif
 
@@ -151,33 +144,18 @@ void main() {
 #endif
 
 #ifdef PASS_NORMALIZE
-layout(location = 0) out vec4 out_shaded;
-layout(location = 1) out vec4 out_normal;
-layout(location = 2) out vec4 out_depth;
 void main() {
-    ivec2 texel = ivec2(gl_FragCoord.xy);
-    vec4 acc = texelFetch(u_accum_color, texel, 0);
-    float coverage = 1.0 - texelFetch(u_visibility, texel, 0).g;
-    vec4 accn = texelFetch(u_accum_normal, texel, 0);
-    if (acc.a <= 0.0) {
-        out_shaded = vec4(0.0); out_normal = vec4(0.0); out_depth = vec4(0.0);
-        return;
-    }
-    // Normal directions and depths are always normalized: only the colour differs by variant.
-    float z = accn.a / acc.a;
-    vec3 n = length(accn.xyz) > 0.0 ? normalize(accn.xyz) : vec3(0.0, 0.0, 1.0);
+    Accumulated a;
+    if (!fetch_accumulated(0, a)) return;
 #ifdef PER_SURFEL_NORMALIZATION
     // The paper's frame buffer holds sum(w rgb) as it is (weights pre-normalized to sum to
     // about one), which already fades with coverage at the silhouette: the straight colour
     // is that divided by the coverage.
-    vec3 albedo = acc.rgb / max(coverage, 1e-3);
+    vec3 albedo = a.weighted_color / max(a.coverage, 1e-3);
 #else
-    vec3 albedo = acc.rgb / acc.a;
+    vec3 albedo = a.weighted_color / a.weight;
 #endif
-    vec3 color = shade(u_shading, albedo, n, z, u_depth_range.x, u_depth_range.y);
-    out_shaded = vec4(color, coverage);
-    out_normal = vec4(n, 0.0);
-    out_depth = vec4(z, 0.0, 0.0, 0.0);
+    write_gbuffer(shade(u_shading, albedo, a.normal, a.depth, u_depth_range.x, u_depth_range.y), a);
 }
 #endif
 #endif

@@ -11,6 +11,7 @@
 #include "common.glsl"
 #include "lod.glsl"
 #include "shading.glsl"
+#include "passes.glsl"
 
 #define DEPTH_CLAMP 32.0  // splat radii: how far the plane's depth may stray from the centre's
 
@@ -19,9 +20,6 @@ uniform float u_depth_offset;    // z_t as a fraction of the splat radius
 uniform float u_lowpass_radius;  // pixels
 uniform int u_backface_culling;
 uniform sampler2D u_kernel;      // Gaussian weight exp(-GAUSSIAN_SHARPNESS d^2) (splatting.py), indexed by d^2 in [0, 1]
-uniform sampler2D u_visibility;  // nearest depth + z_t, and 1 - coverage, per pixel
-uniform sampler2D u_accum_color; // PASS_NORMALIZE: (sum w rgb, sum w)
-uniform sampler2D u_accum_normal;// PASS_NORMALIZE: (sum w n, sum w z)
 
 #ifdef VERTEX_SHADER
 #ifndef PASS_NORMALIZE
@@ -120,11 +118,6 @@ void main() {
     v_radius = max(length(au), length(av));
     v_offset = u_depth_offset * v_radius;
 }
-#else
-void main() {  // full-screen triangle
-    vec2 p = vec2((gl_VertexID << 1) & 2, gl_VertexID & 2);
-    gl_Position = vec4(2.0 * p - 1.0, 0.0, 1.0);
-}
 #endif
 #endif
 
@@ -211,27 +204,14 @@ void main() {
 #endif
 
 #ifdef PASS_NORMALIZE
-layout(location = 0) out vec4 out_shaded;
-layout(location = 1) out vec4 out_normal;
-layout(location = 2) out vec4 out_depth;
 void main() {
-    ivec2 texel = ivec2(gl_FragCoord.xy) + ivec2(u_guard);  // accumulators carry the guard band
-    vec4 acc = texelFetch(u_accum_color, texel, 0);
-    float coverage = 1.0 - texelFetch(u_visibility, texel, 0).g;
-    vec4 accn = texelFetch(u_accum_normal, texel, 0);
-    if (acc.a <= 0.0) {
-        out_shaded = vec4(0.0); out_normal = vec4(0.0); out_depth = vec4(0.0);
-        return;
-    }
-    vec3 color = acc.rgb / acc.a;
-    float z = accn.a / acc.a;
-    vec3 n = length(accn.xyz) > 0.0 ? normalize(accn.xyz) : vec3(0.0, 0.0, 1.0);
+    Accumulated a;
+    if (!fetch_accumulated(int(u_guard), a)) return;
+    vec3 color = a.weighted_color / a.weight;
 #ifndef PER_SPLAT_SHADING
-    color = shade(u_shading, color, n, z, u_depth_range.x, u_depth_range.y);  // deferred shading
+    color = shade(u_shading, color, a.normal, a.depth, u_depth_range.x, u_depth_range.y);  // deferred shading
 #endif
-    out_shaded = vec4(color, coverage);
-    out_normal = vec4(n, 0.0);
-    out_depth = vec4(z, 0.0, 0.0, 0.0);
+    write_gbuffer(color, a);
 }
 #endif
 #endif

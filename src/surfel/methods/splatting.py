@@ -52,10 +52,12 @@ def use_point_sprites(cloud, camera, radius_scale: float, supersample: int, lowp
     """Point sprites (one vertex a splat) unless a splat could cross the near plane or need
     a sprite larger than the guard band allows; then instanced quads (four vertices a splat).
     `drawn`: mask of the splats a level-of-detail cut draws (None: all)."""
-    axes = cloud.axes if drawn is None else cloud.axes[drawn]
-    if len(axes) == 0:
+    if drawn is None:
+        max_radius = cloud.max_splat_radius * radius_scale
+    elif drawn.any():
+        max_radius = float(np.linalg.norm(cloud.axes[drawn], axis=2).max()) * radius_scale
+    else:
         return True
-    max_radius = float(np.linalg.norm(axes, axis=2).max()) * radius_scale
     if camera.ortho_height is not None:
         pixels = max_radius * camera.height * supersample / camera.ortho_height
     else:

@@ -1,0 +1,50 @@
+// The targets of three-pass splatting (gl/passes.py) and the normalization pass's plumbing:
+// the full-screen triangle, reading the accumulated sums, writing the G-buffer.
+uniform sampler2D u_visibility;   // (nearest depth + z_t, 1 - coverage) per pixel
+uniform sampler2D u_accum_color;  // (sum w rgb, sum w)
+uniform sampler2D u_accum_normal; // (sum w n, sum w z)
+
+#if defined(PASS_NORMALIZE) && defined(VERTEX_SHADER)
+void main() {  // full-screen triangle
+    vec2 p = vec2((gl_VertexID << 1) & 2, gl_VertexID & 2);
+    gl_Position = vec4(2.0 * p - 1.0, 0.0, 1.0);
+}
+#endif
+
+#if defined(PASS_NORMALIZE) && defined(FRAGMENT_SHADER)
+layout(location = 0) out vec4 out_shaded;
+layout(location = 1) out vec4 out_normal;
+layout(location = 2) out vec4 out_depth;
+
+struct Accumulated {
+    vec3 weighted_color;  // sum w rgb
+    float weight;         // sum w
+    vec3 normal;          // normalized sum w n
+    float depth;          // sum w z / sum w
+    float coverage;       // of the pixel, from the visibility pass
+};
+
+// The sums at this fragment's pixel (`guard`: the splat targets' margin); false where no
+// splat contributed, after writing the empty G-buffer there.
+bool fetch_accumulated(int guard, out Accumulated a) {
+    ivec2 texel = ivec2(gl_FragCoord.xy) + ivec2(guard);
+    vec4 color = texelFetch(u_accum_color, texel, 0);
+    vec4 normal = texelFetch(u_accum_normal, texel, 0);
+    a.weighted_color = color.rgb;
+    a.weight = color.a;
+    a.normal = length(normal.xyz) > 0.0 ? normalize(normal.xyz) : vec3(0.0, 0.0, 1.0);
+    a.depth = color.a > 0.0 ? normal.a / color.a : 0.0;
+    a.coverage = 1.0 - texelFetch(u_visibility, texel, 0).g;
+    if (color.a <= 0.0) {
+        out_shaded = vec4(0.0); out_normal = vec4(0.0); out_depth = vec4(0.0);
+        return false;
+    }
+    return true;
+}
+
+void write_gbuffer(vec3 shaded, Accumulated a) {
+    out_shaded = vec4(shaded, a.coverage);
+    out_normal = vec4(a.normal, 0.0);
+    out_depth = vec4(a.depth, 0.0, 0.0, 0.0);
+}
+#endif
