@@ -34,15 +34,23 @@ class RenderResult:
         over the background; depth keeps the nearest sample, normals the coverage-weighted mean.
         """
         s = int(supersample)
+        cov = np.clip(coverage.astype(np.float32), 0, 1)
+        bg = np.asarray(background, np.float32).reshape(1, 1, 3)
+        if s == 1:  # nothing to filter: composite and mask, without the block reductions
+            covered = cov > 0
+            color = shaded * cov[..., None] + (1 - cov[..., None]) * bg
+            depth_out = np.where(covered, depth, np.inf).astype(np.float32)
+            length = np.linalg.norm(normals, axis=-1, keepdims=True)
+            normals_out = np.where(covered[..., None] & (length > 1e-12), normals / np.maximum(length, 1e-12), 0)
+            return cls(np.clip(color, 0, 1).astype(np.float32), cov, depth_out,
+                       normals_out.astype(np.float32), stats)
         h, w = coverage.shape[0] // s, coverage.shape[1] // s
 
         def blocks(a):
             return a.reshape(h, s, w, s, *a.shape[2:])
 
-        cov = np.clip(coverage.astype(np.float32), 0, 1)
         alpha = blocks(cov).mean(axis=(1, 3))
         premult = blocks(shaded * cov[..., None]).mean(axis=(1, 3))
-        bg = np.asarray(background, np.float32).reshape(1, 1, 3)
         color = premult + (1 - alpha[..., None]) * bg
         d = np.where(cov > 0, depth, np.inf).astype(np.float32)
         depth_out = blocks(d).min(axis=(1, 3))

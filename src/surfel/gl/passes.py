@@ -27,28 +27,41 @@ FAR = 3.0e38
 
 
 class SplatPasses:
+    """Use as a context manager around one frame. The targets of the last size used are kept
+    for the next frame (animations and benchmarks render many frames of one size)."""
+
+    _kept: "dict[tuple, tuple]" = {}
+
     def __init__(self, width: int, height: int, guard: int = 0):
         ctx = self.ctx = get_context()
         self.guard = guard
-        target = (width + 2 * guard, height + 2 * guard)
-        self.visibility = ctx.texture(target, 2, dtype="f4")
-        self.accum = [ctx.texture(target, 4, dtype="f4") for _ in range(2)]
-        for tex in (self.visibility, *self.accum):
-            tex.filter = (ctx.NEAREST, ctx.NEAREST)
-        self.visibility_fbo = ctx.framebuffer(color_attachments=[self.visibility])
-        self.accum_fbo = ctx.framebuffer(color_attachments=self.accum)
-        self.out = GBuffer(width, height)
+        key = (id(ctx), width, height, guard)
+        if key not in self._kept:
+            for old in self._kept.values():
+                for obj in old:
+                    obj.release()
+            self._kept.clear()
+            self._kept[key] = self._allocate(ctx, width, height, guard)
+        (self.visibility, accum0, accum1, self.visibility_fbo, self.accum_fbo, self.out) = self._kept[key]
+        self.accum = [accum0, accum1]
         ctx.disable(ctx.DEPTH_TEST | ctx.CULL_FACE)
         ctx.enable(ctx.BLEND | ctx.PROGRAM_POINT_SIZE)
+
+    @staticmethod
+    def _allocate(ctx, width: int, height: int, guard: int) -> tuple:
+        target = (width + 2 * guard, height + 2 * guard)
+        visibility = ctx.texture(target, 2, dtype="f4")
+        accum = [ctx.texture(target, 4, dtype="f4") for _ in range(2)]
+        for tex in (visibility, *accum):
+            tex.filter = (ctx.NEAREST, ctx.NEAREST)
+        return (visibility, *accum, ctx.framebuffer(color_attachments=[visibility]),
+                ctx.framebuffer(color_attachments=accum), GBuffer(width, height))
 
     def __enter__(self):
         return self
 
     def __exit__(self, *exc):
         self.ctx.blend_equation = self.ctx.FUNC_ADD
-        for obj in (self.visibility, *self.accum, self.visibility_fbo, self.accum_fbo):
-            obj.release()
-        self.out.release()
 
     def visibility_pass(self, draw) -> None:
         ctx = self.ctx

@@ -98,7 +98,7 @@ void main() {
     // point whose centre is clipped). splatting.py picks quads when a splat could outgrow
     // the guard band or the largest point size, or cross the near plane.
     gl_Position = image_to_clip(0.5 * (lo + hi));
-    gl_PointSize = max(hi.x - lo.x, hi.y - lo.y) + 1.0;
+    gl_PointSize = max(max(hi.x - lo.x, hi.y - lo.y), 1.0);  // covers every pixel centre in the box
 #else
     if (crosses_near) { lo = vec2(0.0); hi = u_viewport; }
     lo = max(lo, vec2(-1.0)); hi = min(hi, u_viewport + 1.0);
