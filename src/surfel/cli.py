@@ -350,7 +350,8 @@ def lod_build(input, output, stats):
 
 @main.command(context_settings=CONTEXT)
 @click.option("--input", "input_path", type=click.Path(dir_okay=False), default=None, help="Model to replicate (default: the demo model).")
-@click.option("--points", type=click.IntRange(1), default=1_000_000, show_default=True, help="Replicate and jitter the input to N points.")
+@click.option("--points", type=click.IntRange(1), default=None,
+              help="Replicate (or subsample) and jitter the input to N points [default: the input as it is; 1,000,000 for the demo model].")
 @click.option("--size", default="1024x1024", show_default=True)
 @click.option("--methods", default="points,gaussian,deferred", show_default=True, help="Comma-separated, each NAME or NAME@BACKEND.")
 @click.option("--frames", type=click.IntRange(1), default=5, show_default=True, help="Timed frames per method (after one warm-up).")
@@ -372,6 +373,7 @@ def bench(input_path, points, size, methods, frames, lod_error, zoom, as_json):
         from .data import demo_cloud
 
         cloud = demo_cloud()
+        points = points or 1_000_000
     rows = run(cloud, [m.strip() for m in methods.split(",") if m.strip()], points=points, size=_size(size),
                frames=frames, lod_error=lod_error, zoom=zoom)
     if as_json:
