@@ -26,11 +26,7 @@ uniform sampler2D u_visibility;   // nearest depth + z_t per pixel
 uniform sampler2D u_back;         // PASS_ATTRIBUTE: the back layer's depth per pixel
 
 #ifdef VERTEX_SHADER
-in vec3 in_center;
-in vec3 in_normal;
-in vec3 in_color;
-in vec3 in_axis_u;
-in vec3 in_axis_v;
+#include "splat_attributes.glsl"
 flat out vec2 v_mean;      // m_k, image pixels (y down)
 flat out vec3 v_conic;     // (a, b, c) of a dx^2 + 2 b dx dy + c dy^2: M^-1 or N^-1 by pass
 flat out vec4 v_depth;     // eye depth at the centre, its pixel gradient (gx, gy), clamp

@@ -25,11 +25,7 @@ uniform sampler2D u_kernel;       // exp(-y.y/2) over the quad, zero beyond the 
 
 #ifdef VERTEX_SHADER
 #ifndef PASS_NORMALIZE
-in vec3 in_center;
-in vec3 in_normal;
-in vec3 in_color;
-in vec3 in_axis_u;
-in vec3 in_axis_v;
+#include "splat_attributes.glsl"
 #ifdef PER_SURFEL_NORMALIZATION
 in float in_weight;          // 1 / (sum of the neighbouring kernels at this surfel's centre)
 #endif

@@ -6,12 +6,7 @@
 uniform float u_radius_scale;
 
 #ifdef VERTEX_SHADER
-in vec3 in_center;
-in vec3 in_normal;
-in vec3 in_color;
-in vec3 in_axis_u;
-in vec3 in_axis_v;
-in vec3 in_lod;
+#include "splat_attributes.glsl"
 flat out vec3 v_shaded;
 flat out vec3 v_normal;
 flat out float v_depth;

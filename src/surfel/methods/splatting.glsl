@@ -23,13 +23,7 @@ uniform sampler2D u_kernel;      // Gaussian weight exp(-GAUSSIAN_SHARPNESS d^2)
 
 #ifdef VERTEX_SHADER
 #ifndef PASS_NORMALIZE
-in vec3 in_center;
-in vec3 in_normal;
-in vec3 in_color;
-in vec3 in_axis_u;
-in vec3 in_axis_v;
-in vec3 in_lod;
-in vec2 in_field;
+#include "splat_attributes.glsl"
 flat out vec3 v_center;     // eye space
 flat out vec3 v_normal;     // eye space, facing the camera
 flat out vec3 v_u;          // axis_u / |axis_u|^2: dot(q - c, v_u) is the local coordinate u
