@@ -294,13 +294,21 @@ def fit(x, points, spacing, h, colors, domain, cell, lower, dims, order, starts,
 
 
 @numba.njit(cache=True, fastmath=True)
-def poly_project(poly, x, out):
-    """P(x): x moved along n onto the polynomial over H; returns the squared step."""
+def poly_local(poly, x):
+    """x in the polynomial's scaled frame over H: (u, v) along e1, e2 and the height f along n."""
     s = poly[P_SCALE]
     rx, ry, rz = (x[0] - poly[P_Q]) / s, (x[1] - poly[P_Q + 1]) / s, (x[2] - poly[P_Q + 2]) / s
     u = rx * poly[P_E1] + ry * poly[P_E1 + 1] + rz * poly[P_E1 + 2]
     v = rx * poly[P_E2] + ry * poly[P_E2 + 1] + rz * poly[P_E2 + 2]
     f = rx * poly[P_N] + ry * poly[P_N + 1] + rz * poly[P_N + 2]
+    return u, v, f
+
+
+@numba.njit(cache=True, fastmath=True)
+def poly_project(poly, x, out):
+    """P(x): x moved along n onto the polynomial over H; returns the squared step."""
+    s = poly[P_SCALE]
+    u, v, f = poly_local(poly, x)
     c = poly[P_C:P_C + 6]
     g = c[0] + c[1] * u + c[2] * v + c[3] * u * u + c[4] * u * v + c[5] * v * v
     step = (g - f) * s
@@ -312,10 +320,7 @@ def poly_project(poly, x, out):
 @numba.njit(cache=True, fastmath=True)
 def poly_normal(poly, x, out):
     """Unit normal of the polynomial surface at (the foot point of) x: n - g_u e1 - g_v e2."""
-    s = poly[P_SCALE]
-    rx, ry, rz = (x[0] - poly[P_Q]) / s, (x[1] - poly[P_Q + 1]) / s, (x[2] - poly[P_Q + 2]) / s
-    u = rx * poly[P_E1] + ry * poly[P_E1 + 1] + rz * poly[P_E1 + 2]
-    v = rx * poly[P_E2] + ry * poly[P_E2 + 1] + rz * poly[P_E2 + 2]
+    u, v, _ = poly_local(poly, x)
     c = poly[P_C:P_C + 6]
     gu = c[1] + 2.0 * c[3] * u + c[4] * v
     gv = c[2] + c[4] * u + 2.0 * c[5] * v
