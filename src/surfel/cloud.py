@@ -68,16 +68,18 @@ class PointCloud:
 
         normals = per_point("normals", self.normals, (3,))
         if normals is not None:
-            # float64 so huge inputs cannot overflow; rescale only what is not already unit
-            # length, so that unit normals survive a write/read round trip bit for bit
-            length = np.linalg.norm(normals.astype(np.float64), axis=1)
-            zero = length < 1e-12
-            if zero.any():
-                raise InputError(src, f"{int(zero.sum())} points have zero-length normals")
-            off = np.abs(length - 1) > 1e-6
-            if off.any():
+            # Rescale only what is not already unit length, so that unit normals survive a
+            # write/read round trip bit for bit; those few in float64, where huge inputs whose
+            # float32 squares overflow cannot.
+            length2 = np.einsum("ij,ij->i", normals, normals)
+            off = np.flatnonzero(~(np.abs(length2 - 1) <= 2e-6))
+            if len(off):
+                length = np.linalg.norm(normals[off].astype(np.float64), axis=1)
+                zero = length < 1e-12
+                if zero.any():
+                    raise InputError(src, f"{int(zero.sum())} points have zero-length normals")
                 normals = normals.copy()
-                normals[off] = (normals[off] / length[off, None]).astype(np.float32)
+                normals[off] = (normals[off] / length[:, None]).astype(np.float32)
         colors = per_point("colors", self.colors, (3,))
         if colors is not None and (colors.min() < 0 or colors.max() > 1):
             raise InputError(src, "colors must lie in [0, 1]")
