@@ -150,7 +150,7 @@ def resolve_accumulators(acc: np.ndarray, camera: Camera, options: RenderOptions
     occlusion contour that the front surface only partly covers shows the surface behind it.
     Shared by both backends so that they differ only by the rasterization itself.
     """
-    from .ewa_kernels import normalise_layers
+    from .ewa_kernels import composite_layers, normalise_layers
 
     front = acc[..., 3]
     nonzero = front[front > 0]
@@ -158,18 +158,11 @@ def resolve_accumulators(acc: np.ndarray, camera: Camera, options: RenderOptions
     full = float(np.percentile(nonzero, FULL_WEIGHT_PERCENTILE)) if nonzero.size else 1.0
     albedo, normals, depth, layer_alpha = normalise_layers(np.ascontiguousarray(acc, np.float32),
                                                           np.float32(1.0 / max(params.coverage * full, 1e-30)))
-    shaded = shade(options.shading, albedo, normals, depth, camera.near, camera.far)
-    # Front-to-back "over": layer l contributes (1 - alpha so far) * alpha_l.
-    contribution = layer_alpha.copy()
-    for layer in range(1, len(layer_alpha)):
-        contribution[layer] *= 1.0 - contribution[:layer].sum(axis=0)
-    alpha = contribution.sum(axis=0)
-    premult = (contribution[..., None] * shaded).sum(axis=0)
-    color = premult / np.maximum(alpha, 1e-30)[..., None]
-    # Depth and normal of the layer that contributes most to the pixel.
-    top = np.argmax(contribution, axis=0)[None]
-    depth_out = np.take_along_axis(depth, top, axis=0)[0]
-    normals_out = np.take_along_axis(normals, top[..., None], axis=0)[0]
+    covered = layer_alpha > 0  # shade only where a layer has a surface (a fraction of the screen)
+    shaded = np.zeros_like(albedo)
+    shaded[covered] = shade(options.shading, albedo[covered], normals[covered], depth[covered],
+                            camera.near, camera.far)
+    color, alpha, depth_out, normals_out = composite_layers(shaded, layer_alpha, depth, normals)
     stats = dict(stats, full_weight=full)
     return RenderResult.from_samples(color, alpha, depth_out, normals_out, supersample=params.supersample,
                                      background=options.background, stats=stats)

@@ -281,3 +281,37 @@ def normalise_layers(acc, scale):
                 depth[l, y, x] = c[7] * inv
                 alpha[l, y, x] = min(weight * scale, np.float32(1.0))
     return albedo, normals, depth, alpha
+
+
+@nb.njit(parallel=True, cache=True)
+def composite_layers(shaded, alpha, depth, normals):  # pragma: no cover - compiled
+    """Front-to-back "over" of the shaded layers (L, H, W, 3) with coverages (L, H, W): the
+    straight colour (H, W, 3), total alpha (H, W), and the depth (H, W) and normal (H, W, 3)
+    of the layer that contributes most to each pixel."""
+    layers, h, w = alpha.shape
+    color = np.zeros((h, w, 3), np.float32)
+    total = np.zeros((h, w), np.float32)
+    depth_out = np.empty((h, w), np.float32)
+    normals_out = np.empty((h, w, 3), np.float32)
+    for y in nb.prange(h):
+        for x in range(w):
+            so_far = np.float32(0.0)
+            best = np.float32(-1.0)
+            top = 0
+            r = g = b = np.float32(0.0)
+            for l in range(layers):
+                contribution = (np.float32(1.0) - so_far) * alpha[l, y, x]
+                r += contribution * shaded[l, y, x, 0]
+                g += contribution * shaded[l, y, x, 1]
+                b += contribution * shaded[l, y, x, 2]
+                so_far += contribution
+                if contribution > best:
+                    best = contribution
+                    top = l
+            total[y, x] = so_far
+            depth_out[y, x] = depth[top, y, x]
+            for c in range(3):
+                normals_out[y, x, c] = normals[top, y, x, c]
+            if so_far > 0:
+                color[y, x, 0], color[y, x, 1], color[y, x, 2] = r / so_far, g / so_far, b / so_far
+    return color, total, depth_out, normals_out
