@@ -301,6 +301,39 @@ def prepare(input, output, neighbors, viewpoint, elliptical, normal_field):
 
 
 @main.command(context_settings=CONTEXT)
+@click.argument("input", required=False, type=click.Path(dir_okay=False))
+@click.option("--demo", is_flag=True, help="View the bundled demo model.")
+@click.option("--method", "-m", default="deferred", show_default=True)
+@click.option("--shading", type=click.Choice(["lambert", "phong", "none", "normals", "depth"]), default="phong", show_default=True)
+@click.option("--size", default="800x800", show_default=True, help="Window size WxH.")
+@click.option("--screenshot", type=click.Path(dir_okay=False), default=None,
+              help="Draw one frame in the window, save it as PNG and exit (for scripts and tests).")
+def view(input, demo, method, shading, size, screenshot):
+    """Open INPUT in an interactive window (needs the view extra: pip install 'surfel[view]').
+
+    \b
+    Mouse: left drag orbits, right drag pans, wheel zooms. Keys: 1-9 method, e EWA filter,
+    + - LOD error, s shading, b back-face culling, r reset, h help, q quit.
+    Example:
+      surfel view bunny.obj --method phong
+      xvfb-run surfel view bunny.obj --screenshot shot.png
+    """
+    from .methods import get_method
+    from .viewer import view as open_view
+
+    if demo == (input is not None):
+        raise click.UsageError("give an INPUT file or --demo (not both)")
+    get_method(method)
+    if demo:
+        from .data import demo_cloud
+
+        cloud = demo_cloud()
+    else:
+        cloud = load_input(input)
+    open_view(cloud, method=method, shading=shading, size=_size(size), screenshot=screenshot)
+
+
+@main.command(context_settings=CONTEXT)
 @click.argument("input", type=click.Path(dir_okay=False))
 @click.option("-o", "--output", required=True, type=click.Path(dir_okay=False), help="Animation to write (.gif, or .mp4 with the video extra).")
 @click.option("--frames", type=click.IntRange(1, 3600), default=36, show_default=True)

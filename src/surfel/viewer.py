@@ -1,0 +1,213 @@
+"""`surfel view`: an interactive window (GLFW, the optional `view` extra).
+
+Frames are rendered by the same headless pipeline as `surfel render` and shown in the window
+through a textured full-screen triangle, with the status line and help drawn over them.
+
+    mouse: left drag orbits, right drag pans, wheel zooms
+    1-9  : choose the method (the order of `surfel methods`)    e: EWA filter on/off
+    + -  : LOD error x2 / /2 (0 = full detail)                  s: next shading model
+    b    : back-face culling on/off                             h: help on/off
+    r    : reset the camera                                     q / Esc: quit
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+
+from .camera import frame
+from .errors import SurfelError
+from .methods import METHODS
+from .shading import MODELS
+
+HELP = [line.strip() for line in __doc__.split("\n\n")[2].splitlines() if line.strip()]
+VERTEX = """#version 330
+out vec2 uv;
+void main() {
+    vec2 p = vec2((gl_VertexID << 1) & 2, gl_VertexID & 2);
+    uv = vec2(p.x, 1.0 - p.y);  // image rows go top to bottom
+    gl_Position = vec4(2.0 * p - 1.0, 0.0, 1.0);
+}"""
+FRAGMENT = """#version 330
+uniform sampler2D image;
+in vec2 uv;
+out vec4 color;
+void main() { color = vec4(texture(image, uv).rgb, 1.0); }"""
+
+
+class ViewState:
+    """What the keys and the mouse change; everything a frame needs to render."""
+
+    def __init__(self, cloud, method: str, shading: str):
+        self.cloud = cloud
+        self.methods = [m.name for m in METHODS.values() if m.name != "mesh" or cloud.is_mesh]
+        self.method = method
+        self.shading = shading
+        self.ewa_filter = True
+        self.lod_error = 0.0
+        self.backface_culling = False
+        self.show_help = True
+        self.reset()
+
+    def reset(self):
+        self.azimuth, self.elevation, self.zoom = 0.0, 0.0, 1.0
+        self.pan = np.zeros(3)
+
+    def camera(self, size):
+        c = self.cloud
+        return frame(c.center, c.bounding_radius, azimuth=self.azimuth, elevation=self.elevation,
+                     geospatial=c.geospatial, size=size, zoom=self.zoom, target=c.center + self.pan)
+
+    def key(self, name: str) -> bool:
+        """Apply a key; False to quit."""
+        if name in ("q", "escape"):
+            return False
+        if name.isdigit() and 1 <= int(name) <= len(self.methods):
+            self.method = self.methods[int(name) - 1]
+        elif name == "e":
+            self.ewa_filter = not self.ewa_filter
+        elif name in ("+", "="):
+            self.lod_error = 1.0 if self.lod_error == 0 else self.lod_error * 2
+        elif name == "-":
+            self.lod_error = 0.0 if self.lod_error <= 1.0 else self.lod_error / 2
+        elif name == "s":
+            self.shading = MODELS[(MODELS.index(self.shading) + 1) % len(MODELS)]
+        elif name == "b":
+            self.backface_culling = not self.backface_culling
+        elif name == "h":
+            self.show_help = not self.show_help
+        elif name == "r":
+            self.reset()
+        return True
+
+    def render(self, size):
+        from .rendering import render
+
+        options = {"shading": self.shading, "backface_culling": self.backface_culling,
+                   "ewa_filter": self.ewa_filter, "lod_error": self.lod_error or None}
+        start = time.perf_counter()
+        result = render(self.cloud, self.camera(size), self.method, **options)
+        return result, (time.perf_counter() - start) * 1000
+
+
+def annotate(rgb: np.ndarray, state: ViewState, result, ms: float) -> np.ndarray:
+    """The status line (method, frame time, splats) and, if on, the help, drawn into the image."""
+    from PIL import Image, ImageDraw
+
+    image = Image.fromarray(rgb)
+    draw = ImageDraw.Draw(image)
+    lod = f"  lod {state.lod_error:g}px" if state.lod_error else ""
+    status = (f"{state.method}@{result.stats['backend']}  {ms:.0f} ms  {result.stats['splats']} splats"
+              f"  {state.shading}{lod}  ewa filter {'on' if state.ewa_filter else 'off'}")
+    draw.rectangle([0, 0, image.width, 16], fill=(0, 0, 0))
+    draw.text((4, 2), status, fill=(255, 255, 255))
+    if state.show_help:
+        lines = HELP + ["methods: " + ", ".join(f"{i + 1} {m}" for i, m in enumerate(state.methods))]
+        top = image.height - 14 * len(lines) - 8
+        draw.rectangle([0, top, image.width, image.height], fill=(0, 0, 0))
+        for i, line in enumerate(lines):
+            draw.text((4, top + 4 + 14 * i), line, fill=(220, 220, 220))
+    return np.asarray(image)
+
+
+def view(cloud, *, method: str = "deferred", shading: str = "phong", size=(800, 800),
+         screenshot=None) -> None:
+    """Open the window; with `screenshot`, draw one frame, save what the window shows, close."""
+    try:
+        import glfw
+    except ImportError:
+        raise SurfelError("the viewer needs GLFW: pip install 'surfel[view]'") from None
+    import moderngl
+
+    if not glfw.init():
+        raise SurfelError("cannot open a window (no display?); set DISPLAY or run under Xvfb")
+    try:
+        glfw.window_hint(glfw.CONTEXT_VERSION_MAJOR, 3)
+        glfw.window_hint(glfw.CONTEXT_VERSION_MINOR, 3)
+        glfw.window_hint(glfw.OPENGL_PROFILE, glfw.OPENGL_CORE_PROFILE)
+        glfw.window_hint(glfw.VISIBLE, True)
+        window = glfw.create_window(size[0], size[1], f"surfel: {cloud.source or 'cloud'}", None, None)
+        if not window:
+            raise SurfelError("cannot open an OpenGL 3.3 window on this display")
+        glfw.make_context_current(window)
+        ctx = moderngl.create_context()
+        program = ctx.program(vertex_shader=VERTEX, fragment_shader=FRAGMENT)
+        triangle = ctx.vertex_array(program, [])
+        state = ViewState(cloud, method, shading)
+        drag = {"button": None, "x": 0.0, "y": 0.0}
+        dirty = [True]
+
+        def on_key(_w, key, _scancode, action, _mods):
+            if action != glfw.PRESS:
+                return
+            name = {glfw.KEY_ESCAPE: "escape", glfw.KEY_KP_ADD: "+", glfw.KEY_KP_SUBTRACT: "-"}.get(key)
+            name = name or (glfw.get_key_name(key, 0) or "")
+            if not state.key(name.lower()):
+                glfw.set_window_should_close(window, True)
+            dirty[0] = True
+
+        def on_button(_w, button, action, _mods):
+            drag["button"] = button if action == glfw.PRESS else None
+            drag["x"], drag["y"] = glfw.get_cursor_pos(window)
+
+        def on_move(_w, x, y):
+            if drag["button"] is None:
+                return
+            dx, dy = x - drag["x"], y - drag["y"]
+            drag["x"], drag["y"] = x, y
+            if drag["button"] == glfw.MOUSE_BUTTON_LEFT:
+                state.azimuth -= 0.4 * dx
+                state.elevation = max(-89.0, min(89.0, state.elevation + 0.4 * dy))
+            else:
+                cam = state.camera(size)
+                scale = 2 * cloud.bounding_radius * state.zoom / size[1]
+                right, up = cam.world_to_eye[0, :3], cam.world_to_eye[1, :3]
+                state.pan += scale * (-dx * right + dy * up)
+            dirty[0] = True
+
+        def on_scroll(_w, _dx, dy):
+            state.zoom *= math.pow(0.9, dy)
+            dirty[0] = True
+
+        glfw.set_key_callback(window, on_key)
+        glfw.set_mouse_button_callback(window, on_button)
+        glfw.set_cursor_pos_callback(window, on_move)
+        glfw.set_scroll_callback(window, on_scroll)
+        texture = None
+        while not glfw.window_should_close(window):
+            if dirty[0]:
+                width, height = glfw.get_framebuffer_size(window)
+                result, ms = state.render((width, height))
+                glfw.make_context_current(window)  # rendering used the headless context
+                rgb = annotate(np.round(np.clip(result.color, 0, 1) * 255).astype(np.uint8), state, result, ms)
+                if texture is None or texture.size != (width, height):
+                    texture = ctx.texture((width, height), 3)
+                texture.write(np.ascontiguousarray(rgb).tobytes())
+                ctx.screen.use()
+                ctx.viewport = (0, 0, width, height)
+                texture.use(0)
+                triangle.render(moderngl.TRIANGLES, vertices=3)
+                glfw.swap_buffers(window)
+                dirty[0] = False
+                if screenshot is not None:
+                    save_window(ctx, width, height, screenshot)
+                    break
+            glfw.wait_events_timeout(0.1)
+    finally:
+        glfw.terminate()
+
+
+def save_window(ctx, width: int, height: int, path) -> None:
+    """What the window shows (its front buffer after the swap), as a PNG."""
+    import io
+
+    from PIL import Image
+
+    from .result import _atomic_write
+
+    pixels = np.frombuffer(ctx.screen.read(viewport=(0, 0, width, height), components=3), np.uint8)
+    buffer = io.BytesIO()
+    Image.fromarray(pixels.reshape(height, width, 3)[::-1]).save(buffer, format="PNG")
+    _atomic_write(path, buffer.getvalue())

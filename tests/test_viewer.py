@@ -1,0 +1,43 @@
+"""`surfel view`: key handling, and a real window under Xvfb."""
+
+import shutil
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from conftest import data_file, requires_gl
+from surfel.io import load
+from surfel.viewer import ViewState
+
+
+def test_keys_change_the_view_state():
+    state = ViewState(load(data_file("spot.obj")), "deferred", "phong")
+    assert state.key("3") and state.method == state.methods[2]
+    assert state.key("e") and state.ewa_filter is False
+    assert state.key("+") and state.lod_error == 1.0
+    assert state.key("+") and state.lod_error == 2.0
+    assert state.key("-") and state.key("-") and state.lod_error == 0.0
+    assert state.key("s") and state.shading != "phong"
+    state.azimuth = 40.0
+    assert state.key("r") and state.azimuth == 0.0
+    assert state.key("q") is False
+
+
+@requires_gl
+@pytest.mark.skipif(shutil.which("xvfb-run") is None, reason="Xvfb is not installed")
+def test_screenshot_from_a_real_window_under_xvfb(tmp_path):
+    pytest.importorskip("glfw")
+    from PIL import Image
+
+    out = tmp_path / "shot.png"
+    proc = subprocess.run(["xvfb-run", "-a", "-s", "-screen 0 800x600x24", sys.executable, "-m", "surfel.cli",
+                           "view", str(data_file("stanford-bunny.obj")), "--screenshot", str(out),
+                           "--size", "320x240"], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    image = np.asarray(Image.open(out).convert("L")).astype(float)
+    assert image.shape == (240, 320)
+    middle = image[60:180, 80:240]
+    assert (middle > 100).mean() > 0.2  # the lit bunny fills the middle of the window
+    assert (image[0:16] > 128).any()     # the status line is drawn across the top
