@@ -48,3 +48,12 @@ def test_turntable_gif_has_the_frames(tmp_path):
     out = tmp_path / "t.gif"
     turntable(surfel.load(data_file("stanford-bunny.obj")), out, frames=12, size=(64, 64), progress=False)
     assert Image.open(out).n_frames == 12
+
+
+def test_pyvista_adapter_is_optional():
+    pytest.importorskip("pyvista")
+    from surfel.adapters import from_pyvista, to_pyvista
+
+    cloud = surfel.load(data_file("spot.obj"))
+    back = from_pyvista(to_pyvista(cloud))
+    assert back.is_mesh and np.allclose(back.positions, cloud.positions)

@@ -186,7 +186,12 @@ def render(input, output, method, demo, depth, normals, stats, **kw):
 
 @main.command(context_settings=CONTEXT)
 def methods():
-    """List the rendering methods and their backends."""
+    """List the rendering methods and their backends.
+
+    \b
+    Example:
+      surfel methods
+    """
     from .methods import METHODS
 
     for m in METHODS.values():
