@@ -71,3 +71,29 @@ def test_shadows_darken():
     assert shadowed.stats["shadowed"] > 0
     assert (shadowed.color.sum(-1) < lit.color.sum(-1) - 0.05).any()
     assert (shadowed.color <= lit.color + 1e-6).all()
+
+
+def torus_cloud(n: int = 40_000, major: float = 1.0, minor: float = 0.4, seed: int = 0) -> PointCloud:
+    """Area-uniform samples of a torus about +Y with exact normals."""
+    rng = np.random.default_rng(seed)
+    u = rng.uniform(0, 2 * np.pi, 4 * n)
+    v = rng.uniform(0, 2 * np.pi, 4 * n)
+    keep = rng.uniform(0, major + minor, 4 * n) < major + minor * np.cos(v)  # area element
+    u, v = u[keep][:n], v[keep][:n]
+    normals = np.stack([np.cos(v) * np.cos(u), np.sin(v), np.cos(v) * np.sin(u)], axis=1)
+    ring = np.stack([major * np.cos(u), np.zeros_like(u), major * np.sin(u)], axis=1)
+    return PointCloud(ring + minor * normals, normals=normals)
+
+
+def test_torus_depth_lies_on_the_torus():
+    cloud = torus_cloud()
+    cam = frame(cloud.center, cloud.bounding_radius, size=(256, 256), elevation=35.0)
+    result = render_mls_cpu(cloud, cam, RenderOptions(shading="lambert"))
+    inside = ndimage.binary_erosion(result.alpha > 0.5, iterations=2)
+    _, rays = cam.rays()
+    eye = rays[inside] * (result.depth[inside] / -rays[inside][:, 2])[:, None]  # eye-space hit points
+    world = (eye - cam.world_to_eye[:3, 3]) @ cam.world_to_eye[:3, :3]
+    ring = np.hypot(world[:, 0], world[:, 2]) - 1.0
+    distance = np.abs(np.hypot(ring, world[:, 1]) - 0.4)
+    assert np.median(distance / result.depth[inside]) <= 1e-3
+    assert np.isfinite(result.depth[inside]).all()  # no holes inside the silhouette
