@@ -47,3 +47,13 @@ def test_object_space_against_the_mesh(bunny, normalization):
     else:  # the paper's approximation: darker and mottled, but a surface
         assert metrics["psnr"] >= 18
     assert result.stats["vertices"] == 4 * len(bunny)
+
+
+@requires_gl
+def test_level_of_detail_applies_to_methods_without_the_shader_test(bunny):
+    """object-space selects the sequential point tree's cut on the CPU and still covers."""
+    cam = frame(bunny.center, bunny.bounding_radius, size=(256, 256), zoom=4)
+    ref = render(bunny, cam, "mesh", shading="lambert")
+    result = render(bunny.with_(faces=None), cam, "object-space", shading="lambert", lod_error=1.0)
+    assert result.stats["splats"] < 0.3 * len(bunny)
+    assert compare_results(ref, result)["holes"] <= 0.001

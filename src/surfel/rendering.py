@@ -80,7 +80,7 @@ def render(cloud: PointCloud, camera: Camera | None = None, method: str = "defer
         from .lod import as_sequential, lod_subset
 
         cloud = as_sequential(cloud)
-        if backend != "gl":  # no vertex shader to run the per-point test: select on the CPU
+        if backend != "gl" or not m.shader_lod:  # no vertex stage runs the test: select on the CPU
             cloud = lod_subset(cloud, camera, options.lod_error)
     # clip planes around the splats themselves, not only their centres
     reach = cloud.max_splat_radius * options.radius_scale

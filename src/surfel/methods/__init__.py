@@ -1,6 +1,6 @@
 """Every rendering method surfel has, by name and backend: the index to find a paper's code.
 
-Each entry maps a backend to "module:function"; the function takes
+Each entry maps a backend to "module:function" (plus what the method needs); the function takes
 (cloud: PointCloud, camera: Camera, options: RenderOptions) and returns a RenderResult
 whose `stats` hold at least {"splats": ...}. Modules are imported on first use so that
 `surfel --help` stays fast and the CPU paths work without OpenGL.
@@ -21,6 +21,7 @@ class Method:
     backends: dict[str, str]
     needs_mesh: bool = False
     needs_radii: bool = True
+    shader_lod: bool = False  # its vertex stage runs the sequential point tree test (gl/lod.glsl)
 
     def function(self, backend: str):
         if backend not in self.backends:
@@ -35,13 +36,13 @@ METHODS: dict[str, Method] = {
         Method("mesh", "the input mesh's triangles, supersampled: the ground truth",
                {"gl": "mesh:render_mesh"}, needs_mesh=True, needs_radii=False),
         Method("points", "naive: screen-aligned disks of the projected radius, z-buffer, flat shading (survey Fig. 6 left)",
-               {"gl": "points:render_points"}),
+               {"gl": "points:render_points"}, shader_lod=True),
         Method("gaussian", "Botsch & Kobbelt 2003: three-pass Gaussian splatting, per-splat shading (Fig. 6 middle)",
-               {"gl": "splatting:render_gaussian"}),
+               {"gl": "splatting:render_gaussian"}, shader_lod=True),
         Method("deferred", "Botsch et al. 2005: deferred shading with the EWA filter approximation",
-               {"gl": "splatting:render_deferred"}),
+               {"gl": "splatting:render_deferred"}, shader_lod=True),
         Method("phong", "Botsch et al. 2004: Phong splatting, elliptical splats with linear normal fields",
-               {"gl": "splatting:render_phong"}),
+               {"gl": "splatting:render_phong"}, shader_lod=True),
         Method("object-space", "Ren, Pfister & Zwicker 2002: object-space EWA splatting with textured quads",
                {"gl": "object_space:render_object_space"}),
         Method("ewa", "Zwicker et al. 2001: software EWA surface splatting, the full resampling filter",
