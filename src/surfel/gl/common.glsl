@@ -36,3 +36,9 @@ float window_depth(vec3 eye) {
     vec4 clip = u_projection * vec4(eye, 1.0);
     return 0.5 * clip.z / clip.w + 0.5;
 }
+
+// Whether the eye-space normal n at eye-space point p faces away from the camera (every
+// method reports and shades the side that faces it).
+bool faces_away(vec3 p, vec3 n) {
+    return dot(n, u_ortho > 0.0 ? vec3(0.0, 0.0, 1.0) : -p) < 0.0;
+}

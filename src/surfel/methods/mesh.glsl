@@ -27,8 +27,7 @@ layout(location = 1) out vec4 out_normal;
 layout(location = 2) out vec4 out_depth;
 void main() {
     vec3 n = normalize(v_normal);
-    vec3 to_eye = u_ortho > 0.0 ? vec3(0.0, 0.0, 1.0) : -v_eye;
-    if (dot(n, to_eye) < 0.0) n = -n;  // report the side facing the camera
+    if (faces_away(v_eye, n)) n = -n;  // report the side facing the camera
     out_shaded = vec4(shade(u_shading, v_color, n, -v_eye.z, u_depth_range.x, u_depth_range.y), 1.0);
     out_normal = vec4(n, 0.0);
     out_depth = vec4(-v_eye.z, 0.0, 0.0, 0.0);

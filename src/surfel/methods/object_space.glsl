@@ -52,8 +52,7 @@ void main() {
     vec3 n = normalize(mat3(u_view) * in_normal);
     vec3 au = mat3(u_view) * in_axis_u * u_radius_scale;
     vec3 av = mat3(u_view) * in_axis_v * u_radius_scale;
-    vec3 to_eye = u_ortho > 0.0 ? vec3(0.0, 0.0, 1.0) : -c;
-    bool back = dot(n, to_eye) < 0.0;
+    bool back = faces_away(c, n);
     if (back) n = -n;
     float radius = max(length(au), length(av));
     bool before_near = u_ortho == 0.0 && -c.z < u_depth_range.x;  // the Jacobian degenerates

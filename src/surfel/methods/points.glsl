@@ -14,8 +14,7 @@ void main() {
     vec4 eye = u_view * vec4(in_center, 1.0);
     if (!lod_visible(eye.xyz, in_lod.x, in_lod.y, in_lod.z)) { gl_Position = LOD_CULLED; return; }
     vec3 n = normalize(mat3(u_view) * in_normal);
-    vec3 to_eye = u_ortho > 0.0 ? vec3(0.0, 0.0, 1.0) : -eye.xyz;
-    if (dot(n, to_eye) < 0.0) n = -n;
+    if (faces_away(eye.xyz, n)) n = -n;
     float radius = u_radius_scale * max(length(in_axis_u), length(in_axis_v));
     // eq. 6: size_win = r * n / z_eye * h / (t - b), i.e. r * fy / z_eye pixels.
     float pixels = u_ortho > 0.0 ? radius * u_ortho : radius * u_intrinsics.y / max(-eye.z, 1e-9);

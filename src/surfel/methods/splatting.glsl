@@ -48,8 +48,7 @@ void main() {
     vec3 n = normalize(mat3(u_view) * in_normal);
     vec3 au = mat3(u_view) * in_axis_u * u_radius_scale;
     vec3 av = mat3(u_view) * in_axis_v * u_radius_scale;
-    vec3 to_eye = u_ortho > 0.0 ? vec3(0.0, 0.0, 1.0) : -c;
-    bool back = dot(n, to_eye) < 0.0;
+    bool back = faces_away(c, n);
     if (back) n = -n;
     // the normal field turns with the normal when the splat is seen from its back
     v_field_u = (back ? -1.0 : 1.0) * in_field.x * normalize(au + 1e-30);
