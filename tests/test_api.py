@@ -32,7 +32,7 @@ def test_trimesh_round_trip_keeps_the_mesh():
 
 
 def test_open3d_adapter_is_optional():
-    o3d = pytest.importorskip("open3d")
+    pytest.importorskip("open3d")
     cloud = surfel.load(data_file("spot.obj"))
     from surfel.adapters import from_open3d, to_open3d
 

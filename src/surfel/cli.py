@@ -248,9 +248,9 @@ def compare(mesh, method, output, as_json, **kw):
     if not cloud.is_mesh:
         raise SurfelError(f"{mesh}: compare needs a mesh (faces) as ground truth")
     camera = make_camera(cloud, kw)
+    kw = {**kw, "background": "0,0,0"}  # the metrics are defined over black
     options = make_options(kw)
-    options.background = (0.0, 0.0, 0.0)  # the metrics are defined over black
-    reference = do_render(cloud, camera, "mesh", options=make_options({**kw, "background": "0,0,0", "supersample": None}))
+    reference = do_render(cloud, camera, "mesh", options=make_options({**kw, "supersample": None}))
     result = do_render(cloud.with_(faces=None), camera, method, backend=kw["backend"], options=options)
     metrics = {"method": method, "backend": result.stats["backend"], **compare_results(reference, result),
                "ms": result.stats["ms"], "splats": result.stats["splats"]}
