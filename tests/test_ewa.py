@@ -11,7 +11,7 @@ import pytest
 from surfel.camera import frame
 from surfel.cloud import PointCloud
 from surfel.methods import ewa_kernels as k
-from surfel.methods.ewa import EwaParams, render_ewa_cpu, splat_axes
+from surfel.methods.ewa import EwaParams, render_ewa_cpu, splat_axes, splat_clip_lines, splat_fields
 from surfel.options import RenderOptions
 
 BUNNY = Path(__file__).resolve().parents[2] / "shared" / "data" / "stanford-bunny.obj"
@@ -32,7 +32,7 @@ def _setup(cloud, camera, sigma=0.5, lowpass=1.0):
     intr = np.array([camera.fx, camera.fy, camera.cx, camera.cy])
     ortho = 0.0 if camera.ortho_height is None else camera.height / camera.ortho_height
     return k.setup_splats(cloud.positions, cloud.local_origin, camera.world_to_eye, cloud.normals,
-                          np.ones((1, 3), np.float32), splat_axes(cloud), intr, ortho, camera.near,
+                          np.ones((1, 3), np.float32), splat_axes(cloud), splat_clip_lines(cloud), splat_fields(cloud), intr, ortho, camera.near,
                           np.float32(1), np.float32(sigma ** 2), np.float32(lowpass ** 2), np.float32(0.04),
                           np.float32(9.21), np.float32(1), np.float32(4), False, camera.width, camera.height)
 
@@ -77,8 +77,9 @@ def test_plane_is_covered_without_holes(ortho):
 
 
 @pytest.mark.skipif(not BUNNY.exists(), reason="shared test data missing")
+@pytest.mark.parametrize("model", ["stanford-bunny.obj", "spot.obj", "fandisk.obj"])
 @pytest.mark.parametrize("view", ["front", "right"])
-def test_bunny_against_mesh(view):
+def test_against_mesh(model, view):
     from surfel.gl.context import gl_available
     if not gl_available():
         pytest.skip("the mesh reference needs OpenGL")
@@ -86,10 +87,12 @@ def test_bunny_against_mesh(view):
     from surfel.metrics import compare_results
     from surfel.rendering import complete, default_camera, render
 
-    cloud = load(str(BUNNY))
+    if not (BUNNY.parent / model).exists():
+        pytest.skip(f"{model} not available")
+    cloud = load(str(BUNNY.parent / model))
     cam = default_camera(cloud, (512, 512), view=view)
     ref = render(cloud, cam, "mesh", shading="lambert")
-    res = render_ewa_cpu(complete(cloud)[0], cam, RenderOptions(shading="lambert"))
+    res = render_ewa_cpu(complete(cloud, normal_field=True)[0], cam, RenderOptions(shading="lambert"))
     m = compare_results(ref, res)
     assert m["psnr"] >= 27 and m["holes"] <= 0.001
     both = (ref.alpha > 0.99) & (res.alpha > 0.99)

@@ -34,6 +34,20 @@ def test_gl_matches_cpu_on_the_bunny(bunny, size):
     assert gl.stats["splats"] == len(bunny) and gl.stats["fragments"] > 0
 
 
+def test_clip_lines_and_normal_fields_match_cpu():
+    """fandisk: splats cut at its creases, shaded with Phong normal fields, on both backends."""
+    from conftest import data_file
+    from surfel.io import load
+    from surfel.rendering import complete
+
+    cloud = complete(load(data_file("fandisk.obj")), normal_field=True)[0]
+    assert (cloud.extras["clip_lines"][:, 0, 2] < 1).mean() > 0.1
+    for view in ("front", "right"):
+        cam = frame(cloud.center, cloud.bounding_radius, view=view, size=(256, 256))
+        cpu, gl = _both(cloud, cam)
+        assert compare_results(cpu, gl)["psnr"] >= MIN_PSNR
+
+
 def test_orthographic_matches_cpu(bunny):
     cam = frame(bunny.center, bunny.bounding_radius, view="right", size=(256, 256),
                 ortho_height=2.2 * bunny.bounding_radius)

@@ -301,3 +301,75 @@ def test_normals_passed_as_k_are_refused():
     p = sphere(100)
     with pytest.raises(TypeError, match="k must be a positive integer"):
         estimate_radii(p, p)  # normals= is a keyword: the second argument is k
+
+
+# --- sharp features ------------------------------------------------------------------------------
+
+
+def edge_wedge(h: float = 0.05):
+    """Two faces meeting at a 90 degree convex edge along y (the solid is x <= 0, z <= 0): face A
+    (z = 0, x <= 0, normal +z) and face B (x = 0, z <= 0, normal +x), sampled on a jittered grid
+    of spacing h; the edge points carry the averaged normal, as a mesh's vertices do."""
+    rng = np.random.default_rng(3)
+    s = np.arange(0, 1 + 1e-9, h)
+    a, y = np.meshgrid(-s, s, indexing="ij")
+
+    def jitter(shape):
+        return rng.uniform(-0.2 * h, 0.2 * h, shape)
+
+    face_a = np.stack([a[1:].ravel() + jitter(a[1:].size), y[1:].ravel() + jitter(a[1:].size), np.zeros(a[1:].size)], 1)
+    face_b = np.stack([np.zeros(a[1:].size), y[1:].ravel() + jitter(a[1:].size), a[1:].ravel() + jitter(a[1:].size)], 1)
+    edge = np.stack([np.zeros(len(s)), s, np.zeros(len(s))], 1)
+    normals = np.concatenate([np.tile([0.0, 0, 1], (len(face_a), 1)), np.tile([1.0, 0, 0], (len(face_b), 1)),
+                              np.tile(unit(np.array([1.0, 0, 1])), (len(edge), 1))])
+    labels = np.repeat([0, 1, 2], [len(face_a), len(face_b), len(edge)])
+    return PointCloud(np.concatenate([face_a, face_b, edge]), normals=normals), labels
+
+
+def covered_by(cloud: PointCloud, members: np.ndarray, samples: np.ndarray) -> np.ndarray:
+    """Whether each sample point (lying in the members' common plane) is inside one of their
+    clipped splats: within the ellipse and on the kept side of both clip lines."""
+    c, axes, lines = cloud.positions[members], cloud.axes[members].astype(np.float64), cloud.extras["clip_lines"][members]
+    d = samples[:, None, :] - c[None]
+    u = np.einsum("skj,kj->sk", d, axes[:, 0]) / np.einsum("kj,kj->k", axes[:, 0], axes[:, 0])
+    v = np.einsum("skj,kj->sk", d, axes[:, 1]) / np.einsum("kj,kj->k", axes[:, 1], axes[:, 1])
+    inside = u * u + v * v <= 1
+    for line in range(lines.shape[1]):
+        inside &= lines[None, :, line, 0] * u + lines[None, :, line, 1] * v <= lines[None, :, line, 2]
+    return inside.any(axis=1)
+
+
+def test_sharp_edge_splats_end_at_the_edge():
+    """Splats at a crease are cut at the other face's plane and still cover their own face up
+    to the edge; the edge's own points (normals averaged over both faces) are dropped."""
+    h = 0.05
+    cloud, labels = edge_wedge(h)
+    prepared, report = prepare(cloud)
+    lines = prepared.extras["clip_lines"]
+    assert "sharp_features" in report
+    dropped = lines[:, 0, 2] < -1
+    assert dropped[labels == 2].mean() > 0.8 and not dropped[labels < 2].any()
+    rng = np.random.default_rng(4)
+    # face A: nothing sticks out past x = 0, and the strip next to the edge is covered
+    face_a = np.flatnonzero(labels == 0)
+    beyond = np.stack([rng.uniform(0.002, 2 * h, 4000), rng.uniform(0.1, 0.9, 4000), np.zeros(4000)], 1)
+    assert not covered_by(prepared, face_a, beyond).any()
+    strip = np.stack([rng.uniform(-2 * h, 0, 4000), rng.uniform(0.1, 0.9, 4000), np.zeros(4000)], 1)
+    assert covered_by(prepared, face_a, strip).all()
+    # without sharp features the edge's splats are whole disks, and they stick out of the solid
+    plain, _ = prepare(cloud, sharp_features=False)
+    assert "clip_lines" not in plain.extras
+    edge = np.flatnonzero(labels == 2)
+    uv = rng.uniform(-0.7, 0.7, (500, 2))
+    disk = (plain.positions[edge][:, None] + uv[None, :, :1] * plain.axes[edge][:, None, 0]
+            + uv[None, :, 1:] * plain.axes[edge][:, None, 1])
+    assert ((disk[..., 0] > 0.01 * h) | (disk[..., 2] > 0.01 * h)).mean() > 0.5
+
+
+def test_smooth_surfaces_get_no_clip_lines():
+    """A coarsely sampled sphere has neighbours with very different normals, but no faces:
+    its splats stay whole disks."""
+    p = sphere(300, seed=5)
+    prepared, report = prepare(PointCloud(p, normals=p))
+    lines = prepared.extras.get("clip_lines")
+    assert lines is None or (lines[:, :, 2] >= 1).all()

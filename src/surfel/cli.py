@@ -72,6 +72,8 @@ def render_options(f):
         click.option("--ewa-filter/--no-ewa-filter", default=None, help="Screen-space EWA filter approximation (default on for deferred)."),
         click.option("--lowpass-radius", type=float, default=1.0, show_default=True, help="Screen-space low-pass radius in pixels."),
         click.option("--lod-error", type=float, default=None, metavar="PX", help="Level of detail: allowed projected error in pixels."),
+        click.option("--point-budget", type=click.IntRange(1), default=None, metavar="N",
+                     help="Most points drawn from a .lod hierarchy (its LOD error is raised to fit)."),
         click.option("--dump-passes", type=click.Path(file_okay=False), default=None, help="Write the intermediate passes here as images."),
         click.option("--per-pixel-normalization/--per-surfel-normalization", default=True, show_default=True,
                      help="object-space: divide by the accumulated weight per pixel (Botsch & Kobbelt 2003), "
@@ -95,6 +97,7 @@ def make_options(kw):
                          radius_scale=kw["radius_scale"], depth_offset=kw["depth_offset"],
                          backface_culling=kw["backface_culling"], ewa_filter=kw["ewa_filter"],
                          lowpass_radius=kw["lowpass_radius"], lod_error=kw["lod_error"],
+                         point_budget=kw.get("point_budget"),
                          dump_passes=kw["dump_passes"], params=params)
 
 
@@ -121,6 +124,13 @@ def load_input(path):
     from .io import load
 
     return load(path)
+
+
+def open_input(path):
+    """A lazy LOD source (a .lod directory, a COPC file) if PATH is one, else the loaded cloud."""
+    from .lod.source import open_source
+
+    return open_source(path) or load_input(path)
 
 
 class SurfelGroup(click.Group):
@@ -152,7 +162,7 @@ def main():
 
 
 @main.command(context_settings=CONTEXT)
-@click.argument("input", required=False, type=click.Path(dir_okay=False))
+@click.argument("input", required=False, type=click.Path())
 @click.option("-o", "--output", required=True, type=click.Path(dir_okay=False), help="PNG to write.")
 @click.option("--method", "-m", default="deferred", show_default=True, help="Rendering method (see `surfel methods`).")
 @click.option("--demo", is_flag=True, help="Render the bundled demo model (Spot, CC0) instead of INPUT.")
@@ -162,11 +172,16 @@ def main():
 @camera_options
 @render_options
 def render(input, output, method, demo, depth, normals, stats, **kw):
-    """Render INPUT (PLY, OBJ, LAS/LAZ, XYZ/PTS/TXT, NPZ) to a PNG.
+    """Render INPUT (PLY, OBJ, LAS/LAZ, XYZ/PTS/TXT, NPZ, a .lod hierarchy, COPC) to a PNG.
+
+    A .lod directory (`surfel lod build -o NAME.lod`) or a COPC file (NAME.copc.laz) is read
+    lazily: only the nodes the view selects at --lod-error (default 1 pixel) are loaded, at
+    most --point-budget.
 
     \b
     Example:
       surfel render bunny.obj -o bunny.png --method deferred --size 512x512
+      surfel render big.lod -o far.png --lod-error 1 --point-budget 5000000
     """
     from .rendering import render as do_render
 
@@ -177,7 +192,7 @@ def render(input, output, method, demo, depth, normals, stats, **kw):
 
         cloud = demo_cloud()
     else:
-        cloud = load_input(input)
+        cloud = open_input(input)
     result = do_render(cloud, make_camera(cloud, kw), method, backend=kw["backend"], options=make_options(kw))
     result.save(output, depth=depth, normals=normals, stats=stats)
     click.echo(f"{output}: {result.width}x{result.height} {method}@{result.stats['backend']} "
@@ -199,7 +214,7 @@ def methods():
 
 
 @main.command(context_settings=CONTEXT)
-@click.argument("input", type=click.Path(dir_okay=False))
+@click.argument("input", type=click.Path())
 @click.option("--json", "as_json", is_flag=True, help="Print JSON.")
 def info(input, as_json):
     """Counts, bounds, attributes, what would be estimated, and the OpenGL renderer.
@@ -209,16 +224,25 @@ def info(input, as_json):
       surfel info scan.laz
     """
     from .gl.context import gl_available, renderer_string
+    from .lod.source import open_source
 
-    cloud = load_input(input)
-    lo, hi = cloud.bounds
-    estimate = [name for name in ("normals", "radii", "axes") if getattr(cloud, name) is None]
-    report = {
-        "file": str(input), "points": len(cloud), "faces": 0 if cloud.faces is None else len(cloud.faces),
-        "bounds_min": lo.tolist(), "bounds_max": hi.tolist(), "local_origin": cloud.local_origin.tolist(),
-        "attributes": cloud.attributes(), "would_estimate": estimate, "geospatial": cloud.geospatial,
-        "opengl": renderer_string() if gl_available() else None,
-    }
+    source = open_source(input)
+    if source is not None:  # described from its metadata, without loading its points
+        lo, hi = source.bounds
+        report = {"file": str(input), "kind": type(source).__name__, "points": source.total_points,
+                  "bounds_min": lo.tolist(), "bounds_max": hi.tolist(), "geospatial": source.geospatial,
+                  **(source.describe() if hasattr(source, "describe") else {}),
+                  "opengl": renderer_string() if gl_available() else None}
+    else:
+        cloud = load_input(input)
+        lo, hi = cloud.bounds
+        estimate = [name for name in ("normals", "radii", "axes") if getattr(cloud, name) is None]
+        report = {
+            "file": str(input), "points": len(cloud), "faces": 0 if cloud.faces is None else len(cloud.faces),
+            "bounds_min": lo.tolist(), "bounds_max": hi.tolist(), "local_origin": cloud.local_origin.tolist(),
+            "attributes": cloud.attributes(), "would_estimate": estimate, "geospatial": cloud.geospatial,
+            "opengl": renderer_string() if gl_available() else None,
+        }
     if as_json:
         click.echo(json.dumps(report, indent=2))
         return
@@ -286,7 +310,9 @@ def _side_by_side(reference, result, path):
 @click.option("--viewpoint", default=None, help="Sensor position X,Y,Z to orient normals towards.")
 @click.option("--elliptical", is_flag=True, help="Fit elliptical splats to the neighbourhood (for phong).")
 @click.option("--normal-field", is_flag=True, help="Fit Phong splatting's linear normal fields.")
-def prepare(input, output, neighbors, viewpoint, elliptical, normal_field):
+@click.option("--sharp-features/--no-sharp-features", default=True, show_default=True,
+              help="Cut splats at creases with clip lines (stored as clip_lines).")
+def prepare(input, output, neighbors, viewpoint, elliptical, normal_field, sharp_features):
     """Estimate normals, splat radii and tangent frames; write a PLY.
 
     \b
@@ -300,7 +326,7 @@ def prepare(input, output, neighbors, viewpoint, elliptical, normal_field):
     view = _floats(viewpoint, 3, "--viewpoint")
     prepared, report = do_prepare(cloud.with_(radii=None, axes=None) if elliptical else cloud, k_normals=neighbors,
                                   viewpoint=None if view is None else np.array(view),
-                                  elliptical=elliptical, normal_field=normal_field)
+                                  elliptical=elliptical, normal_field=normal_field, sharp_features=sharp_features)
     write_ply(prepared, output)
     click.echo(f"{output}: {len(prepared)} points; " + ", ".join(f"{k}: {v}" for k, v in report.items()), err=True)
 
@@ -368,17 +394,52 @@ def lod():
 
 
 @lod.command("build", context_settings=CONTEXT)
-@click.argument("input", type=click.Path(dir_okay=False))
-@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False), help="Hierarchy to write (.lod.npz).")
+@click.argument("input", type=click.Path())
+@click.option("-o", "--output", required=True, type=click.Path(),
+              help="Hierarchy to write: NAME.lod.npz (one file, in memory), NAME.lod (a directory, out of core) "
+                   "or NAME.copc.laz (COPC: opens in PDAL, QGIS, Potree; normals and radii as extra bytes).")
 @click.option("--stats", type=click.Path(dir_okay=False), default=None, help="Write build statistics (.json).")
-def lod_build(input, output, stats):
+@click.option("--memory", default="4GB", show_default=True,
+              help="Out of core: peak memory budget (e.g. 512MB, 4GB); bounds the partition size.")
+@click.option("--resume", is_flag=True, help="Out of core: continue an interrupted build (NAME.lod.partial).")
+def lod_build(input, output, stats, memory, resume):
     """Build the point-tree hierarchy of INPUT; render the result with --lod-error PX.
+
+    INPUT may be a directory of tiles, read as one cloud. With -o NAME.lod (or an existing
+    directory) the build is out of core: the input is streamed and partitioned, peak memory
+    stays within --memory whatever its size, and renders read NAME.lod lazily.
 
     \b
     Example:
       surfel lod build scan.laz -o scan.lod.npz --stats build.json
       surfel render scan.lod.npz -o far.png --lod-error 1 --zoom 4
+      surfel lod build huge.ply -o huge.lod --memory 4GB
+      surfel render huge.lod -o far.png --lod-error 1 --point-budget 5000000
+      surfel lod build scan.laz -o scan.copc.laz
     """
+    import os
+
+    if output.lower().endswith(".copc.laz"):
+        if resume:
+            raise click.UsageError("--resume applies to out-of-core builds (-o NAME.lod)")
+        from .lod.copc_write import build_command as build_copc
+
+        result = build_copc(input, output, stats)
+        click.echo(f"{output}: {result['points']} points, {result['nodes']} COPC nodes (depth {result['depth']}), "
+                   f"{result['bytes'] / 1e6:.1f} MB in {result['ms']:.0f} ms", err=True)
+        return
+
+    if output.rstrip("/").endswith(".lod") or os.path.isdir(output):
+        from .lod.outofcore import build_outofcore, parse_size
+
+        result = build_outofcore(input, output.rstrip("/"), memory=parse_size(memory), resume=resume,
+                                 stats_path=stats)
+        click.echo(f"{output}: {result['points']} points, {result['nodes']} nodes in {result['partitions']} "
+                   f"partitions, {result['ms'] / 1000:.0f} s ({result['points_per_s'] / 1e6:.2f} M points/s)",
+                   err=True)
+        return
+    if resume:
+        raise click.UsageError("--resume applies to out-of-core builds (-o NAME.lod)")
     from .lod import build_command
 
     result = build_command(input, output, stats)
@@ -422,6 +483,73 @@ def bench(input_path, points, size, methods, frames, lod_error, zoom, as_json):
         lod = f" lod {row['lod']}px" if "lod" in row else ""
         click.echo(f"{row['method'] + '@' + row['backend'] + lod:24s} {row['ms']:9.1f} ms  "
                    f"{row['msplats_per_s']:7.2f} Msplats/s  ({row['splats']} splats)")
+
+
+@main.command(context_settings=CONTEXT)
+@click.argument("jobs", required=False, type=click.Path())
+@click.option("--turntable", type=click.IntRange(1, 3600), default=None, metavar="N",
+              help="Render N orbit frames of the input JOBS (or --demo): the cameras of `surfel turntable`.")
+@click.option("-o", "--output", default=None, help="With --turntable: PNG name, {frame} numbered (e.g. f-{frame:03d}.png).")
+@click.option("--method", "-m", default=None, help="Rendering method of every job that names none (default deferred).")
+@click.option("--demo", is_flag=True, help="With --turntable: the bundled demo model.")
+@click.option("--depth", default=None, help="With --turntable: depth .npy name, {frame} numbered.")
+@click.option("--normals", default=None, help="With --turntable: normals .npy name, {frame} numbered.")
+@click.option("--stats", default=None, help="With --turntable: stats .json name, {frame} numbered.")
+@click.option("--scheduler", default=None, metavar="ADDRESS",
+              help="A running Dask scheduler (tcp://host:port, or its scheduler file) instead of a local cluster.")
+@click.option("--workers", type=click.IntRange(1, 256), default=None,
+              help="Worker processes of the local cluster [default: one per core, at most one per job].")
+@click.option("--retries", type=click.IntRange(0, 10), default=2, show_default=True, help="Retries of a job that crashes.")
+@click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
+@camera_options
+@render_options
+def batch(jobs, turntable, output, method, demo, depth, normals, stats, scheduler, workers, retries, as_json, **kw):
+    """Render the jobs of JOBS (a JSON or YAML list of `surfel render` options) on Dask distributed.
+
+    Each job is a mapping of `surfel render`'s options (input, output, method, size, azimuth, depth,
+    ...) and gives exactly that command's files; relative paths are taken from the current
+    directory. Workers read the inputs at the same absolute paths (remote workers need a shared
+    file system); this command writes the outputs. Render options on this command line apply to
+    every job that does not set them (with --turntable, as in `surfel render`: --size defaults to
+    1024x1024, --elevation to 15). Exit status 1 if a job failed (the others are written), 2 if
+    a job is invalid (none is run). Needs the distributed extra: pip install 'surfel[distributed]'.
+
+    \b
+    Examples:
+      surfel batch renders.yaml --workers 2
+      surfel batch spot.obj --turntable 24 -o frames/spot-{frame:02d}.png --size 512x512
+      surfel batch renders.json --scheduler tcp://10.0.0.5:8786 --json
+    """
+    from click.core import ParameterSource
+
+    from .batch import TURNTABLE_ELEVATION, make_jobs, read_jobs_file, run_batch, turntable_jobs
+
+    ctx = click.get_current_context()
+    defaults = {k: v for k, v in kw.items() if ctx.get_parameter_source(k) is not ParameterSource.DEFAULT}
+    if method is not None:
+        defaults["method"] = method
+    if turntable is None:
+        if demo or output or depth or normals or stats:
+            raise click.UsageError("--demo, -o, --depth, --normals and --stats go with --turntable; jobs name their outputs")
+        if jobs is None:
+            raise click.UsageError("give a JOBS file, or an input with --turntable N")
+        specs, where = read_jobs_file(jobs), jobs
+    else:
+        if demo == (jobs is not None):
+            raise click.UsageError("with --turntable give an input file or --demo (not both)")
+        if output is None:
+            raise click.UsageError("--turntable needs -o/--output")
+        fixed = sorted({"view", "azimuth", "eye", "opencv"} & set(defaults))
+        if fixed:
+            raise click.UsageError(f"--turntable sets the camera; drop --{', --'.join(fixed)}")
+        specs = turntable_jobs(turntable, output, input=jobs, demo=demo, depth=depth, normals=normals, stats=stats,
+                               elevation=defaults.pop("elevation", TURNTABLE_ELEVATION))
+        where = "turntable"
+    summary = run_batch(make_jobs(specs, defaults=defaults, where=where), scheduler=scheduler, workers=workers,
+                        retries=retries)
+    click.echo(json.dumps(summary.as_dict(), indent=2) if as_json else summary.text())
+    if summary.failed:
+        ctx.exit(1)
 
 
 if __name__ == "__main__":  # pragma: no cover

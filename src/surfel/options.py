@@ -15,7 +15,9 @@ class RenderOptions:
     backface_culling: drop splats whose normal faces away from the camera
     ewa_filter     : Botsch et al. 2005 screen-space filter approximation (splat methods)
     lowpass_radius : radius in pixels of the screen-space low-pass filter
-    lod_error      : sequential point tree error threshold in pixels (None: full detail)
+    lod_error      : sequential point tree error threshold in pixels (None: full detail; for a
+                     lazy LodSource, which cannot be drawn whole, None means 1 pixel)
+    point_budget   : most nodes a LodSource's cut may hold (its eps is raised to fit), or None
     dump_passes    : folder to write the intermediate passes to as images
     params         : method-specific settings, documented by each method
     """
@@ -29,5 +31,6 @@ class RenderOptions:
     ewa_filter: bool | None = None
     lowpass_radius: float = 1.0
     lod_error: float | None = None
+    point_budget: int | None = None
     dump_passes: str | None = None
     params: dict = field(default_factory=dict)

@@ -55,6 +55,28 @@ Normal fields (`fit_normal_field`, Botsch et al. 2004; survey eq. 8):
     tangent of the normal's tilt at the rim). Fitted by least squares over the neighbours'
     normals, each slope a 1-D problem with a closed form.
 
+Sharp features (`prepare(sharp_features=True)`, the default when radii are estimated):
+    circular or elliptical splats are smooth; at the crease of a piecewise smooth shape (a CAD
+    part, a building) every splat near the edge sticks out past it, and the silhouette grows a
+    scalloped rim. Following the clipped splats of Zwicker, Pauly, Knoll & Gross 2002
+    ("Pointshop 3D") and Pauly, Keiser, Kobbelt & Gross 2003 ("Shape modeling with
+    point-sampled geometry"), each splat carries up to CLIP_LINES clip lines a u + b v <= c in
+    its local coordinates (u, v) (1 on the rim), extras["clip_lines"] (N, CLIP_LINES, 3):
+      * flat points: those whose neighbours with normals within SHARP_ANGLE lie within
+        FLAT_SIN2 of their tangent plane (faces; not coarsely sampled curved surfaces, whose
+        neighbours' planes would facet them);
+      * two flat neighbours p, q with normals more than SHARP_ANGLE apart lie across a crease:
+        the crease is the line where their tangent planes meet. p's Voronoi cell ends there
+        instead of at the bisector (so its radius reaches the edge and no further), and its
+        clip lines are the nearest such lines (in two directions). p keeps its centre's side
+        of q's plane, or, if its centre lies in that plane, the side away from q;
+      * crease points, which lie in the planes of two flat neighbours more than SHARP_ANGLE
+        apart (on the edge itself, their normals averaged over both faces), stick out of one
+        face or the other whatever their orientation: they are dropped (clip lines that keep
+        nothing) and ignored by every cell, so the faces' cells reach the crease without them.
+    Every splat method evaluates the lines per fragment (the GPU methods in the splat's plane,
+    EWA as pixel half-planes through its Jacobian). Smooth surfaces get no lines.
+
 Memory stays bounded: the neighbour lists (N x k indices) and the propagation graph are the
 only O(N k) arrays; all per-neighbour work runs in numba kernels (parallel over points) or in
 chunks of CHUNK points. Every function takes and returns arrays in the input's order.
@@ -87,6 +109,14 @@ RADIUS_MARGIN = 1.2            # covering radius x this: curvature, normal noise
 ISOLATED_FACTOR = 2.0          # a radius at most this x the median of its neighbours' radii
 ELLIPSE_MAX_ASPECT = 4.0       # no needles: major / minor semi-axis at most this
 FIELD_NEIGHBOURS = 16          # neighbours whose normals fit a splat's normal field
+SHARP_ANGLE = 45.0             # degrees between neighbouring normals that make a sharp feature:
+                               # a 90 degree crease tilts its averaged vertex normals 45 degrees
+SHEET_COS = -0.5               # neighbours' normals more than 120 degrees apart: two sides of a sheet
+CLIP_LINES = 2                 # clip lines per splat: an edge, or an edge and a corner
+INACTIVE_CLIP = (0.0, 0.0, 1.0)  # 0 u + 0 v <= 1: cuts nothing
+ON_PLANE_SIN2 = math.sin(math.radians(3.0)) ** 2  # a neighbour's plane through the point
+FLAT_SIN2 = math.sin(math.radians(10.0)) ** 2     # a face: its neighbours this close to its plane
+PARALLEL_COS = math.cos(math.radians(30.0))  # clip lines closer in direction are one edge
 _CAP_SIDES = 8                 # a cell starts as a regular octagon inscribed in the circle through
                                # the k-th neighbour: open cells (borders) stop there
 
@@ -365,12 +395,115 @@ def _ellipse_scale2(px, py, count, tau):  # pragma: no cover - compiled
     return scale2
 
 
+@numba.njit(cache=True)
+def _crease_half_plane(points, p, q, normal_q, e1, e2):  # pragma: no cover - compiled
+    """Where splat p meets the tangent plane of its neighbour q across a sharp feature: the
+    half-plane a x + b y <= c of p's plane points p + x e1 + y e2 that p keeps. Its boundary
+    is the crease, the line where the two planes meet. p keeps its centre's side of q's plane;
+    a centre within ON_PLANE_SIN2 of that plane (on the crease line, whose sides it cannot
+    tell apart) keeps the side away from q, the side of its own face."""
+    side = 0.0
+    ga = 0.0
+    gb = 0.0
+    distance2 = 0.0
+    toward_q = 0.0
+    for a in range(3):
+        offset = points[p, a] - points[q, a]
+        side += offset * normal_q[a]
+        ga += e1[a] * normal_q[a]
+        gb += e2[a] * normal_q[a]
+        distance2 += offset * offset
+    # a plane point lies at g(x, y) = side + x ga + y gb from q's plane; keep sign * g >= 0
+    if side * side > ON_PLANE_SIN2 * distance2:
+        sign = 1.0 if side > 0.0 else -1.0
+    else:
+        qx = 0.0
+        qy = 0.0
+        for a in range(3):
+            qx += (points[q, a] - points[p, a]) * e1[a]
+            qy += (points[q, a] - points[p, a]) * e2[a]
+        toward_q = side + qx * ga + qy * gb  # g at q seen in p's plane: q's side goes
+        sign = -1.0 if toward_q > 0.0 else 1.0
+    return -sign * ga, -sign * gb, sign * side
+
+
 @numba.njit(parallel=True, cache=True)
-def _tangent_cells(points, index, start, normals, t, s, ellipse, max_aspect):  # pragma: no cover - compiled
+def _flat_points(points, index, start, normals, sharp_cos):  # pragma: no cover - compiled
+    """Whether each point start + i is flat: its neighbours with normals within
+    acos(sharp_cos) of its own lie in its tangent plane (within FLAT_SIN2). Such points are
+    the faces of a piecewise smooth shape; a coarsely sampled curved surface is not flat, and
+    the tangent planes of its neighbours would facet it."""
+    m, k = index.shape
+    flat = np.ones(m, np.bool_)
+    for i in numba.prange(m):
+        p = start + i
+        for j in range(k):
+            q = index[i, j]
+            height = 0.0
+            facing = 0.0
+            distance2 = 0.0
+            for a in range(3):
+                offset = points[q, a] - points[p, a]
+                height += offset * normals[p, a]
+                facing += normals[q, a] * normals[p, a]
+                distance2 += offset * offset
+            if facing >= sharp_cos and height * height > FLAT_SIN2 * distance2:
+                flat[i] = False
+                break
+    return flat
+
+
+@numba.njit(parallel=True, cache=True)
+def _crease_points(points, index, start, normals, sharp_cos, flat):  # pragma: no cover - compiled
+    """Whether each point start + i lies on a crease itself: in the tangent planes (within
+    ON_PLANE_SIN2) of two flat neighbours whose normals are more than acos(sharp_cos) apart,
+    i.e. on two faces at once, its normal typically averaged over both. Every part of its
+    splat sticks out of one face or the other: it is dropped, and the faces' cells reach the
+    crease without it."""
+    m, k = index.shape
+    crease = np.zeros(m, np.bool_)
+    for i in numba.prange(m):
+        p = start + i
+        planes = np.empty(k, np.int64)  # flat neighbours in whose tangent plane the point lies
+        count = 0
+        for j in range(k):
+            q = index[i, j]
+            if q == p or not flat[q]:
+                continue
+            side = 0.0
+            distance2 = 0.0
+            for a in range(3):
+                offset = points[p, a] - points[q, a]
+                side += offset * normals[q, a]
+                distance2 += offset * offset
+            if side * side > ON_PLANE_SIN2 * distance2:
+                continue
+            for other in range(count):
+                across = 0.0
+                for a in range(3):
+                    across += normals[q, a] * normals[planes[other], a]
+                if across < sharp_cos:
+                    crease[i] = True
+            if crease[i]:
+                break
+            planes[count] = q
+            count += 1
+    return crease
+
+
+@numba.njit(parallel=True, cache=True)
+def _tangent_cells(points, index, start, normals, t, s, ellipse, max_aspect, all_normals, sharp_cos,
+                   flat, dropped, sheet_cos):  # pragma: no cover - compiled
     """For each point start + i: the farthest vertex distance of its Voronoi cell among its
     neighbours in the tangent frame (t, s) (the covering radius), and if `ellipse` the
     semi-axes and direction (cos, sin in the frame) of the cell-covering ellipse aligned with
-    the neighbours' principal directions."""
+    the neighbours' principal directions. A neighbour whose normal (all_normals) has a dot
+    product below sharp_cos with the point's lies across a sharp feature when both are flat
+    (`_flat_points`): the cell ends where
+    the two tangent planes meet (`_crease_half_plane`, where the clip lines cut the splat)
+    rather than at the bisector. Dropped points (crease points) do not bound any cell, nor do
+    neighbours whose normals face away (dot below sheet_cos): the other side of a thin sheet,
+    a surface of its own that would otherwise cut this side's cells into holes."""
     m, k = index.shape
     radius = np.zeros(m)
     semi = np.zeros((m, 2))
@@ -381,6 +514,8 @@ def _tangent_cells(points, index, start, normals, t, s, ellipse, max_aspect):  #
         p = start + i
         xs = np.empty(k)
         ys = np.empty(k)
+        crease = np.empty((k, 3))
+        creases = 0
         used = 0
         reach = 0.0
         for j in range(k):
@@ -393,6 +528,19 @@ def _tangent_cells(points, index, start, normals, t, s, ellipse, max_aspect):  #
             z = d0 * normals[i, 0] + d1 * normals[i, 1] + d2 * normals[i, 2]
             planar = x * x + y * y
             reach = max(reach, math.sqrt(planar + z * z))
+            facing = 0.0
+            for a in range(3):
+                facing += all_normals[q, a] * normals[i, a]
+            if dropped[q] or facing < sheet_cos:
+                continue
+            if facing < sharp_cos and flat[p] and flat[q]:
+                ca, cb, cc = _crease_half_plane(points, p, q, all_normals[q], t[i], s[i])
+                if ca * ca + cb * cb > 1e-12:  # not parallel planes (the far side of a sheet)
+                    crease[creases, 0] = ca
+                    crease[creases, 1] = cb
+                    crease[creases, 2] = cc
+                    creases += 1
+                continue
             if planar > 0 and z * z <= planar:  # skip duplicates and the far side of thin sheets
                 xs[used] = x
                 ys[used] = y
@@ -410,6 +558,10 @@ def _tangent_cells(points, index, start, normals, t, s, ellipse, max_aspect):  #
         count = _CAP_SIDES
         for j in range(used):  # nearer to the point than to neighbour j: x.d <= |d|^2 / 2
             count = _clip(px, py, count, xs[j], ys[j], 0.5 * (xs[j] * xs[j] + ys[j] * ys[j]), qx, qy)
+            px, qx = qx, px
+            py, qy = qy, py
+        for j in range(creases):
+            count = _clip(px, py, count, crease[j, 0], crease[j, 1], crease[j, 2], qx, qy)
             px, qx = qx, px
             py, qy = qy, py
         far = 0.0
@@ -464,19 +616,26 @@ def _tangent_cells(points, index, start, normals, t, s, ellipse, max_aspect):  #
 
 
 def _cells(nbh: _Neighbourhood, normals: np.ndarray, k: int, ellipse: bool,
-           progress: bool | None, desc: str) -> tuple[np.ndarray, np.ndarray | None]:
+           progress: bool | None, desc: str,
+           features: tuple[np.ndarray, np.ndarray] | None = None,
+           oriented: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
     """Radii (N,) float64 and, if `ellipse`, axes (N, 2, 3) float64, both including the margin
-    and the outlier cap."""
+    and the outlier cap; given the (flat, crease) masks of `_sharp_features`, cells end at
+    sharp features and ignore the crease points. With `oriented` normals, neighbours facing
+    the other way (the far side of a thin sheet) do not bound cells."""
     n = len(nbh.points)
     index = nbh.first(k)
     normals = _unit(np.asarray(normals, np.float64))
+    sharp_cos = math.cos(math.radians(SHARP_ANGLE))
+    flat, dropped = features if features is not None else (np.zeros(n, bool), np.zeros(n, bool))
     raw = np.empty(n)
     axes = np.empty((n, 2, 3)) if ellipse else None
     with _bar(n, progress, desc) as bar:
         for start, stop in _chunks(n):
             t, s = _orthonormal_basis(normals[start:stop])
             radius, semi, direction = _tangent_cells(nbh.points, index[start:stop], start, normals[start:stop],
-                                                     t, s, ellipse, ELLIPSE_MAX_ASPECT)
+                                                     t, s, ellipse, ELLIPSE_MAX_ASPECT, normals, sharp_cos, flat, dropped,
+                                                     SHEET_COS if oriented else -2.0)
             raw[start:stop] = radius
             if ellipse:
                 co, si = direction[:, 0:1], direction[:, 1:2]
@@ -512,8 +671,9 @@ def estimate_radii(positions: np.ndarray, k: int = RADIUS_NEIGHBOURS, normals: n
     RADIUS_MARGIN, outliers capped (see the module docstring). Normals only define the tangent
     planes; without them unoriented PCA normals over the same neighbours are used."""
     nbh = _neighbourhood(positions, k, workers, progress)
+    oriented = normals is not None
     normals = _pca_normals(nbh, k, progress)[0] if normals is None else nbh.sort(normals)
-    radii, _ = _cells(nbh, normals, k, False, progress, "radii")
+    radii, _ = _cells(nbh, normals, k, False, progress, "radii", oriented=oriented)
     return nbh.unsort(radii.astype(np.float32))
 
 
@@ -525,6 +685,105 @@ def fit_ellipses(positions: np.ndarray, normals: np.ndarray, k: int = RADIUS_NEI
     nbh = _neighbourhood(positions, k, workers, progress)
     _, axes = _cells(nbh, nbh.sort(normals), k, True, progress, "ellipses")
     return nbh.unsort(axes.astype(np.float32))
+
+
+# ---------------------------------------------------------------------------------------------
+# sharp features
+
+
+@numba.njit(parallel=True, cache=True)
+def _clip_lines(points, index, start, normals, axes, sharp_cos, flat, dropped):  # pragma: no cover - compiled
+    """CLIP_LINES clip lines (a, b, c) per splat start + i, in its local coordinates (u, v)
+    (1 on the rim): the splat keeps a u + b v <= c, (a, b) a unit vector. They are crease
+    half-planes that end its cell (`_tangent_cells`): the one nearest the centre, then the
+    nearest in another direction. A dropped splat keeps nothing."""
+    m, k = index.shape
+    lines = np.empty((m, CLIP_LINES, 3), np.float32)
+    for i in numba.prange(m):
+        p = start + i
+        for line in range(CLIP_LINES):
+            if dropped[p]:  # u <= -2, then -u <= -2
+                lines[i, line, 0] = 1.0 - 2.0 * line
+                lines[i, line, 1] = 0.0
+                lines[i, line, 2] = -2.0
+            else:
+                lines[i, line, 0] = INACTIVE_CLIP[0]
+                lines[i, line, 1] = INACTIVE_CLIP[1]
+                lines[i, line, 2] = INACTIVE_CLIP[2]
+        if dropped[p]:
+            continue
+        candidates = np.empty((k, 3))
+        count = 0
+        for j in range(k):
+            q = index[i, j]
+            facing = 0.0
+            for a in range(3):
+                facing += normals[q, a] * normals[p, a]
+            if facing >= sharp_cos or dropped[q] or not (flat[p] and flat[q]):
+                continue
+            la, lb, lc = _crease_half_plane(points, p, q, normals[q], axes[i, 0], axes[i, 1])
+            length = math.sqrt(la * la + lb * lb)
+            if length < 1e-6 or lc >= length:  # parallel planes, or the line misses the splat
+                continue
+            candidates[count, 0] = la / length
+            candidates[count, 1] = lb / length
+            candidates[count, 2] = lc / length
+            count += 1
+        used = 0
+        while used < CLIP_LINES:
+            best = -1
+            for c in range(count):  # the most restrictive line not parallel to a chosen one
+                parallel = False
+                for other in range(used):
+                    if candidates[c, 0] * lines[i, other, 0] + candidates[c, 1] * lines[i, other, 1] > PARALLEL_COS:
+                        parallel = True
+                if not parallel and (best < 0 or candidates[c, 2] < candidates[best, 2]):
+                    best = c
+            if best < 0:
+                break
+            for a in range(3):
+                lines[i, used, a] = candidates[best, a]
+            used += 1
+    return lines
+
+
+def clipped_away(cloud: PointCloud) -> np.ndarray:
+    """(N,) bool: the splats whose clip lines keep nothing of them (crease points)."""
+    lines = cloud.extras.get("clip_lines")
+    if lines is None:
+        return np.zeros(len(cloud), bool)
+    return (lines[:, :, 2] < -1).any(axis=1)
+
+
+def _sharp_features(nbh: _Neighbourhood, normals: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """The (flat, crease) masks (N,) bool of `_flat_points` and `_crease_points`."""
+    n = len(nbh.points)
+    index = nbh.first(k)
+    normals = _unit(np.asarray(normals, np.float64))
+    sharp_cos = math.cos(math.radians(SHARP_ANGLE))
+    flat = np.empty(n, bool)
+    crease = np.empty(n, bool)
+    for start, stop in _chunks(n):
+        flat[start:stop] = _flat_points(nbh.points, index[start:stop], start, normals, sharp_cos)
+    for start, stop in _chunks(n):
+        crease[start:stop] = _crease_points(nbh.points, index[start:stop], start, normals, sharp_cos, flat)
+    return flat, crease
+
+
+def _sharp_clip_lines(nbh: _Neighbourhood, normals: np.ndarray, axes: np.ndarray,
+                      features: tuple[np.ndarray, np.ndarray], k: int, progress: bool | None) -> np.ndarray:
+    """Clip lines (N, CLIP_LINES, 3) float32 of `_clip_lines`."""
+    n = len(nbh.points)
+    index = nbh.first(k)
+    normals = _unit(np.asarray(normals, np.float64))
+    sharp_cos = math.cos(math.radians(SHARP_ANGLE))
+    lines = np.empty((n, CLIP_LINES, 3), np.float32)
+    with _bar(n, progress, "sharp features") as bar:
+        for start, stop in _chunks(n):
+            lines[start:stop] = _clip_lines(nbh.points, index[start:stop], start, normals,
+                                            np.asarray(axes[start:stop], np.float64), sharp_cos, *features)
+            bar.update(stop - start)
+    return lines
 
 
 # ---------------------------------------------------------------------------------------------
@@ -602,7 +861,7 @@ def fit_normal_field(positions: np.ndarray, normals: np.ndarray, axes: np.ndarra
 
 
 def prepare(cloud: PointCloud, *, k_normals: int = 16, viewpoint: np.ndarray | None = None,
-            elliptical: bool = False, normal_field: bool = False,
+            elliptical: bool = False, normal_field: bool = False, sharp_features: bool = True,
             progress: bool | None = None) -> tuple[PointCloud, dict]:
     """Fill in what `cloud` lacks for splatting; returns (cloud, report).
 
@@ -612,6 +871,9 @@ def prepare(cloud: PointCloud, *, k_normals: int = 16, viewpoint: np.ndarray | N
     radii: estimated if None (covering radii of the tangent-plane Voronoi cells).
     axes: if None, fitted ellipses when `elliptical`, else circular frames of the radii.
     normal_field: also fit extras["phong_alpha"], extras["phong_beta"] if missing.
+    sharp_features: when radii and axes are estimated, cells end at creases and
+    extras["clip_lines"] (N, CLIP_LINES, 3) cut the splats there ("Sharp features" in the
+    module docstring).
     Given attributes are kept as they are. The report names every estimated attribute and
     how, plus "ambiguous_normals" when normals were estimated.
     """
@@ -642,13 +904,16 @@ def prepare(cloud: PointCloud, *, k_normals: int = 16, viewpoint: np.ndarray | N
         report["normals"] = f"estimated (PCA, k={k_normals}, {how})"
         report["ambiguous_normals"] = int(ambiguous.sum())
     radii = given["radii"]
+    features = None
+    if sharp_features and radii is None and given["axes"] is None:
+        features = _sharp_features(nbh, normals, RADIUS_NEIGHBOURS)
     if radii is None:
-        radii = estimated["radii"] = _cells(nbh, normals, RADIUS_NEIGHBOURS, False, progress, "radii")[0]
+        radii = estimated["radii"] = _cells(nbh, normals, RADIUS_NEIGHBOURS, False, progress, "radii", features)[0]
         report["radii"] = (f"estimated (Voronoi covering radius, k={RADIUS_NEIGHBOURS}, "
                            f"x{RADIUS_MARGIN}, mean {float(np.mean(radii)):.4g})")
     axes = given["axes"]
     if axes is None and elliptical:
-        _, axes = _cells(nbh, normals, RADIUS_NEIGHBOURS, True, progress, "ellipses")
+        _, axes = _cells(nbh, normals, RADIUS_NEIGHBOURS, True, progress, "ellipses", features)
         report["axes"] = f"fitted ellipses (k={RADIUS_NEIGHBOURS})"
     elif axes is None:
         axes = tangent_frames(normals, radii)
@@ -656,8 +921,16 @@ def prepare(cloud: PointCloud, *, k_normals: int = 16, viewpoint: np.ndarray | N
     if given["axes"] is None:
         estimated["axes"] = axes
     changes = {name: nbh.unsort(np.asarray(value, np.float32)) for name, value in estimated.items()}
+    extras = dict(cloud.extras)
+    if features is not None:
+        lines = _sharp_clip_lines(nbh, normals, axes, features, RADIUS_NEIGHBOURS, progress)
+        extras["clip_lines"] = nbh.unsort(lines)
+        report["sharp_features"] = (f"{float(np.mean(lines[:, 0, 2] < 1)):.1%} of splats end at creases "
+                                    f"(normals > {SHARP_ANGLE:g} degrees apart), {int(features[1].sum())} crease points dropped")
     if need_field:
         alpha, beta = _normal_field(nbh, normals, axes, FIELD_NEIGHBOURS, progress)
-        changes["extras"] = {**cloud.extras, "phong_alpha": nbh.unsort(alpha), "phong_beta": nbh.unsort(beta)}
+        extras.update(phong_alpha=nbh.unsort(alpha), phong_beta=nbh.unsort(beta))
         report["normal_field"] = f"fitted (least squares, k={FIELD_NEIGHBOURS})"
+    if extras.keys() != cloud.extras.keys():
+        changes["extras"] = extras
     return cloud.with_(**changes), report

@@ -5,8 +5,7 @@ from __future__ import annotations
 import sys
 import time
 import weakref
-
-
+from dataclasses import replace
 
 from .camera import Camera, frame
 from .cloud import PointCloud
@@ -62,20 +61,27 @@ def resolve_backend(method_name: str, backend: str | None) -> str:
     return next(iter(method.backends))
 
 
-def render(cloud: PointCloud, camera: Camera | None = None, method: str = "deferred", *,
+# eps of a lazy source rendered without --lod-error: it cannot be drawn at full detail
+SOURCE_DEFAULT_LOD_ERROR = 1.0
+
+
+def render(cloud, camera: Camera | None = None, method: str = "deferred", *,
            backend: str | None = None, size=(1024, 1024), options: RenderOptions | None = None,
            **option_values) -> RenderResult:
-    """Render `cloud` with `method`; options as a RenderOptions or as keyword arguments."""
+    """Render `cloud` (a PointCloud, or a lazy LodSource whose cut for the camera is selected
+    first) with `method`; options as a RenderOptions or as keyword arguments."""
     options = options or RenderOptions(**option_values)
     check_model(options.shading)
     m = get_method(method)
+    if not isinstance(cloud, PointCloud):
+        return _render_source(cloud, camera, method, backend=backend, size=size, options=options)
     if m.needs_mesh and not cloud.is_mesh:
         raise SurfelError(f"method {method!r} needs a mesh input (faces); {cloud.source or 'this cloud'} has none")
     camera = camera or default_camera(cloud, size)
     input_points = len(cloud)
     backend = resolve_backend(method, backend)
     cloud, estimated = complete(cloud, need_radii=m.needs_radii,
-                                elliptical=method == "phong", normal_field=method == "phong")
+                                elliptical=m.elliptical, normal_field=m.normal_field)
     if options.lod_error is not None and m.needs_radii:
         from .lod import as_sequential, lod_subset
 
@@ -102,6 +108,27 @@ def render(cloud: PointCloud, camera: Camera | None = None, method: str = "defer
     if estimated:
         stats["estimated"] = estimated
     result.stats = stats
+    return result
+
+
+def _render_source(source, camera: Camera | None, method: str, *, backend: str | None, size,
+                   options: RenderOptions) -> RenderResult:
+    """Select the source's cut for the view, then render it as an ordinary cloud."""
+    from .lod.source import is_source
+
+    if not is_source(source):
+        raise TypeError(f"render needs a PointCloud or a LodSource, got {type(source).__name__}")
+    if not get_method(method).needs_radii:
+        raise SurfelError(f"method {method!r} cannot render a level-of-detail source (it needs splats)")
+    camera = camera or frame(source.center, source.bounding_radius, geospatial=source.geospatial, size=size)
+    epsilon = options.lod_error if options.lod_error is not None else SOURCE_DEFAULT_LOD_ERROR
+    start = time.perf_counter()
+    cut, selection = source.select(camera, epsilon, options.point_budget)
+    select_ms = (time.perf_counter() - start) * 1000
+    # the cut is already at the requested detail: no second selection on it
+    result = render(cut, camera, method, backend=backend, options=replace(options, lod_error=None))
+    result.stats.update({"points": source.total_points, "lod": epsilon, "select_ms": round(select_ms, 3),
+                         **selection})
     return result
 
 

@@ -9,7 +9,31 @@ import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numba
 import numpy as np
+
+
+@numba.njit(parallel=True, cache=True)
+def _composite_over(shaded, coverage, depth, normals, background):  # pragma: no cover - compiled
+    """One-sample-per-pixel buffers: colour over the background, coverage clamped to [0, 1],
+    depth inf and normals 0 where nothing is covered, normals unit."""
+    h, w = coverage.shape
+    color = np.empty((h, w, 3), np.float32)
+    alpha = np.empty((h, w), np.float32)
+    depth_out = np.empty((h, w), np.float32)
+    normals_out = np.zeros((h, w, 3), np.float32)
+    for y in numba.prange(h):
+        for x in range(w):
+            a = min(max(coverage[y, x], np.float32(0.0)), np.float32(1.0))
+            alpha[y, x] = a
+            for c in range(3):
+                color[y, x, c] = min(max(shaded[y, x, c] * a + (1 - a) * background[c], np.float32(0.0)), np.float32(1.0))
+            depth_out[y, x] = depth[y, x] if a > 0 else np.inf
+            length = np.sqrt(normals[y, x, 0] ** 2 + normals[y, x, 1] ** 2 + normals[y, x, 2] ** 2)
+            if a > 0 and length > 1e-12:
+                for c in range(3):
+                    normals_out[y, x, c] = normals[y, x, c] / length
+    return color, alpha, depth_out, normals_out
 
 
 @dataclass(eq=False)
@@ -34,16 +58,12 @@ class RenderResult:
         over the background; depth keeps the nearest sample, normals the coverage-weighted mean.
         """
         s = int(supersample)
+        if s == 1:  # nothing to filter: composite and mask in one pass
+            return cls(*_composite_over(np.ascontiguousarray(shaded, np.float32), np.ascontiguousarray(coverage, np.float32),
+                                        np.ascontiguousarray(depth, np.float32), np.ascontiguousarray(normals, np.float32),
+                                        np.asarray(background, np.float32)), stats)
         cov = np.clip(coverage.astype(np.float32), 0, 1)
         bg = np.asarray(background, np.float32).reshape(1, 1, 3)
-        if s == 1:  # nothing to filter: composite and mask, without the block reductions
-            covered = cov > 0
-            color = shaded * cov[..., None] + (1 - cov[..., None]) * bg
-            depth_out = np.where(covered, depth, np.inf).astype(np.float32)
-            length = np.linalg.norm(normals, axis=-1, keepdims=True)
-            normals_out = np.where(covered[..., None] & (length > 1e-12), normals / np.maximum(length, 1e-12), 0)
-            return cls(np.clip(color, 0, 1).astype(np.float32), cov, depth_out,
-                       normals_out.astype(np.float32), stats)
         h, w = coverage.shape[0] // s, coverage.shape[1] // s
 
         def blocks(a):

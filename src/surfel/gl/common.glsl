@@ -42,3 +42,17 @@ float window_depth(vec3 eye) {
 bool faces_away(vec3 p, vec3 n) {
     return dot(n, u_ortho > 0.0 ? vec3(0.0, 0.0, 1.0) : -p) < 0.0;
 }
+
+// How far the local splat coordinates uv lie beyond the splat's clip lines (keep
+// dot(line.xy, uv) <= line.z; sharp features, surfel.preprocess): > 0 means cut away.
+float clip_excess(vec2 uv, vec3 line0, vec3 line1) {
+    return max(dot(line0.xy, uv) - line0.z, dot(line1.xy, uv) - line1.z);
+}
+
+// A normal of Phong splatting's linear field (unnormalised) at a splat centred at eye point
+// c, unit and turned no further than edge-on: extrapolated past the silhouette it would face
+// away, and two-sided shading would light it as if it faced the viewer again.
+vec3 field_normal(vec3 n, vec3 c) {
+    vec3 to_eye = u_ortho > 0.0 ? vec3(0.0, 0.0, 1.0) : normalize(-c);
+    return normalize(n - min(dot(n, to_eye), 0.0) * to_eye);
+}

@@ -6,3 +6,5 @@ in vec3 in_axis_u;   // tangent axes scaled to the ellipse's semi-axes
 in vec3 in_axis_v;
 in vec2 in_field;    // Phong splatting's normal-field slopes (alpha, beta)
 in vec3 in_lod;      // sequential point tree: e_g, the parent's e_g, the distance to the parent
+in vec3 in_clip0;    // clip lines at sharp features: keep dot(xy, (u, v)) <= z
+in vec3 in_clip1;

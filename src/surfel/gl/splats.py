@@ -8,6 +8,8 @@ Every splat method reads the same layout (see splat_common.glsl):
     in_field  (2) Phong splatting's normal-field slopes (alpha, beta), 0 when absent
     in_lod    (3) sequential point tree node: e_g, parent's e_g, distance to the parent
                   (surfel.lod; a cloud without them is all leaves that always pass)
+    in_clip0 (3), in_clip1 (3) clip lines (a, b, c) at sharp features: the splat keeps
+                  a u + b v <= c in its local coordinates (surfel.preprocess; (0, 0, 1) cuts nothing)
 Clouds larger than CHUNK points are drawn one chunk at a time so 10M+ points fit in memory;
 buffers are cached per cloud (weakly) so benchmarks measure drawing, not uploading.
 """
@@ -19,11 +21,13 @@ import weakref
 import numpy as np
 
 from ..cloud import PointCloud
+from ..preprocess import INACTIVE_CLIP
 from .context import get_context
 
 CHUNK = 2_000_000
-ATTRIBUTES = ("in_center", "in_normal", "in_color", "in_axis_u", "in_axis_v", "in_field", "in_lod")
-WIDTHS = (3, 3, 3, 3, 3, 2, 3)
+ATTRIBUTES = ("in_center", "in_normal", "in_color", "in_axis_u", "in_axis_v", "in_field", "in_lod",
+              "in_clip0", "in_clip1")
+WIDTHS = (3, 3, 3, 3, 3, 2, 3, 3, 3)
 LOD_EXTRAS = ("lod_emin", "lod_emax", "lod_dparent")
 FLOATS = sum(WIDTHS)
 CACHE_LIMIT_BYTES = 2_000_000_000
@@ -49,6 +53,10 @@ def pack(cloud: PointCloud, start: int = 0, stop: int | None = None) -> np.ndarr
         out[:, 17:20] = np.stack([cloud.extras[key][start:stop] for key in LOD_EXTRAS], axis=1)
     else:
         out[:, 17:20] = (0.0, np.finfo(np.float32).max, 0.0)
+    if "clip_lines" in cloud.extras:
+        out[:, 20:26] = cloud.extras["clip_lines"][start:stop].reshape(n, 6)
+    else:
+        out[:, 20:26] = INACTIVE_CLIP * 2
     return out
 
 

@@ -51,6 +51,7 @@ import numpy as np
 from tqdm import tqdm
 
 from ..cloud import PointCloud
+from ..preprocess import clipped_away
 
 MORTON_BITS = 21  # bits per axis: 63-bit codes
 # r_max of the root is infinite; it is stored as the largest float32 because point-cloud
@@ -331,14 +332,18 @@ def build_lod(cloud: PointCloud, *, progress: bool | None = None) -> LodTree:
     """The octree point hierarchy of `cloud` (which needs normals, and radii or axes).
 
     progress: show a tqdm bar over the octree levels (None: only on a terminal).
+    Points that their clip lines cut away whole (crease points, surfel.preprocess) are left
+    out: they draw nothing, and their averaged disks must not come back in inner nodes.
     """
     if cloud.normals is None or (cloud.radii is None and cloud.axes is None):
         raise ValueError("build_lod needs normals and radii or axes (complete the cloud first)")
-    n = len(cloud)
+    kept = np.flatnonzero(~clipped_away(cloud)) if "clip_lines" in cloud.extras else np.arange(len(cloud))
+    n = len(kept)
     capacity = 2 * n - 1  # every inner node has >= 2 children
-    codes = morton_codes(cloud.positions)
-    point_index = np.argsort(codes)
-    active_codes = codes[point_index]
+    codes = morton_codes(cloud.positions[kept])
+    order = np.argsort(codes)
+    point_index = kept[order]
+    active_codes = codes[order]
     del codes
     pos = np.empty((capacity, 3), np.float64)
     with_color = cloud.colors is not None

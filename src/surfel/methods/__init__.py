@@ -22,6 +22,8 @@ class Method:
     needs_mesh: bool = False
     needs_radii: bool = True
     shader_lod: bool = False  # its vertex stage runs the sequential point tree test (gl/lod.glsl)
+    elliptical: bool = False  # fitted elliptical splats when the cloud has no axes
+    normal_field: bool = False  # shades with Phong splatting's linear normal fields (fitted if missing)
 
     def function(self, backend: str):
         if backend not in self.backends:
@@ -42,11 +44,11 @@ METHODS: dict[str, Method] = {
         Method("deferred", "Botsch et al. 2005: deferred shading with the EWA filter approximation",
                {"gl": "splatting:render_deferred"}, shader_lod=True),
         Method("phong", "Botsch et al. 2004: Phong splatting, elliptical splats with linear normal fields",
-               {"gl": "splatting:render_phong"}, shader_lod=True),
+               {"gl": "splatting:render_phong"}, shader_lod=True, elliptical=True, normal_field=True),
         Method("object-space", "Ren, Pfister & Zwicker 2002: object-space EWA splatting with textured quads",
                {"gl": "object_space:render_object_space"}),
         Method("ewa", "Zwicker et al. 2001: software EWA surface splatting, the full resampling filter",
-               {"cpu": "ewa:render_ewa_cpu", "gl": "ewa_gl:render_ewa_gl"}),
+               {"cpu": "ewa:render_ewa_cpu", "gl": "ewa_gl:render_ewa_gl"}, normal_field=True),
         Method("mls", "Adamson & Alexa 2003: ray tracing the MLS point set surface",
                {"cpu": "mls:render_mls_cpu"}, needs_radii=False),
         Method("mls-gpu", "Tejada et al. 2006: multi-pass GPU ray casting of the MLS surface",

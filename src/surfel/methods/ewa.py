@@ -65,6 +65,7 @@ import numpy as np
 from ..cloud import PointCloud
 from ..camera import Camera
 from ..options import RenderOptions
+from ..preprocess import INACTIVE_CLIP
 from ..result import RenderResult
 from ..shading import shade
 
@@ -128,6 +129,24 @@ def splat_colors(cloud: PointCloud) -> np.ndarray:
     return cloud.colors if cloud.colors is not None else np.ones((1, 3), np.float32)
 
 
+def splat_clip_lines(cloud: PointCloud) -> np.ndarray:
+    """(N, 2, 3) clip lines at sharp features (surfel.preprocess), or (1, 2, 3) inactive ones."""
+    if "clip_lines" in cloud.extras:
+        return np.ascontiguousarray(cloud.extras["clip_lines"], np.float32)
+    return np.array([[INACTIVE_CLIP, INACTIVE_CLIP]], np.float32)
+
+
+def has_normal_field(cloud: PointCloud) -> bool:
+    return "phong_alpha" in cloud.extras and "phong_beta" in cloud.extras
+
+
+def splat_fields(cloud: PointCloud) -> np.ndarray:
+    """(N, 2) Phong normal-field slopes (alpha, beta), or (1, 2) zeros: flat splats."""
+    if has_normal_field(cloud):
+        return np.ascontiguousarray(np.stack([cloud.extras["phong_alpha"], cloud.extras["phong_beta"]], 1), np.float32)
+    return np.zeros((1, 2), np.float32)
+
+
 def splat_axes(cloud: PointCloud) -> np.ndarray:
     """(N, 2, 3) tangent axes; from normals and radii when the cloud has none."""
     if cloud.axes is not None:
@@ -178,7 +197,8 @@ def render_ewa_cpu(cloud: PointCloud, camera: Camera, options: RenderOptions) ->
     intr = np.array([target.fx, target.fy, target.cx, target.cy], np.float64)
     splats, box = k.setup_splats(cloud.positions, np.asarray(cloud.local_origin, np.float64),
                                  np.asarray(target.world_to_eye, np.float64), cloud.normals, splat_colors(cloud),
-                                 splat_axes(cloud), intr, ortho_scale(target), float(target.near),
+                                 splat_axes(cloud), splat_clip_lines(cloud), splat_fields(cloud), intr,
+                                 ortho_scale(target), float(target.near),
                                  np.float32(options.radius_scale), np.float32(params.sigma ** 2),
                                  np.float32(params.lowpass ** 2), np.float32(params.visibility ** 2),
                                  np.float32(params.cutoff2),
@@ -186,7 +206,7 @@ def render_ewa_cpu(cloud: PointCloud, camera: Camera, options: RenderOptions) ->
     tiles_x, tiles_y = -(-w // k.TILE), -(-h // k.TILE)
     offsets, index = k.bin_splats(box, tiles_x, tiles_y)
     acc, fragments = k.rasterize_tiles(splats, box, offsets, index, tile_order(tiles_x, tiles_y), tiles_x,
-                                       w, h, np.float32(params.cutoff2))
+                                       w, h, np.float32(params.cutoff2), has_normal_field(cloud))
     drawn = int(np.count_nonzero(box[:, 0] <= box[:, 1]))
     return resolve_accumulators(acc, target, options, params, {"splats": drawn, "fragments": int(fragments)})
 

@@ -31,11 +31,23 @@ flat out vec2 v_mean;      // m_k, image pixels (y down)
 flat out vec3 v_conic;     // (a, b, c) of a dx^2 + 2 b dx dy + c dy^2: M^-1 or N^-1 by pass
 flat out vec4 v_depth;     // eye depth at the centre, its pixel gradient (gx, gy), clamp
 flat out float v_threshold;  // z_t
+flat out vec3 v_clip0;     // clip lines as pixel half-planes a dx + b dy <= c around m_k
+flat out vec3 v_clip1;
 #ifndef PASS_VISIBILITY
 flat out float v_scale;    // |det J| / sqrt(det M)
 flat out vec3 v_color;
 flat out vec3 v_normal;    // eye space, facing the camera
+flat out vec4 v_inv_j;     // J^-1 (column-major): pixel offsets to local coordinates (u, v)
+flat out vec3 v_field_u;   // the Phong normal field's eye-space slopes alpha u^, beta v^
+flat out vec3 v_field_v;
+flat out vec3 v_eye;       // the splat's centre in eye space
 #endif
+
+vec3 pixel_half_plane(vec3 line, float j00, float j01, float j10, float j11, float det_j) {
+    if (abs(det_j) <= 1e-12 || line.z >= 1.0) return vec3(0.0, 0.0, 1.0);  // edge-on or inactive
+    float inv_det = 1.0 / (det_j * u_radius_scale);
+    return vec3((line.x * j11 - line.y * j10) * inv_det, (line.y * j00 - line.x * j01) * inv_det, line.z);
+}
 
 void cull() {
     gl_Position = vec4(2.0, 2.0, 2.0, 1.0);  // outside the clip volume: no fragments
@@ -46,12 +58,15 @@ void main() {
     vec3 e = (u_view * vec4(in_center, 1.0)).xyz;
     float d = -e.z;
     if (u_ortho <= 0.0 && d <= u_depth_range.x) { cull(); return; }  // J meaningless behind the camera
+    if (in_clip0.z < -1.0 || in_clip1.z < -1.0) { cull(); return; }  // clipped away whole (on a crease)
     mat3 rot = mat3(u_view);
     vec3 n = rot * in_normal;
     float facing = u_ortho > 0.0 ? n.z : -dot(n, e);
+    float flip = 1.0;
     if (facing < 0.0) {
         if (u_backface_culling != 0) { cull(); return; }
         n = -n;
+        flip = -1.0;  // the normal field turns with the normal
     }
     vec3 u = u_radius_scale * (rot * in_axis_u);
     vec3 v = u_radius_scale * (rot * in_axis_v);
@@ -91,6 +106,10 @@ void main() {
     float n00 = m00 - u_lowpass2 + u_vis2, n11 = m11 - u_lowpass2 + u_vis2;
     float det_n = n00 * n11 - m01 * m01;
     float dz = min(cutoff * sqrt(g.x * g.x * n00 + 2.0 * g.x * g.y * m01 + g.y * g.y * n11), u_depth_clamp * radius);
+    // A clip line a s + b t <= c of the local coordinates (s, t) = J^-1 dx / radius_scale
+    // becomes the pixel half-plane (a, b) adj(J) dx / (det J radius_scale) <= c.
+    v_clip0 = pixel_half_plane(in_clip0, j00, j01, j10, j11, det_j);
+    v_clip1 = pixel_half_plane(in_clip1, j00, j01, j10, j11, det_j);
     v_mean = m;
     v_depth = vec4(d, g, dz);
     // z_t widened by the depth range, so one splat's extrapolated fringe cannot hide its neighbours.
@@ -102,6 +121,10 @@ void main() {
     v_scale = abs(det_j) / sqrt(det_m);
     v_color = in_color;
     v_normal = n;
+    v_inv_j = abs(det_j) > 1e-12 ? vec4(j11, -j10, -j01, j00) / det_j : vec4(0.0);
+    v_field_u = flip * in_field.x * u / max(length(u), 1e-30);
+    v_field_v = flip * in_field.y * v / max(length(v), 1e-30);
+    v_eye = e;
 #endif
     // The quad spans the box's pixels edge to edge, so exactly their centres are rasterized.
     gl_Position = image_to_clip(mix(lo, hi + 1.0, corners[gl_VertexID]));
@@ -113,14 +136,20 @@ flat in vec2 v_mean;
 flat in vec3 v_conic;
 flat in vec4 v_depth;
 flat in float v_threshold;
+flat in vec3 v_clip0;
+flat in vec3 v_clip1;
 #ifndef PASS_VISIBILITY
 flat in float v_scale;
 flat in vec3 v_color;
 flat in vec3 v_normal;
+flat in vec4 v_inv_j;
+flat in vec3 v_field_u;
+flat in vec3 v_field_v;
+flat in vec3 v_eye;
 #endif
 
-// Offset of the pixel centre from m_k, the conic's value there (discards beyond the cutoff),
-// and the clamped plane depth.
+// Offset of the pixel centre from m_k, the conic's value there (discards beyond the cutoff
+// and the clip lines), and the clamped plane depth.
 vec2 offset;
 float quadric;
 float plane_depth() {
@@ -128,6 +157,7 @@ float plane_depth() {
     quadric = v_conic.x * offset.x * offset.x + 2.0 * v_conic.y * offset.x * offset.y
               + v_conic.z * offset.y * offset.y;
     if (quadric > u_cutoff2) discard;
+    if (dot(v_clip0.xy, offset) > v_clip0.z || dot(v_clip1.xy, offset) > v_clip1.z) discard;  // beyond a sharp feature
     return v_depth.x + clamp(dot(v_depth.yz, offset), -v_depth.w, v_depth.w);
 }
 
@@ -158,8 +188,13 @@ void main() {
     bool front = z <= texelFetch(u_visibility, texel, 0).r;
     if (!front && z > texelFetch(u_back, texel, 0).r + v_threshold) discard;  // behind both layers
     float w = v_scale * exp(-0.5 * quadric);
+    // The linear normal field (Botsch, Spernat & Kobbelt 2004, eq. 8) at the local coordinates
+    // (u, v) = J^-1 offset, kept within the rim (zero slopes: the splat's own normal).
+    vec2 uv = mat2(v_inv_j) * offset;
+    uv /= max(length(uv), 1.0);
+    vec3 n = field_normal(v_normal + uv.x * v_field_u + uv.y * v_field_v, v_eye);
     vec4 color = vec4(w * v_color, w);
-    vec4 normal = vec4(w * v_normal, w * z);
+    vec4 normal = vec4(w * n, w * z);
     out_color = front ? color : vec4(0.0);
     out_normal = front ? normal : vec4(0.0);
     out_back_color = front ? vec4(0.0) : color;

@@ -27,9 +27,14 @@ import numba as nb
 import numpy as np
 
 TILE = 32
-# Columns of the per-splat parameter table.
-MX, MY, CA, CB, CC, WS, ZC, GX, GY, DZ, ZT, R, G, B, NX, NY, NZ, VA, VB, VC = range(20)
-SPLAT_FIELDS = 20
+SMALL_BOX = 16  # pixels: a splat box this small is scanned whole, testing the conic per pixel,
+                # instead of solving for each row's span (the cost of tiny minified splats)
+# Columns of the per-splat parameter table; P0*, P1*: the clip lines as pixel half-planes
+# a dx + b dy <= c around the centre; I00..I11: J^-1, pixel offsets to local coordinates;
+# FU*, FV*: the eye-space slopes of the Phong normal field, alpha u^ and beta v^.
+(MX, MY, CA, CB, CC, WS, ZC, GX, GY, DZ, ZT, R, G, B, NX, NY, NZ, VA, VB, VC,
+ P0A, P0B, P0C, P1A, P1B, P1C, I00, I01, I10, I11, FUX, FUY, FUZ, FVX, FVY, FVZ, EX, EY, EZ) = range(39)
+SPLAT_FIELDS = 39
 # Accumulator channels, the order of the GL backend's two RGBA32F targets.
 LAYER = 8  # w*r, w*g, w*b, w, w*nx, w*ny, w*nz, w*depth
 ACC_CHANNELS = 2 * LAYER  # front layer, then back layer
@@ -38,15 +43,17 @@ FAR = np.float32(3e38)
 
 
 @nb.njit(parallel=True, fastmath=True, cache=True)
-def setup_splats(positions, origin, view, normals, colors, axes, intr, ortho, near,
+def setup_splats(positions, origin, view, normals, colors, axes, clip_lines, fields, intr, ortho, near,
                  radius_scale, sigma2, lowpass2, vis2, cutoff2, depth_offset, depth_clamp, backface,
                  width, height):
     """Per-splat parameter table (N, SPLAT_FIELDS) float32 and pixel boxes (N, 4) int32
     (x0, x1, y0, y1 inclusive; x0 > x1 marks a culled splat).
 
     positions (N,3) f64, origin (3,) f64, view (4,4) f64 world-to-eye, normals (N,3) f32,
-    colors (N,3) f32 or (1,3) for a constant colour, axes (N,2,3) f32, intr = fx, fy, cx, cy;
-    ortho > 0 is the orthographic pixels-per-unit scale.
+    colors (N,3) f32 or (1,3) for a constant colour, axes (N,2,3) f32, clip_lines (N,2,3)
+    f32 or (1,2,3) for none (a u + b v <= c in the splat's unscaled local coordinates),
+    fields (N,2) f32 Phong normal-field slopes (alpha, beta) or (1,2) zeros,
+    intr = fx, fy, cx, cy; ortho > 0 is the orthographic pixels-per-unit scale.
     """
     n = positions.shape[0]
     out = np.empty((n, SPLAT_FIELDS), np.float32)
@@ -58,6 +65,8 @@ def setup_splats(positions, origin, view, normals, colors, axes, intr, ortho, ne
     t2 = view[2, 3] + view[2, 0] * origin[0] + view[2, 1] * origin[1] + view[2, 2] * origin[2]
     rot = view[:3, :3].astype(np.float32)
     color_step = 1 if colors.shape[0] > 1 else 0  # (1, 3) colours: one for all
+    clip_step = 1 if clip_lines.shape[0] > 1 else 0
+    field_step = 1 if fields.shape[0] > 1 else 0
     cutoff = np.float32(math.sqrt(cutoff2))
     for i in nb.prange(n):
         box[i, 0], box[i, 1], box[i, 2], box[i, 3] = 1, 0, 1, 0
@@ -68,14 +77,19 @@ def setup_splats(positions, origin, view, normals, colors, axes, intr, ortho, ne
         d = -ez
         if ortho <= 0 and d <= near:
             continue  # behind the camera: the affine approximation is meaningless there
+        lines = clip_lines[i * clip_step]
+        if lines[0, 2] < -1 or lines[1, 2] < -1:
+            continue  # clipped away whole (a point on a crease)
         nx = rot[0, 0] * normals[i, 0] + rot[0, 1] * normals[i, 1] + rot[0, 2] * normals[i, 2]
         ny = rot[1, 0] * normals[i, 0] + rot[1, 1] * normals[i, 1] + rot[1, 2] * normals[i, 2]
         nz = rot[2, 0] * normals[i, 0] + rot[2, 1] * normals[i, 1] + rot[2, 2] * normals[i, 2]
         facing = nz if ortho > 0 else -(nx * ex + ny * ey + nz * ez)
+        flip = np.float32(1.0)
         if facing < 0:
             if backface:
                 continue
             nx, ny, nz = -nx, -ny, -nz
+            flip = np.float32(-1.0)  # the normal field turns with the normal
         ux = radius_scale * (rot[0, 0] * axes[i, 0, 0] + rot[0, 1] * axes[i, 0, 1] + rot[0, 2] * axes[i, 0, 2])
         uy = radius_scale * (rot[1, 0] * axes[i, 0, 0] + rot[1, 1] * axes[i, 0, 1] + rot[1, 2] * axes[i, 0, 2])
         uz = radius_scale * (rot[2, 0] * axes[i, 0, 0] + rot[2, 1] * axes[i, 0, 1] + rot[2, 2] * axes[i, 0, 2])
@@ -132,6 +146,33 @@ def setup_splats(positions, origin, view, normals, colors, axes, intr, ortho, ne
         row[DZ] = min(cutoff * math.sqrt(gx * gx * n00 + 2 * gx * gy * m01 + gy * gy * n11), depth_clamp * radius)
         # Threshold: the splat's own depth range over its footprint is one surface, plus z_t.
         row[ZT] = depth_offset * radius + row[DZ]
+        # A clip line a s + b t <= c of the local coordinates (s, t) = J^-1 dx / radius_scale
+        # becomes the pixel half-plane (a, b) adj(J) dx / (det J radius_scale) <= c.
+        for line in range(2):
+            a, b, cl = lines[line, 0], lines[line, 1], lines[line, 2]
+            col = P0A + 3 * line
+            if abs(det_j) > 1e-12 and cl < 1:
+                inv_det = np.float32(1.0) / (det_j * radius_scale)
+                row[col] = (a * j11 - b * j10) * inv_det
+                row[col + 1] = (b * j00 - a * j01) * inv_det
+                row[col + 2] = cl
+            else:  # edge-on (the line is a point) or inactive: cuts nothing
+                row[col], row[col + 1], row[col + 2] = 0, 0, 1
+        if abs(det_j) > 1e-12:
+            inv = np.float32(1.0) / det_j
+            row[I00], row[I01], row[I10], row[I11] = j11 * inv, -j01 * inv, -j10 * inv, j00 * inv
+        else:
+            row[I00], row[I01], row[I10], row[I11] = 0, 0, 0, 0
+        alpha = flip * fields[i * field_step, 0] / max(math.sqrt(ux * ux + uy * uy + uz * uz), np.float32(1e-30))
+        beta = flip * fields[i * field_step, 1] / max(math.sqrt(vx * vx + vy * vy + vz * vz), np.float32(1e-30))
+        row[FUX], row[FUY], row[FUZ] = alpha * ux, alpha * uy, alpha * uz
+        row[FVX], row[FVY], row[FVZ] = beta * vx, beta * vy, beta * vz
+        # the direction to the eye, for the field's normals (_field_normal)
+        if ortho > 0:
+            row[EX], row[EY], row[EZ] = 0, 0, 1
+        else:
+            inv_d = np.float32(1.0) / math.sqrt(ex * ex + ey * ey + ez * ez)
+            row[EX], row[EY], row[EZ] = -ex * inv_d, -ey * inv_d, -ez * inv_d
         c = i * color_step
         row[R], row[G], row[B] = colors[c, 0], colors[c, 1], colors[c, 2]
         row[NX], row[NY], row[NZ] = nx, ny, nz
@@ -179,8 +220,37 @@ def _span(s, conic, yc, x_lo, x_hi, cutoff2):
     return max(int(math.ceil(left - 0.5)), x_lo), min(int(math.floor(right - 0.5)), x_hi), dy
 
 
+@nb.njit(inline="always", fastmath=True)
+def _clipped(s, dx, dy):
+    """Whether the pixel offset (dx, dy) lies beyond one of the splat's clip lines."""
+    return s[P0A] * dx + s[P0B] * dy > s[P0C] or s[P1A] * dx + s[P1B] * dy > s[P1C]
+
+
+@nb.njit(inline="always", fastmath=True)
+def _field_normal(s, dx, dy):
+    """The unit normal N(u, v) = n + u alpha u^ + v beta v^ at the pixel offset (dx, dy), with
+    (u, v) = J^-1 (dx, dy) kept within the splat's rim (the low-pass fringe of an edge-on
+    splat lies far out in (u, v), where the linear field means nothing), turned no further
+    than edge-on (as gl/common.glsl field_normal: past the silhouette it would face away, and
+    two-sided shading would light it as if it faced the viewer again)."""
+    u = s[I00] * dx + s[I01] * dy
+    v = s[I10] * dx + s[I11] * dy
+    length2 = u * u + v * v
+    if length2 > 1:
+        scale = np.float32(1.0) / math.sqrt(length2)
+        u *= scale
+        v *= scale
+    nx = s[NX] + u * s[FUX] + v * s[FVX]
+    ny = s[NY] + u * s[FUY] + v * s[FVY]
+    nz = s[NZ] + u * s[FUZ] + v * s[FVZ]
+    away = min(nx * s[EX] + ny * s[EY] + nz * s[EZ], np.float32(0.0))
+    nx, ny, nz = nx - away * s[EX], ny - away * s[EY], nz - away * s[EZ]
+    inv = np.float32(1.0) / max(math.sqrt(nx * nx + ny * ny + nz * nz), np.float32(1e-20))
+    return nx * inv, ny * inv, nz * inv
+
+
 @nb.njit(parallel=True, fastmath=True, cache=True)
-def rasterize_tiles(splats, box, offsets, index, order, tiles_x, width, height, cutoff2):
+def rasterize_tiles(splats, box, offsets, index, order, tiles_x, width, height, cutoff2, normal_field):
     """Accumulators (H, W, ACC_CHANNELS) float32 and the fragment count.
 
     Visibility (A-buffer in the spirit of Zwicker et al. 2001, Sec. 5): pass 1 stores per
@@ -188,6 +258,8 @@ def rasterize_tiles(splats, box, offsets, index, order, tiles_x, width, height, 
     fragment with depth <= Z into the front layer (channels 0-7), independent of drawing
     order, and the others into the back layer (channels 8-15) with a running threshold
     z-buffer, so partly covered front pixels can be composited over the surface behind.
+    With `normal_field`, a fragment's normal is the splat's linear normal field at its local
+    coordinates (Botsch, Spernat & Kobbelt 2004, eq. 8), else the splat's normal.
     """
     acc = np.zeros((height, width, ACC_CHANNELS), np.float32)
     fragments = np.zeros(order.shape[0], np.int64)
@@ -205,11 +277,21 @@ def rasterize_tiles(splats, box, offsets, index, order, tiles_x, width, height, 
         for j in range(start, stop):
             i = index[j]
             s = splats[i]
-            for y in range(max(box[i, 2], oy), min(box[i, 3], oy + th - 1) + 1):
-                x0, x1, dy = _span(s, VA, np.float32(y) + half, max(box[i, 0], ox), min(box[i, 1], ox + tw - 1), cutoff2)
+            x_lo, x_hi = max(box[i, 0], ox), min(box[i, 1], ox + tw - 1)
+            y_lo, y_hi = max(box[i, 2], oy), min(box[i, 3], oy + th - 1)
+            small = (x_hi - x_lo + 1) * (y_hi - y_lo + 1) <= SMALL_BOX
+            for y in range(y_lo, y_hi + 1):
+                if small:
+                    x0, x1, dy = x_lo, x_hi, np.float32(y) + half - s[MY]
+                else:
+                    x0, x1, dy = _span(s, VA, np.float32(y) + half, x_lo, x_hi, cutoff2)
                 zrow = zbuf[y - oy]
                 for x in range(x0, x1 + 1):
                     dx = np.float32(x) + half - s[MX]
+                    if small and s[VA] * dx * dx + np.float32(2.0) * s[VB] * dx * dy + s[VC] * dy * dy > cutoff2:
+                        continue
+                    if _clipped(s, dx, dy):
+                        continue
                     dz = min(max(s[GX] * dx + s[GY] * dy, -s[DZ]), s[DZ])
                     z = s[ZC] + dz + s[ZT]
                     if z < zrow[x - ox]:
@@ -218,13 +300,24 @@ def rasterize_tiles(splats, box, offsets, index, order, tiles_x, width, height, 
         for j in range(start, stop):
             i = index[j]
             s = splats[i]
-            for y in range(max(box[i, 2], oy), min(box[i, 3], oy + th - 1) + 1):
-                x0, x1, dy = _span(s, CA, np.float32(y) + half, max(box[i, 0], ox), min(box[i, 1], ox + tw - 1), cutoff2)
+            x_lo, x_hi = max(box[i, 0], ox), min(box[i, 1], ox + tw - 1)
+            y_lo, y_hi = max(box[i, 2], oy), min(box[i, 3], oy + th - 1)
+            small = (x_hi - x_lo + 1) * (y_hi - y_lo + 1) <= SMALL_BOX
+            for y in range(y_lo, y_hi + 1):
+                if small:
+                    x0, x1, dy = x_lo, x_hi, np.float32(y) + half - s[MY]
+                else:
+                    x0, x1, dy = _span(s, CA, np.float32(y) + half, x_lo, x_hi, cutoff2)
                 zrow = zbuf[y - oy]
                 brow = zback[y - oy]
                 lrow = local[y - oy]
                 for x in range(x0, x1 + 1):
                     dx = np.float32(x) + half - s[MX]
+                    q = s[CA] * dx * dx + np.float32(2.0) * s[CB] * dx * dy + s[CC] * dy * dy
+                    if small and q > cutoff2:
+                        continue
+                    if _clipped(s, dx, dy):
+                        continue
                     dz = min(max(s[GX] * dx + s[GY] * dy, -s[DZ]), s[DZ])
                     z = s[ZC] + dz
                     cell = lrow[x - ox]
@@ -240,15 +333,17 @@ def rasterize_tiles(splats, box, offsets, index, order, tiles_x, width, height, 
                             cell[LAYER:] = 0
                         if z < zb:
                             brow[x - ox] = z
-                    q = s[CA] * dx * dx + np.float32(2.0) * s[CB] * dx * dy + s[CC] * dy * dy
                     w = s[WS] * math.exp(np.float32(-0.5) * q)
+                    nx, ny, nz = s[NX], s[NY], s[NZ]
+                    if normal_field:
+                        nx, ny, nz = _field_normal(s, dx, dy)
                     cell[base] += w * s[R]
                     cell[base + 1] += w * s[G]
                     cell[base + 2] += w * s[B]
                     cell[base + 3] += w
-                    cell[base + 4] += w * s[NX]
-                    cell[base + 5] += w * s[NY]
-                    cell[base + 6] += w * s[NZ]
+                    cell[base + 4] += w * nx
+                    cell[base + 5] += w * ny
+                    cell[base + 6] += w * nz
                     cell[base + 7] += w * z
                     count += 1
         acc[oy:oy + th, ox:ox + tw] = local[:th, :tw]

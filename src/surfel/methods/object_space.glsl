@@ -31,6 +31,9 @@ in float in_weight;          // 1 / (sum of the neighbouring kernels at this sur
 #endif
 out float v_depth;           // eye depth, interpolated perspective-correctly over the planar quad
 out vec2 v_texcoord;         // v of eq. 5
+out vec2 v_local;            // the point in splat coordinates (1 on the rim of the unscaled splat)
+flat out vec3 v_clip0;       // clip lines at sharp features, in those coordinates
+flat out vec3 v_clip1;
 flat out vec3 v_normal;      // eye space, facing the camera
 flat out vec3 v_color;
 flat out float v_alpha;      // the constant 1/(r0 r1) of eq. 4 times the surfel's weight
@@ -65,6 +68,7 @@ void main() {
     // back along the viewing ray by z_t.
     vec3 p = c + (2.0 * v.x - 1.0) * au + (2.0 * v.y - 1.0) * av;
     v_depth = -p.z + u_depth_offset * radius;
+    v_local = (2.0 * v - 1.0) * u_radius_scale;
 #else
     // Orthonormal tangent frame (s, t) and the reconstruction variance V_k in it.
     vec3 s = normalize(au);
@@ -93,6 +97,7 @@ void main() {
     vec2 u = rot * (vec2(r0, r1) * y);
     vec3 p = c + u.x * s + u.y * t;
     v_depth = -p.z;
+    v_local = u_radius_scale * vec2(dot(p - c, au) / dot(au, au), dot(p - c, av) / dot(av, av));
 #ifdef PER_SURFEL_NORMALIZATION
     v_alpha = in_weight / (r0 * r1);
 #else
@@ -100,6 +105,8 @@ void main() {
 #endif
 #endif
     v_texcoord = v;
+    v_clip0 = in_clip0;
+    v_clip1 = in_clip1;
     v_normal = n;
     v_color = in_color;
     gl_Position = u_projection * vec4(p, 1.0);
@@ -111,6 +118,9 @@ void main() {
 #ifndef PASS_NORMALIZE
 in float v_depth;
 in vec2 v_texcoord;
+in vec2 v_local;
+flat in vec3 v_clip0;
+flat in vec3 v_clip1;
 flat in vec3 v_normal;
 flat in vec3 v_color;
 flat in float v_alpha;
@@ -119,10 +129,12 @@ flat in float v_alpha;
 #ifdef PASS_VISIBILITY
 layout(location = 0) out vec4 out_depth;
 void main() {
-    // Coverage of the disk inscribed in the square: the pixel centre's signed distance to its
-    // rim in pixels, from the screen-space gradient of the disk distance.
-    float rho = length(2.0 * v_texcoord - 1.0);
+    // Coverage of the disk inscribed in the square, cut at its clip lines: the pixel centre's
+    // signed distance to that edge in pixels, from the screen-space gradient of the distance.
+    float clipped = clip_excess(v_local, v_clip0, v_clip1);
+    float rho = max(length(2.0 * v_texcoord - 1.0), 1.0 + clipped);
     float coverage = clamp(0.5 + (1.0 - rho) / max(length(vec2(dFdx(rho), dFdy(rho))), 1e-6), 0.0, 1.0);
+    if (clipped > 0.0) discard;  // the square ends at sharp features
     out_depth = vec4(v_depth, 1.0 - coverage, 0.0, 0.0);  // MIN blending: nearest, most covering
 }
 #endif
@@ -131,6 +143,7 @@ void main() {
 layout(location = 0) out vec4 out_color;   // (w rgb, w)
 layout(location = 1) out vec4 out_normal;  // (w n, w z)
 void main() {
+    if (clip_excess(v_local, v_clip0, v_clip1) > 0.0) discard;  // beyond a sharp feature
     if (v_depth > texelFetch(u_visibility, ivec2(gl_FragCoord.xy), 0).r) discard;  // occluded
     float w = v_alpha * texture(u_kernel, v_texcoord).r;
     out_color = vec4(w * v_color, w);

@@ -35,6 +35,8 @@ flat out float v_radius;    // largest semi-axis
 flat out float v_weight;    // EWA_FILTER: the resampling kernel's relative amplitude
 flat out vec3 v_field_u;    // alpha u_j and beta v_j: the normal field's slopes (eye space)
 flat out vec3 v_field_v;
+flat out vec3 v_clip0;      // clip lines in local coordinates (sharp features)
+flat out vec3 v_clip1;
 
 vec2 to_pixels(vec3 eye) {
     if (u_ortho > 0.0) return vec2(u_intrinsics.z + u_ortho * eye.x, u_intrinsics.w - u_ortho * eye.y);
@@ -108,6 +110,8 @@ void main() {
     v_color = in_color;
 #endif
     v_center_px = center_px;
+    v_clip0 = in_clip0;
+    v_clip1 = in_clip1;
     v_radius = max(length(au), length(av));
     v_offset = u_depth_offset * v_radius;
 }
@@ -127,13 +131,16 @@ flat in float v_radius;
 flat in float v_weight;
 flat in vec3 v_field_u;
 flat in vec3 v_field_v;
+flat in vec3 v_clip0;
+flat in vec3 v_clip1;
 
 // Squared distance of the fragment to the splat centre in the kernel's unit domain, and the
 // eye depth of the splat's plane seen there: the exact ray-plane intersection (perspective
 // accurate). Low-pass fragments outside the disk keep the plane's depth too, so coplanar
 // neighbours agree at grazing angles, where a pixel's footprint spans many splat radii in
-// depth; only near-parallel rays are clamped to the splat's depth range.
-float splat_distance(out float eye_depth, out vec2 local_uv) {
+// depth; only near-parallel rays are clamped to the splat's depth range. `clipped` is the
+// clip_excess of the fragment: a splat cut at a sharp feature ends at its clip lines.
+float splat_distance(out float eye_depth, out vec2 local_uv, out float clipped) {
     vec3 o, d;
     pixel_ray(gl_FragCoord.xy, o, d);
     float denom = dot(d, v_normal);
@@ -141,12 +148,14 @@ float splat_distance(out float eye_depth, out vec2 local_uv) {
     float extent = DEPTH_CLAMP * v_radius;
     eye_depth = -v_center.z;
     local_uv = vec2(0.0);
+    clipped = 0.0;
     if (abs(denom) > 1e-12) {
         vec3 q = o + d * (dot(v_center - o, v_normal) / denom);
         vec3 local = q - v_center;
         float u = dot(local, v_u), v = dot(local, v_v);
         rho2 = u * u + v * v;
         local_uv = vec2(u, v);
+        clipped = clip_excess(local_uv * u_radius_scale, v_clip0, v_clip1) / u_radius_scale;
         eye_depth = clamp(-q.z, -v_center.z - extent, -v_center.z + extent);
     }
 #ifdef EWA_FILTER
@@ -160,15 +169,15 @@ float splat_distance(out float eye_depth, out vec2 local_uv) {
 #ifdef PASS_VISIBILITY
 layout(location = 0) out vec4 out_depth;
 void main() {
-    float z;
+    float z, clipped;
     vec2 uv;
-    float rho2 = splat_distance(z, uv);
+    float rho2 = splat_distance(z, uv, clipped);
     // Coverage for anti-aliased silhouettes: the pixel centre's signed distance to the
-    // splat's edge in pixels, from the screen-space gradient of the kernel distance (taken
-    // before any discard, while the whole 2x2 fragment quad is alive).
-    float rho = sqrt(rho2);
+    // splat's edge (its rim or a clip line) in pixels, from the screen-space gradient of the
+    // kernel distance (taken before any discard, while the whole 2x2 fragment quad is alive).
+    float rho = max(sqrt(rho2), 1.0 + clipped);
     float coverage = clamp(0.5 + (1.0 - rho) / max(length(vec2(dFdx(rho), dFdy(rho))), 1e-6), 0.0, 1.0);
-    if (rho2 > 1.0) discard;
+    if (rho > 1.0) discard;
     // a low-pass fragment lies off the disk: it must not hide surfaces nearer than the disk's
     // far end, or edge-on splats punch wrong normals into the visible surface
     if (dot(uv, uv) > 1.0) z = max(z, -v_center.z + v_radius);
@@ -180,15 +189,15 @@ void main() {
 layout(location = 0) out vec4 out_color;   // (w rgb, w)
 layout(location = 1) out vec4 out_normal;  // (w n, w z)
 void main() {
-    float z;
+    float z, clipped;
     vec2 uv;
-    float rho2 = splat_distance(z, uv);
-    if (rho2 > 1.0) discard;
+    float rho2 = splat_distance(z, uv, clipped);
+    if (rho2 > 1.0 || clipped > 0.0) discard;
     if (z > texelFetch(u_visibility, ivec2(gl_FragCoord.xy), 0).r) discard;  // behind the visible surface
     float w = v_weight * texture(u_kernel, vec2(rho2, 0.5)).r;
     out_color = vec4(w * v_color, w);
 #ifdef NORMAL_FIELD
-    vec3 n = normalize(v_normal + uv.x * v_field_u + uv.y * v_field_v);
+    vec3 n = field_normal(v_normal + uv.x * v_field_u + uv.y * v_field_v, v_center);
 #else
     vec3 n = v_normal;
 #endif

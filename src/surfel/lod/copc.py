@@ -1,0 +1,457 @@
+"""COPC (Cloud-Optimized Point Cloud, https://copc.io) as a lazy LOD source: `CopcSource`.
+
+A COPC file is a LAS 1.4 LAZ file (point format 6, 7 or 8) whose points are stored as an
+octree: the COPC info VLR (first VLR) gives the root cube (centre c, half size h) and the
+root spacing s_0; node (d, x, y, z) is the cube of side 2h / 2^d at c - h + (x, y, z) 2h / 2^d,
+and its points form one variable-size LAZ chunk. The hierarchy EVLR holds pages of 32-byte
+entries (key d, x, y, z int32; offset uint64; byte size int32; point count int32, -1 meaning
+"a child hierarchy page at offset"). The octree is ADDITIVE: every point is stored once, in the
+coarsest node whose sampling picked it, so the union of the nodes down to depth d is a sample
+of spacing about
+
+    s_d = s_0 / 2^d.
+
+This is the LOD idea of sequential point trees (Dachsbacher, Vogelgsang & Stamminger 2003;
+survey section 2.2) on a file format other tools share, and like QSplat (Rusinkiewicz & Levoy
+2000) the hierarchy is walked from the root and refined where a node's spacing projects to more
+than eps pixels:
+
+    refine(node) <=> s_d * k / z_min(node) > eps,   k = fy (perspective; z_min the nearest eye
+                                                     depth of the cube) or H / ortho_height,
+
+skipping nodes whose cube (grown by the largest splat it can hold) lies outside the view
+frustum. Nodes are visited coarsest level first and nearest first, so a point budget stops the
+refinement where it does least harm; the error actually reached is reported as epsilon_used.
+Only the hierarchy pages and the chunks of the selected nodes are read from the file.
+
+Splat sizes. A point whose deepest loaded node at its location is at depth D lies in a sample
+of spacing s_D: every occupied cell of side s_D holds a sample, so every surface point is
+within sqrt(3) s_D of one (within sqrt(2) s_D on a horizontal surface). The splat radius is
+
+    r = max(r_own, COVER * s_D)    (s_D = 0 where the file holds no finer points there),
+
+r_own the stored radius (extra-bytes dimension "radius") or, for files without one, the
+covering radius `surfel.preprocess` estimates on the selected points. Normals come from the
+extra-bytes dimensions normal_x/y/z when present, else PCA on the selection, facing up (+Z).
+Colours: RGB (16-bit fields; divided by 255 when no value exceeds 255), else intensity as grey.
+
+`write_copc` (copc_write.py) writes a surfel cloud as COPC with these extra bytes.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+import os
+import struct
+from dataclasses import dataclass
+
+import laspy
+import lazrs
+import numpy as np
+
+from ..camera import Camera
+from ..cloud import PointCloud
+from ..errors import InputError
+from ..io.las import _check_header
+
+VLR_HEADER = struct.Struct("<H16sHH32s")     # reserved, user id, record id, length, description
+EVLR_HEADER = struct.Struct("<H16sHQ32s")
+INFO = struct.Struct("<3dddQQdd88x")         # centre, halfsize, spacing, root page offset/size, gps
+ENTRY = struct.Struct("<4iQii")              # key d, x, y, z; offset; byte size; point count
+COVER = math.sqrt(3)                         # splat radius / spacing that covers a cell's diagonal
+NORMAL_NAMES = (("normal_x", "normal_y", "normal_z"), ("NormalX", "NormalY", "NormalZ"))
+RADIUS_NAMES = ("radius", "Radius")
+SURFEL_VLR = b"surfel"                       # user id of the VLR holding {"geospatial": bool}
+CLIP_NAMES = tuple(f"clip{line}_{part}" for line in range(2) for part in "abc")
+INACTIVE_CLIP = (0.0, 0.0, 1.0)              # a u + b v <= 1 cuts nothing (surfel.preprocess)
+# what the cut needs decoded (LAZ 1.4 skips the other fields' layers: gps time, angles, ...)
+_DECODE = lazrs.DecompressionSelection(
+    lazrs.SELECTIVE_DECOMPRESS_XY_RETURNS_CHANNEL | lazrs.SELECTIVE_DECOMPRESS_Z
+    | lazrs.SELECTIVE_DECOMPRESS_RGB | lazrs.SELECTIVE_DECOMPRESS_INTENSITY
+    | lazrs.SELECTIVE_DECOMPRESS_ALL_EXTRA_BYTES)
+_KEY_BITS = 20                               # per coordinate in the packed key codes: depth <= 20
+
+
+def key_code(d: np.ndarray | int, x, y, z) -> np.ndarray:
+    """Pack octree keys into int64 codes (depth in the top bits) for set lookups."""
+    d, x, y, z = (np.asarray(v, np.int64) for v in (d, x, y, z))
+    return (d << (3 * _KEY_BITS)) | (x << (2 * _KEY_BITS)) | (y << _KEY_BITS) | z
+
+
+@dataclass(frozen=True)
+class Entry:
+    """One hierarchy entry: a node's chunk (count > 0), a child page (count -1), or empty."""
+    offset: int
+    byte_size: int
+    point_count: int
+
+
+class _CountingFile:
+    """A read-only binary file that counts the bytes it returns (a context manager)."""
+
+    def __init__(self, path: str):
+        self._file = open(path, "rb")  # noqa: SIM115 - closed by __exit__
+        self.bytes_read = 0
+
+    def __enter__(self) -> _CountingFile:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._file.close()
+
+    def read_at(self, offset: int, size: int) -> bytes:
+        self._file.seek(offset)
+        data = self._file.read(size)
+        self.bytes_read += len(data)
+        return data
+
+
+class CopcSource:
+    """A COPC file opened lazily: header, info VLR and root hierarchy page only.
+
+    The LodSource protocol of surfel.lod.source: `select(camera, epsilon, point_budget)`
+    returns the view's cut as a PointCloud ready for any splat method, and stats.
+    """
+
+    geospatial = True  # LAS: +Z up, unless a surfel VLR says otherwise
+
+    def __init__(self, path: str | os.PathLike):
+        self.path = os.fspath(path)
+        _check_header(self.path)  # the sanity checks of plain LAS/LAZ: sizes, (E)VLR bounds
+        self.size = os.path.getsize(self.path)
+        self.bytes_read = 0
+        self._entries: dict[int, Entry] = {}
+        self._codes = np.zeros(0, np.int64)
+        with _CountingFile(self.path) as file:
+            self._read_header(file)
+            self._read_page(file, self.info_root_offset, self.info_root_size)
+        self.bytes_read += file.bytes_read
+        if key_code(0, 0, 0, 0).item() not in self._entries:
+            raise InputError(self.path, "COPC hierarchy has no root node")
+        self._rgb_scale: float | None = None      # 255 or 65535, fixed by the first cut
+        self._intensity_scale: float | None = None
+
+    # ---- opening --------------------------------------------------------------------------
+    def _read_header(self, file: _CountingFile) -> None:
+        head = file.read_at(0, 375)
+        if head[24:26] != b"\x01\x04":
+            raise InputError(self.path, "not a COPC file (COPC needs LAS 1.4)")
+        header_size, point_offset = struct.unpack_from("<HI", head, 94)
+        vlr_data = file.read_at(0, point_offset)
+        try:
+            self.header = laspy.LasHeader.read_from(io.BytesIO(vlr_data))
+        except Exception as error:  # laspy raises many types; all mean a bad header here
+            raise InputError(self.path, f"cannot read the LAS header: {_first_line(error)}") from error
+        user, record = (VLR_HEADER.unpack_from(vlr_data, header_size)[1:3]
+                        if len(vlr_data) >= header_size + VLR_HEADER.size + INFO.size else (b"", 0))
+        if user.rstrip(b"\0") != b"copc" or record != 1:
+            raise InputError(self.path, "not a COPC file (the first VLR is not the COPC info VLR)")
+        info = INFO.unpack_from(vlr_data, header_size + VLR_HEADER.size)
+        self.octree_center = np.array(info[:3])
+        self.halfsize, self.spacing = float(info[3]), float(info[4])
+        self.info_root_offset, self.info_root_size = int(info[5]), int(info[6])
+        if not (self.halfsize > 0 and self.spacing > 0):
+            raise InputError(self.path, "COPC info VLR has a non-positive half size or spacing")
+        laszip = [v for v in self.header.vlrs if v.user_id == "laszip encoded"]
+        if not laszip:
+            raise InputError(self.path, "not a COPC file (no LAZ VLR: points are not compressed)")
+        self._laszip = laszip[0].record_data
+        self.point_format = self.header.point_format
+        names = set(self.point_format.dimension_names)
+        flags = [v for v in self.header.vlrs if v.user_id == SURFEL_VLR.decode()]
+        if flags:  # written by surfel: keeps the input's up axis (+Y for meshes)
+            try:
+                self.geospatial = bool(json.loads(flags[0].record_data)["geospatial"])
+            except (ValueError, KeyError, TypeError) as error:
+                raise InputError(self.path, "the surfel VLR is not valid JSON with 'geospatial'") from error
+        self._normal_names = next((n for n in NORMAL_NAMES if set(n) <= names), None)
+        self._radius_name = next((n for n in RADIUS_NAMES if n in names), None)
+        self._clip_names = CLIP_NAMES if set(CLIP_NAMES) <= names else None
+        self.total_points = int(self.header.point_count)
+        lo, hi = np.asarray(self.header.mins, np.float64), np.asarray(self.header.maxs, np.float64)
+        self.bounds = (lo, hi)
+
+    def _read_page(self, file: _CountingFile, offset: int, size: int) -> None:
+        if size % ENTRY.size or offset + size > self.size or size <= 0:
+            raise InputError(self.path, f"COPC hierarchy page at {offset} ({size} bytes) does not fit the file")
+        data = file.read_at(offset, size)
+        for d, x, y, z, off, nbytes, count in ENTRY.iter_unpack(data):
+            if count > 0 and (off + nbytes > self.size or nbytes <= 0):
+                raise InputError(self.path, f"COPC node {d}-{x}-{y}-{z} points past the end of the file "
+                                            f"(truncated?)")
+            if count == -1 and (off + nbytes > self.size or nbytes % ENTRY.size):
+                raise InputError(self.path, f"COPC hierarchy page of node {d}-{x}-{y}-{z} does not fit the file")
+            if not 0 <= d <= _KEY_BITS or min(x, y, z) < 0 or max(x, y, z) >= 1 << d:
+                raise InputError(self.path, f"COPC hierarchy has an invalid key {d}-{x}-{y}-{z}")
+            self._entries[key_code(d, x, y, z).item()] = Entry(off, nbytes, count)
+
+    # ---- LodSource properties -------------------------------------------------------------
+    @property
+    def center(self) -> np.ndarray:
+        lo, hi = self.bounds
+        return (lo + hi) / 2
+
+    @property
+    def bounding_radius(self) -> float:
+        lo, hi = self.bounds
+        return max(float(np.linalg.norm(hi - lo)) / 2, 1e-9)
+
+    def describe(self) -> dict:
+        """What `surfel info` shows: counts and the octree, without reading any points."""
+        depths = [code >> (3 * _KEY_BITS) for code, e in self._entries.items() if e.point_count]
+        return {"format": "COPC", "points": self.total_points, "point_format": self.point_format.id,
+                "file_bytes": self.size, "spacing": self.spacing, "halfsize": self.halfsize,
+                "nodes_in_root_page": len(self._entries), "depth": max(depths) if depths else 0,
+                "normals": self._normal_names is not None, "radii": self._radius_name is not None}
+
+    # ---- selection ------------------------------------------------------------------------
+    def select(self, camera: Camera, epsilon: float, point_budget: int | None = None
+               ) -> tuple[PointCloud, dict]:
+        """The cut for this view at `epsilon` pixels (see the module docstring) and its stats."""
+        if not epsilon > 0:
+            raise ValueError(f"epsilon must be positive, got {epsilon}")
+        with _CountingFile(self.path) as file:
+            nodes, epsilon_used = self._cut(file, camera, float(epsilon), point_budget)
+            keys, counts, records = self._read_points(file, nodes)
+        bytes_read = file.bytes_read
+        self.bytes_read += bytes_read
+        cloud, estimated = self._cloud(keys, counts, records)
+        stats = {"nodes_loaded": len(nodes), "bytes_read": bytes_read, "file_bytes": self.size,
+                 "points_selected": len(cloud), "epsilon_used": epsilon_used,
+                 "depth_loaded": int(keys[:, 0].max())}
+        if estimated:
+            stats["estimated"] = estimated
+        return cloud, stats
+
+    def _cut(self, file: _CountingFile, camera: Camera, epsilon: float, budget: int | None
+             ) -> tuple[list[tuple[tuple[int, int, int, int], Entry]], float]:
+        """Breadth-first refinement: (key, entry) of the nodes to load, and the eps reached."""
+        frontier = np.zeros((1, 4), np.int64)
+        selected: list[tuple[tuple[int, int, int, int], Entry]] = []
+        total = 0
+        epsilon_used = epsilon
+        k = camera.pixel_scale()
+        while len(frontier):
+            depth = int(frontier[0, 0])
+            spacing = self.spacing / 2.0 ** depth
+            side = 2 * self.halfsize / 2.0 ** depth
+            lo = self.octree_center - self.halfsize + frontier[:, 1:] * side
+            # the node's cube, shrunk to the data's bounds, grown by the splats it can hold
+            pad = COVER * spacing
+            visible, z_min = _frustum(camera, np.maximum(lo, self.bounds[0]) - pad,
+                                      np.minimum(lo + side, self.bounds[1]) + pad)
+            if camera.ortho_height is None:
+                pixels = spacing * k / np.maximum(z_min, 1e-12)
+            else:
+                pixels = np.full(len(frontier), spacing * k)
+            order = np.flatnonzero(visible)[np.argsort(z_min[visible], kind="stable")]
+            refine = []
+            for position, i in enumerate(order):
+                entry = self._entry(file, frontier[i])  # culled nodes' pages are never read
+                if budget is not None and selected and total + entry.point_count > budget:
+                    # Where the nodes left out would go, their parents are the finest data:
+                    # a parent's spacing is twice theirs and it is no farther away.
+                    epsilon_used = max(epsilon_used, float(2 * pixels[order[position:]].max()))
+                    return selected, epsilon_used
+                if entry.point_count > 0:
+                    selected.append((tuple(int(v) for v in frontier[i]), entry))
+                    total += entry.point_count
+                if pixels[i] > epsilon:
+                    refine.append(frontier[i])
+            frontier = self._existing_children(np.array(refine, np.int64).reshape(-1, 4))
+        if not selected:  # nothing in view: the coarsest nodes, so that the cut is not empty
+            coarsest = min(code >> (3 * _KEY_BITS) for code, e in self._entries.items() if e.point_count > 0)
+            selected = [(_decode(code), e) for code, e in self._entries.items()
+                         if e.point_count > 0 and code >> (3 * _KEY_BITS) == coarsest]
+        return selected, epsilon_used
+
+    def _entry(self, file: _CountingFile, key: np.ndarray) -> Entry:
+        """The entry of an existing key, reading its hierarchy page first if it has one."""
+        code = key_code(*key).item()
+        entry = self._entries[code]
+        if entry.point_count == -1:
+            self._read_page(file, entry.offset, entry.byte_size)
+            entry = self._entries[code]
+            if entry.point_count == -1:
+                raise InputError(self.path, f"COPC hierarchy page for node {'-'.join(map(str, key))} "
+                                            f"does not describe that node")
+        return entry
+
+    def _existing_children(self, parents: np.ndarray) -> np.ndarray:
+        """The children (M, 4) of `parents` that the hierarchy lists."""
+        if not len(parents):
+            return parents
+        bits = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0],
+                         [0, 0, 1], [1, 0, 1], [0, 1, 1], [1, 1, 1]], np.int64)
+        xyz = (parents[:, None, 1:] * 2 + bits[None]).reshape(-1, 3)
+        children = np.column_stack([np.full(len(xyz), parents[0, 0] + 1), xyz])
+        return children[self._exists(key_code(*children.T))]
+
+    def _exists(self, codes: np.ndarray) -> np.ndarray:
+        """Which key codes the hierarchy read so far lists (a child page's root is listed)."""
+        if len(self._codes) != len(self._entries):
+            self._codes = np.array(sorted(self._entries), np.int64)
+        return _member(codes, self._codes)
+
+    def _read_points(self, file: _CountingFile, nodes: list
+                     ) -> tuple[np.ndarray, np.ndarray, laspy.PackedPointRecord]:
+        """Read and decompress the chunks of `nodes` (contiguous ones in one read).
+
+        Returns the node keys (M, 4) in file order, their point counts (M,) and the decoded
+        point records (each node's points contiguous, in that order).
+        """
+        nodes = sorted(nodes, key=lambda node: node[1].offset)
+        buffers, start, end = [], None, None
+        for _, entry in nodes:
+            if entry.offset != end:
+                if start is not None:
+                    buffers.append(file.read_at(start, end - start))
+                start = entry.offset
+            end = entry.offset + entry.byte_size
+        buffers.append(file.read_at(start, end - start))
+        compressed = b"".join(buffers)
+        count = sum(entry.point_count for _, entry in nodes)
+        if len(compressed) != sum(entry.byte_size for _, entry in nodes):
+            raise InputError(self.path, "COPC point data is truncated")
+        out = np.zeros(count * self.point_format.size, np.uint8)
+        table = [(entry.point_count, entry.byte_size) for _, entry in nodes]
+        try:
+            lazrs.decompress_points_with_chunk_table(compressed, self._laszip, out, table, _DECODE)
+        except BaseException as error:  # lazrs errors, or a Rust panic (a BaseException): bad data
+            if not isinstance(error, Exception) and type(error).__name__ != "PanicException":
+                raise
+            raise InputError(self.path, f"cannot decompress COPC points: {_first_line(error)}") from error
+        record = laspy.PackedPointRecord.from_buffer(out, self.point_format)
+        keys = np.array([key for key, _ in nodes], np.int64)
+        return keys, np.array([entry.point_count for _, entry in nodes]), record
+
+    # ---- the cloud ------------------------------------------------------------------------
+    def _cloud(self, keys: np.ndarray, counts: np.ndarray, record: laspy.PackedPointRecord
+               ) -> tuple[PointCloud, dict]:
+        scales, offsets = self.header.scales, self.header.offsets
+        positions = np.column_stack([record["X"] * scales[0] + offsets[0], record["Y"] * scales[1] + offsets[1],
+                                     record["Z"] * scales[2] + offsets[2]])
+        if not np.isfinite(positions).all():
+            raise InputError(self.path, "COPC points have non-finite coordinates")
+        colors = self._colors(record)
+        region = self._region_spacing(positions, keys, counts)
+        normals = radii = None
+        if self._normal_names is not None:
+            normals = np.column_stack([np.asarray(record[n], np.float64) for n in self._normal_names])
+            if not np.isfinite(normals).all() or (np.linalg.norm(normals, axis=1) < 1e-6).any():
+                raise InputError(self.path, "COPC normals (extra bytes) are zero or not finite")
+        if self._radius_name is not None:
+            radii = np.asarray(record[self._radius_name], np.float32)
+            if not (np.isfinite(radii).all() and (radii > 0).all()):
+                raise InputError(self.path, "COPC radii (extra bytes) are not positive numbers")
+        cloud = PointCloud(positions, normals=normals, colors=colors, radii=radii,
+                           geospatial=self.geospatial, source=self.path)
+        estimated: dict = {}
+        if normals is None or radii is None:
+            from ..preprocess import prepare  # numba kernels: loaded only when needed
+
+            cloud, estimated = prepare(cloud, progress=False)
+        own = cloud.radii
+        radii = np.maximum(own, (COVER * region).astype(np.float32))
+        extras = dict(cloud.extras)
+        if self._clip_names is not None:
+            lines = np.column_stack([np.asarray(record[n], np.float32) for n in self._clip_names])
+            extras["clip_lines"] = lines.reshape(-1, 2, 3)
+        if "clip_lines" in extras:
+            # Clip lines cut a full-detail splat at a crease; a splat grown to cover the gaps
+            # of a coarse sample must not be cut by them.
+            extras["clip_lines"] = np.where((radii > own)[:, None, None], np.float32(INACTIVE_CLIP),
+                                            extras["clip_lines"])
+        from ..preprocess import (
+            tangent_frames,  # (numba module: imported when first needed)
+        )
+
+        return cloud.with_(radii=radii, axes=tangent_frames(cloud.normals, radii), extras=extras), estimated
+
+    def _region_spacing(self, positions: np.ndarray, keys: np.ndarray, counts: np.ndarray) -> np.ndarray:
+        """s_D of each point's deepest loaded node D, 0 where the file has nothing finer there.
+
+        keys (M, 4), counts (M,): the loaded nodes, whose points follow each other in that order.
+        """
+        loaded = np.sort(key_code(*keys.T))
+        top = int(keys[:, 0].max())
+        # only points of nodes with a loaded descendant can lie in a deeper loaded node
+        ancestors = [np.zeros(0, np.int64)]
+        for level in range(top):
+            deeper = keys[keys[:, 0] > level]
+            ancestors.append(key_code(level, *(deeper[:, 1:] >> (deeper[:, :1] - level)).T))
+        walk = np.flatnonzero(np.repeat(_member(key_code(*keys.T), np.unique(np.concatenate(ancestors))), counts))
+        deepest = np.repeat(keys[:, 0], counts)
+        unit = (positions - (self.octree_center - self.halfsize)) / (2 * self.halfsize)
+        for depth in range(top, 0, -1):
+            todo = walk[deepest[walk] < depth]
+            cell = np.clip(np.floor(unit[todo] * 2 ** depth), 0, 2 ** depth - 1).astype(np.int64)
+            deepest[todo[_member(key_code(depth, *cell.T), loaded)]] = depth
+        child = np.clip(np.floor(unit * (2.0 ** (deepest + 1))[:, None]), 0,
+                        (2 ** (deepest + 1) - 1)[:, None]).astype(np.int64)
+        finer = self._exists(key_code(deepest + 1, *child.T))
+        return np.where(finer, self.spacing / 2.0 ** deepest, 0.0)
+
+    def _colors(self, record: laspy.PackedPointRecord) -> np.ndarray | None:
+        names = set(self.point_format.dimension_names)
+        if {"red", "green", "blue"} <= names:
+            rgb = np.column_stack([record["red"], record["green"], record["blue"]]).astype(np.float32)
+            if self._rgb_scale is None and rgb.max() > 0:
+                self._rgb_scale = 255.0 if rgb.max() <= 255 else 65535.0
+            if self._rgb_scale is not None:
+                return np.minimum(rgb / self._rgb_scale, 1.0)
+        intensity = np.asarray(record["intensity"], np.float32)
+        if self._intensity_scale is None and intensity.max() > 0:
+            # fixed by the first cut (the coarse levels sample the whole file), so that the
+            # grey of a point does not change from view to view
+            self._intensity_scale = float(np.percentile(intensity, 99)) or float(intensity.max())
+        if self._intensity_scale is None:
+            return None
+        grey = np.clip(intensity / self._intensity_scale, 0, 1) * 0.8 + 0.2
+        return np.repeat(grey[:, None], 3, axis=1)
+
+
+def _frustum(camera: Camera, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Which boxes (M, 3) meet the view frustum (conservatively), and their nearest eye depth."""
+    corners = np.stack(np.meshgrid([0, 1], [0, 1], [0, 1], indexing="ij"), -1).reshape(8, 3)
+    points = np.where(corners[None] == 1, hi[:, None], lo[:, None])          # (M, 8, 3)
+    m = camera.world_to_eye
+    eye = points @ m[:3, :3].T + m[:3, 3]
+    depth = -eye[..., 2]
+    x, y = eye[..., 0], eye[..., 1]
+    w, h = camera.width, camera.height
+    if camera.ortho_height is None:
+        left, right = -camera.cx / camera.fx * depth, (w - camera.cx) / camera.fx * depth
+        down, up = (camera.cy - h) / camera.fy * depth, camera.cy / camera.fy * depth
+        ahead = (depth > 0).any(axis=1)
+    else:
+        s = camera.pixel_scale()
+        left, right, down, up = -camera.cx / s, (w - camera.cx) / s, (camera.cy - h) / s, camera.cy / s
+        ahead = np.ones(len(lo), bool)
+    outside = ((x < left).all(1) | (x > right).all(1) | (y < down).all(1) | (y > up).all(1))
+    # a box around the eye (or straddling its plane) has nearest depth 0: always refined
+    z_min = np.where((depth > 0).all(axis=1), depth.min(axis=1), 0.0)
+    return ahead & ~outside, z_min
+
+
+def _decode(code: int) -> tuple[int, int, int, int]:
+    """The key (d, x, y, z) of a key code."""
+    mask = (1 << _KEY_BITS) - 1
+    return (code >> (3 * _KEY_BITS), (code >> (2 * _KEY_BITS)) & mask, (code >> _KEY_BITS) & mask, code & mask)
+
+
+def _member(values: np.ndarray, sorted_set: np.ndarray) -> np.ndarray:
+    """values in sorted_set, by binary search (no sort of the many values, unlike np.isin)."""
+    if not len(sorted_set):
+        return np.zeros(len(values), bool)
+    index = np.minimum(np.searchsorted(sorted_set, values), len(sorted_set) - 1)
+    return sorted_set[index] == values
+
+
+def _first_line(error: Exception) -> str:
+    return (str(error).splitlines() or [type(error).__name__])[0][:120]
+
+
+__all__ = ["COVER", "CopcSource", "key_code"]

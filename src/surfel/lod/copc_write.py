@@ -1,0 +1,260 @@
+"""Write a point cloud as COPC (https://copc.io): `write_copc`.
+
+The octree (format in copc.py) is a cube from the bounds' minimum corner, half size h (half the
+largest extent), centre c = min + h (as Untwine, PDAL's COPC writer, places it), with root
+spacing s_0 = 2h / G. G, the root grid's cells per side, is the largest power of two up to
+MAX_ROOT_CELLS (Untwine's 128) whose occupied cells number at most a ROOT_SHARE of the points,
+so the root of a small model is a coarse preview, not most of the file. It is built top-down and additively: at depth d every node lays
+a grid of cells of side
+
+    s_d = s_0 / 2^d
+
+over its cube and keeps, of the points no coarser node took, the one nearest each occupied
+cell's centre (a Poisson-like subsample of spacing s_d, as Potree and Untwine do); the points
+it does not keep go down to its children. A node whose remaining points number at most
+LEAF_POINTS, or that reaches MAX_DEPTH, keeps them all and has no children. So every point is
+stored exactly once, and the nodes down to depth d are a sample of spacing about s_d (what the
+reader's splat radii assume). Node membership is decided on the quantized (stored) coordinates,
+so a reader recomputing a point's node from its decoded position finds the same one.
+
+The file: LAS 1.4, point format 7 (with RGB, 16-bit: round(65535 c)) or 6; VLRs: COPC info
+(first, as the spec requires), LAZ (variable-size chunks, one per node, coarse levels first so a
+far view reads one contiguous prefix), extra bytes normal_x, normal_y, normal_z, radius
+(float32: what COPC lacks and splatting needs), and when the cloud has sharp-feature clip lines
+(surfel.preprocess) clip0_a .. clip1_c; a "surfel" VLR with {"geospatial": bool} (a mesh or scan
+with +Y up stays +Y up: COPC readers otherwise assume +Z); after the points and the LAZ chunk table, the
+hierarchy EVLR with one page holding every node's entry. The file is written to a temporary
+name beside the target and renamed at the end.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import struct
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import laspy
+import lazrs
+import numpy as np
+
+from ..cloud import PointCloud
+from .copc import ENTRY, EVLR_HEADER, INFO, SURFEL_VLR, VLR_HEADER
+
+MAX_ROOT_CELLS = 128      # most grid cells per side of the root node (s_0 = 2h / cells)
+ROOT_SHARE = 1 / 8        # the root grid occupies at most this share of the points ...
+MIN_ROOT_CELLS = 8        # ... unless coarser than this
+LEAF_POINTS = 8192        # a node with at most this many points left keeps them all
+MAX_DEPTH = 12            # keeps cell indices (root cells * 2^d per axis) well inside int64
+HEADER_SIZE = 375
+EXTRA_NAMES = ("normal_x", "normal_y", "normal_z", "radius")
+# surfel.preprocess's sharp-feature clip lines (a u + b v <= c in splat coordinates), when present
+CLIP_NAMES = tuple(f"clip{line}_{part}" for line in range(2) for part in "abc")
+_EXTRA_BYTES = struct.Struct("<2xBB32s4x24x24x24x24x24x32s")  # one extra-bytes descriptor: 192
+_FLOAT32 = 9              # LAS extra-bytes data type of a float
+
+
+def write_copc(cloud: PointCloud, path: str | os.PathLike, *, leaf_points: int = LEAF_POINTS,
+               progress: Callable[[int, int], None] | None = None) -> dict:
+    """Write `cloud` (with normals and radii) as a COPC file; returns {points, nodes, depth, bytes}.
+
+    leaf_points: a node with at most this many points left keeps them all (module docstring).
+    progress(done, total) is called with points written so far after every node.
+    """
+    if cloud.normals is None or cloud.radii is None:
+        raise ValueError("write_copc needs normals and radii (complete the cloud first)")
+    scales, offsets = _quantization(cloud.positions)
+    ints = np.round((cloud.positions - offsets) / scales).astype(np.int64)
+    stored = ints * scales + offsets
+    lo, hi = stored.min(axis=0), stored.max(axis=0)
+    # the cube starts at the data's minimum corner, as Untwine's (PDAL's COPC writer) does
+    halfsize = max(float((hi - lo).max()) / 2, 1e-9) * (1 + 1e-6)
+    center = lo + halfsize
+    unit = (stored - lo) / (2 * halfsize)   # in [0, 1)
+    root_cells = _root_cells(unit)
+    spacing = 2 * halfsize / root_cells
+    keys, order = _octree(unit, root_cells, leaf_points)
+    fmt = laspy.PointFormat(7 if cloud.colors is not None else 6)
+    extra = EXTRA_NAMES + (CLIP_NAMES if "clip_lines" in cloud.extras else ())
+    for name in extra:
+        fmt.add_extra_dimension(laspy.ExtraBytesParams(name=name, type=np.float32))
+    record = _records(cloud, ints, fmt)
+    laz = lazrs.LazVlr.new_for_compression(fmt.id, fmt.num_extra_bytes, True)
+    vlrs = [_vlr(b"copc", 1, b"COPC info", bytes(INFO.size)),
+            _vlr(b"laszip encoded", 22204, b"lazrs variable chunks", laz.record_data()),
+            _vlr(b"LASF_Spec", 4, b"surfel normals and radii", _extra_bytes_payload(extra)),
+            _vlr(SURFEL_VLR, 1, b"surfel cloud", json.dumps({"geospatial": cloud.geospatial}).encode())]
+    point_offset = HEADER_SIZE + sum(len(v) for v in vlrs)
+    summary: dict = {}
+
+    def write(file) -> None:
+        file.write(bytes(point_offset))
+        compressor = lazrs.LasZipCompressor(file, laz)
+        compressor.reserve_offset_to_chunk_table()
+        entries = []
+        starts = np.flatnonzero(np.r_[True, np.any(keys[order][1:] != keys[order][:-1], axis=1)])
+        ends = np.r_[starts[1:], len(order)]
+        for number, (start, end) in enumerate(zip(starts, ends)):
+            offset = file.tell()
+            compressor.compress_many(record[order[start:end]].tobytes())
+            if number + 1 < len(starts):  # done() closes the last chunk (no empty chunk after it)
+                compressor.finish_current_chunk()
+                entries.append((*keys[order[start]], offset, file.tell() - offset, end - start))
+            if progress is not None:
+                progress(int(end), len(order))
+        compressor.done()
+        # the last chunk ends where done() wrote the chunk table; read the table's offset
+        file.seek(point_offset)
+        (table_offset,) = struct.unpack("<q", file.read(8))
+        entries.append((*keys[order[starts[-1]]], offset, table_offset - offset, len(order) - starts[-1]))
+        file.seek(0, os.SEEK_END)
+        evlr_offset = file.tell()
+        page = b"".join(ENTRY.pack(*(int(v) for v in entry)) for entry in entries)
+        file.write(EVLR_HEADER.pack(0, b"copc", 1000, len(page), b"COPC hierarchy") + page)
+        info = INFO.pack(*center, halfsize, spacing, evlr_offset + EVLR_HEADER.size, len(page), 0.0, 0.0)
+        vlrs[0] = _vlr(b"copc", 1, b"COPC info", info)
+        file.seek(0)
+        file.write(_header(fmt, len(vlrs), point_offset, len(cloud), scales, offsets, lo, hi, evlr_offset))
+        file.write(b"".join(vlrs))
+        summary.update(points=len(cloud), nodes=len(entries), depth=int(keys[:, 0].max()),
+                       bytes=evlr_offset + EVLR_HEADER.size + len(page))
+
+    target = Path(path)
+    fd, tmp = tempfile.mkstemp(dir=target.parent, prefix=f".{target.name}.", suffix=".tmp")
+    umask = os.umask(0)
+    os.umask(umask)
+    try:
+        os.chmod(tmp, 0o666 & ~umask)  # mkstemp creates 0600; give the file normal permissions
+        with os.fdopen(fd, "w+b") as file:  # read back: the chunk table's offset
+            write(file)
+        os.replace(tmp, target)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return summary
+
+
+def build_command(in_path: str | os.PathLike, out_path: str | os.PathLike,
+                  stats_path: str | os.PathLike | None = None) -> dict:
+    """`surfel lod build IN -o OUT.copc.laz [--stats FILE.json]`: load, complete, write COPC.
+
+    Stats: points, nodes, depth, bytes (of the file), ms (building the octree and compressing;
+    not reading the input or estimating its attributes), and what was estimated.
+    """
+    from ..io import load
+    from ..rendering import complete
+    from .format import _atomic_write
+
+    cloud, estimated = complete(load(in_path))
+    start = time.perf_counter()
+    stats = write_copc(cloud, out_path)
+    stats["ms"] = round((time.perf_counter() - start) * 1000, 3)
+    if estimated:
+        stats["estimated"] = estimated
+    if stats_path is not None:
+        text = json.dumps(stats, indent=2, default=str) + "\n"
+        _atomic_write(stats_path, lambda file: file.write(text.encode()))
+    return stats
+
+
+def _quantization(positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """LAS scale and offset: a power of ten that keeps 9 digits of the extent in int32."""
+    lo, hi = positions.min(axis=0), positions.max(axis=0)
+    offsets = np.round((lo + hi) / 2, 2)
+    span = max(float(np.abs(positions - offsets).max()), 1e-9)
+    scale = 10.0 ** math.ceil(math.log10(span / 1e9))
+    return np.full(3, scale), offsets
+
+
+def _root_cells(unit: np.ndarray) -> int:
+    """G of the module docstring, for positions `unit` scaled to the unit cube."""
+    cells = MAX_ROOT_CELLS
+    while cells > MIN_ROOT_CELLS:
+        cell = np.minimum(np.floor(unit * cells), cells - 1).astype(np.int64)
+        occupied = len(np.unique((cell[:, 0] * cells + cell[:, 1]) * cells + cell[:, 2]))
+        if occupied <= ROOT_SHARE * len(unit):
+            break
+        cells //= 2
+    return cells
+
+
+def _octree(unit: np.ndarray, root_cells: int, leaf_points: int) -> tuple[np.ndarray, np.ndarray]:
+    """Node keys (N, 4) of the additive octree (module docstring) of positions `unit` in the
+    unit cube, and the write order: points grouped by node, nodes by depth, then x, y, z."""
+    n = len(unit)
+    keys = np.full((n, 4), -1, np.int64)
+    remaining = np.arange(n)
+    for depth in range(MAX_DEPTH + 1):
+        if not len(remaining):
+            break
+        u = unit[remaining]
+        node = np.clip(np.floor(u * 2 ** depth), 0, 2 ** depth - 1).astype(np.int64)
+        cells = root_cells << depth
+        cell = np.clip(np.floor(u * cells), 0, cells - 1).astype(np.int64)
+        # nodes with few points left (or at the deepest level) keep them all
+        node_code = (node[:, 0] * (1 << depth) + node[:, 1]) * (1 << depth) + node[:, 2]
+        _, inverse, counts = np.unique(node_code, return_inverse=True, return_counts=True)
+        keep = (counts[inverse] <= leaf_points) | (depth == MAX_DEPTH)
+        # elsewhere the point nearest each occupied cell's centre
+        cell_code = (cell[:, 0] * cells + cell[:, 1]) * cells + cell[:, 2]
+        off_centre = ((u * cells - cell - 0.5) ** 2).sum(axis=1)
+        by_cell = np.lexsort((off_centre, cell_code))
+        first = by_cell[np.r_[True, cell_code[by_cell][1:] != cell_code[by_cell][:-1]]]
+        keep[first] = True
+        keys[remaining[keep]] = np.column_stack([np.full(int(keep.sum()), depth), node[keep]])
+        remaining = remaining[~keep]
+    order = np.lexsort((keys[:, 3], keys[:, 2], keys[:, 1], keys[:, 0]))
+    return keys, order
+
+
+def _records(cloud: PointCloud, ints: np.ndarray, fmt: laspy.PointFormat) -> np.ndarray:
+    """The LAS point records (structured array) in the input order."""
+    n = len(cloud)
+    record = laspy.PackedPointRecord.zeros(n, fmt)
+    for axis, name in enumerate("XYZ"):
+        record[name] = ints[:, axis].astype(np.int32)
+    record["return_number"] = np.ones(n, np.uint8)
+    record["number_of_returns"] = np.ones(n, np.uint8)
+    if cloud.colors is not None:
+        rgb = np.round(cloud.colors.astype(np.float64) * 65535).astype(np.uint16)
+        for axis, name in enumerate(("red", "green", "blue")):
+            record[name] = rgb[:, axis]
+    for axis, name in enumerate(EXTRA_NAMES[:3]):
+        record[name] = cloud.normals[:, axis]
+    record["radius"] = cloud.radii
+    if "clip_lines" in cloud.extras:
+        lines = cloud.extras["clip_lines"].reshape(n, len(CLIP_NAMES))
+        for column, name in enumerate(CLIP_NAMES):
+            record[name] = lines[:, column]
+    return record.array
+
+
+def _vlr(user: bytes, record_id: int, description: bytes, payload: bytes) -> bytes:
+    return VLR_HEADER.pack(0, user, record_id, len(payload), description) + payload
+
+
+def _extra_bytes_payload(names: tuple[str, ...]) -> bytes:
+    descriptions = {"normal_x": b"unit normal x", "normal_y": b"unit normal y",
+                    "normal_z": b"unit normal z", "radius": b"splat radius"}
+    return b"".join(_EXTRA_BYTES.pack(_FLOAT32, 0, name.encode(),
+                                      descriptions.get(name, b"splat clip line a u + b v <= c"))
+                    for name in names)
+
+
+def _header(fmt: laspy.PointFormat, vlr_count: int, point_offset: int, count: int, scales: np.ndarray,
+            offsets: np.ndarray, lo: np.ndarray, hi: np.ndarray, evlr_offset: int) -> bytes:
+    """The LAS 1.4 public header block (375 bytes)."""
+    head = struct.pack("<4sHH16sBB32s32sHHHIIBHI5I", b"LASF", 0, 0x10, bytes(16), 1, 4,
+                       b"surfel", b"surfel COPC writer", 1, 2026, HEADER_SIZE, point_offset,
+                       vlr_count, fmt.id | 0x80, fmt.size, 0, 0, 0, 0, 0, 0)
+    head += struct.pack("<3d3d6d", *scales, *offsets, hi[0], lo[0], hi[1], lo[1], hi[2], lo[2])
+    head += struct.pack("<QQIQ15Q", 0, evlr_offset, 1, count, count, *([0] * 14))
+    assert len(head) == HEADER_SIZE
+    return head
+
+
+__all__ = ["LEAF_POINTS", "build_command", "write_copc"]

@@ -1,0 +1,295 @@
+"""Lazy reading of an out-of-core sequential point tree (the directory `outofcore` writes).
+
+Dachsbacher, Vogelgsang & Stamminger 2003 (survey section 2.2.2): each partition's nodes are
+stored by r_max decreasing, so a view needs only a prefix of each partition's arrays. For a
+partition whose leaves lie in the box B, every node centre lies in B too (inner nodes are
+weighted means of their leaves), so with r_B the eye's distance to B the prefix is the
+sequential.py bound evaluated at r_near = r_B: the first j with
+
+    ceil(lod_emax[j]) k + lod_dsuffix[j] <= r_B,        k = f / eps
+
+found by binary search over memory-mapped arrays (touching log n pages). Only that prefix
+of the per-node test arrays (positions, lod_emin, lod_emax, lod_dparent) is read; the test
+
+    e_g(node) k <= r     and     r - d_parent < e_g(parent) k                         (2)
+
+selects nodes, and only the selected rows of normals, radii, axes and colours are gathered.
+Partitions whose box, grown by their largest disk radius, lies outside the view frustum are
+skipped. The top-tree nodes above the partitions are few and always tested.
+
+Point budget: if more than point_budget nodes pass (2), eps is doubled until the count fits,
+then bisected (the count is non-increasing in eps) over the already-read prefixes, which
+only shrink as eps grows; the eps used is reported.
+
+Cache: the test-array prefixes read are kept in an LRU cache bounded by `memory` bytes, so
+that successive views (a viewer, a turntable) re-read only what changed.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections import OrderedDict
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..camera import Camera
+from ..cloud import PointCloud
+from ..errors import InputError
+from .outofcore import DIR_FORMAT, DIR_VERSION, MANIFEST
+from .sequential import _bucket_ceiling, lod_scale, lod_selected
+
+TEST_ARRAYS = ("positions", "lod_emin", "lod_emax", "lod_dparent")
+BISECTION_STEPS = 12
+
+
+@dataclass
+class _Partition:
+    name: str
+    points: int
+    nodes: int
+    lo: np.ndarray
+    hi: np.ndarray
+    max_radius: float
+
+
+@dataclass
+class _Prefix:
+    """The first `count` rows of a partition's test arrays."""
+
+    count: int
+    positions: np.ndarray
+    emin: np.ndarray
+    emax: np.ndarray
+    dparent: np.ndarray
+
+    @property
+    def nbytes(self) -> int:
+        return self.positions.nbytes + self.emin.nbytes + self.emax.nbytes + self.dparent.nbytes
+
+
+def is_lod_dir(path: str | os.PathLike) -> bool:
+    return os.path.isdir(path) and os.path.isfile(os.path.join(path, MANIFEST))
+
+
+class LazyHierarchy:
+    """A LodSource over a hierarchy directory: nodes are read when a view selects them."""
+
+    def __init__(self, path: str | os.PathLike, memory: int = 1 << 30):
+        self.path = os.fspath(path)
+        self.memory = memory
+        root = Path(self.path)
+        try:
+            manifest = json.loads((root / MANIFEST).read_text())
+        except (OSError, ValueError) as error:
+            raise InputError(self.path, f"unreadable LOD manifest ({error})") from None
+        if manifest.get("format") != DIR_FORMAT or manifest.get("version") != DIR_VERSION:
+            raise InputError(self.path, f"not a surfel LOD directory of version {DIR_VERSION}")
+        self.geospatial = bool(manifest["geospatial"])
+        self.total_points = int(manifest["total_points"])
+        self.nodes = int(manifest["nodes"])
+        self.has_colors = bool(manifest["colors"])
+        lo, hi = (np.array(b, np.float64) for b in manifest["bounds"])
+        self.bounds = (lo, hi)
+        self.center = (lo + hi) / 2
+        self.bounding_radius = max(float(np.linalg.norm(hi - lo)) / 2, 1e-9)
+        self.partitions = [_Partition(p["name"], p["points"], p["nodes"], np.array(p["bounds"][0]),
+                                      np.array(p["bounds"][1]), float(p["max_radius"]))
+                           for p in manifest["partitions"]]
+        for part in self.partitions:
+            if not (root / part.name / "lod_emax.npy").is_file():
+                raise InputError(self.path, f"partition {part.name} is missing")
+        self.top = self._read_all("top") if manifest["top_nodes"] else None
+        self._cache: OrderedDict[str, _Prefix] = OrderedDict()
+
+    def __len__(self) -> int:
+        return self.total_points
+
+    def describe(self) -> dict:
+        """What `surfel info` reports besides the LodSource fields."""
+        return {"nodes": self.nodes, "partitions": len(self.partitions),
+                "top_nodes": 0 if self.top is None else len(self.top["positions"]),
+                "attributes": ["normals", "radii", "axes"] + (["colors"] if self.has_colors else [])}
+
+    def _array(self, part: str, name: str) -> np.ndarray:
+        try:
+            return np.load(Path(self.path) / part / f"{name}.npy", mmap_mode="r")
+        except (OSError, ValueError) as error:
+            raise InputError(self.path, f"cannot read {part}/{name}.npy ({error})") from None
+
+    def _read_all(self, part: str) -> dict[str, np.ndarray]:
+        names = ("positions", "normals", "radii", "axes", "lod_emin", "lod_emax", "lod_dparent") + (
+            ("colors",) if self.has_colors else ())
+        return {name: np.array(self._array(part, name)) for name in names}
+
+    # --- selection ----------------------------------------------------------------------
+
+    def select(self, camera: Camera, epsilon: float, point_budget: int | None = None
+               ) -> tuple[PointCloud, dict]:
+        """The cut for this view (see the module docstring) and its stats."""
+        k = lod_scale(camera, epsilon)
+        ortho = camera.ortho_height is not None
+        visible = [p for p in self.partitions if _in_frustum(camera, p.lo - p.max_radius, p.hi + p.max_radius)]
+        r_near = {p.name: 1.0 if ortho else _box_distance(camera.eye, p.lo, p.hi) for p in visible}
+        bytes_read = 0
+        prefixes: dict[str, _Prefix] = {}
+        for part in visible:
+            count = self._prefix_count(part.name, r_near[part.name], k, ortho)
+            if count:
+                prefixes[part.name], read = self._prefix(part.name, count)
+                bytes_read += read
+        eps = epsilon
+        masks = self._masks(prefixes, camera, k)
+        if point_budget is not None and _total(masks) > point_budget:
+            eps, masks = self._fit_budget(prefixes, camera, epsilon, point_budget)
+        pieces = [self._gather(name, mask) for name, mask in masks.items() if name != "top" and mask.any()]
+        bytes_read += sum(piece.pop("bytes") for piece in pieces)
+        if self.top is not None and masks["top"].any():
+            pieces.append({key: value[masks["top"]] for key, value in self.top.items()})
+        if not pieces:  # nothing in view: one root keeps the cloud valid (it is off screen)
+            names = ("positions", "normals", "radii", "axes") + (("colors",) if self.has_colors else ())
+            pieces.append({key: np.array(self._array(self.partitions[0].name, key)[:1]) for key in names})
+        cloud = PointCloud(np.concatenate([p["positions"] for p in pieces]),
+                           normals=np.concatenate([p["normals"] for p in pieces]),
+                           colors=np.concatenate([p["colors"] for p in pieces]) if self.has_colors else None,
+                           radii=np.concatenate([p["radii"] for p in pieces]),
+                           axes=np.concatenate([p["axes"] for p in pieces]),
+                           geospatial=self.geospatial, source=self.path)
+        self._trim_cache(keep=set(prefixes))
+        stats = {"nodes_loaded": sum(p.count for p in prefixes.values()), "bytes_read": int(bytes_read),
+                 "points_selected": len(cloud), "epsilon_used": float(eps),
+                 "partitions_visible": len(visible), "partitions": len(self.partitions)}
+        return cloud, stats
+
+    def _prefix_count(self, name: str, r_near: float, k: float, ortho: bool) -> int:
+        """First j with ceil(emax[j]) k + dsuffix[j] <= r_near (binary search, mapped pages)."""
+        emax = self._array(name, "lod_emax")
+        dsuffix = self._array(name, "lod_dsuffix")
+        lo, hi = 0, len(emax)
+        while lo < hi:
+            mid = (lo + hi) // 2
+            bound = _bucket_ceiling(emax[mid]) * k + (0.0 if ortho else float(dsuffix[mid]))
+            if bound <= r_near:
+                hi = mid
+            else:
+                lo = mid + 1
+        return lo
+
+    def _prefix(self, name: str, count: int) -> tuple[_Prefix, int]:
+        """The first `count` rows of the test arrays, from the cache or read; bytes read."""
+        cached = self._cache.get(name)
+        if cached is not None and cached.count >= count:
+            self._cache.move_to_end(name)
+            return _Prefix(count, cached.positions[:count], cached.emin[:count], cached.emax[:count],
+                           cached.dparent[:count]), 0
+        arrays = [np.array(self._array(name, key)[:count]) for key in TEST_ARRAYS]
+        prefix = _Prefix(count, *arrays)
+        self._cache[name] = prefix
+        self._cache.move_to_end(name)
+        return prefix, prefix.nbytes
+
+    def _trim_cache(self, keep: set[str]) -> None:
+        """Drop least recently used prefixes beyond the memory budget (not this view's)."""
+        total = sum(p.nbytes for p in self._cache.values())
+        for name in list(self._cache):
+            if total <= self.memory:
+                break
+            if name not in keep:
+                total -= self._cache.pop(name).nbytes
+
+    def _masks(self, prefixes: dict[str, _Prefix], camera: Camera, k: float) -> dict[str, np.ndarray]:
+        masks = {name: _test(p.positions, p.emin, p.emax, p.dparent, camera, k) for name, p in prefixes.items()}
+        if self.top is not None:
+            t = self.top
+            masks["top"] = _test(t["positions"], t["lod_emin"], t["lod_emax"], t["lod_dparent"], camera, k)
+        return masks
+
+    def _fit_budget(self, prefixes: dict[str, _Prefix], camera: Camera, epsilon: float,
+                    budget: int) -> tuple[float, dict[str, np.ndarray]]:
+        """The smallest eps (to BISECTION_STEPS halvings) whose cut has at most `budget` nodes."""
+        ortho = camera.ortho_height is not None
+
+        def masks_at(eps: float) -> dict[str, np.ndarray]:
+            k = lod_scale(camera, eps)
+            shrunk = {}
+            for name, p in prefixes.items():
+                r_near = 1.0 if ortho else _box_distance(camera.eye, *self._box(name))
+                count = self._prefix_count(name, r_near, k, ortho)
+                shrunk[name] = _Prefix(count, p.positions[:count], p.emin[:count], p.emax[:count],
+                                       p.dparent[:count])
+            return self._masks(shrunk, camera, k)
+
+        low, high = epsilon, epsilon * 2
+        best = masks_at(high)
+        while _total(best) > budget and high < epsilon * 2 ** 40:
+            low, high = high, high * 2
+            best = masks_at(high)
+        for _ in range(BISECTION_STEPS):
+            mid = (low + high) / 2
+            masks = masks_at(mid)
+            if _total(masks) <= budget:
+                high, best = mid, masks
+            else:
+                low = mid
+        # pad shorter prefixes' masks to the read prefix length for gathering
+        return high, {name: np.pad(mask, (0, prefixes[name].count - len(mask))) if name in prefixes else mask
+                      for name, mask in best.items()}
+
+    def _box(self, name: str) -> tuple[np.ndarray, np.ndarray]:
+        part = next(p for p in self.partitions if p.name == name)
+        return part.lo, part.hi
+
+    def _gather(self, name: str, mask: np.ndarray) -> dict[str, np.ndarray]:
+        """The selected rows' attributes (a prefix mask), read from the mapped arrays."""
+        rows = np.flatnonzero(mask)
+        cached = self._cache[name]
+        out = {"positions": cached.positions[rows]}
+        names = ("normals", "radii", "axes") + (("colors",) if self.has_colors else ())
+        read = 0
+        for key in names:
+            array = self._array(name, key)
+            out[key] = np.asarray(array[rows])
+            read += out[key].nbytes
+        out["bytes"] = read
+        return out
+
+
+def _total(masks: dict[str, np.ndarray]) -> int:
+    return int(sum(int(m.sum()) for m in masks.values()))
+
+
+def _test(positions, emin, emax, dparent, camera: Camera, k: float) -> np.ndarray:
+    """Test (2) of sequential.py over the given rows (orthographic: r = 1, no d_parent)."""
+    emin = emin.astype(np.float64)
+    emax = emax.astype(np.float64)
+    if camera.ortho_height is not None:
+        return lod_selected(1.0, emin, emax, 0.0, k)
+    r = np.linalg.norm(positions - camera.eye, axis=1)
+    return lod_selected(r, emin, emax, dparent.astype(np.float64), k)
+
+
+def _box_distance(point: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> float:
+    """Euclidean distance from `point` to the box [lo, hi] (0 inside)."""
+    return float(np.linalg.norm(np.maximum(np.maximum(lo - point, point - hi), 0.0)))
+
+
+def _in_frustum(camera: Camera, lo: np.ndarray, hi: np.ndarray) -> bool:
+    """False only if the box lies wholly outside one side of the view frustum.
+
+    With eye coordinates (X, Y, Z), depth d = -Z, and x = cx + fx X / d, y = cy - fy Y / d,
+    the image is 0 <= x <= w, 0 <= y <= h, d >= 0: five half-spaces, linear in (X, Y, d)
+    (orthographic: x = cx + s X, y = cy - s Y, no depth limit)."""
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    m = camera.view_matrix()
+    p = corners @ m[:3, :3].T + m[:3, 3]
+    X, Y, d = p[:, 0], p[:, 1], -p[:, 2]
+    w, h = camera.width, camera.height
+    if camera.ortho_height is not None:
+        s = camera.pixel_scale()
+        sides = [camera.cx + s * X, w - camera.cx - s * X, camera.cy - s * Y, h - camera.cy + s * Y]
+    else:
+        sides = [camera.cx * d + camera.fx * X, (w - camera.cx) * d - camera.fx * X,
+                 camera.cy * d - camera.fy * Y, (h - camera.cy) * d + camera.fy * Y, d]
+    return all((side >= 0).any() for side in sides)

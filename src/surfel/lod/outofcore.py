@@ -1,0 +1,631 @@
+"""Out-of-core construction of a sequential point tree (Dachsbacher et al. 2003, survey 2.2)
+for clouds larger than memory: a hierarchy directory read lazily by `surfel.lod.lazy`.
+
+The input (binary PLY read in chunks at file offsets, LAS/LAZ through laspy's chunk
+iterator, a directory of such tiles as one cloud; other formats are loaded whole) is read
+three times and never held in memory:
+
+1. scan: bounds, and for LAS the colour range (8-bit values in 16-bit fields);
+2. histogram: point counts of the 2^7 x 2^7 x 2^7 cells of the bounding cube; the cube is
+   split octree-wise, a cell being split while it holds more than `cap` points, into
+   partitions (the non-empty leaves of that octree), where
+       cap = (memory - MEMORY_OVERHEAD) / BYTES_PER_POINT
+   bounds the points one partition's processing holds at once;
+3. binning: each chunk's points are appended to their partition's file.
+
+Each partition is then loaded, completed (radii and tangent axes estimated as for any cloud,
+`preprocess.prepare`; normals from the input when it has them), built (`build_lod`),
+sequentialised (`to_sequential_cloud`) and written as raw .npy arrays in sequential order.
+No halo is used: points at a partition border miss their neighbours across it, which only
+widens their covering radii (the Voronoi cell is unbounded on that side) and so cannot
+open holes; it costs some overlap along the seams.
+
+Top levels: the partition roots become the leaves of a small tree built by the same merge
+rule (`build._merge_cells`), so that a far view draws a few disks instead of every root. A
+partition root enters it as a disk at the root's centre and normal whose radius R and
+normal slab [lo, hi] bound all of the partition's leaf disks (with d_i = c_i - c, the leaf
+disk of radius r_i and normal n_i, dn_i = d_i . n, s_i = |n_i x n|):
+
+    R  = max_i |d_i - dn_i n| + r_i,     lo = min_i dn_i - r_i s_i,     hi = max_i dn_i + r_i s_i
+
+(the merge rule's leaf case), with area weight sum_i |u_i| |v_i|. Every top node is then a
+disk covering all leaf disks below it, e_g stays monotone along every path, and each
+partition root's r_max becomes the e_g of its top-tree parent (instead of infinity) with
+its d_parent to it: the partitions and the top tree together are one sequential point tree,
+so the union of their selections is the cut of test (2) in sequential.py: no holes, no
+double layers beyond that test's band.
+
+Layout of NAME.lod/ (format "surfel-lod-dir", version 1):
+
+    manifest.json      format, version, geospatial, total_points, nodes, bounds [lo, hi],
+                       colors, top_nodes, and per partition: name, points, nodes, bounds
+                       (of its leaves, hence of all its node centres), max_radius (its root's)
+    part-NNNNN/*.npy   one partition in sequential order, the arrays of a .lod.npz file
+                       (format.py: positions, normals, [colors], radii, axes, lod_emin,
+                       lod_emax, lod_dparent, lod_dsuffix); row 0 is the partition root
+    top/*.npy          the top-tree nodes (absent with one partition), likewise
+
+Files: everything is written into NAME.partial/; a finished partition is a directory
+renamed into place; manifest.json is written last and NAME.partial/ is then renamed to
+NAME. An interrupted build leaves only NAME.partial/ (never a complete-looking NAME);
+`resume=True` reuses its binning and finished partitions when the input is unchanged.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import sys
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from ..cloud import PointCloud
+from ..errors import InputError, SurfelError
+from .build import ROOT_PARENT_ERROR, _merge_cells, _next_level, build_lod, morton_codes
+from .format import _atomic_write
+from .sequential import EXTRAS, r_max_bucket, to_sequential_cloud
+
+DIR_FORMAT = "surfel-lod-dir"
+DIR_VERSION = 1
+MANIFEST = "manifest.json"
+# memory the process needs besides one partition: interpreter, numpy/numba/scipy, input chunks
+MEMORY_OVERHEAD = 900 << 20
+# peak bytes per point while a partition is completed, built and sequentialised (measured
+# ~350: input, k-nearest-neighbour lists, 2n tree nodes, their sequential copy; with margin)
+BYTES_PER_POINT = 500
+HISTOGRAM_BITS = 7
+CHUNK_POINTS = 2_000_000
+ARRAYS = ("positions", "normals", "colors", "radii", "axes", *EXTRAS)
+_SIZE = re.compile(r"^\s*([0-9]*\.?[0-9]+)\s*([kmgt]?)(i?b)?\s*$", re.IGNORECASE)
+
+
+def parse_size(text: str) -> int:
+    """Bytes of a size such as 512MB, 4GB, 1.5G, 300000000 (powers of 1024)."""
+    match = _SIZE.match(str(text))
+    if not match:
+        raise SurfelError(f"cannot read the size {text!r} (use e.g. 512MB or 4GB)")
+    value, unit = float(match.group(1)), match.group(2).lower()
+    return int(value * 1024 ** " kmgt".index(unit or " "))
+
+
+# --------------------------------------------------------------------------------------------
+# streaming inputs
+
+
+@dataclass
+class Chunk:
+    """Consecutive input points: positions (m, 3) float64, normals (m, 3) float32 or None,
+    colours (m, 3) float32 in [0, 1] or None."""
+
+    positions: np.ndarray
+    normals: np.ndarray | None
+    colors: np.ndarray | None
+
+
+@dataclass
+class _Input:
+    """One input file, read chunk by chunk."""
+
+    path: str
+    kind: str  # "ply" (binary, read at offsets), "las" (laspy chunks), "whole" (io.load)
+    count: int
+    has_normals: bool
+    has_colors: bool
+    geospatial: bool
+    offset: int = 0
+    dtype: np.dtype | None = None
+    color_scale: float = 1.0
+
+    def chunks(self, size: int = CHUNK_POINTS) -> Iterator[Chunk]:
+        if self.kind == "ply":
+            yield from self._ply_chunks(size)
+        elif self.kind == "las":
+            yield from self._las_chunks(size)
+        else:
+            from ..io import load
+
+            cloud = load(self.path)
+            for start in range(0, len(cloud), size):
+                part = slice(start, start + size)
+                yield Chunk(cloud.positions[part], None if cloud.normals is None else cloud.normals[part],
+                            None if cloud.colors is None else cloud.colors[part])
+
+    def _ply_chunks(self, size: int) -> Iterator[Chunk]:
+        # plain reads, not a memory map of the whole file: mapped pages would count as
+        # resident memory until unmapped, growing with the file
+        with open(self.path, "rb") as file:
+            for start in range(0, self.count, size):
+                m = min(size, self.count - start)
+                file.seek(self.offset + start * self.dtype.itemsize)
+                records = np.fromfile(file, self.dtype, count=m)
+                if len(records) < m:
+                    raise InputError(self.path, f"truncated PLY body (vertex {start + len(records)} of {self.count})")
+                positions = np.column_stack([records[c] for c in "xyz"]).astype(np.float64)
+                normals = (np.column_stack([records[c] for c in ("nx", "ny", "nz")]).astype(np.float32)
+                           if self.has_normals else None)
+                colors = None
+                if self.has_colors:
+                    rgb = np.column_stack([records[c] for c in ("red", "green", "blue")]).astype(np.float32)
+                    colors = np.clip(rgb / self.color_scale, 0.0, 1.0)
+                yield _checked(self.path, positions, normals, colors)
+
+    def _las_chunks(self, size: int) -> Iterator[Chunk]:
+        import laspy
+
+        try:
+            with laspy.open(self.path) as reader:
+                for points in reader.chunk_iterator(size):
+                    positions = np.column_stack([np.asarray(points.x), np.asarray(points.y),
+                                                 np.asarray(points.z)]).astype(np.float64)
+                    colors = None
+                    if self.has_colors:
+                        rgb = np.column_stack([points.red, points.green, points.blue]).astype(np.float32)
+                        colors = np.clip(rgb / self.color_scale, 0.0, 1.0)
+                    yield _checked(self.path, positions, None, colors)
+        except SurfelError:
+            raise
+        except Exception as error:  # laspy and lazrs raise many types; all mean a bad file here
+            message = (str(error).splitlines() or [type(error).__name__])[0][:120]
+            raise InputError(self.path, f"cannot decode LAS data: {message}") from error
+
+
+def _checked(path: str, positions: np.ndarray, normals: np.ndarray | None,
+             colors: np.ndarray | None) -> Chunk:
+    if not np.isfinite(positions).all():
+        raise InputError(path, "points have NaN or infinite coordinates")
+    if normals is not None:
+        bad = ~np.isfinite(normals).all(axis=1) | ~normals.any(axis=1)
+        if bad.any():
+            raise InputError(path, f"{int(bad.sum())} points in a chunk have invalid or zero normals")
+    return Chunk(positions, normals, colors)
+
+
+def _open_ply(path: str) -> _Input:
+    from ..io.ply import _color_scale, _parse_header, _record_fields
+
+    with open(path, "rb") as file:
+        head = file.read(1 << 16)  # headers are small; parse only this much
+    if not head:
+        raise InputError(path, "file is empty")
+    header = _parse_header(head, path)  # reads bytes like its usual memory map
+    if header.format == "ascii":
+        return _whole(path)
+    offset = header.body_offset
+    for element in header.elements:
+        props = list(element.properties.values())
+        if any(p.is_list for p in props):
+            if element.name == "vertex":
+                raise InputError(path, "PLY vertex element has list properties")
+            return _whole(path)  # a list element before the vertices: sizes unknown, load it
+        dtype = np.dtype([f for p in props for f in _record_fields(p, header.format, {})])
+        if element.name == "vertex":
+            break
+        offset += element.count * dtype.itemsize
+    else:
+        raise InputError(path, "PLY has no vertex element")
+    if any(e.name == "face" and e.count for e in header.elements):
+        return _whole(path)  # a mesh: its referenced vertices are the points
+    names = set(element.properties)
+    if not {"x", "y", "z"} <= names:
+        raise InputError(path, "PLY vertex element lacks x, y or z")
+    need = offset + element.count * dtype.itemsize
+    if os.path.getsize(path) < need:
+        raise InputError(path, f"truncated PLY body ({os.path.getsize(path)} bytes, header needs {need})")
+    if element.count == 0:
+        raise InputError(path, "no points")
+    has_colors = {"red", "green", "blue"} <= names
+    scale = _color_scale(element.properties["red"].type) if has_colors else 1.0
+    return _Input(path, "ply", element.count, {"nx", "ny", "nz"} <= names, has_colors,
+                  header.geospatial, offset, dtype, scale)
+
+
+def _open_las(path: str) -> _Input:
+    import laspy
+
+    from ..io.las import _check_header
+
+    _check_header(path)
+    try:
+        with laspy.open(path) as reader:
+            count = int(reader.header.point_count)
+            names = set(reader.header.point_format.dimension_names)
+    except Exception as error:
+        message = (str(error).splitlines() or [type(error).__name__])[0][:120]
+        raise InputError(path, f"cannot decode LAS data: {message}") from error
+    if count == 0:
+        raise InputError(path, "no points")
+    return _Input(path, "las", count, False, {"red", "green", "blue"} <= names, True)
+
+
+def _whole(path: str) -> _Input:
+    from ..io import load
+
+    cloud = load(path)  # small formats (ascii, meshes): load once to learn what they hold
+    return _Input(path, "whole", len(cloud), cloud.normals is not None, cloud.colors is not None,
+                  cloud.geospatial)
+
+
+def open_inputs(path: str | os.PathLike) -> list[_Input]:
+    """The input files of `path` (a file, or a directory of tiles read as one cloud)."""
+    from ..io import FORMATS
+
+    name = os.fspath(path)
+    if os.path.isdir(name):
+        files = sorted(str(p) for p in Path(name).iterdir()
+                       if p.is_file() and p.suffix.lower().lstrip(".") in FORMATS)
+        if not files:
+            raise InputError(name, "directory holds no point-cloud files")
+    elif os.path.isfile(name):
+        files = [name]
+    else:
+        raise InputError(name, "no such file")
+    inputs = []
+    for file in files:
+        ext = os.path.splitext(file)[1].lower()
+        inputs.append(_open_ply(file) if ext == ".ply" else _open_las(file) if ext in (".las", ".laz")
+                      else _whole(file))
+    if len({i.has_normals for i in inputs}) > 1 or len({i.has_colors for i in inputs}) > 1:
+        raise InputError(name, "tiles differ in whether they have normals or colours")
+    return inputs
+
+
+def _all_chunks(inputs: list[_Input]) -> Iterator[Chunk]:
+    for source in inputs:
+        yield from source.chunks()
+
+
+# --------------------------------------------------------------------------------------------
+# planning
+
+
+@dataclass
+class Plan:
+    """The partitions: cells (level, ix, iy, iz) of the octree over the cube lo + [0, size]^3."""
+
+    lo: np.ndarray
+    size: float
+    cells: list[tuple[int, int, int, int]]
+    counts: list[int]
+
+    def lookup(self) -> np.ndarray:
+        """Partition index of each histogram cell (flattened x-major), -1 where empty."""
+        res = 1 << HISTOGRAM_BITS
+        table = np.full((res, res, res), -1, np.int32)
+        for index, (level, x, y, z) in enumerate(self.cells):
+            s = 1 << (HISTOGRAM_BITS - level)
+            table[x * s:(x + 1) * s, y * s:(y + 1) * s, z * s:(z + 1) * s] = index
+        return table.reshape(-1)
+
+    def fine_cells(self, positions: np.ndarray) -> np.ndarray:
+        res = 1 << HISTOGRAM_BITS
+        q = np.clip(((positions - self.lo) * (res / self.size)).astype(np.int64), 0, res - 1)
+        return (q[:, 0] * res + q[:, 1]) * res + q[:, 2]
+
+
+def _plan(histogram: np.ndarray, lo: np.ndarray, size: float, cap: int) -> Plan:
+    """Split the cube octree-wise while a cell holds more than cap points (see the docstring)."""
+    pyramid = [histogram]
+    while len(pyramid[-1]) > 1:
+        h = pyramid[-1]
+        r = len(h) // 2
+        pyramid.append(h.reshape(r, 2, r, 2, r, 2).sum(axis=(1, 3, 5)))
+    pyramid.reverse()  # pyramid[level]: counts of the 2^level cells per axis
+    cells, counts = [], []
+    stack = [(0, 0, 0, 0)]
+    while stack:
+        level, x, y, z = stack.pop()
+        count = int(pyramid[level][x, y, z])
+        if count == 0:
+            continue
+        if count <= cap or level == HISTOGRAM_BITS:
+            cells.append((level, x, y, z))
+            counts.append(count)
+            continue
+        for child in range(7, -1, -1):
+            stack.append((level + 1, 2 * x + (child >> 2), 2 * y + (child >> 1 & 1), 2 * z + (child & 1)))
+    return Plan(lo, size, cells, counts)
+
+
+def partition_capacity(memory: int) -> int:
+    """Points one partition may hold under the memory budget."""
+    cap = (memory - MEMORY_OVERHEAD) // BYTES_PER_POINT
+    if cap < 10_000:
+        raise SurfelError(f"--memory {memory >> 20} MB is too small (need at least "
+                          f"{(MEMORY_OVERHEAD + 10_000 * BYTES_PER_POINT) >> 20} MB)")
+    return int(cap)
+
+
+# --------------------------------------------------------------------------------------------
+# the build
+
+
+def _bar(total: int, desc: str, progress: bool | None) -> tqdm:
+    """A points/s progress bar with ETA (None: only on a terminal)."""
+    show = sys.stderr.isatty() if progress is None else progress
+    return tqdm(total=total, desc=f"surfel: {desc}", unit="pt", unit_scale=True, disable=not show, leave=False)
+
+
+def _record_dtype(has_normals: bool, has_colors: bool) -> np.dtype:
+    fields = [("p", "<f8", (3,))]
+    if has_normals:
+        fields.append(("n", "<f4", (3,)))
+    if has_colors:
+        fields.append(("c", "<f4", (3,)))
+    return np.dtype(fields)
+
+
+def _input_signature(inputs: list[_Input], memory: int) -> dict:
+    return {"files": [[i.path, os.path.getsize(i.path), os.path.getmtime(i.path)] for i in inputs],
+            "memory": memory}
+
+
+def build_outofcore(in_path: str | os.PathLike, out_path: str | os.PathLike, *, memory: int = 4 << 30,
+                    resume: bool = False, progress: bool | None = None,
+                    stats_path: str | os.PathLike | None = None) -> dict:
+    """Build the hierarchy directory `out_path` from `in_path` within `memory` bytes.
+
+    Stats: points, nodes, partitions, top_nodes, ms (wall time of the whole build),
+    points_per_s, resumed_partitions.
+    """
+    start = time.perf_counter()
+    out = Path(out_path)
+    partial = out.with_name(out.name + ".partial")
+    if out.exists() and not (out / MANIFEST).is_file():
+        raise SurfelError(f"{out}: exists and is not a surfel LOD directory; not replacing it")
+    inputs = open_inputs(in_path)
+    cap = partition_capacity(memory)
+    signature = _input_signature(inputs, memory)
+    plan_file = partial / "plan.json"
+    saved = json.loads(plan_file.read_text()) if resume and plan_file.exists() else None
+    if saved is not None and saved["signature"] != signature:
+        raise SurfelError(f"{partial}: the input or --memory changed since the interrupted build; "
+                          "rerun without --resume")
+    if saved is None:
+        if partial.exists():
+            shutil.rmtree(partial)
+        partial.mkdir(parents=True)
+        try:
+            saved = _bin_input(inputs, partial, cap, signature, progress)
+        except BaseException:  # binning cannot be resumed half way: leave nothing behind
+            shutil.rmtree(partial, ignore_errors=True)
+            raise
+        _atomic_write(plan_file, lambda f: f.write(json.dumps(saved).encode()))
+    total = sum(saved["counts"])
+    has_normals, has_colors = saved["has_normals"], saved["has_colors"]
+    dtype = _record_dtype(has_normals, has_colors)
+    geospatial = saved["geospatial"]
+
+    from .format import warm_up
+
+    warm_up()
+    parts, resumed = [], 0
+    with _bar(total, "lod build", progress) as bar:
+        for index, count in enumerate(saved["counts"]):
+            name = f"part-{index:05d}"
+            if (partial / name / "root.json").exists():
+                resumed += 1
+            else:
+                _build_partition(partial, name, dtype, geospatial)
+            parts.append(json.loads((partial / name / "root.json").read_text()))
+            bar.update(count)
+    top = _top_tree(partial, parts, has_colors)
+    nodes = sum(p["nodes"] for p in parts) + top
+    lo = np.min([p["bounds"][0] for p in parts], axis=0)
+    hi = np.max([p["bounds"][1] for p in parts], axis=0)
+    manifest = {"format": DIR_FORMAT, "version": DIR_VERSION, "geospatial": geospatial,
+                "total_points": total, "nodes": nodes, "bounds": [lo.tolist(), hi.tolist()],
+                "colors": has_colors, "top_nodes": top,
+                "partitions": [{"name": p["name"], "points": p["points"], "nodes": p["nodes"],
+                                "bounds": p["bounds"], "max_radius": p["radius"]} for p in parts]}
+    shutil.rmtree(partial / "bins", ignore_errors=True)
+    plan_file.unlink()
+    _atomic_write(partial / MANIFEST, lambda f: f.write(json.dumps(manifest, indent=1).encode()))
+    _replace_dir(partial, out)
+    ms = (time.perf_counter() - start) * 1000
+    stats = {"points": total, "nodes": nodes, "partitions": len(parts), "top_nodes": top,
+             "ms": round(ms, 3), "points_per_s": round(total / max(ms / 1000, 1e-9)),
+             "resumed_partitions": resumed, "memory": memory, "partition_cap": cap}
+    if stats_path is not None:
+        text = json.dumps(stats, indent=2) + "\n"
+        _atomic_write(stats_path, lambda f: f.write(text.encode()))
+    return stats
+
+
+def _replace_dir(partial: Path, out: Path) -> None:
+    """Rename the finished partial/ to out, replacing an older out (a directory or a file)."""
+    old = out.with_name(out.name + ".old")
+    if out.exists() or out.is_symlink():
+        if old.exists():
+            shutil.rmtree(old)
+        os.replace(out, old)
+    os.replace(partial, out)
+    if old.is_dir():
+        shutil.rmtree(old)
+    elif old.exists():
+        old.unlink()
+
+
+def _bin_input(inputs: list[_Input], partial: Path, cap: int, signature: dict,
+               progress: bool | None) -> dict:
+    """Passes 1-3 of the module docstring; returns the plan as saved in plan.json."""
+    total = sum(i.count for i in inputs)
+    lo = np.full(3, np.inf)
+    hi = np.full(3, -np.inf)
+    for source in inputs:  # colour ranges of LAS files are needed before the colours are scaled
+        color_max = 0.0
+        with _bar(source.count, f"scan {os.path.basename(source.path)}", progress) as bar:
+            for chunk in source.chunks():
+                lo = np.minimum(lo, chunk.positions.min(axis=0))
+                hi = np.maximum(hi, chunk.positions.max(axis=0))
+                if chunk.colors is not None and source.kind == "las":
+                    color_max = max(color_max, float(chunk.colors.max()))
+                bar.update(len(chunk.positions))
+        if source.kind == "las" and source.has_colors:
+            # chunks were scaled by 1: 8-bit values in 16-bit fields, or real 16-bit ones
+            source.color_scale = 255.0 if color_max <= 255 else 65535.0
+            source.has_colors = color_max > 0
+    size = max(float((hi - lo).max()), 1e-9) * (1 + 1e-9)
+    res = 1 << HISTOGRAM_BITS
+    plan = Plan(lo, size, [], [])
+    histogram = np.zeros(res ** 3, np.int64)
+    with _bar(total, "histogram", progress) as bar:
+        for chunk in _all_chunks(inputs):
+            histogram += np.bincount(plan.fine_cells(chunk.positions), minlength=res ** 3)
+            bar.update(len(chunk.positions))
+    plan = _plan(histogram.reshape(res, res, res), lo, size, cap)
+    del histogram
+    lookup = plan.lookup()
+    has_normals, has_colors = inputs[0].has_normals, any(i.has_colors for i in inputs)
+    dtype = _record_dtype(has_normals, has_colors)
+    bins = partial / "bins"
+    bins.mkdir()
+    with _bar(total, "partition", progress) as bar:
+        for chunk in _all_chunks(inputs):
+            part = lookup[plan.fine_cells(chunk.positions)]
+            order = np.argsort(part, kind="stable")
+            records = np.empty(len(order), dtype)
+            records["p"] = chunk.positions[order]
+            if has_normals:
+                records["n"] = chunk.normals[order]
+            if has_colors:
+                records["c"] = chunk.colors[order] if chunk.colors is not None else 1.0
+            sorted_part = part[order]
+            bounds = np.flatnonzero(np.diff(sorted_part)) + 1
+            for run in np.split(np.arange(len(order)), bounds):
+                with open(bins / f"part-{sorted_part[run[0]]:05d}.bin", "ab") as file:
+                    records[run[0]:run[-1] + 1].tofile(file)
+            bar.update(len(order))
+    return {"signature": signature, "lo": lo.tolist(), "size": size, "cells": plan.cells,
+            "counts": plan.counts, "has_normals": has_normals, "has_colors": has_colors,
+            "geospatial": any(i.geospatial for i in inputs)}
+
+
+def _build_partition(partial: Path, name: str, dtype: np.dtype, geospatial: bool) -> None:
+    """Complete, build, sequentialise and write one partition; its root summary last."""
+    from ..preprocess import prepare
+
+    records = np.fromfile(partial / "bins" / f"{name}.bin", dtype)
+    cloud = PointCloud(records["p"], normals=records["n"] if "n" in dtype.names else None,
+                       colors=records["c"] if "c" in dtype.names else None, geospatial=geospatial,
+                       source=name)
+    del records
+    cloud, _ = prepare(cloud, progress=False)
+    points = len(cloud)
+    lo, hi = cloud.bounds
+    tree = build_lod(cloud, progress=False)
+    del cloud
+    root = _root_summary(tree)
+    seq = to_sequential_cloud(tree)
+    del tree
+    work = partial / f".{name}.tmp"
+    shutil.rmtree(work, ignore_errors=True)
+    work.mkdir()
+    arrays = {"positions": seq.positions, "normals": seq.normals, "colors": seq.colors,
+              "radii": seq.radii, "axes": seq.axes, **seq.extras}
+    for key, value in arrays.items():
+        if value is not None:
+            np.save(work / f"{key}.npy", value)
+    summary = {"name": name, "points": points, "nodes": len(seq), "bounds": [lo.tolist(), hi.tolist()],
+               "radius": float(seq.radii[0]), **root}
+    (work / "root.json").write_text(json.dumps(summary))
+    del seq, arrays
+    final = partial / name
+    shutil.rmtree(final, ignore_errors=True)
+    os.replace(work, final)
+    (partial / "bins" / f"{name}.bin").unlink(missing_ok=True)
+
+
+def _root_summary(tree) -> dict:
+    """The partition root as a leaf of the top tree: centre, normal, colour, e_g, and the
+    enclosing radius, normal slab and area weight of all its leaf disks (module docstring)."""
+    root = tree.root
+    c, n = tree.positions[root], tree.normals[root].astype(np.float64)
+    leaves = slice(0, tree.n_leaves)
+    d = tree.positions[leaves] - c
+    dn = d @ n
+    r = tree.radii[leaves].astype(np.float64)
+    s = np.linalg.norm(np.cross(tree.normals[leaves].astype(np.float64), n), axis=1)
+    radial = np.linalg.norm(d - dn[:, None] * n, axis=1)
+    axes = tree.axes[leaves].astype(np.float64)
+    weight = float((np.linalg.norm(axes[:, 0], axis=1) * np.linalg.norm(axes[:, 1], axis=1)).sum())
+    return {"center": c.tolist(), "normal": n.tolist(),
+            "color": None if tree.colors is None else tree.colors[root].tolist(),
+            "e_g": float(tree.e_g[root]), "enclosing": float(max((radial + r).max(), tree.radii[root])),
+            "slab": [float((dn - r * s).min()), float((dn + r * s).max())], "weight": weight}
+
+
+def _top_tree(partial: Path, parts: list[dict], has_colors: bool) -> int:
+    """Build the top levels over the partition roots, write them (top/*.npy, sequential
+    order) and give each partition root its r_max and d_parent. Returns the top node count."""
+    p = len(parts)
+    top_dir = partial / "top"
+    shutil.rmtree(top_dir, ignore_errors=True)
+    if p == 1:
+        _patch_root(partial / parts[0]["name"], ROOT_PARENT_ERROR, 0.0)
+        return 0
+    capacity = 2 * p - 1
+    pos = np.zeros((capacity, 3))
+    nrm = np.zeros((capacity, 3), np.float32)
+    col = np.zeros((capacity if has_colors else 1, 3), np.float32)
+    rad = np.zeros(capacity, np.float32)
+    axes = np.zeros((capacity, 2, 3), np.float32)
+    weight = np.zeros(capacity)
+    lo = np.zeros(capacity)
+    hi = np.zeros(capacity)
+    e_p = np.zeros(capacity, np.float32)
+    e_t = np.zeros(capacity, np.float32)
+    e_g = np.zeros(capacity, np.float32)
+    parent = np.full(capacity, -1, np.int64)
+    d_parent = np.zeros(capacity, np.float32)
+    for i, part in enumerate(parts):
+        pos[i], nrm[i], rad[i] = part["center"], part["normal"], part["enclosing"]
+        weight[i], (lo[i], hi[i]), e_g[i] = part["weight"], part["slab"], part["e_g"]
+        if has_colors:
+            col[i] = part["color"]
+    codes = morton_codes(pos[:p])
+    active = np.argsort(codes)
+    active_codes = codes[active]
+    count = p
+    while len(active) > 1:  # as in build_lod: one octree level up per step
+        next_active, active_codes, starts, sizes, _ = _next_level(active, active_codes, count)
+        if len(starts):
+            _merge_cells(starts, sizes, active, count, pos, nrm, col, rad, axes, weight, lo, hi,
+                         e_p, e_t, e_g, parent, d_parent, has_colors)
+            count += len(starts)
+        active = next_active
+    for i, part in enumerate(parts):
+        _patch_root(partial / part["name"], float(e_g[parent[i]]), float(d_parent[i]))
+    inner = np.arange(p, count)
+    emax = np.where(parent[inner] >= 0, e_g[np.maximum(parent[inner], 0)], ROOT_PARENT_ERROR).astype(np.float32)
+    order = inner[np.argsort(~r_max_bucket(emax), kind="stable")]
+    emax_sorted = np.where(parent[order] >= 0, e_g[np.maximum(parent[order], 0)],
+                           ROOT_PARENT_ERROR).astype(np.float32)
+    dpar = d_parent[order]
+    arrays = {"positions": pos[order], "normals": nrm[order], "radii": rad[order], "axes": axes[order],
+              "lod_emin": e_g[order], "lod_emax": emax_sorted, "lod_dparent": dpar,
+              "lod_dsuffix": np.maximum.accumulate(dpar[::-1])[::-1].copy()}
+    if has_colors:
+        arrays["colors"] = col[order]
+    top_dir.mkdir()
+    for key, value in arrays.items():
+        np.save(top_dir / f"{key}.npy", value)
+    return len(inner)
+
+
+def _patch_root(part_dir: Path, emax: float, dparent: float) -> None:
+    """Row 0 (the partition root) gets r_max / k = emax and its d_parent; dsuffix follows."""
+    arrays = {name: np.load(part_dir / f"{name}.npy", mmap_mode="r+")
+              for name in ("lod_emax", "lod_dparent", "lod_dsuffix")}
+    arrays["lod_emax"][0] = emax
+    arrays["lod_dparent"][0] = dparent
+    rest = float(arrays["lod_dsuffix"][1]) if len(arrays["lod_dsuffix"]) > 1 else 0.0
+    arrays["lod_dsuffix"][0] = max(dparent, rest)
+    for array in arrays.values():
+        array.flush()

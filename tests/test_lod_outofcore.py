@@ -1,0 +1,195 @@
+"""Out-of-core LOD: partitioned build within a memory budget, lazy selection and rendering."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from surfel.camera import frame
+from surfel.cli import main
+from surfel.cloud import PointCloud
+from surfel.errors import InputError, SurfelError
+from surfel.io import load, write_ply
+from surfel.lod import outofcore
+from surfel.lod.lazy import LazyHierarchy
+from surfel.lod.outofcore import (
+    BYTES_PER_POINT,
+    MEMORY_OVERHEAD,
+    build_outofcore,
+    parse_size,
+)
+from surfel.lod.source import is_source, open_source
+from surfel.metrics import compare_results
+from surfel.rendering import complete, render
+
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+POINTS = 60_000
+# a budget that forces about eight partitions of at most 10,000 points
+SMALL_MEMORY = MEMORY_OVERHEAD + 10_000 * BYTES_PER_POINT
+
+
+def sample_surface(mesh: PointCloud, n: int, seed: int = 0) -> PointCloud:
+    """n points uniformly on the mesh surface, normals interpolated from the vertices."""
+    tri = mesh.positions[mesh.faces]
+    area = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    rng = np.random.default_rng(seed)
+    face = rng.choice(len(area), n, p=area / area.sum())
+    s, r = np.sqrt(rng.random(n)), rng.random(n)
+    bary = np.stack([1 - s, s * (1 - r), s * r], axis=1)[:, :, None]
+    normals = (mesh.normals[mesh.faces][face] * bary).sum(axis=1)
+    return PointCloud((tri[face] * bary).sum(axis=1), normals=normals)
+
+
+@pytest.fixture(scope="module")
+def built(tmp_path_factory):
+    """(input PLY, the completed in-memory cloud, the built .lod directory, build stats)."""
+    root = tmp_path_factory.mktemp("outofcore")
+    ply = root / "spot.ply"
+    write_ply(sample_surface(load(DATA / "spot.obj"), POINTS), ply)
+    stats = build_outofcore(ply, root / "spot.lod", memory=SMALL_MEMORY, progress=False)
+    cloud, _ = complete(load(ply))
+    return ply, cloud, root / "spot.lod", stats
+
+
+def test_build_partitions_within_budget(built):
+    _, _, lod, stats = built
+    manifest = json.loads((lod / "manifest.json").read_text())
+    assert stats["points"] == manifest["total_points"] == POINTS
+    assert stats["partitions"] >= 4
+    assert all(p["points"] <= 10_000 for p in manifest["partitions"])
+    assert sum(p["points"] for p in manifest["partitions"]) == POINTS
+    assert stats["top_nodes"] >= 1
+    assert not Path(str(lod) + ".partial").exists()
+    # each partition is a sequential list: r_max non-increasing, its root (row 0) below the top
+    for part in manifest["partitions"]:
+        emax = np.load(lod / part["name"] / "lod_emax.npy")
+        assert emax[0] < np.finfo(np.float32).max
+        assert (np.diff(emax[1:]) <= emax[1:-1] * 2 ** -7).all()
+
+
+def test_full_detail_matches_in_memory_render(built):
+    _, cloud, lod, _ = built
+    source = open_source(lod)
+    assert is_source(source) and source.total_points == POINTS
+    camera = frame(source.center, source.bounding_radius, size=(192, 192))
+    reference = render(cloud, camera, "deferred", shading="lambert")
+    result = render(source, camera, "deferred", shading="lambert", lod_error=1e-5)
+    # every leaf and nothing else; leaves are the input points but crease points, which their
+    # clip lines cut away whole (surfel.preprocess sharp features)
+    assert 0.999 * POINTS <= result.stats["points_selected"] <= POINTS
+    metrics = compare_results(reference, result)
+    assert metrics["psnr"] > 35 and metrics["holes"] < 0.002, metrics
+
+
+def test_coarse_cut_is_hole_free(built):
+    _, cloud, lod, _ = built
+    source = LazyHierarchy(lod)
+    camera = frame(source.center, source.bounding_radius, view="iso", size=(192, 192))
+    reference = render(cloud, camera, "deferred", shading="lambert")
+    result = render(source, camera, "deferred", shading="lambert", lod_error=1.0)
+    assert result.stats["splats"] < POINTS / 2
+    metrics = compare_results(reference, result)
+    assert metrics["holes"] < 0.002 and metrics["psnr"] > 28, metrics
+
+
+def test_far_view_reads_a_fraction(built):
+    _, _, lod, _ = built
+    source = LazyHierarchy(lod)
+    full = sum(f.stat().st_size for f in lod.rglob("*.npy"))
+    camera = frame(source.center, source.bounding_radius, size=(128, 128), zoom=8)
+    cut, stats = source.select(camera, 1.0)
+    assert stats["bytes_read"] < 0.05 * full
+    assert stats["nodes_loaded"] < 0.05 * source.nodes
+    assert len(cut) == stats["points_selected"] < 2000
+
+
+def test_frustum_culls_partitions(built):
+    _, _, lod, _ = built
+    source = LazyHierarchy(lod)
+    lo, _ = source.bounds
+    # standing at a corner of the bounds, looking away from the cloud
+    eye = lo - 0.1 * (source.center - lo)
+    camera = frame(lo, source.bounding_radius, eye=eye, target=2 * eye - source.center, size=(128, 128))
+    _, stats = source.select(camera, 1.0)
+    assert stats["partitions_visible"] < len(source.partitions) / 2
+
+
+def test_point_budget_raises_epsilon(built):
+    _, _, lod, _ = built
+    source = LazyHierarchy(lod)
+    camera = frame(source.center, source.bounding_radius, size=(256, 256))
+    cut, stats = source.select(camera, 0.5, point_budget=3000)
+    assert len(cut) <= 3000 and stats["epsilon_used"] > 0.5
+    unlimited, _ = source.select(camera, stats["epsilon_used"] * 0.9)
+    assert len(unlimited) > 3000 * 0.8
+
+
+def test_interrupted_build_leaves_no_output_and_resumes(built, tmp_path, monkeypatch):
+    ply, _, reference, _ = built
+    out = tmp_path / "cut.lod"
+    real = outofcore._build_partition
+    calls = []
+
+    def failing(*args, **kwargs):
+        calls.append(args[1])
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(outofcore, "_build_partition", failing)
+    with pytest.raises(KeyboardInterrupt):
+        build_outofcore(ply, out, memory=SMALL_MEMORY, progress=False)
+    assert not out.exists() and open_source(out) is None
+    partial = tmp_path / "cut.lod.partial"
+    assert partial.is_dir() and not (partial / "manifest.json").exists()
+    monkeypatch.setattr(outofcore, "_build_partition", real)
+    stats = build_outofcore(ply, out, memory=SMALL_MEMORY, resume=True, progress=False)
+    assert stats["resumed_partitions"] == 2 and not partial.exists()
+    assert json.loads((out / "manifest.json").read_text())["nodes"] == \
+        json.loads((reference / "manifest.json").read_text())["nodes"]
+
+
+def test_cli_build_render_info(built, tmp_path):
+    ply, _, _, _ = built
+    runner = CliRunner()
+    out = tmp_path / "cli.lod"
+    result = runner.invoke(main, ["lod", "build", str(ply), "-o", str(out), "--memory", "1GB"])
+    assert result.exit_code == 0, result.output
+    png = tmp_path / "far.png"
+    result = runner.invoke(main, ["render", str(out), "-o", str(png), "--size", "96x96", "--lod-error", "1",
+                                  "--point-budget", "5000", "--stats", str(tmp_path / "s.json")])
+    assert result.exit_code == 0, result.output
+    stats = json.loads((tmp_path / "s.json").read_text())
+    assert stats["points"] == POINTS and stats["splats"] <= 5000
+    result = runner.invoke(main, ["info", str(out), "--json"])
+    assert result.exit_code == 0 and json.loads(result.output)["points"] == POINTS
+
+
+def test_bad_inputs_are_one_line_errors(tmp_path):
+    runner = CliRunner()
+    missing = runner.invoke(main, ["lod", "build", str(tmp_path / "nope.ply"), "-o", str(tmp_path / "x.lod")])
+    truncated = tmp_path / "short.ply"
+    truncated.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 1000\nproperty float x\n"
+                          b"property float y\nproperty float z\nend_header\n" + bytes(100))
+    short = runner.invoke(main, ["lod", "build", str(truncated), "-o", str(tmp_path / "y.lod")])
+    for result, what in ((missing, "no such file"), (short, "truncated")):
+        assert result.exit_code == 2 and what in result.output
+        assert len(result.output.strip().splitlines()) == 1
+    assert not (tmp_path / "x.lod").exists() and not (tmp_path / "y.lod").exists()
+    keep = tmp_path / "photos"
+    (keep / "a.txt").parent.mkdir()
+    (keep / "a.txt").write_text("not a hierarchy")
+    refused = runner.invoke(main, ["lod", "build", str(truncated), "-o", str(keep)])
+    assert refused.exit_code == 2 and (keep / "a.txt").exists()
+    with pytest.raises(InputError):
+        LazyHierarchy(tmp_path)
+
+
+def test_parse_size():
+    assert parse_size("4GB") == 4 << 30 and parse_size("512mb") == 512 << 20 and parse_size("1000") == 1000
+    with pytest.raises(SurfelError):
+        parse_size("lots")
