@@ -42,7 +42,7 @@ def test_conic_matches_finite_differences_of_project(ortho):
     cloud = _plane(8)
     cam = frame(cloud.center, 0.7, azimuth=35, elevation=20, size=(128, 128), ortho_height=ortho)
     sigma, lowpass = 0.5, 1.0
-    splats, _ = _setup(cloud, cam, sigma, lowpass)
+    splats, _, _ = _setup(cloud, cam, sigma, lowpass)
     eps = 1e-6
     for i in (0, 17, 40):
         c, (u, v) = cloud.positions[i], cloud.axes[i].astype(np.float64)

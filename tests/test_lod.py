@@ -353,3 +353,29 @@ def test_build_throughput(bunny):
     seconds = time.perf_counter() - start
     print(f"lod build: {n} points -> {len(seq)} nodes in {seconds:.2f} s "
           f"= {n / seconds / 1e6:.2f} M points/s")
+
+
+def test_clip_lines_of_sharp_features_survive_the_hierarchy(tmp_path):
+    """fandisk's leaves keep their clip lines through build, file and cut; crease points (cut
+    away whole) are no leaves; the cut at 1 px still meets the full-detail quality bar."""
+    from conftest import data_file, gl_ok
+    from surfel.io import load
+    from surfel.metrics import compare_results
+    from surfel.preprocess import clipped_away
+    from surfel.rendering import complete, render
+
+    mesh = load(data_file("fandisk.obj"))
+    cloud = complete(mesh)[0]
+    dropped = clipped_away(cloud)
+    tree = lod.build_lod(cloud, progress=False)
+    assert tree.n_leaves == len(cloud) - dropped.sum() and dropped.sum() > 0
+    np.testing.assert_array_equal(tree.clip_lines[:tree.n_leaves], cloud.extras["clip_lines"][tree.point_index])
+    assert (tree.clip_lines[tree.n_leaves:, :, 2] == 1).all()
+    lod.save_lod(tree, tmp_path / "fandisk.lod.npz")
+    seq = lod.load_lod(tmp_path / "fandisk.lod.npz")
+    assert "clip_lines" in seq.extras
+    if gl_ok():
+        cam = frame(mesh.center, mesh.bounding_radius, size=(256, 256))
+        ref = render(mesh, cam, "mesh", shading="lambert")
+        metrics = compare_results(ref, render(seq, cam, "deferred", shading="lambert", lod_error=1.0))
+        assert metrics["psnr"] >= 27 and metrics["holes"] <= 0.001, metrics

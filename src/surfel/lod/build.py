@@ -51,7 +51,7 @@ import numpy as np
 from tqdm import tqdm
 
 from ..cloud import PointCloud
-from ..preprocess import clipped_away
+from ..preprocess import INACTIVE_CLIP, clipped_away
 
 MORTON_BITS = 21  # bits per axis: 63-bit codes
 # r_max of the root is infinite; it is stored as the largest float32 because point-cloud
@@ -70,7 +70,8 @@ class LodTree:
     float32 (inner nodes: circular, |u| = |v| = radius), e_p, e_t, e_g (M,) float32,
     parent (M,) int64 (-1 for the root), d_parent (M,) float32 |c - c_parent| (0 for the
     root), child_start (M + 1,) int64 and children (M - 1,) int64: the children of node j
-    are children[child_start[j]:child_start[j + 1]].
+    are children[child_start[j]:child_start[j + 1]]. clip_lines (M, 2, 3) float32 or None:
+    the leaves' clip lines at sharp features (surfel.preprocess); inner nodes' cut nothing.
     """
 
     positions: np.ndarray
@@ -87,6 +88,7 @@ class LodTree:
     children: np.ndarray
     point_index: np.ndarray
     geospatial: bool = False
+    clip_lines: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.positions)
@@ -391,5 +393,10 @@ def build_lod(cloud: PointCloud, *, progress: bool | None = None) -> LodTree:
     arrays = [pos, nrm, rad, axes, e_p, e_t, e_g, parent, d_parent] + ([col] if with_color else [])
     for array in arrays:
         array.resize((m, *array.shape[1:]), refcheck=False)  # shrink in place, no copy
+    clip_lines = None
+    if "clip_lines" in cloud.extras:
+        clip_lines = np.empty((m, *cloud.extras["clip_lines"].shape[1:]), np.float32)
+        clip_lines[:n] = cloud.extras["clip_lines"][point_index]
+        clip_lines[n:] = INACTIVE_CLIP
     return LodTree(pos, nrm, col if with_color else None, rad, axes, e_p, e_t, e_g, parent,
-                   d_parent, child_start, children, point_index, cloud.geospatial)
+                   d_parent, child_start, children, point_index, cloud.geospatial, clip_lines)

@@ -17,6 +17,8 @@ mantissa resolution, see sequential.py):
                                   is non-increasing
     lod_dparent  (M,)   float32   distance from the node's centre to its parent's (0: root)
     lod_dsuffix  (M,)   float32   max of lod_dparent over this row and all later ones
+    clip_lines   (M, 2, 3) float32 leaves' clip lines at sharp features (absent if the input
+                                  had none; inner nodes cut nothing)
     surfel_lod_version ()  int64  FORMAT_VERSION
     geospatial   ()     bool      the input's up axis is +Z (LAS/LAZ)
 
@@ -70,6 +72,8 @@ def save_lod(lod: LodTree | PointCloud, path: str | os.PathLike) -> None:
               "surfel_lod_version": np.int64(FORMAT_VERSION), "geospatial": np.bool_(seq.geospatial)}
     if seq.colors is not None:
         arrays["colors"] = seq.colors
+    if "clip_lines" in seq.extras:
+        arrays["clip_lines"] = seq.extras["clip_lines"]
     _atomic_write(path, lambda file: np.savez(file, **arrays))
 
 

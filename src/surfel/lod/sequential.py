@@ -123,6 +123,8 @@ def to_sequential_cloud(tree: LodTree) -> PointCloud:
         tree.parent, tree.d_parent, ROOT_PARENT_ERROR)
     dsuffix = np.maximum.accumulate(dparent[::-1])[::-1]
     extras = {"lod_emin": emin, "lod_emax": emax, "lod_dparent": dparent, "lod_dsuffix": dsuffix}
+    if tree.clip_lines is not None:
+        extras["clip_lines"] = tree.clip_lines[order]
     return PointCloud(pos, normals=nrm, colors=col if tree.colors is not None else None,
                       radii=rad, axes=axes, extras=extras, geospatial=tree.geospatial)
 
@@ -226,6 +228,7 @@ def lod_subset(seq: PointCloud, camera: Camera, epsilon: float) -> PointCloud:
     subset = PointCloud(seq.positions[mask], normals=seq.normals[mask],
                         colors=None if seq.colors is None else seq.colors[mask],
                         radii=seq.radii[mask], axes=seq.axes[mask], geospatial=seq.geospatial,
-                        source=seq.source)
+                        source=seq.source,
+                        extras={"clip_lines": seq.extras["clip_lines"][mask]} if "clip_lines" in seq.extras else {})
     _subsets[seq] = (key, subset)
     return subset

@@ -195,9 +195,10 @@ def render_ewa_cpu(cloud: PointCloud, camera: Camera, options: RenderOptions) ->
     target = target_camera(camera, params.supersample)
     w, h = target.width, target.height
     intr = np.array([target.fx, target.fy, target.cx, target.cy], np.float64)
-    splats, box = k.setup_splats(cloud.positions, np.asarray(cloud.local_origin, np.float64),
+    clip_lines = splat_clip_lines(cloud)
+    splats, extra, box = k.setup_splats(cloud.positions, np.asarray(cloud.local_origin, np.float64),
                                  np.asarray(target.world_to_eye, np.float64), cloud.normals, splat_colors(cloud),
-                                 splat_axes(cloud), splat_clip_lines(cloud), splat_fields(cloud), intr,
+                                 splat_axes(cloud), clip_lines, splat_fields(cloud), intr,
                                  ortho_scale(target), float(target.near),
                                  np.float32(options.radius_scale), np.float32(params.sigma ** 2),
                                  np.float32(params.lowpass ** 2), np.float32(params.visibility ** 2),
@@ -205,8 +206,8 @@ def render_ewa_cpu(cloud: PointCloud, camera: Camera, options: RenderOptions) ->
                                  np.float32(params.depth_offset), np.float32(params.depth_clamp), bool(options.backface_culling), w, h)
     tiles_x, tiles_y = -(-w // k.TILE), -(-h // k.TILE)
     offsets, index = k.bin_splats(box, tiles_x, tiles_y)
-    acc, fragments = k.rasterize_tiles(splats, box, offsets, index, tile_order(tiles_x, tiles_y), tiles_x,
-                                       w, h, np.float32(params.cutoff2), has_normal_field(cloud))
+    acc, fragments = k.rasterize_tiles(splats, extra, box, offsets, index, tile_order(tiles_x, tiles_y), tiles_x,
+                                       w, h, np.float32(params.cutoff2), len(clip_lines) > 1, has_normal_field(cloud))
     drawn = int(np.count_nonzero(box[:, 0] <= box[:, 1]))
     return resolve_accumulators(acc, target, options, params, {"splats": drawn, "fragments": int(fragments)})
 

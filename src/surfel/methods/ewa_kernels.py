@@ -29,12 +29,15 @@ import numpy as np
 TILE = 32
 SMALL_BOX = 16  # pixels: a splat box this small is scanned whole, testing the conic per pixel,
                 # instead of solving for each row's span (the cost of tiny minified splats)
-# Columns of the per-splat parameter table; P0*, P1*: the clip lines as pixel half-planes
-# a dx + b dy <= c around the centre; I00..I11: J^-1, pixel offsets to local coordinates;
-# FU*, FV*: the eye-space slopes of the Phong normal field, alpha u^ and beta v^.
-(MX, MY, CA, CB, CC, WS, ZC, GX, GY, DZ, ZT, R, G, B, NX, NY, NZ, VA, VB, VC,
- P0A, P0B, P0C, P1A, P1B, P1C, I00, I01, I10, I11, FUX, FUY, FUZ, FVX, FVY, FVZ, EX, EY, EZ) = range(39)
-SPLAT_FIELDS = 39
+# Columns of the per-splat parameter table.
+MX, MY, CA, CB, CC, WS, ZC, GX, GY, DZ, ZT, R, G, B, NX, NY, NZ, VA, VB, VC = range(20)
+SPLAT_FIELDS = 20
+# Columns of the optional table for clip lines and normal fields (filled only for clouds that
+# have them): P0*, P1*: the clip lines as pixel half-planes a dx + b dy <= c around the
+# centre; I00..I11: J^-1, pixel offsets to local coordinates; FU*, FV*: the eye-space slopes
+# of the Phong normal field, alpha u^ and beta v^; E*: the unit direction to the eye.
+(P0A, P0B, P0C, P1A, P1B, P1C, I00, I01, I10, I11, FUX, FUY, FUZ, FVX, FVY, FVZ, EX, EY, EZ) = range(19)
+EXTRA_FIELDS = 19
 # Accumulator channels, the order of the GL backend's two RGBA32F targets.
 LAYER = 8  # w*r, w*g, w*b, w, w*nx, w*ny, w*nz, w*depth
 ACC_CHANNELS = 2 * LAYER  # front layer, then back layer
@@ -46,8 +49,9 @@ FAR = np.float32(3e38)
 def setup_splats(positions, origin, view, normals, colors, axes, clip_lines, fields, intr, ortho, near,
                  radius_scale, sigma2, lowpass2, vis2, cutoff2, depth_offset, depth_clamp, backface,
                  width, height):
-    """Per-splat parameter table (N, SPLAT_FIELDS) float32 and pixel boxes (N, 4) int32
-    (x0, x1, y0, y1 inclusive; x0 > x1 marks a culled splat).
+    """Per-splat parameter table (N, SPLAT_FIELDS) float32, the table of clip lines and
+    normal fields (N, EXTRA_FIELDS) float32 (one unused row when the cloud has neither) and
+    pixel boxes (N, 4) int32 (x0, x1, y0, y1 inclusive; x0 > x1 marks a culled splat).
 
     positions (N,3) f64, origin (3,) f64, view (4,4) f64 world-to-eye, normals (N,3) f32,
     colors (N,3) f32 or (1,3) for a constant colour, axes (N,2,3) f32, clip_lines (N,2,3)
@@ -57,6 +61,8 @@ def setup_splats(positions, origin, view, normals, colors, axes, clip_lines, fie
     """
     n = positions.shape[0]
     out = np.empty((n, SPLAT_FIELDS), np.float32)
+    with_extra = clip_lines.shape[0] > 1 or fields.shape[0] > 1
+    extra = np.zeros((n if with_extra else 1, EXTRA_FIELDS), np.float32)
     box = np.empty((n, 4), np.int32)
     fx, fy, cx, cy = np.float32(intr[0]), np.float32(intr[1]), np.float32(intr[2]), np.float32(intr[3])
     # eye = R (p - origin) + t: fold the origin into t in float64 once.
@@ -134,8 +140,6 @@ def setup_splats(positions, origin, view, normals, colors, axes, clip_lines, fie
         row[WS] = abs(det_j) / math.sqrt(det_m)
         row[ZC], row[GX], row[GY] = d, gx, gy
         radius = max(math.sqrt(ux * ux + uy * uy + uz * uz), math.sqrt(vx * vx + vy * vy + vz * vz))
-        # The plane's depth range over the cut ellipse is +-R sqrt(g^T M g); capped so that a
-        # splat seen edge-on (J near singular, g huge) cannot claim absurd depths.
         # The visibility footprint: the reconstruction kernel itself, J V J^T + v^2 I with a small
         # v, so the low-pass fringe of a splat seen edge-on cannot hide the surface behind it.
         n00, n11 = m00 - lowpass2 + vis2, m11 - lowpass2 + vis2
@@ -146,6 +150,13 @@ def setup_splats(positions, origin, view, normals, colors, axes, clip_lines, fie
         row[DZ] = min(cutoff * math.sqrt(gx * gx * n00 + 2 * gx * gy * m01 + gy * gy * n11), depth_clamp * radius)
         # Threshold: the splat's own depth range over its footprint is one surface, plus z_t.
         row[ZT] = depth_offset * radius + row[DZ]
+        c = i * color_step
+        row[R], row[G], row[B] = colors[c, 0], colors[c, 1], colors[c, 2]
+        row[NX], row[NY], row[NZ] = nx, ny, nz
+        box[i, 0], box[i, 1], box[i, 2], box[i, 3] = x0, x1, y0, y1
+        if not with_extra:
+            continue
+        e = extra[i]
         # A clip line a s + b t <= c of the local coordinates (s, t) = J^-1 dx / radius_scale
         # becomes the pixel half-plane (a, b) adj(J) dx / (det J radius_scale) <= c.
         for line in range(2):
@@ -153,31 +164,27 @@ def setup_splats(positions, origin, view, normals, colors, axes, clip_lines, fie
             col = P0A + 3 * line
             if abs(det_j) > 1e-12 and cl < 1:
                 inv_det = np.float32(1.0) / (det_j * radius_scale)
-                row[col] = (a * j11 - b * j10) * inv_det
-                row[col + 1] = (b * j00 - a * j01) * inv_det
-                row[col + 2] = cl
+                e[col] = (a * j11 - b * j10) * inv_det
+                e[col + 1] = (b * j00 - a * j01) * inv_det
+                e[col + 2] = cl
             else:  # edge-on (the line is a point) or inactive: cuts nothing
-                row[col], row[col + 1], row[col + 2] = 0, 0, 1
+                e[col], e[col + 1], e[col + 2] = 0, 0, 1
         if abs(det_j) > 1e-12:
             inv = np.float32(1.0) / det_j
-            row[I00], row[I01], row[I10], row[I11] = j11 * inv, -j01 * inv, -j10 * inv, j00 * inv
+            e[I00], e[I01], e[I10], e[I11] = j11 * inv, -j01 * inv, -j10 * inv, j00 * inv
         else:
-            row[I00], row[I01], row[I10], row[I11] = 0, 0, 0, 0
+            e[I00], e[I01], e[I10], e[I11] = 0, 0, 0, 0
         alpha = flip * fields[i * field_step, 0] / max(math.sqrt(ux * ux + uy * uy + uz * uz), np.float32(1e-30))
         beta = flip * fields[i * field_step, 1] / max(math.sqrt(vx * vx + vy * vy + vz * vz), np.float32(1e-30))
-        row[FUX], row[FUY], row[FUZ] = alpha * ux, alpha * uy, alpha * uz
-        row[FVX], row[FVY], row[FVZ] = beta * vx, beta * vy, beta * vz
+        e[FUX], e[FUY], e[FUZ] = alpha * ux, alpha * uy, alpha * uz
+        e[FVX], e[FVY], e[FVZ] = beta * vx, beta * vy, beta * vz
         # the direction to the eye, for the field's normals (_field_normal)
         if ortho > 0:
-            row[EX], row[EY], row[EZ] = 0, 0, 1
+            e[EX], e[EY], e[EZ] = 0, 0, 1
         else:
             inv_d = np.float32(1.0) / math.sqrt(ex * ex + ey * ey + ez * ez)
-            row[EX], row[EY], row[EZ] = -ex * inv_d, -ey * inv_d, -ez * inv_d
-        c = i * color_step
-        row[R], row[G], row[B] = colors[c, 0], colors[c, 1], colors[c, 2]
-        row[NX], row[NY], row[NZ] = nx, ny, nz
-        box[i, 0], box[i, 1], box[i, 2], box[i, 3] = x0, x1, y0, y1
-    return out, box
+            e[EX], e[EY], e[EZ] = -ex * inv_d, -ey * inv_d, -ez * inv_d
+    return out, extra, box
 
 
 @nb.njit(cache=True)
@@ -221,36 +228,38 @@ def _span(s, conic, yc, x_lo, x_hi, cutoff2):
 
 
 @nb.njit(inline="always", fastmath=True)
-def _clipped(s, dx, dy):
-    """Whether the pixel offset (dx, dy) lies beyond one of the splat's clip lines."""
-    return s[P0A] * dx + s[P0B] * dy > s[P0C] or s[P1A] * dx + s[P1B] * dy > s[P1C]
+def _clipped(e, dx, dy):
+    """Whether the pixel offset (dx, dy) lies beyond one of the splat's clip lines (e: its
+    row of the extra table)."""
+    return e[P0A] * dx + e[P0B] * dy > e[P0C] or e[P1A] * dx + e[P1B] * dy > e[P1C]
 
 
 @nb.njit(inline="always", fastmath=True)
-def _field_normal(s, dx, dy):
+def _field_normal(s, e, dx, dy):
     """The unit normal N(u, v) = n + u alpha u^ + v beta v^ at the pixel offset (dx, dy), with
     (u, v) = J^-1 (dx, dy) kept within the splat's rim (the low-pass fringe of an edge-on
     splat lies far out in (u, v), where the linear field means nothing), turned no further
     than edge-on (as gl/common.glsl field_normal: past the silhouette it would face away, and
     two-sided shading would light it as if it faced the viewer again)."""
-    u = s[I00] * dx + s[I01] * dy
-    v = s[I10] * dx + s[I11] * dy
+    u = e[I00] * dx + e[I01] * dy
+    v = e[I10] * dx + e[I11] * dy
     length2 = u * u + v * v
     if length2 > 1:
         scale = np.float32(1.0) / math.sqrt(length2)
         u *= scale
         v *= scale
-    nx = s[NX] + u * s[FUX] + v * s[FVX]
-    ny = s[NY] + u * s[FUY] + v * s[FVY]
-    nz = s[NZ] + u * s[FUZ] + v * s[FVZ]
-    away = min(nx * s[EX] + ny * s[EY] + nz * s[EZ], np.float32(0.0))
-    nx, ny, nz = nx - away * s[EX], ny - away * s[EY], nz - away * s[EZ]
+    nx = s[NX] + u * e[FUX] + v * e[FVX]
+    ny = s[NY] + u * e[FUY] + v * e[FVY]
+    nz = s[NZ] + u * e[FUZ] + v * e[FVZ]
+    away = min(nx * e[EX] + ny * e[EY] + nz * e[EZ], np.float32(0.0))
+    nx, ny, nz = nx - away * e[EX], ny - away * e[EY], nz - away * e[EZ]
     inv = np.float32(1.0) / max(math.sqrt(nx * nx + ny * ny + nz * nz), np.float32(1e-20))
     return nx * inv, ny * inv, nz * inv
 
 
 @nb.njit(parallel=True, fastmath=True, cache=True)
-def rasterize_tiles(splats, box, offsets, index, order, tiles_x, width, height, cutoff2, normal_field):
+def rasterize_tiles(splats, extra, box, offsets, index, order, tiles_x, width, height, cutoff2,
+                    clip_lines, normal_field):
     """Accumulators (H, W, ACC_CHANNELS) float32 and the fragment count.
 
     Visibility (A-buffer in the spirit of Zwicker et al. 2001, Sec. 5): pass 1 stores per
@@ -258,8 +267,9 @@ def rasterize_tiles(splats, box, offsets, index, order, tiles_x, width, height, 
     fragment with depth <= Z into the front layer (channels 0-7), independent of drawing
     order, and the others into the back layer (channels 8-15) with a running threshold
     z-buffer, so partly covered front pixels can be composited over the surface behind.
-    With `normal_field`, a fragment's normal is the splat's linear normal field at its local
-    coordinates (Botsch, Spernat & Kobbelt 2004, eq. 8), else the splat's normal.
+    With `clip_lines`, fragments beyond a splat's clip lines are dropped; with `normal_field`,
+    a fragment's normal is the splat's linear normal field at its local coordinates (Botsch,
+    Spernat & Kobbelt 2004, eq. 8), else the splat's normal (both from the `extra` table).
     """
     acc = np.zeros((height, width, ACC_CHANNELS), np.float32)
     fragments = np.zeros(order.shape[0], np.int64)
@@ -290,7 +300,7 @@ def rasterize_tiles(splats, box, offsets, index, order, tiles_x, width, height, 
                     dx = np.float32(x) + half - s[MX]
                     if small and s[VA] * dx * dx + np.float32(2.0) * s[VB] * dx * dy + s[VC] * dy * dy > cutoff2:
                         continue
-                    if _clipped(s, dx, dy):
+                    if clip_lines and _clipped(extra[i], dx, dy):
                         continue
                     dz = min(max(s[GX] * dx + s[GY] * dy, -s[DZ]), s[DZ])
                     z = s[ZC] + dz + s[ZT]
@@ -316,7 +326,7 @@ def rasterize_tiles(splats, box, offsets, index, order, tiles_x, width, height, 
                     q = s[CA] * dx * dx + np.float32(2.0) * s[CB] * dx * dy + s[CC] * dy * dy
                     if small and q > cutoff2:
                         continue
-                    if _clipped(s, dx, dy):
+                    if clip_lines and _clipped(extra[i], dx, dy):
                         continue
                     dz = min(max(s[GX] * dx + s[GY] * dy, -s[DZ]), s[DZ])
                     z = s[ZC] + dz
@@ -336,7 +346,7 @@ def rasterize_tiles(splats, box, offsets, index, order, tiles_x, width, height, 
                     w = s[WS] * math.exp(np.float32(-0.5) * q)
                     nx, ny, nz = s[NX], s[NY], s[NZ]
                     if normal_field:
-                        nx, ny, nz = _field_normal(s, dx, dy)
+                        nx, ny, nz = _field_normal(s, extra[i], dx, dy)
                     cell[base] += w * s[R]
                     cell[base + 1] += w * s[G]
                     cell[base + 2] += w * s[B]

@@ -6,6 +6,7 @@
 //                    (eqs. 3-5), Gaussian alpha texture times 1/(r0 r1) (eq. 4), additive
 //                    blending of fragments no farther than the visibility depth
 //   PASS_NORMALIZE   full-screen: G-buffer from the accumulated sums, deferred shading
+// Variant: CLIP_LINES (surfels cut at sharp features by the clip lines of surfel.preprocess).
 // Variant: PER_SURFEL_NORMALIZATION (the paper: weights pre-scaled per surfel by in_weight,
 // colours not divided per pixel) or per-pixel normalization (Botsch & Kobbelt 2003: divide
 // by the accumulated weight).
@@ -31,9 +32,11 @@ in float in_weight;          // 1 / (sum of the neighbouring kernels at this sur
 #endif
 out float v_depth;           // eye depth, interpolated perspective-correctly over the planar quad
 out vec2 v_texcoord;         // v of eq. 5
+#ifdef CLIP_LINES
 out vec2 v_local;            // the point in splat coordinates (1 on the rim of the unscaled splat)
 flat out vec3 v_clip0;       // clip lines at sharp features, in those coordinates
 flat out vec3 v_clip1;
+#endif
 flat out vec3 v_normal;      // eye space, facing the camera
 flat out vec3 v_color;
 flat out float v_alpha;      // the constant 1/(r0 r1) of eq. 4 times the surfel's weight
@@ -68,7 +71,9 @@ void main() {
     // back along the viewing ray by z_t.
     vec3 p = c + (2.0 * v.x - 1.0) * au + (2.0 * v.y - 1.0) * av;
     v_depth = -p.z + u_depth_offset * radius;
+#ifdef CLIP_LINES
     v_local = (2.0 * v - 1.0) * u_radius_scale;
+#endif
 #else
     // Orthonormal tangent frame (s, t) and the reconstruction variance V_k in it.
     vec3 s = normalize(au);
@@ -97,7 +102,9 @@ void main() {
     vec2 u = rot * (vec2(r0, r1) * y);
     vec3 p = c + u.x * s + u.y * t;
     v_depth = -p.z;
+#ifdef CLIP_LINES
     v_local = u_radius_scale * vec2(dot(p - c, au) / dot(au, au), dot(p - c, av) / dot(av, av));
+#endif
 #ifdef PER_SURFEL_NORMALIZATION
     v_alpha = in_weight / (r0 * r1);
 #else
@@ -105,8 +112,10 @@ void main() {
 #endif
 #endif
     v_texcoord = v;
+#ifdef CLIP_LINES
     v_clip0 = in_clip0;
     v_clip1 = in_clip1;
+#endif
     v_normal = n;
     v_color = in_color;
     gl_Position = u_projection * vec4(p, 1.0);
@@ -118,9 +127,11 @@ void main() {
 #ifndef PASS_NORMALIZE
 in float v_depth;
 in vec2 v_texcoord;
+#ifdef CLIP_LINES
 in vec2 v_local;
 flat in vec3 v_clip0;
 flat in vec3 v_clip1;
+#endif
 flat in vec3 v_normal;
 flat in vec3 v_color;
 flat in float v_alpha;
@@ -131,7 +142,11 @@ layout(location = 0) out vec4 out_depth;
 void main() {
     // Coverage of the disk inscribed in the square, cut at its clip lines: the pixel centre's
     // signed distance to that edge in pixels, from the screen-space gradient of the distance.
+#ifdef CLIP_LINES
     float clipped = clip_excess(v_local, v_clip0, v_clip1);
+#else
+    float clipped = -1.0;
+#endif
     float rho = max(length(2.0 * v_texcoord - 1.0), 1.0 + clipped);
     float coverage = clamp(0.5 + (1.0 - rho) / max(length(vec2(dFdx(rho), dFdy(rho))), 1e-6), 0.0, 1.0);
     if (clipped > 0.0) discard;  // the square ends at sharp features
@@ -143,7 +158,9 @@ void main() {
 layout(location = 0) out vec4 out_color;   // (w rgb, w)
 layout(location = 1) out vec4 out_normal;  // (w n, w z)
 void main() {
+#ifdef CLIP_LINES
     if (clip_excess(v_local, v_clip0, v_clip1) > 0.0) discard;  // beyond a sharp feature
+#endif
     if (v_depth > texelFetch(u_visibility, ivec2(gl_FragCoord.xy), 0).r) discard;  // occluded
     float w = v_alpha * texture(u_kernel, v_texcoord).r;
     out_color = vec4(w * v_color, w);

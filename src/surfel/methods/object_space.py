@@ -153,7 +153,8 @@ def render_object_space(cloud, camera, options):
     ss = options.supersample or DEFAULT_SUPERSAMPLE
     width, height = camera.width * ss, camera.height * ss
     per_surfel = options.params.get("normalization", DEFAULT_NORMALIZATION) == "per-surfel"
-    programs = {p: build_program(SHADER, {p: True, "PER_SURFEL_NORMALIZATION": per_surfel})
+    programs = {p: build_program(SHADER, {p: True, "PER_SURFEL_NORMALIZATION": per_surfel,
+                                          "CLIP_LINES": "clip_lines" in cloud.extras})
                 for p in ("PASS_VISIBILITY", "PASS_ATTRIBUTE", "PASS_NORMALIZE")}
     depth_offset = DEFAULT_DEPTH_OFFSET if options.depth_offset is None else options.depth_offset
     for program in programs.values():

@@ -7,7 +7,8 @@
 // blending) or deferred shading from blended normals (2005); EWA_FILTER (2005 screen-space
 // filter approximation: the union of the object-space disk and a screen-space low-pass);
 // NORMAL_FIELD (Botsch, Spernat & Kobbelt 2004, Phong splatting: the blended normal is the
-// splat's linear normal field N(u, v) = n + u alpha u_j + v beta v_j, eq. 8, per fragment).
+// splat's linear normal field N(u, v) = n + u alpha u_j + v beta v_j, eq. 8, per fragment);
+// CLIP_LINES (splats cut at sharp features by the clip lines of surfel.preprocess).
 #include "common.glsl"
 #include "lod.glsl"
 #include "shading.glsl"
@@ -35,8 +36,10 @@ flat out float v_radius;    // largest semi-axis
 flat out float v_weight;    // EWA_FILTER: the resampling kernel's relative amplitude
 flat out vec3 v_field_u;    // alpha u_j and beta v_j: the normal field's slopes (eye space)
 flat out vec3 v_field_v;
+#ifdef CLIP_LINES
 flat out vec3 v_clip0;      // clip lines in local coordinates (sharp features)
 flat out vec3 v_clip1;
+#endif
 
 vec2 to_pixels(vec3 eye) {
     if (u_ortho > 0.0) return vec2(u_intrinsics.z + u_ortho * eye.x, u_intrinsics.w - u_ortho * eye.y);
@@ -57,7 +60,11 @@ void main() {
     v_field_v = (back ? -1.0 : 1.0) * in_field.y * normalize(av + 1e-30);
     float near = u_depth_range.x;
     bool before_near = u_ortho == 0.0 && -c.z + length(au) + length(av) < near;  // wholly behind the camera's near plane
-    if ((back && u_backface_culling != 0) || before_near) {
+    bool culled = (back && u_backface_culling != 0) || before_near;
+#ifdef CLIP_LINES
+    culled = culled || in_clip0.z < -1.0 || in_clip1.z < -1.0;  // cut away whole (a crease point)
+#endif
+    if (culled) {
         gl_Position = vec4(2.0, 2.0, 2.0, 1.0);  // outside the clip volume: no fragments
         return;
     }
@@ -110,8 +117,10 @@ void main() {
     v_color = in_color;
 #endif
     v_center_px = center_px;
+#ifdef CLIP_LINES
     v_clip0 = in_clip0;
     v_clip1 = in_clip1;
+#endif
     v_radius = max(length(au), length(av));
     v_offset = u_depth_offset * v_radius;
 }
@@ -131,8 +140,10 @@ flat in float v_radius;
 flat in float v_weight;
 flat in vec3 v_field_u;
 flat in vec3 v_field_v;
+#ifdef CLIP_LINES
 flat in vec3 v_clip0;
 flat in vec3 v_clip1;
+#endif
 
 // Squared distance of the fragment to the splat centre in the kernel's unit domain, and the
 // eye depth of the splat's plane seen there: the exact ray-plane intersection (perspective
@@ -155,7 +166,9 @@ float splat_distance(out float eye_depth, out vec2 local_uv, out float clipped) 
         float u = dot(local, v_u), v = dot(local, v_v);
         rho2 = u * u + v * v;
         local_uv = vec2(u, v);
+#ifdef CLIP_LINES
         clipped = clip_excess(local_uv * u_radius_scale, v_clip0, v_clip1) / u_radius_scale;
+#endif
         eye_depth = clamp(-q.z, -v_center.z - extent, -v_center.z + extent);
     }
 #ifdef EWA_FILTER
