@@ -159,7 +159,7 @@ float splat_distance(out float eye_depth, out vec2 local_uv, out float clipped) 
     float extent = DEPTH_CLAMP * v_radius;
     eye_depth = -v_center.z;
     local_uv = vec2(0.0);
-    clipped = 0.0;
+    clipped = -1e30;  // no clip line near
     if (abs(denom) > 1e-12) {
         vec3 q = o + d * (dot(v_center - o, v_normal) / denom);
         vec3 local = q - v_center;
