@@ -291,7 +291,7 @@ def compare(mesh, method, output, as_json, **kw):
 def _side_by_side(reference, result, path):
     from PIL import Image
 
-    from .result import _atomic_write
+    from .files import write_atomically
 
     error = np.abs(reference.color - result.color).mean(axis=-1, keepdims=True)
     error = np.repeat(np.clip(4 * error, 0, 1), 3, axis=-1)
@@ -300,7 +300,7 @@ def _side_by_side(reference, result, path):
 
     buf = io.BytesIO()
     Image.fromarray(np.round(strip * 255).astype(np.uint8)).save(buf, format="PNG")
-    _atomic_write(path, buf.getvalue())
+    write_atomically(path, buf.getvalue())
 
 
 @main.command(context_settings=CONTEXT)

@@ -4,13 +4,12 @@ from __future__ import annotations
 
 import io
 import json
-import os
-import tempfile
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numba
 import numpy as np
+
+from .files import write_atomically
 
 
 @numba.njit(parallel=True, cache=True)
@@ -105,13 +104,13 @@ class RenderResult:
     def save(self, png=None, *, depth=None, normals=None, stats=None) -> None:
         """Write the requested files, each atomically (never a half-written file)."""
         if png is not None:
-            _atomic_write(png, self.png_bytes())
+            write_atomically(png, self.png_bytes())
         if depth is not None:
-            _atomic_write(depth, _npy_bytes(self.depth.astype(np.float32)))
+            write_atomically(depth, _npy_bytes(self.depth.astype(np.float32)))
         if normals is not None:
-            _atomic_write(normals, _npy_bytes(self.normals.astype(np.float32)))
+            write_atomically(normals, _npy_bytes(self.normals.astype(np.float32)))
         if stats is not None:
-            _atomic_write(stats, (json.dumps(self.stats, indent=2) + "\n").encode())
+            write_atomically(stats, (json.dumps(self.stats, indent=2) + "\n").encode())
 
 
 def _npy_bytes(array: np.ndarray) -> bytes:
@@ -120,14 +119,3 @@ def _npy_bytes(array: np.ndarray) -> bytes:
     return buf.getvalue()
 
 
-def _atomic_write(path, data: bytes) -> None:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise

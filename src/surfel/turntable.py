@@ -10,7 +10,7 @@ from tqdm import tqdm
 
 from .camera import frame
 from .errors import SurfelError
-from .result import _atomic_write
+from .files import write_atomically
 
 
 def orbit_cameras(cloud, frames: int, *, size=(512, 512), elevation: float = 15.0, fov: float = 30.0):
@@ -31,7 +31,7 @@ def write_animation(images: list[np.ndarray], path, fps: float = 12.0) -> None:
         buffer = io.BytesIO()
         pictures[0].save(buffer, format="GIF", save_all=True, append_images=pictures[1:],
                          duration=round(1000 / fps), loop=0)
-        _atomic_write(path, buffer.getvalue())
+        write_atomically(path, buffer.getvalue())
     elif suffix == ".mp4":
         try:
             import imageio.v3 as iio

@@ -205,9 +205,9 @@ def save_window(ctx, width: int, height: int, path) -> None:
 
     from PIL import Image
 
-    from .result import _atomic_write
+    from .files import write_atomically
 
     pixels = np.frombuffer(ctx.screen.read(viewport=(0, 0, width, height), components=3), np.uint8)
     buffer = io.BytesIO()
     Image.fromarray(pixels.reshape(height, width, 3)[::-1]).save(buffer, format="PNG")
-    _atomic_write(path, buffer.getvalue())
+    write_atomically(path, buffer.getvalue())

@@ -40,12 +40,10 @@ comment), each only when the cloud has it, and the faces as ``vertex_indices`` l
 
 from __future__ import annotations
 
-import contextlib
 import math
 import mmap
 import os
 import re
-import secrets
 import struct
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -54,7 +52,8 @@ from typing import BinaryIO, NamedTuple
 import numpy as np
 
 from ..cloud import PointCloud
-from ..errors import InputError, SurfelError
+from ..files import write_atomically
+from ..errors import InputError
 from ._parse import numbers_by_line, ragged_arange
 from .mesh import area_weighted_vertex_normals, referenced_vertices, triangles_from_polygons
 
@@ -513,21 +512,6 @@ def write_ply(cloud: PointCloud, path: str | os.PathLike, *, binary: bool = True
             if faces is not None:
                 np.savetxt(file, np.column_stack([np.full(len(faces), 3), faces]), fmt="%d")
 
-    _write_atomically(os.fspath(path), write_body)
+    write_atomically(path, write_body)
 
 
-def _write_atomically(path: str, write_body: Callable[[BinaryIO], None]) -> None:
-    directory, name = os.path.split(os.path.abspath(path))
-    temporary = os.path.join(directory, f".{name}.{os.getpid()}.{secrets.token_hex(4)}.tmp")
-    try:
-        # Mode 0o666 lets the umask decide the permissions, as a plain open() would.
-        descriptor = os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
-        with os.fdopen(descriptor, "wb") as file:
-            write_body(file)
-        os.replace(temporary, path)
-    except BaseException as error:
-        with contextlib.suppress(OSError):
-            os.unlink(temporary)
-        if isinstance(error, OSError):
-            raise SurfelError(f"{path}: cannot write: {error.strerror or error}") from error
-        raise

@@ -33,16 +33,15 @@ import json
 import math
 import os
 import struct
-import tempfile
 import time
 from collections.abc import Callable
-from pathlib import Path
 
 import laspy
 import lazrs
 import numpy as np
 
 from ..cloud import PointCloud
+from ..files import write_atomically
 from .copc import ENTRY, EVLR_HEADER, INFO, SURFEL_VLR, VLR_HEADER
 
 MAX_ROOT_CELLS = 128      # most grid cells per side of the root node (s_0 = 2h / cells)
@@ -123,18 +122,7 @@ def write_copc(cloud: PointCloud, path: str | os.PathLike, *, leaf_points: int =
         summary.update(points=len(cloud), nodes=len(entries), depth=int(keys[:, 0].max()),
                        bytes=evlr_offset + EVLR_HEADER.size + len(page))
 
-    target = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=target.parent, prefix=f".{target.name}.", suffix=".tmp")
-    umask = os.umask(0)
-    os.umask(umask)
-    try:
-        os.chmod(tmp, 0o666 & ~umask)  # mkstemp creates 0600; give the file normal permissions
-        with os.fdopen(fd, "w+b") as file:  # read back: the chunk table's offset
-            write(file)
-        os.replace(tmp, target)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    write_atomically(path, write)  # opened for reading too: the chunk table's offset is patched in
     return summary
 
 
@@ -147,7 +135,6 @@ def build_command(in_path: str | os.PathLike, out_path: str | os.PathLike,
     """
     from ..io import load
     from ..rendering import complete
-    from .format import _atomic_write
 
     cloud, estimated = complete(load(in_path))
     start = time.perf_counter()
@@ -157,7 +144,7 @@ def build_command(in_path: str | os.PathLike, out_path: str | os.PathLike,
         stats["estimated"] = estimated
     if stats_path is not None:
         text = json.dumps(stats, indent=2, default=str) + "\n"
-        _atomic_write(stats_path, lambda file: file.write(text.encode()))
+        write_atomically(stats_path, lambda file: file.write(text.encode()))
     return stats
 
 

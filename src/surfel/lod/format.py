@@ -32,34 +32,17 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
 import time
-from pathlib import Path
 
 import numpy as np
 
 from ..cloud import PointCloud
+from ..files import write_atomically
 from ..errors import InputError
 from .build import LodTree, build_lod
 from .sequential import EXTRAS, is_sequential, r_max_bucket, to_sequential_cloud
 
 FORMAT_VERSION = 1
-
-
-def _atomic_write(path: str | os.PathLike, write) -> None:
-    """Call write(file) on a temporary file beside `path`, then rename it over `path`."""
-    target = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=target.parent or ".", prefix=f".{target.name}.", suffix=".tmp")
-    umask = os.umask(0)
-    os.umask(umask)
-    try:
-        os.chmod(tmp, 0o666 & ~umask)  # mkstemp creates 0600; give the file normal permissions
-        with os.fdopen(fd, "wb") as file:
-            write(file)
-        os.replace(tmp, target)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def save_lod(lod: LodTree | PointCloud, path: str | os.PathLike) -> None:
@@ -74,7 +57,7 @@ def save_lod(lod: LodTree | PointCloud, path: str | os.PathLike) -> None:
         arrays["colors"] = seq.colors
     if "clip_lines" in seq.extras:
         arrays["clip_lines"] = seq.extras["clip_lines"]
-    _atomic_write(path, lambda file: np.savez(file, **arrays))
+    write_atomically(path, lambda file: np.savez(file, **arrays))
 
 
 def load_lod(path: str | os.PathLike) -> PointCloud:
@@ -127,7 +110,7 @@ def build_command(in_path: str | os.PathLike, out_path: str | os.PathLike,
         stats["estimated"] = estimated
     if stats_path is not None:
         text = json.dumps(stats, indent=2, default=str) + "\n"
-        _atomic_write(stats_path, lambda file: file.write(text.encode()))
+        write_atomically(stats_path, lambda file: file.write(text.encode()))
     return stats
 
 

@@ -67,9 +67,9 @@ import numpy as np
 from tqdm import tqdm
 
 from ..cloud import PointCloud
+from ..files import write_atomically
 from ..errors import InputError, SurfelError
 from .build import ROOT_PARENT_ERROR, _merge_cells, _next_level, build_lod, morton_codes
-from .format import _atomic_write
 from .sequential import EXTRAS, r_max_bucket, to_sequential_cloud
 
 DIR_FORMAT = "surfel-lod-dir"
@@ -396,7 +396,7 @@ def build_outofcore(in_path: str | os.PathLike, out_path: str | os.PathLike, *, 
         except BaseException:  # binning cannot be resumed half way: leave nothing behind
             shutil.rmtree(partial, ignore_errors=True)
             raise
-        _atomic_write(plan_file, lambda f: f.write(json.dumps(saved).encode()))
+        write_atomically(plan_file, lambda f: f.write(json.dumps(saved).encode()))
     total = sum(saved["counts"])
     has_normals, has_colors = saved["has_normals"], saved["has_colors"]
     dtype = _record_dtype(has_normals, has_colors)
@@ -426,7 +426,7 @@ def build_outofcore(in_path: str | os.PathLike, out_path: str | os.PathLike, *, 
                                 "bounds": p["bounds"], "max_radius": p["radius"]} for p in parts]}
     shutil.rmtree(partial / "bins", ignore_errors=True)
     plan_file.unlink()
-    _atomic_write(partial / MANIFEST, lambda f: f.write(json.dumps(manifest, indent=1).encode()))
+    write_atomically(partial / MANIFEST, lambda f: f.write(json.dumps(manifest, indent=1).encode()))
     _replace_dir(partial, out)
     ms = (time.perf_counter() - start) * 1000
     stats = {"points": total, "nodes": nodes, "partitions": len(parts), "top_nodes": top,
@@ -434,7 +434,7 @@ def build_outofcore(in_path: str | os.PathLike, out_path: str | os.PathLike, *, 
              "resumed_partitions": resumed, "memory": memory, "partition_cap": cap}
     if stats_path is not None:
         text = json.dumps(stats, indent=2) + "\n"
-        _atomic_write(stats_path, lambda f: f.write(text.encode()))
+        write_atomically(stats_path, lambda f: f.write(text.encode()))
     return stats
 
 
