@@ -406,7 +406,6 @@ def _crease_half_plane(points, p, q, normal_q, e1, e2):  # pragma: no cover - co
     ga = 0.0
     gb = 0.0
     distance2 = 0.0
-    toward_q = 0.0
     for a in range(3):
         offset = points[p, a] - points[q, a]
         side += offset * normal_q[a]
@@ -422,8 +421,8 @@ def _crease_half_plane(points, p, q, normal_q, e1, e2):  # pragma: no cover - co
         for a in range(3):
             qx += (points[q, a] - points[p, a]) * e1[a]
             qy += (points[q, a] - points[p, a]) * e2[a]
-        toward_q = side + qx * ga + qy * gb  # g at q seen in p's plane: q's side goes
-        sign = -1.0 if toward_q > 0.0 else 1.0
+        at_q = side + qx * ga + qy * gb  # g where q projects into p's plane: that side goes
+        sign = -1.0 if at_q > 0.0 else 1.0
     return -sign * ga, -sign * gb, sign * side
 
 
