@@ -167,6 +167,14 @@ def test_cli_build_render_info(built, tmp_path):
     assert stats["points"] == POINTS and stats["splats"] <= 5000
     result = runner.invoke(main, ["info", str(out), "--json"])
     assert result.exit_code == 0 and json.loads(result.output)["points"] == POINTS
+    gif = tmp_path / "orbit.gif"
+    result = runner.invoke(main, ["turntable", str(out), "-o", str(gif), "--frames", "2", "--size", "64x64"])
+    assert result.exit_code == 0, result.output
+    from PIL import Image
+
+    with Image.open(gif) as animation:
+        assert animation.n_frames == 2
+        assert np.asarray(animation.convert("RGB")).max() > 0  # the cloud is in the picture
 
 
 def test_bad_inputs_are_one_line_errors(tmp_path):

@@ -365,7 +365,7 @@ def view(input, demo, method, shading, size, screenshot):
 
 
 @main.command(context_settings=CONTEXT)
-@click.argument("input", type=click.Path(dir_okay=False))
+@click.argument("input", type=click.Path())
 @click.option("-o", "--output", required=True, type=click.Path(dir_okay=False), help="Animation to write (.gif, or .mp4 with the video extra).")
 @click.option("--frames", type=click.IntRange(1, 3600), default=36, show_default=True)
 @click.option("--method", "-m", default="deferred", show_default=True)
@@ -374,7 +374,8 @@ def view(input, demo, method, shading, size, screenshot):
 @click.option("--fps", type=float, default=12.0, show_default=True)
 @click.option("--shading", type=click.Choice(["lambert", "phong", "none", "normals", "depth"]), default="phong", show_default=True)
 def turntable(input, output, frames, method, size, elevation, fps, shading):
-    """Render an orbit around INPUT to an animated GIF or MP4.
+    """Render an orbit around INPUT to an animated GIF or MP4 (a .lod hierarchy or a COPC file
+    is read lazily, each frame at 1 pixel of error).
 
     \b
     Example:
@@ -382,7 +383,7 @@ def turntable(input, output, frames, method, size, elevation, fps, shading):
     """
     from .turntable import turntable as do_turntable
 
-    cloud = load_input(input)
+    cloud = open_input(input)
     do_turntable(cloud, output, frames=frames, method=method, size=_size(size), elevation=elevation, fps=fps,
                  shading=shading)
     click.echo(f"{output}: {frames} frames of {method}", err=True)
