@@ -106,6 +106,17 @@ class PointCloud:
         """A copy with some fields replaced (validated again)."""
         return replace(self, **changes)
 
+    def take(self, index: np.ndarray) -> "PointCloud":
+        """The points at `index` (indices or a mask) with all their attributes and extras;
+        the faces are dropped, since they refer to the old numbering."""
+        def pick(value):
+            return None if value is None else value[index]
+
+        return PointCloud(self.positions[index], normals=pick(self.normals), colors=pick(self.colors),
+                          radii=pick(self.radii), axes=pick(self.axes),
+                          extras={name: value[index] for name, value in self.extras.items()},
+                          geospatial=self.geospatial, source=self.source)
+
     @cached_property
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """(min, max) corners; computed once, since renderers ask every frame."""

@@ -58,6 +58,7 @@ visibility (0.2 px), depth_clamp (cap of a fragment's plane-depth offset, in rad
 from __future__ import annotations
 
 import math
+import weakref
 from dataclasses import dataclass
 
 import numpy as np
@@ -187,10 +188,26 @@ def resolve_accumulators(acc: np.ndarray, camera: Camera, options: RenderOptions
                                      background=options.background, stats=stats)
 
 
+_spatial: "weakref.WeakKeyDictionary[PointCloud, PointCloud]" = weakref.WeakKeyDictionary()
+
+
+def spatially_ordered(cloud: PointCloud) -> PointCloud:
+    """The cloud in Morton order, made once per cloud. Both backends draw it in this order:
+    a screen tile's splats then lie close together in memory, and the CPU rasterizer, which
+    otherwise waits on a cache miss per splat, runs about twice as fast."""
+    ordered = _spatial.get(cloud)
+    if ordered is None:
+        from ..lod.build import morton_codes
+
+        ordered = _spatial[cloud] = cloud.take(np.argsort(morton_codes(cloud.positions)))
+    return ordered
+
+
 def render_ewa_cpu(cloud: PointCloud, camera: Camera, options: RenderOptions) -> RenderResult:
     """EWA splatting on the CPU: numba kernels, parallel over screen tiles."""
     from . import ewa_kernels as k
 
+    cloud = spatially_ordered(cloud)
     params = EwaParams.from_options(options)
     target = target_camera(camera, params.supersample)
     w, h = target.width, target.height

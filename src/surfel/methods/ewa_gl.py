@@ -41,7 +41,7 @@ from ..gl.targets import read_texture
 from ..gl.uniforms import apply_common
 from ..options import RenderOptions
 from ..result import RenderResult
-from .ewa import EwaParams, resolve_accumulators, target_camera
+from .ewa import EwaParams, resolve_accumulators, spatially_ordered, target_camera
 
 SHADER = Path(__file__).with_suffix(".glsl")
 PASSES = ("PASS_VISIBILITY", "PASS_BACK", "PASS_ATTRIBUTE")
@@ -69,6 +69,7 @@ class BackLayer:
 
 def render_ewa_gl(cloud: PointCloud, camera: Camera, options: RenderOptions) -> RenderResult:
     """EWA splatting with instanced quads on the OpenGL pipeline; see the module docstring."""
+    cloud = spatially_ordered(cloud)  # the CPU backend's drawing order
     ctx = get_context()
     params = EwaParams.from_options(options)
     target = target_camera(camera, params.supersample)
