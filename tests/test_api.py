@@ -57,3 +57,21 @@ def test_pyvista_adapter_is_optional():
     cloud = surfel.load(data_file("spot.obj"))
     back = from_pyvista(to_pyvista(cloud))
     assert back.is_mesh and np.allclose(back.positions, cloud.positions)
+
+
+def test_take_keeps_every_per_point_attribute():
+    rng = np.random.default_rng(1)
+    n = 20
+    axes = np.zeros((n, 2, 3), np.float32)
+    axes[:, 0, 0] = axes[:, 1, 1] = 0.1
+    cloud = surfel.PointCloud(rng.normal(size=(n, 3)), normals=np.tile([0.0, 0, 1], (n, 1)), colors=rng.random((n, 3)),
+                              radii=np.full(n, 0.1), axes=axes, extras={"clip_lines": rng.random((n, 2, 3)),
+                                                                       "phong_alpha": rng.random(n)},
+                              faces=np.array([[0, 1, 2]]))
+    index = np.array([5, 0, 19])
+    taken = cloud.take(index)
+    assert len(taken) == 3 and taken.faces is None
+    np.testing.assert_array_equal(taken.positions, cloud.positions[index])
+    np.testing.assert_array_equal(taken.colors, cloud.colors[index])
+    np.testing.assert_array_equal(taken.extras["clip_lines"], cloud.extras["clip_lines"][index])
+    np.testing.assert_array_equal(taken.extras["phong_alpha"], cloud.extras["phong_alpha"][index])
