@@ -228,6 +228,29 @@ def _span(s, conic, yc, x_lo, x_hi, cutoff2):
 
 
 @nb.njit(inline="always", fastmath=True)
+def _quadric(s, conic, dx, dy):
+    """The conic at columns conic..conic+2 at the pixel offset: a dx^2 + 2 b dx dy + c dy^2."""
+    return s[conic] * dx * dx + np.float32(2.0) * s[conic + 1] * dx * dy + s[conic + 2] * dy * dy
+
+
+@nb.njit(inline="always")
+def _tile_box(box, i, ox, oy, tw, th):
+    """Splat i's pixel box clipped to the tile, and whether it is small enough to scan whole."""
+    x_lo, x_hi = max(box[i, 0], ox), min(box[i, 1], ox + tw - 1)
+    y_lo, y_hi = max(box[i, 2], oy), min(box[i, 3], oy + th - 1)
+    return x_lo, x_hi, y_lo, y_hi, (x_hi - x_lo + 1) * (y_hi - y_lo + 1) <= SMALL_BOX
+
+
+@nb.njit(inline="always", fastmath=True)
+def _row(s, conic, small, yc, x_lo, x_hi, cutoff2):
+    """Columns [x0, x1] to visit on the row with centre yc, and its dy: the whole box row of a
+    small splat (whose pixels are then tested one by one), else the conic's exact span."""
+    if small:
+        return x_lo, x_hi, yc - s[MY]
+    return _span(s, conic, yc, x_lo, x_hi, cutoff2)
+
+
+@nb.njit(inline="always", fastmath=True)
 def _clipped(e, dx, dy):
     """Whether the pixel offset (dx, dy) lies beyond one of the splat's clip lines (e: its
     row of the extra table)."""
@@ -287,18 +310,13 @@ def rasterize_tiles(splats, extra, box, offsets, index, order, tiles_x, width, h
         for j in range(start, stop):
             i = index[j]
             s = splats[i]
-            x_lo, x_hi = max(box[i, 0], ox), min(box[i, 1], ox + tw - 1)
-            y_lo, y_hi = max(box[i, 2], oy), min(box[i, 3], oy + th - 1)
-            small = (x_hi - x_lo + 1) * (y_hi - y_lo + 1) <= SMALL_BOX
+            x_lo, x_hi, y_lo, y_hi, small = _tile_box(box, i, ox, oy, tw, th)
             for y in range(y_lo, y_hi + 1):
-                if small:
-                    x0, x1, dy = x_lo, x_hi, np.float32(y) + half - s[MY]
-                else:
-                    x0, x1, dy = _span(s, VA, np.float32(y) + half, x_lo, x_hi, cutoff2)
+                x0, x1, dy = _row(s, VA, small, np.float32(y) + half, x_lo, x_hi, cutoff2)
                 zrow = zbuf[y - oy]
                 for x in range(x0, x1 + 1):
                     dx = np.float32(x) + half - s[MX]
-                    if small and s[VA] * dx * dx + np.float32(2.0) * s[VB] * dx * dy + s[VC] * dy * dy > cutoff2:
+                    if small and _quadric(s, VA, dx, dy) > cutoff2:
                         continue
                     if clip_lines and _clipped(extra[i], dx, dy):
                         continue
@@ -310,20 +328,15 @@ def rasterize_tiles(splats, extra, box, offsets, index, order, tiles_x, width, h
         for j in range(start, stop):
             i = index[j]
             s = splats[i]
-            x_lo, x_hi = max(box[i, 0], ox), min(box[i, 1], ox + tw - 1)
-            y_lo, y_hi = max(box[i, 2], oy), min(box[i, 3], oy + th - 1)
-            small = (x_hi - x_lo + 1) * (y_hi - y_lo + 1) <= SMALL_BOX
+            x_lo, x_hi, y_lo, y_hi, small = _tile_box(box, i, ox, oy, tw, th)
             for y in range(y_lo, y_hi + 1):
-                if small:
-                    x0, x1, dy = x_lo, x_hi, np.float32(y) + half - s[MY]
-                else:
-                    x0, x1, dy = _span(s, CA, np.float32(y) + half, x_lo, x_hi, cutoff2)
+                x0, x1, dy = _row(s, CA, small, np.float32(y) + half, x_lo, x_hi, cutoff2)
                 zrow = zbuf[y - oy]
                 brow = zback[y - oy]
                 lrow = local[y - oy]
                 for x in range(x0, x1 + 1):
                     dx = np.float32(x) + half - s[MX]
-                    q = s[CA] * dx * dx + np.float32(2.0) * s[CB] * dx * dy + s[CC] * dy * dy
+                    q = _quadric(s, CA, dx, dy)
                     if small and q > cutoff2:
                         continue
                     if clip_lines and _clipped(extra[i], dx, dy):
