@@ -14,6 +14,12 @@ import numpy as np
 from .errors import InputError
 
 
+def framing_sphere(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, float]:
+    """Centre and radius of the sphere auto framing fits (CONVENTIONS.md): the bounding box's
+    centre and half its diagonal (never 0, so a single point can still be framed)."""
+    return (lo + hi) / 2, max(float(np.linalg.norm(hi - lo)) / 2, 1e-9)
+
+
 @dataclass(frozen=True, eq=False)
 class PointCloud:
     """N points with optional attributes; validated on construction.
@@ -131,13 +137,11 @@ class PointCloud:
 
     @property
     def center(self) -> np.ndarray:
-        lo, hi = self.bounds
-        return (lo + hi) / 2
+        return framing_sphere(*self.bounds)[0]
 
     @property
     def bounding_radius(self) -> float:
-        lo, hi = self.bounds
-        return max(float(np.linalg.norm(hi - lo)) / 2, 1e-9)
+        return framing_sphere(*self.bounds)[1]
 
     @property
     def local_origin(self) -> np.ndarray:

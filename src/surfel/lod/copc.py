@@ -52,7 +52,7 @@ import lazrs
 import numpy as np
 
 from ..camera import Camera
-from ..cloud import PointCloud
+from ..cloud import PointCloud, framing_sphere
 from ..errors import InputError
 from ..io.las import _check_header
 
@@ -190,13 +190,11 @@ class CopcSource:
     # ---- LodSource properties -------------------------------------------------------------
     @property
     def center(self) -> np.ndarray:
-        lo, hi = self.bounds
-        return (lo + hi) / 2
+        return framing_sphere(*self.bounds)[0]
 
     @property
     def bounding_radius(self) -> float:
-        lo, hi = self.bounds
-        return max(float(np.linalg.norm(hi - lo)) / 2, 1e-9)
+        return framing_sphere(*self.bounds)[1]
 
     def describe(self) -> dict:
         """What `surfel info` shows: counts and the octree, without reading any points."""

@@ -36,10 +36,10 @@ from pathlib import Path
 import numpy as np
 
 from ..camera import Camera
-from ..cloud import PointCloud
+from ..cloud import PointCloud, framing_sphere
 from ..errors import InputError
 from .outofcore import DIR_FORMAT, DIR_VERSION, MANIFEST
-from .sequential import _bucket_ceiling, lod_scale, lod_selected
+from .sequential import lod_scale, lod_selected, prefix_length
 
 TEST_ARRAYS = ("positions", "lod_emin", "lod_emax", "lod_dparent")
 BISECTION_STEPS = 12
@@ -93,8 +93,7 @@ class LazyHierarchy:
         self.has_colors = bool(manifest["colors"])
         lo, hi = (np.array(b, np.float64) for b in manifest["bounds"])
         self.bounds = (lo, hi)
-        self.center = (lo + hi) / 2
-        self.bounding_radius = max(float(np.linalg.norm(hi - lo)) / 2, 1e-9)
+        self.center, self.bounding_radius = framing_sphere(lo, hi)
         self.partitions = [_Partition(p["name"], p["points"], p["nodes"], np.array(p["bounds"][0]),
                                       np.array(p["bounds"][1]), float(p["max_radius"]))
                            for p in manifest["partitions"]]
@@ -165,17 +164,8 @@ class LazyHierarchy:
 
     def _prefix_count(self, name: str, r_near: float, k: float, ortho: bool) -> int:
         """First j with ceil(emax[j]) k + dsuffix[j] <= r_near (binary search, mapped pages)."""
-        emax = self._array(name, "lod_emax")
-        dsuffix = self._array(name, "lod_dsuffix")
-        lo, hi = 0, len(emax)
-        while lo < hi:
-            mid = (lo + hi) // 2
-            bound = _bucket_ceiling(emax[mid]) * k + (0.0 if ortho else float(dsuffix[mid]))
-            if bound <= r_near:
-                hi = mid
-            else:
-                lo = mid + 1
-        return lo
+        return prefix_length(self._array(name, "lod_emax"), self._array(name, "lod_dsuffix"), r_near, k,
+                             orthographic=ortho)
 
     def _prefix(self, name: str, count: int) -> tuple[_Prefix, int]:
         """The first `count` rows of the test arrays, from the cache or read; bytes read."""

@@ -152,7 +152,12 @@ def near_distance(cloud: PointCloud, camera: Camera) -> float:
 
 def prefix_count(seq: PointCloud, r_near: float, k: float, *, orthographic: bool = False) -> int:
     """Length of the list prefix that may pass (2) for any r >= r_near (binary search)."""
-    emax, dsuffix = seq.extras["lod_emax"], seq.extras["lod_dsuffix"]
+    return prefix_length(seq.extras["lod_emax"], seq.extras["lod_dsuffix"], r_near, k, orthographic=orthographic)
+
+
+def prefix_length(emax, dsuffix, r_near: float, k: float, *, orthographic: bool = False) -> int:
+    """`prefix_count` over the lod_emax and lod_dsuffix arrays themselves (memory-mapped ones
+    too: the search touches log n of their rows)."""
     lo, hi = 0, len(emax)
     while lo < hi:  # first j with f(j) <= r_near; f is non-increasing
         mid = (lo + hi) // 2
