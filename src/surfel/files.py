@@ -4,6 +4,7 @@ through `write_atomically`."""
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import secrets
 from typing import BinaryIO, Callable
@@ -36,3 +37,8 @@ def write_atomically(path: str | os.PathLike, write_body: Callable[[BinaryIO], o
         if isinstance(error, OSError):
             raise SurfelError(f"{os.fspath(path)}: cannot write: {error.strerror or error}") from error
         raise
+
+
+def write_json(path: str | os.PathLike, data) -> None:
+    """`data` as indented JSON (values JSON lacks, such as paths, as their strings), atomically."""
+    write_atomically(path, (json.dumps(data, indent=2, default=str) + "\n").encode())

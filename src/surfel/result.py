@@ -3,13 +3,12 @@
 from __future__ import annotations
 
 import io
-import json
 from dataclasses import dataclass, field
 
 import numba
 import numpy as np
 
-from .files import write_atomically
+from .files import write_atomically, write_json
 
 
 @numba.njit(parallel=True, cache=True)
@@ -110,7 +109,7 @@ class RenderResult:
         if normals is not None:
             write_atomically(normals, _npy_bytes(self.normals.astype(np.float32)))
         if stats is not None:
-            write_atomically(stats, (json.dumps(self.stats, indent=2) + "\n").encode())
+            write_json(stats, self.stats)
 
 
 def _npy_bytes(array: np.ndarray) -> bytes:

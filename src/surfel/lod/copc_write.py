@@ -41,7 +41,7 @@ import lazrs
 import numpy as np
 
 from ..cloud import PointCloud
-from ..files import write_atomically
+from ..files import write_atomically, write_json
 from .copc import ENTRY, EVLR_HEADER, INFO, SURFEL_VLR, VLR_HEADER
 
 MAX_ROOT_CELLS = 128      # most grid cells per side of the root node (s_0 = 2h / cells)
@@ -143,8 +143,7 @@ def build_command(in_path: str | os.PathLike, out_path: str | os.PathLike,
     if estimated:
         stats["estimated"] = estimated
     if stats_path is not None:
-        text = json.dumps(stats, indent=2, default=str) + "\n"
-        write_atomically(stats_path, lambda file: file.write(text.encode()))
+        write_json(stats_path, stats)
     return stats
 
 

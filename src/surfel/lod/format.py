@@ -30,14 +30,13 @@ a file.
 
 from __future__ import annotations
 
-import json
 import os
 import time
 
 import numpy as np
 
 from ..cloud import PointCloud
-from ..files import write_atomically
+from ..files import write_atomically, write_json
 from ..errors import InputError
 from .build import LodTree, build_lod
 from .sequential import EXTRAS, is_sequential, r_max_bucket, to_sequential_cloud
@@ -109,8 +108,7 @@ def build_command(in_path: str | os.PathLike, out_path: str | os.PathLike,
     if estimated:
         stats["estimated"] = estimated
     if stats_path is not None:
-        text = json.dumps(stats, indent=2, default=str) + "\n"
-        write_atomically(stats_path, lambda file: file.write(text.encode()))
+        write_json(stats_path, stats)
     return stats
 
 

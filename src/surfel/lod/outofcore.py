@@ -67,7 +67,7 @@ import numpy as np
 from tqdm import tqdm
 
 from ..cloud import PointCloud
-from ..files import write_atomically
+from ..files import write_json
 from ..errors import InputError, SurfelError
 from .build import ROOT_PARENT_ERROR, _merge_cells, _next_level, build_lod, morton_codes
 from .sequential import EXTRAS, r_max_bucket, to_sequential_cloud
@@ -396,7 +396,7 @@ def build_outofcore(in_path: str | os.PathLike, out_path: str | os.PathLike, *, 
         except BaseException:  # binning cannot be resumed half way: leave nothing behind
             shutil.rmtree(partial, ignore_errors=True)
             raise
-        write_atomically(plan_file, lambda f: f.write(json.dumps(saved).encode()))
+        write_json(plan_file, saved)
     total = sum(saved["counts"])
     has_normals, has_colors = saved["has_normals"], saved["has_colors"]
     dtype = _record_dtype(has_normals, has_colors)
@@ -426,15 +426,14 @@ def build_outofcore(in_path: str | os.PathLike, out_path: str | os.PathLike, *, 
                                 "bounds": p["bounds"], "max_radius": p["radius"]} for p in parts]}
     shutil.rmtree(partial / "bins", ignore_errors=True)
     plan_file.unlink()
-    write_atomically(partial / MANIFEST, lambda f: f.write(json.dumps(manifest, indent=1).encode()))
+    write_json(partial / MANIFEST, manifest)
     _replace_dir(partial, out)
     ms = (time.perf_counter() - start) * 1000
     stats = {"points": total, "nodes": nodes, "partitions": len(parts), "top_nodes": top,
              "ms": round(ms, 3), "points_per_s": round(total / max(ms / 1000, 1e-9)),
              "resumed_partitions": resumed, "memory": memory, "partition_cap": cap}
     if stats_path is not None:
-        text = json.dumps(stats, indent=2) + "\n"
-        write_atomically(stats_path, lambda f: f.write(text.encode()))
+        write_json(stats_path, stats)
     return stats
 
 
