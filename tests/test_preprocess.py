@@ -233,6 +233,25 @@ def test_ellipse_axes_are_tangent_and_right_handed():
     assert (np.einsum("ij,ij->i", np.cross(axes[:, 0], axes[:, 1]), p) > 0).all()
 
 
+def test_ellipses_follow_the_principal_curvature_directions():
+    """On a cylinder sampled at random the neighbours spread evenly, so only the normals tell
+    the principal directions: around (curvature 1) and along the axis (curvature 0)."""
+    rng = np.random.default_rng(12)
+    phi, height = rng.uniform(0, 2 * np.pi, 20_000), rng.uniform(-3, 3, 20_000)
+    normals = np.c_[np.cos(phi), np.sin(phi), np.zeros_like(phi)]
+    points = normals + np.c_[np.zeros((len(phi), 2)), height]
+    axes = fit_ellipses(points, normals)
+    lengths = np.linalg.norm(axes.astype(np.float64), axis=2)
+    axial = np.abs(axes[:, 0, 2]) / lengths[:, 0]  # |cos| of u's angle to the cylinder's axis
+    assert ((axial > 0.97) | (axial < 0.25)).mean() > 0.99
+    alpha, beta = fit_normal_field(points, normals, axes)
+    around, along = np.where(axial > 0.97, beta, alpha), np.where(axial > 0.97, alpha, beta)
+    around_length = np.where(axial > 0.97, lengths[:, 1], lengths[:, 0])
+    # eq. 8 then holds exactly: the tilt at the rim is semi-axis / radius around, 0 along
+    assert np.median(np.abs(around / around_length - 1)) < 0.01
+    assert np.median(np.abs(along) / around_length) < 0.001
+
+
 # --- Phong splatting's normal field -------------------------------------------------------------
 
 

@@ -42,11 +42,14 @@ Tangent frames (`tangent_frames`): the branch-free orthonormal basis of Duff, Bu
     revisited", scaled by the radius; (u, v, n) is right-handed.
 
 Ellipses (`fit_ellipses`, for Phong splatting, Botsch, Spernat & Kobbelt 2004):
-    axis directions are the principal directions of the neighbours projected into the tangent
-    plane; the semi-axes are those of the smallest-area ellipse with these directions that
-    contains the point's Voronoi cell (aspect at most ELLIPSE_MAX_ASPECT), times RADIUS_MARGIN
-    and the same outlier cap: the covering rule of the radii, never with more area than the
-    disk (the disk is one of the candidates). u is the major axis.
+    axis directions are the principal curvature directions ("aligned along the curvature",
+    fitted to the neighbours' normals) where the normals turn more one way than the other
+    (by CURVATURE_ANISOTROPY across the cell), else the principal directions of the
+    neighbours projected into the tangent plane; the semi-axes are those of the
+    smallest-area ellipse with these directions that contains the point's Voronoi cell
+    (aspect at most ELLIPSE_MAX_ASPECT), times RADIUS_MARGIN and the same outlier cap: the
+    covering rule of the radii, never with more area than the disk (the disk is one of the
+    candidates). u is the major axis.
 
 Normal fields (`fit_normal_field`, Botsch et al. 2004; survey eq. 8):
     N_j(u, v) = n_j + u alpha_j û_j + v beta_j v̂_j, where û_j, v̂_j are the UNIT axis
@@ -108,6 +111,8 @@ RADIUS_MARGIN = 1.2            # covering radius x this: curvature, normal noise
                                # the Gaussian blending (coverage 99.98% at 1.0, 99.998% at 1.2)
 ISOLATED_FACTOR = 2.0          # a radius at most this x the median of its neighbours' radii
 ELLIPSE_MAX_ASPECT = 4.0       # no needles: major / minor semi-axis at most this
+CURVATURE_ANISOTROPY = 0.05    # radians by which the normals turn more one way than the other
+                               # across a cell, above which an ellipse follows the curvature
 FIELD_NEIGHBOURS = 16          # neighbours whose normals fit a splat's normal field
 SHARP_ANGLE = 45.0             # degrees between neighbouring normals that make a sharp feature:
                                # a 90 degree crease tilts its averaged vertex normals 45 degrees
@@ -490,13 +495,51 @@ def _crease_points(points, index, start, normals, sharp_cos, flat):  # pragma: n
     return crease
 
 
+@numba.njit(cache=True)
+def _principal_direction(xs, ys, neighbours, count, all_normals, normal, t, s):  # pragma: no cover - compiled
+    """The angle in the tangent frame (t, s) of the principal curvature direction of largest
+    curvature, and the difference of the principal curvatures (per unit length): from the
+    shape operator S, tilt = S offset, fitted by least squares to the neighbours' normals
+    (tilt: the tangential part of n_q / (n_q . n), as in _slopes) at their offsets (xs, ys)."""
+    dxx = dxy = dyy = 0.0
+    txx = txy = tyx = tyy = 0.0
+    for j in range(count):
+        q = neighbours[j]
+        along = tx = ty = 0.0
+        for a in range(3):
+            along += all_normals[q, a] * normal[a]
+            tx += all_normals[q, a] * t[a]
+            ty += all_normals[q, a] * s[a]
+        if abs(along) < 0.5:
+            continue
+        tx /= along
+        ty /= along
+        dxx += xs[j] * xs[j]
+        dxy += xs[j] * ys[j]
+        dyy += ys[j] * ys[j]
+        txx += tx * xs[j]
+        txy += tx * ys[j]
+        tyx += ty * xs[j]
+        tyy += ty * ys[j]
+    det = dxx * dyy - dxy * dxy
+    if det <= 1e-30:
+        return 0.0, 0.0
+    s00 = (txx * dyy - txy * dxy) / det
+    s01 = (txy * dxx - txx * dxy) / det
+    s10 = (tyx * dyy - tyy * dxy) / det
+    s11 = (tyy * dxx - tyx * dxy) / det
+    shear = 0.5 * (s01 + s10)  # S is symmetric in theory: its symmetric part
+    return 0.5 * math.atan2(2.0 * shear, s00 - s11), math.sqrt((s00 - s11) ** 2 + 4.0 * shear * shear)
+
+
 @numba.njit(parallel=True, cache=True)
 def _tangent_cells(points, index, start, normals, t, s, ellipse, max_aspect, all_normals, sharp_cos,
                    flat, dropped, sheet_cos):  # pragma: no cover - compiled
     """For each point start + i: the farthest vertex distance of its Voronoi cell among its
     neighbours in the tangent frame (t, s) (the covering radius), and if `ellipse` the
     semi-axes and direction (cos, sin in the frame) of the cell-covering ellipse aligned with
-    the neighbours' principal directions. A neighbour whose normal (all_normals) has a dot
+    the principal curvature directions (`_principal_direction`), or where the curvature has
+    none, with the neighbours' principal directions. A neighbour whose normal (all_normals) has a dot
     product below sharp_cos with the point's lies across a sharp feature when both are flat
     (`_flat_points`): the cell ends where
     the two tangent planes meet (`_crease_half_plane`, where the clip lines cut the splat)
@@ -513,6 +556,7 @@ def _tangent_cells(points, index, start, normals, t, s, ellipse, max_aspect, all
         p = start + i
         xs = np.empty(k)
         ys = np.empty(k)
+        used_index = np.empty(k, np.int64)
         crease = np.empty((k, 3))
         creases = 0
         used = 0
@@ -543,6 +587,7 @@ def _tangent_cells(points, index, start, normals, t, s, ellipse, max_aspect, all
             if planar > 0 and z * z <= planar:  # skip duplicates and the far side of thin sheets
                 xs[used] = x
                 ys[used] = y
+                used_index[used] = q
                 used += 1
         if reach == 0.0:
             continue
@@ -585,6 +630,12 @@ def _tangent_cells(points, index, start, normals, t, s, ellipse, max_aspect, all
             syy += (ys[j] - my) ** 2
             sxy += (xs[j] - mx) * (ys[j] - my)
         theta = 0.5 * math.atan2(2.0 * sxy, sxx - syy)
+        # Splats "aligned along the curvature" (survey 2.1.4), so that the normal field's two
+        # slopes (eq. 8) describe the surface: the principal curvature directions, wherever the
+        # normals turn more one way than the other across the cell.
+        curvature_theta, anisotropy = _principal_direction(xs, ys, used_index, used, all_normals, normals[i], t[i], s[i])
+        if anisotropy * reach > CURVATURE_ANISOTROPY:
+            theta = curvature_theta
         co = math.cos(theta)
         si = math.sin(theta)
         # Rotate the cell into those directions; the smallest ellipse x^2/a^2 + y^2/b^2 <= 1

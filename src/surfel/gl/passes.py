@@ -8,9 +8,16 @@ splats with a visibility pass (Ren et al. 2002; Botsch & Kobbelt 2003; Botsch et
 3. normalization: a full-screen triangle turns the sums into the G-buffer layout of
    targets.gbuffer_result (shaded RGB + coverage, eye normal, eye depth).
 
-Texture units seen by the shaders: 1 visibility, 2 (w rgb, w), 3 (w n, w z); unit 0 is the
-method's kernel texture. `guard` pixels of margin on each side of the splat targets let point
-sprites centred outside the image reach into it; the output has the image's size.
+With a back layer (`back_layer=True`, the EWA method's A-buffer-like compositing of the
+visible surface over the one behind it at partly covered pixels):
+1b. back: MIN blending into an R32F target: the depth of the nearest fragment behind the
+   visible surface;
+2.  attribute: four accumulators, (w rgb, w) and (w n, w z) of each layer, read back by
+   `accumulators()`.
+
+Texture units seen by the shaders: 1 visibility, 2 (w rgb, w), 3 (w n, w z), 4 back; unit 0
+is the method's kernel texture. `guard` pixels of margin on each side of the splat targets
+let point sprites centred outside the image reach into it; the output has the image's size.
 """
 
 from __future__ import annotations
@@ -22,7 +29,7 @@ import numpy as np
 from .context import get_context
 from .targets import GBuffer, gbuffer_result, read_texture
 
-UNIFORM_UNITS = {"u_visibility": 1, "u_accum_color": 2, "u_accum_normal": 3}
+UNIFORM_UNITS = {"u_visibility": 1, "u_accum_color": 2, "u_accum_normal": 3, "u_back": 4}
 FAR = 3.0e38
 
 
@@ -32,30 +39,37 @@ class SplatPasses:
 
     _kept: "dict[tuple, tuple]" = {}
 
-    def __init__(self, width: int, height: int, guard: int = 0):
+    def __init__(self, width: int, height: int, guard: int = 0, back_layer: bool = False):
         ctx = self.ctx = get_context()
         self.guard = guard
-        key = (id(ctx), width, height, guard)
+        key = (id(ctx), width, height, guard, back_layer)
         if key not in self._kept:
             for old in self._kept.values():
                 for obj in old:
                     obj.release()
             self._kept.clear()
-            self._kept[key] = self._allocate(ctx, width, height, guard)
-        (self.visibility, accum0, accum1, self.visibility_fbo, self.accum_fbo, self.out) = self._kept[key]
-        self.accum = [accum0, accum1]
+            self._kept[key] = self._allocate(ctx, width, height, guard, back_layer)
+        kept = self._kept[key]
+        self.visibility, self.visibility_fbo, self.accum_fbo, self.out = kept[:4]
+        self.accum = kept[4:6]
+        self.back, self.back_fbo, self.back_accum = (kept[6], kept[7], kept[8:]) if back_layer else (None, None, ())
         ctx.disable(ctx.DEPTH_TEST | ctx.CULL_FACE)
         ctx.enable(ctx.BLEND | ctx.PROGRAM_POINT_SIZE)
 
     @staticmethod
-    def _allocate(ctx, width: int, height: int, guard: int) -> tuple:
+    def _allocate(ctx, width: int, height: int, guard: int, back_layer: bool) -> tuple:
         target = (width + 2 * guard, height + 2 * guard)
         visibility = ctx.texture(target, 2, dtype="f4")
         accum = [ctx.texture(target, 4, dtype="f4") for _ in range(2)]
-        for tex in (visibility, *accum):
+        back = [ctx.texture(target, 1, dtype="f4")] if back_layer else []
+        back_accum = [ctx.texture(target, 4, dtype="f4") for _ in range(2)] if back_layer else []
+        for tex in (visibility, *accum, *back, *back_accum):
             tex.filter = (ctx.NEAREST, ctx.NEAREST)
-        return (visibility, *accum, ctx.framebuffer(color_attachments=[visibility]),
-                ctx.framebuffer(color_attachments=accum), GBuffer(width, height))
+        kept = [visibility, ctx.framebuffer(color_attachments=[visibility]),
+                ctx.framebuffer(color_attachments=accum + back_accum), GBuffer(width, height), *accum]
+        if back_layer:
+            kept += [back[0], ctx.framebuffer(color_attachments=back), *back_accum]
+        return tuple(kept)
 
     def __enter__(self):
         return self
@@ -71,6 +85,16 @@ class SplatPasses:
         ctx.blend_equation = ctx.MIN
         draw()
 
+    def back_pass(self, draw) -> None:
+        """The back layer's depth (after visibility_pass)."""
+        ctx = self.ctx
+        self.back_fbo.use()
+        self.back_fbo.clear(FAR, 0.0, 0.0, 0.0)
+        ctx.enable(ctx.BLEND)
+        ctx.blend_equation = ctx.MIN
+        self.visibility.use(1)
+        draw()
+
     def attribute_pass(self, draw) -> None:
         ctx = self.ctx
         self.accum_fbo.use()
@@ -79,7 +103,13 @@ class SplatPasses:
         ctx.blend_equation = ctx.FUNC_ADD
         ctx.blend_func = ctx.ONE, ctx.ONE
         self.visibility.use(1)
+        if self.back is not None:
+            self.back.use(4)
         draw()
+
+    def accumulators(self) -> np.ndarray:
+        """The attribute pass's sums as one (H, W, 4 x layers) array, front layer first."""
+        return np.concatenate([read_texture(t) for t in (*self.accum, *self.back_accum)], axis=-1)
 
     def normalize_pass(self, program) -> None:
         ctx = self.ctx

@@ -29,15 +29,12 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
-
 from ..camera import Camera
 from ..cloud import PointCloud
 from ..gl import splats
 from ..gl.context import get_context
-from ..gl.passes import FAR, UNIFORM_UNITS, SplatPasses
+from ..gl.passes import UNIFORM_UNITS, SplatPasses
 from ..gl.program import build_program
-from ..gl.targets import read_texture
 from ..gl.uniforms import apply_common
 from ..options import RenderOptions
 from ..result import RenderResult
@@ -45,26 +42,6 @@ from .ewa import EwaParams, resolve_accumulators, spatially_ordered, target_came
 
 SHADER = Path(__file__).with_suffix(".glsl")
 PASSES = ("PASS_VISIBILITY", "PASS_BACK", "PASS_ATTRIBUTE")
-BACK_UNIT = 4  # texture unit of the back layer's depth (units 1-3 are gl/passes.py's)
-
-
-class BackLayer:
-    """The targets of the back layer, beside SplatPasses' front-layer ones: its depth (MIN
-    blended) and a framebuffer accumulating both layers at once (front targets first)."""
-
-    def __init__(self, passes: SplatPasses):
-        ctx = passes.ctx
-        size = passes.visibility.size
-        self.depth = ctx.texture(size, 1, dtype="f4")
-        self.accum = [ctx.texture(size, 4, dtype="f4") for _ in range(2)]
-        for tex in (self.depth, *self.accum):
-            tex.filter = (ctx.NEAREST, ctx.NEAREST)
-        self.depth_fbo = ctx.framebuffer(color_attachments=[self.depth])
-        self.accum_fbo = ctx.framebuffer(color_attachments=[*passes.accum, *self.accum])
-
-    def release(self) -> None:
-        for obj in (self.depth_fbo, self.accum_fbo, self.depth, *self.accum):
-            obj.release()
 
 
 def render_ewa_gl(cloud: PointCloud, camera: Camera, options: RenderOptions) -> RenderResult:
@@ -80,32 +57,18 @@ def render_ewa_gl(cloud: PointCloud, camera: Camera, options: RenderOptions) -> 
                      u_radius_scale=float(options.radius_scale), u_sigma2=params.sigma ** 2,
                      u_lowpass2=params.lowpass ** 2, u_vis2=params.visibility ** 2, u_cutoff2=params.cutoff2,
                      u_depth_offset=params.depth_offset, u_depth_clamp=params.depth_clamp,
-                     u_backface_culling=int(options.backface_culling), u_back=BACK_UNIT, **UNIFORM_UNITS)
+                     u_backface_culling=int(options.backface_culling), **UNIFORM_UNITS)
     fragments = ctx.query(samples=True)
 
     def draw(name: str):
         return lambda: splats.draw(ctx, cloud, programs[name], ctx.TRIANGLE_STRIP, instanced=True)
 
-    with SplatPasses(target.width, target.height) as passes:
-        back = BackLayer(passes)
-        try:
-            passes.visibility_pass(draw("PASS_VISIBILITY"))
-            # The back layer's depth: the same MIN blending, reading the front visibility.
-            back.depth_fbo.use()
-            back.depth_fbo.clear(FAR, 0.0, 0.0, 0.0)
-            passes.visibility.use(1)
-            draw("PASS_BACK")()
-            # Both layers accumulate in one pass: SplatPasses' additive blend state, our targets.
-            back.depth.use(BACK_UNIT)
-            back.accum_fbo.clear(0.0, 0.0, 0.0, 0.0)
-            ctx.blend_equation = ctx.FUNC_ADD
-            ctx.blend_func = ctx.ONE, ctx.ONE
-            back.accum_fbo.use()
-            with fragments:  # the fragments blended into either layer, as the CPU's count
-                draw("PASS_ATTRIBUTE")()
-            acc = np.concatenate([read_texture(t) for t in (*passes.accum, *back.accum)], axis=-1)
-        finally:
-            back.release()
+    with SplatPasses(target.width, target.height, back_layer=True) as passes:
+        passes.visibility_pass(draw("PASS_VISIBILITY"))
+        passes.back_pass(draw("PASS_BACK"))
+        with fragments:  # the fragments blended into either layer, as the CPU's count
+            passes.attribute_pass(draw("PASS_ATTRIBUTE"))
+        acc = passes.accumulators()
         stats = {"splats": len(cloud), "fragments": int(fragments.samples)}
         result = resolve_accumulators(acc, target, options, params, stats)
         if options.dump_passes:

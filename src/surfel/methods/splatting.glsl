@@ -7,7 +7,8 @@
 // blending) or deferred shading from blended normals (2005); EWA_FILTER (2005 screen-space
 // filter approximation: the union of the object-space disk and a screen-space low-pass);
 // NORMAL_FIELD (Botsch, Spernat & Kobbelt 2004, Phong splatting: the blended normal is the
-// splat's linear normal field N(u, v) = n + u alpha u_j + v beta v_j, eq. 8, per fragment);
+// splat's linear normal field N(u, v) = n + u alpha u_j + v beta v_j, eq. 8, per fragment,
+// on the curved splat whose normals the field describes);
 // CLIP_LINES (splats cut at sharp features by the clip lines of surfel.preprocess).
 #include "common.glsl"
 #include "lod.glsl"
@@ -145,12 +146,37 @@ flat in vec3 v_clip0;
 flat in vec3 v_clip1;
 #endif
 
+#ifdef NORMAL_FIELD
+// Curved splats: the surface whose normals are the splat's linear field is, to second order,
+// the height field h(s_u, s_v) = -(k_u s_u² + k_v s_v²) / 2 over the splat plane, with s the
+// metric tangent coordinates and k = alpha / |u_j|, beta / |v_j| the field's tilt per unit
+// length (for a sphere of radius R, k = 1/R and h its cap). Step the ray parameter t from the
+// plane's hit to the root of the ray-surface quadratic nearest it (expanded about the plane's
+// hit, so that single precision keeps it). False where the ray misses the curved surface:
+// it passes beyond the splat's contour, where the flat splat would stick out past the true
+// outline of a curved surface, over whatever lies behind it.
+bool curved_splat_hit(vec3 o, vec3 d, float denom, inout float t) {
+    vec3 eu = normalize(v_u), ev = normalize(v_v), p0 = o + d * t - v_center;
+    float ku = dot(v_field_u, v_u), kv = dot(v_field_v, v_v);
+    float a0 = dot(p0, eu), a1 = dot(d, eu), b0 = dot(p0, ev), b1 = dot(d, ev);
+    float qa = 0.5 * (ku * a1 * a1 + kv * b1 * b1);
+    float qb = denom + ku * a0 * a1 + kv * b0 * b1;
+    float qc = 0.5 * (ku * a0 * a0 + kv * b0 * b0);
+    float disc = qb * qb - 4.0 * qa * qc;
+    if (disc < 0.0) return false;
+    float h = -0.5 * (qb + (qb < 0.0 ? -1.0 : 1.0) * sqrt(disc));
+    if (h != 0.0) t += qc / h;
+    return true;
+}
+#endif
+
 // Squared distance of the fragment to the splat centre in the kernel's unit domain, and the
-// eye depth of the splat's plane seen there: the exact ray-plane intersection (perspective
-// accurate). Low-pass fragments outside the disk keep the plane's depth too, so coplanar
-// neighbours agree at grazing angles, where a pixel's footprint spans many splat radii in
-// depth; only near-parallel rays are clamped to the splat's depth range. `clipped` is the
-// clip_excess of the fragment: a splat cut at a sharp feature ends at its clip lines.
+// eye depth of the splat seen there: the exact ray-plane intersection (perspective accurate),
+// or with NORMAL_FIELD the ray's hit on the curved splat, located by its tangent coordinates.
+// Low-pass fragments outside the disk keep the plane's depth too, so coplanar neighbours agree
+// at grazing angles, where a pixel's footprint spans many splat radii in depth; only
+// near-parallel rays are clamped to the splat's depth range. `clipped` is the clip_excess of
+// the fragment: a splat cut at a sharp feature ends at its clip lines.
 float splat_distance(out float eye_depth, out vec2 local_uv, out float clipped) {
     vec3 o, d;
     pixel_ray(gl_FragCoord.xy, o, d);
@@ -160,8 +186,13 @@ float splat_distance(out float eye_depth, out vec2 local_uv, out float clipped) 
     eye_depth = -v_center.z;
     local_uv = vec2(0.0);
     clipped = -1e30;  // no clip line near
-    if (abs(denom) > 1e-12) {
-        vec3 q = o + d * (dot(v_center - o, v_normal) / denom);
+    float t = dot(v_center - o, v_normal) / denom;
+    bool hit = abs(denom) > 1e-12;
+#ifdef NORMAL_FIELD
+    hit = hit && curved_splat_hit(o, d, denom, t);
+#endif
+    if (hit) {
+        vec3 q = o + d * t;
         vec3 local = q - v_center;
         float u = dot(local, v_u), v = dot(local, v_v);
         rho2 = u * u + v * v;

@@ -20,11 +20,18 @@ reconstruction kernel and a screen-space low-pass of radius r_lp ≈ 1 pixel, so
 splat covers at least 2x2 pixels and minified textures do not alias (Fig. 10).
 
 `phong` -- Botsch, Spernat & Kobbelt 2004, "Phong splatting" (survey 2.1.4): elliptical
-splats (c_j, u_j, v_j), the per-fragment ray-plane intersection q = q_n (cᵀn)/(q_nᵀn) and
-local (u, v) = (u_jᵀ(q - c_j), v_jᵀ(q - c_j)) / |axis|² (eq. 7), discarding u² + v² > 1,
-exact per-pixel depth, and the linear normal field N_j(u, v) = n̄_j + u α_j û_j + v β_j v̂_j
-(eq. 8, α_j and β_j fitted in preprocessing: surfel.preprocess.fit_normal_field), blended
-with Gaussian weights, normalized and lit per pixel as in `deferred`.
+splats (c_j, u_j, v_j) aligned with the principal curvature directions, the per-fragment
+ray-plane intersection q = q_n (cᵀn)/(q_nᵀn) and local (u, v) = (u_jᵀ(q - c_j),
+v_jᵀ(q - c_j)) / |axis|² (eq. 7), discarding u² + v² > 1, exact per-pixel depth, and the
+linear normal field N_j(u, v) = n̄_j + u α_j û_j + v β_j v̂_j (eq. 8, α_j and β_j fitted in
+preprocessing: surfel.preprocess.fit_normal_field), blended with Gaussian weights,
+normalized and lit per pixel as in `deferred`. Beyond the paper, each splat is the curved
+surface its normal field describes (the height field h = -(k_u s_u² + k_v s_v²)/2 over the
+splat plane, k the field's tilt per unit length): the ray meets that instead of the plane,
+which puts the depth on the surface and ends the splat at the surface's true contour. Flat
+splats stick out past the outline of a coarsely sampled curved surface, dark (their field
+normals turn edge-on there) over the bright surface behind: the largest error of sparse
+sampling (bunny thinned to every 4th point: +2 dB interior PSNR on the front view).
 """
 
 from __future__ import annotations
