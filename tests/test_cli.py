@@ -43,6 +43,13 @@ def test_compare_reports_metrics_and_writes_side_by_side(tmp_path):
 
     assert Image.open(tmp_path / "cmp.png").size == (384, 128)
 
+    sparse = run("compare", bunny, "--method", "deferred", "--size", "128x128", "--shading", "lambert", "--json",
+                 "--every", "4", "-o", tmp_path / "sparse.png")
+    assert sparse.returncode == 0, sparse.stderr
+    sparse_metrics = json.loads(sparse.stdout)
+    assert sparse_metrics["splats"] == (metrics["splats"] + 3) // 4  # every 4th vertex, the mesh's camera
+    assert sparse_metrics["psnr"] < metrics["psnr"]
+
 
 @requires_gl
 def test_bench_json_rows(tmp_path):

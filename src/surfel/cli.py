@@ -256,14 +256,17 @@ def info(input, as_json):
 @click.option("-o", "--output", type=click.Path(dir_okay=False), default=None,
               help="Side-by-side PNG: mesh, method, error x4 (default compare-METHOD.png).")
 @click.option("--json", "as_json", is_flag=True, help="Print the metrics as JSON.")
+@click.option("--every", type=click.IntRange(1), default=1, show_default=True, metavar="N",
+              help="Splat every Nth vertex only (normals kept, splat sizes estimated): sparse sampling.")
 @camera_options
 @render_options
-def compare(mesh, method, output, as_json, **kw):
+def compare(mesh, method, output, as_json, every, **kw):
     """Render MESH's ground truth and METHOD on its vertices; print PSNR, holes and spill.
 
     \b
-    Example:
+    Examples:
       surfel compare bunny.obj --method deferred --size 512x512 --shading lambert --json
+      surfel compare bunny.obj --method phong --every 4 --size 512x512 --shading lambert
     """
     from .metrics import compare_results
     from .rendering import render as do_render
@@ -275,7 +278,8 @@ def compare(mesh, method, output, as_json, **kw):
     kw = {**kw, "background": "0,0,0"}  # the metrics are defined over black
     options = make_options(kw)
     reference = do_render(cloud, camera, "mesh", options=make_options({**kw, "supersample": None}))
-    result = do_render(cloud.with_(faces=None), camera, method, backend=kw["backend"], options=options)
+    vertices = cloud.take(np.arange(0, len(cloud), every))  # every = 1: all of them, without the faces
+    result = do_render(vertices, camera, method, backend=kw["backend"], options=options)
     metrics = {"method": method, "backend": result.stats["backend"], **compare_results(reference, result),
                "ms": result.stats["ms"], "splats": result.stats["splats"]}
     output = output or f"compare-{method}.png"
