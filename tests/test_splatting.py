@@ -102,6 +102,24 @@ def test_phong_splats_are_curved_to_the_surface():
     assert spill["phong"] < 0.01 * spill["deferred"]
 
 
+def test_dense_clouds_of_sub_pixel_splats_cover_whole_pixels(bunny, views):
+    """400k points on the bunny's surface: splats smaller than a pixel. Each alone covers
+    part of a pixel, their union all of it: no dark speckle inside, no bright halo outside."""
+    trimesh = pytest.importorskip("trimesh")
+    surface = trimesh.Trimesh(bunny.positions, bunny.faces, process=False)
+    points, face = trimesh.sample.sample_surface(surface, 400_000, seed=1)
+    weights = trimesh.triangles.points_to_barycentric(surface.triangles[face], points)
+    normals = (weights[..., None] * bunny.normals[bunny.faces[face]]).sum(1)
+    cloud = PointCloud(points, normals=normals / np.linalg.norm(normals, axis=1, keepdims=True))
+    cams, refs = views
+    inside = ndimage.binary_erosion(refs["front"].alpha >= 0.5, iterations=2)
+    for method, least in (("phong", 40), ("gaussian", 40), ("deferred", 34)):
+        result = render(cloud, cams["front"], method, shading="lambert")
+        assert (result.alpha[inside] < 0.99).mean() < 0.001, method
+        metrics = compare_results(refs["front"], result)
+        assert metrics["psnr"] >= least and metrics["interior_psnr"] >= 36, (method, metrics)
+
+
 def test_mesh_shading_models_match_numpy(bunny):
     """The GLSL shading models and their numpy twins give the same colours."""
     cam = frame(bunny.center, bunny.bounding_radius, size=(128, 128))

@@ -43,6 +43,16 @@ bool faces_away(vec3 p, vec3 n) {
     return dot(n, u_ortho > 0.0 ? vec3(0.0, 0.0, 1.0) : -p) < 0.0;
 }
 
+// The pixel centre's signed distance in pixels to a splat's edge, where its kernel distance
+// rho is 1 (positive inside), from rho's screen-space gradient; 0.5 + it is the pixel's
+// coverage, for anti-aliased silhouettes. Call before any discard, while the whole 2x2
+// fragment quad is alive.
+#ifdef FRAGMENT_SHADER
+float edge_distance(float rho) {
+    return (1.0 - rho) / max(length(vec2(dFdx(rho), dFdy(rho))), 1e-6);
+}
+#endif
+
 // How far the local splat coordinates uv lie beyond the splat's clip lines (keep
 // dot(line.xy, uv) <= line.z; sharp features, surfel.preprocess): > 0 means cut away.
 float clip_excess(vec2 uv, vec3 line0, vec3 line1) {

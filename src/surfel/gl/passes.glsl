@@ -42,6 +42,17 @@ bool fetch_accumulated(int guard, out Accumulated a) {
     return true;
 }
 
+// Whether splats reach this fragment's pixel and its four neighbours: a pixel inside the
+// surface, whole, whatever the visibility pass's coverage of its single most covering splat
+// (which a dense cloud's sub-pixel splats leave below one everywhere).
+bool surrounded(int guard) {
+    ivec2 texel = ivec2(gl_FragCoord.xy) + ivec2(guard), last = textureSize(u_accum_color, 0) - 1;
+    const ivec2 steps[4] = ivec2[4](ivec2(1, 0), ivec2(-1, 0), ivec2(0, 1), ivec2(0, -1));
+    for (int i = 0; i < 4; ++i)
+        if (texelFetch(u_accum_color, clamp(texel + steps[i], ivec2(0), last), 0).a <= 0.0) return false;
+    return true;
+}
+
 void write_gbuffer(vec3 shaded, Accumulated a) {
     out_shaded = vec4(shaded, a.coverage);
     out_normal = vec4(a.normal, 0.0);

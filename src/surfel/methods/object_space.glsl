@@ -140,15 +140,14 @@ flat in float v_alpha;
 #ifdef PASS_VISIBILITY
 layout(location = 0) out vec4 out_depth;
 void main() {
-    // Coverage of the disk inscribed in the square, cut at its clip lines: the pixel centre's
-    // signed distance to that edge in pixels, from the screen-space gradient of the distance.
+    // Coverage of the disk inscribed in the square, cut at its clip lines.
 #ifdef CLIP_LINES
     float clipped = clip_excess(v_local, v_clip0, v_clip1);
 #else
     float clipped = -1.0;
 #endif
     float rho = max(length(2.0 * v_texcoord - 1.0), 1.0 + clipped);
-    float coverage = clamp(0.5 + (1.0 - rho) / max(length(vec2(dFdx(rho), dFdy(rho))), 1e-6), 0.0, 1.0);
+    float coverage = clamp(0.5 + edge_distance(rho), 0.0, 1.0);
     if (clipped > 0.0) discard;  // the square ends at sharp features
     out_depth = vec4(v_depth, 1.0 - coverage, 0.0, 0.0);  // MIN blending: nearest, most covering
 }

@@ -170,13 +170,14 @@ bool curved_splat_hit(vec3 o, vec3 d, float denom, inout float t) {
 }
 #endif
 
-// Squared distance of the fragment to the splat centre in the kernel's unit domain, and the
-// eye depth of the splat seen there: the exact ray-plane intersection (perspective accurate),
-// or with NORMAL_FIELD the ray's hit on the curved splat, located by its tangent coordinates.
-// Low-pass fragments outside the disk keep the plane's depth too, so coplanar neighbours agree
-// at grazing angles, where a pixel's footprint spans many splat radii in depth; only
-// near-parallel rays are clamped to the splat's depth range. `clipped` is the clip_excess of
-// the fragment: a splat cut at a sharp feature ends at its clip lines.
+// Squared distance of the fragment to the splat centre in the kernel's unit domain (1e30
+// where its ray misses the splat), and the eye depth of the splat seen there: the exact
+// ray-plane intersection (perspective accurate), or with NORMAL_FIELD the ray's hit on the
+// curved splat, located by its tangent coordinates. Low-pass fragments outside the disk keep
+// the plane's depth too, so coplanar neighbours agree at grazing angles, where a pixel's
+// footprint spans many splat radii in depth; only near-parallel rays are clamped to the
+// splat's depth range. `clipped` is the clip_excess of the fragment: a splat cut at a sharp
+// feature ends at its clip lines.
 float splat_distance(out float eye_depth, out vec2 local_uv, out float clipped) {
     vec3 o, d;
     pixel_ray(gl_FragCoord.xy, o, d);
@@ -202,11 +203,18 @@ float splat_distance(out float eye_depth, out vec2 local_uv, out float clipped) 
 #endif
         eye_depth = clamp(-q.z, -v_center.z - extent, -v_center.z + extent);
     }
+    return rho2;
+}
+
+// The kernel distance of the resampling filter: with EWA_FILTER the union of the splat's
+// reconstruction kernel (splat_rho2) and the screen-space low-pass, else the splat's own.
+float filter_distance(float splat_rho2) {
 #ifdef EWA_FILTER
     vec2 delta = (image_coord(gl_FragCoord.xy) - v_center_px) / u_lowpass_radius;
-    rho2 = min(rho2, dot(delta, delta));  // union of reconstruction kernel and low-pass
+    return min(splat_rho2, dot(delta, delta));
+#else
+    return splat_rho2;
 #endif
-    return rho2;
 }
 #endif
 
@@ -215,13 +223,15 @@ layout(location = 0) out vec4 out_depth;
 void main() {
     float z, clipped;
     vec2 uv;
-    float rho2 = splat_distance(z, uv, clipped);
-    // Coverage for anti-aliased silhouettes: the pixel centre's signed distance to the
-    // splat's edge (its rim or a clip line) in pixels, from the screen-space gradient of the
-    // kernel distance (taken before any discard, while the whole 2x2 fragment quad is alive).
-    float rho = max(sqrt(rho2), 1.0 + clipped);
-    float coverage = clamp(0.5 + (1.0 - rho) / max(length(vec2(dFdx(rho), dFdy(rho))), 1e-6), 0.0, 1.0);
-    if (rho > 1.0) discard;
+    float splat_rho2 = splat_distance(z, uv, clipped);
+    // Coverage for anti-aliased silhouettes, to the edge of the splat itself (its rim or a
+    // clip line), not of the low-pass, which filters but covers nothing. A splat smaller than
+    // a pixel covers at least a pixel-wide footprint: its own edge would leave every pixel of
+    // a dense cloud partly covered (surrounded() in the normalization pass sees those whole).
+    float edge = max(edge_distance(max(sqrt(splat_rho2), 1.0 + clipped)),
+                     0.5 - length(image_coord(gl_FragCoord.xy) - v_center_px));
+    float coverage = clamp(0.5 + edge, 0.0, 1.0);
+    if (max(sqrt(filter_distance(splat_rho2)), 1.0 + clipped) > 1.0) discard;
     // a low-pass fragment lies off the disk: it must not hide surfaces nearer than the disk's
     // far end, or edge-on splats punch wrong normals into the visible surface
     if (dot(uv, uv) > 1.0) z = max(z, -v_center.z + v_radius);
@@ -235,7 +245,7 @@ layout(location = 1) out vec4 out_normal;  // (w n, w z)
 void main() {
     float z, clipped;
     vec2 uv;
-    float rho2 = splat_distance(z, uv, clipped);
+    float rho2 = filter_distance(splat_distance(z, uv, clipped));
     if (rho2 > 1.0 || clipped > 0.0) discard;
     if (z > texelFetch(u_visibility, ivec2(gl_FragCoord.xy), 0).r) discard;  // behind the visible surface
     float w = v_weight * texture(u_kernel, vec2(rho2, 0.5)).r;
@@ -253,6 +263,7 @@ void main() {
 void main() {
     Accumulated a;
     if (!fetch_accumulated(int(u_guard), a)) return;
+    if (surrounded(int(u_guard))) a.coverage = 1.0;
     vec3 color = a.weighted_color / a.weight;
 #ifndef PER_SPLAT_SHADING
     color = shade(u_shading, color, a.normal, a.depth, u_depth_range.x, u_depth_range.y);  // deferred shading
