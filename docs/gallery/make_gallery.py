@@ -127,8 +127,9 @@ def method_table(models: dict, quick: bool) -> None:
                 result = render(cloud, cam, method.name, backend=backend, shading="lambert")
                 metrics = compare_results(ref, result)
                 cells.append(f"{metrics['psnr']:.1f} dB / {100 * metrics['holes']:.3f}%")
-                if name == "bunny":
-                    ms = f"{result.stats['ms']:.0f}"
+                if name == "bunny":  # a second frame: the first one compiles shaders and uploads the splats
+                    again = render(cloud, cam, method.name, backend=backend, shading="lambert")
+                    ms = f"{again.stats['ms']:.0f}"
             rows.append(f"| `{method.name}` | {backend} | " + " | ".join(cells) + f" | {ms} |")
             print(rows[-1])
     (HERE / "methods.md").write_text("\n".join(rows) + "\n")
