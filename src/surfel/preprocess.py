@@ -539,13 +539,13 @@ def _tangent_cells(points, index, start, normals, t, s, ellipse, max_aspect, all
     neighbours in the tangent frame (t, s) (the covering radius), and if `ellipse` the
     semi-axes and direction (cos, sin in the frame) of the cell-covering ellipse aligned with
     the principal curvature directions (`_principal_direction`), or where the curvature has
-    none, with the neighbours' principal directions. A neighbour whose normal (all_normals) has a dot
-    product below sharp_cos with the point's lies across a sharp feature when both are flat
-    (`_flat_points`): the cell ends where
-    the two tangent planes meet (`_crease_half_plane`, where the clip lines cut the splat)
-    rather than at the bisector. Dropped points (crease points) do not bound any cell, nor do
-    neighbours whose normals face away (dot below sheet_cos): the other side of a thin sheet,
-    a surface of its own that would otherwise cut this side's cells into holes."""
+    none, with the neighbours' principal directions. A neighbour whose normal (all_normals)
+    has a dot product below sharp_cos with the point's lies across a sharp feature when both
+    are flat (`_flat_points`): the cell ends where the two tangent planes meet
+    (`_crease_half_plane`, where the clip lines cut the splat) rather than at the bisector.
+    Dropped points (crease points) do not bound any cell, nor do neighbours whose normals
+    face away (dot below sheet_cos): the other side of a thin sheet, a surface of its own
+    that would otherwise cut this side's cells into holes."""
     m, k = index.shape
     radius = np.zeros(m)
     semi = np.zeros((m, 2))
@@ -633,7 +633,8 @@ def _tangent_cells(points, index, start, normals, t, s, ellipse, max_aspect, all
         # Splats "aligned along the curvature" (survey 2.1.4), so that the normal field's two
         # slopes (eq. 8) describe the surface: the principal curvature directions, wherever the
         # normals turn more one way than the other across the cell.
-        curvature_theta, anisotropy = _principal_direction(xs, ys, used_index, used, all_normals, normals[i], t[i], s[i])
+        curvature_theta, anisotropy = _principal_direction(xs, ys, used_index, used, all_normals,
+                                                           normals[i], t[i], s[i])
         if anisotropy * reach > CURVATURE_ANISOTROPY:
             theta = curvature_theta
         co = math.cos(theta)
