@@ -22,6 +22,7 @@ let point sprites centred outside the image reach into it; the output has the im
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -33,11 +34,45 @@ UNIFORM_UNITS = {"u_visibility": 1, "u_accum_color": 2, "u_accum_normal": 3, "u_
 FAR = 3.0e38
 
 
+@dataclass
+class _Targets:
+    """The float targets of one frame size and their framebuffers; the back layer's only with
+    `back_layer` (else None and empty)."""
+
+    visibility: object
+    visibility_fbo: object
+    accum: list
+    accum_fbo: object        # the front accumulators, then the back layer's
+    out: GBuffer
+    back: object = None
+    back_fbo: object = None
+    back_accum: list = field(default_factory=list)
+
+    @classmethod
+    def allocate(cls, ctx, width: int, height: int, guard: int, back_layer: bool) -> "_Targets":
+        target = (width + 2 * guard, height + 2 * guard)
+        visibility = ctx.texture(target, 2, dtype="f4")
+        accum = [ctx.texture(target, 4, dtype="f4") for _ in range(2)]
+        back = ctx.texture(target, 1, dtype="f4") if back_layer else None
+        back_accum = [ctx.texture(target, 4, dtype="f4") for _ in range(2)] if back_layer else []
+        for tex in (visibility, *accum, *back_accum, *([back] if back else [])):
+            tex.filter = (ctx.NEAREST, ctx.NEAREST)
+        return cls(visibility, ctx.framebuffer(color_attachments=[visibility]), accum,
+                   ctx.framebuffer(color_attachments=accum + back_accum), GBuffer(width, height),
+                   back, ctx.framebuffer(color_attachments=[back]) if back else None, back_accum)
+
+    def release(self) -> None:
+        for obj in (self.visibility, self.visibility_fbo, *self.accum, self.accum_fbo, self.out,
+                    self.back, self.back_fbo, *self.back_accum):
+            if obj is not None:
+                obj.release()
+
+
 class SplatPasses:
     """Use as a context manager around one frame. The targets of the last size used are kept
     for the next frame (animations and benchmarks render many frames of one size)."""
 
-    _kept: "dict[tuple, tuple]" = {}
+    _kept: "dict[tuple, _Targets]" = {}
 
     def __init__(self, width: int, height: int, guard: int = 0, back_layer: bool = False):
         ctx = self.ctx = get_context()
@@ -45,31 +80,15 @@ class SplatPasses:
         key = (id(ctx), width, height, guard, back_layer)
         if key not in self._kept:
             for old in self._kept.values():
-                for obj in old:
-                    obj.release()
+                old.release()
             self._kept.clear()
-            self._kept[key] = self._allocate(ctx, width, height, guard, back_layer)
-        kept = self._kept[key]
-        self.visibility, self.visibility_fbo, self.accum_fbo, self.out = kept[:4]
-        self.accum = kept[4:6]
-        self.back, self.back_fbo, self.back_accum = (kept[6], kept[7], kept[8:]) if back_layer else (None, None, ())
+            self._kept[key] = _Targets.allocate(ctx, width, height, guard, back_layer)
+        t = self._kept[key]
+        self.visibility, self.visibility_fbo, self.accum, self.accum_fbo, self.out = \
+            t.visibility, t.visibility_fbo, t.accum, t.accum_fbo, t.out
+        self.back, self.back_fbo, self.back_accum = t.back, t.back_fbo, t.back_accum
         ctx.disable(ctx.DEPTH_TEST | ctx.CULL_FACE)
         ctx.enable(ctx.BLEND | ctx.PROGRAM_POINT_SIZE)
-
-    @staticmethod
-    def _allocate(ctx, width: int, height: int, guard: int, back_layer: bool) -> tuple:
-        target = (width + 2 * guard, height + 2 * guard)
-        visibility = ctx.texture(target, 2, dtype="f4")
-        accum = [ctx.texture(target, 4, dtype="f4") for _ in range(2)]
-        back = [ctx.texture(target, 1, dtype="f4")] if back_layer else []
-        back_accum = [ctx.texture(target, 4, dtype="f4") for _ in range(2)] if back_layer else []
-        for tex in (visibility, *accum, *back, *back_accum):
-            tex.filter = (ctx.NEAREST, ctx.NEAREST)
-        kept = [visibility, ctx.framebuffer(color_attachments=[visibility]),
-                ctx.framebuffer(color_attachments=accum + back_accum), GBuffer(width, height), *accum]
-        if back_layer:
-            kept += [back[0], ctx.framebuffer(color_attachments=back), *back_accum]
-        return tuple(kept)
 
     def __enter__(self):
         return self
@@ -77,23 +96,20 @@ class SplatPasses:
     def __exit__(self, *exc):
         self.ctx.blend_equation = self.ctx.FUNC_ADD
 
-    def visibility_pass(self, draw) -> None:
-        ctx = self.ctx
-        self.visibility_fbo.use()
-        self.visibility_fbo.clear(FAR, 1.0, 0.0, 0.0)
-        ctx.enable(ctx.BLEND)
-        ctx.blend_equation = ctx.MIN
+    def _min_blended(self, fbo, clear: tuple, draw) -> None:
+        fbo.use()
+        fbo.clear(*clear)
+        self.ctx.enable(self.ctx.BLEND)
+        self.ctx.blend_equation = self.ctx.MIN
         draw()
+
+    def visibility_pass(self, draw) -> None:
+        self._min_blended(self.visibility_fbo, (FAR, 1.0, 0.0, 0.0), draw)
 
     def back_pass(self, draw) -> None:
         """The back layer's depth (after visibility_pass)."""
-        ctx = self.ctx
-        self.back_fbo.use()
-        self.back_fbo.clear(FAR, 0.0, 0.0, 0.0)
-        ctx.enable(ctx.BLEND)
-        ctx.blend_equation = ctx.MIN
         self.visibility.use(1)
-        draw()
+        self._min_blended(self.back_fbo, (FAR, 0.0, 0.0, 0.0), draw)
 
     def attribute_pass(self, draw) -> None:
         ctx = self.ctx

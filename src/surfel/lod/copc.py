@@ -172,6 +172,7 @@ class CopcSource:
         self.total_points = int(self.header.point_count)
         lo, hi = np.asarray(self.header.mins, np.float64), np.asarray(self.header.maxs, np.float64)
         self.bounds = (lo, hi)
+        self.center, self.bounding_radius = framing_sphere(lo, hi)
 
     def _read_page(self, file: _CountingFile, offset: int, size: int) -> None:
         if size % ENTRY.size or offset + size > self.size or size <= 0:
@@ -187,15 +188,7 @@ class CopcSource:
                 raise InputError(self.path, f"COPC hierarchy has an invalid key {d}-{x}-{y}-{z}")
             self._entries[key_code(d, x, y, z).item()] = Entry(off, nbytes, count)
 
-    # ---- LodSource properties -------------------------------------------------------------
-    @property
-    def center(self) -> np.ndarray:
-        return framing_sphere(*self.bounds)[0]
-
-    @property
-    def bounding_radius(self) -> float:
-        return framing_sphere(*self.bounds)[1]
-
+    # ---- LodSource ---------------------------------------------------------------------------
     def describe(self) -> dict:
         """What `surfel info` shows: counts and the octree, without reading any points."""
         depths = [code >> (3 * _KEY_BITS) for code, e in self._entries.items() if e.point_count]
