@@ -65,7 +65,7 @@ def test_take_keeps_every_per_point_attribute():
     axes = np.zeros((n, 2, 3), np.float32)
     axes[:, 0, 0] = axes[:, 1, 1] = 0.1
     cloud = surfel.PointCloud(rng.normal(size=(n, 3)), normals=np.tile([0.0, 0, 1], (n, 1)), colors=rng.random((n, 3)),
-                              radii=np.full(n, 0.1), axes=axes, extras={"clip_lines": rng.random((n, 2, 3)),
+                              radii=np.full(n, 0.1), axes=axes, attributes={"clip_lines": rng.random((n, 2, 3)),
                                                                        "phong_alpha": rng.random(n)},
                               faces=np.array([[0, 1, 2]]))
     index = np.array([5, 0, 19])
@@ -73,5 +73,5 @@ def test_take_keeps_every_per_point_attribute():
     assert len(taken) == 3 and taken.faces is None
     np.testing.assert_array_equal(taken.positions, cloud.positions[index])
     np.testing.assert_array_equal(taken.colors, cloud.colors[index])
-    np.testing.assert_array_equal(taken.extras["clip_lines"], cloud.extras["clip_lines"][index])
-    np.testing.assert_array_equal(taken.extras["phong_alpha"], cloud.extras["phong_alpha"][index])
+    np.testing.assert_array_equal(taken.attributes["clip_lines"], cloud.attributes["clip_lines"][index])
+    np.testing.assert_array_equal(taken.attributes["phong_alpha"], cloud.attributes["phong_alpha"][index])

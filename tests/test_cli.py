@@ -53,7 +53,8 @@ def test_compare_reports_metrics_and_writes_side_by_side(tmp_path):
 
 @requires_gl
 def test_bench_json_rows(tmp_path):
-    proc = run("bench", "--methods", "points,deferred@gl", "--points", "20000", "--size", "64x64", "--frames", "2", "--json")
+    proc = run("bench", "--methods", "points,deferred@gl", "--points", "20000", "--size", "64x64", "--frames", "2",
+               "--json")
     assert proc.returncode == 0, proc.stderr
     rows = json.loads(proc.stdout)
     assert [r["method"] for r in rows] == ["points", "deferred"]

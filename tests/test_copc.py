@@ -9,9 +9,9 @@ from pathlib import Path
 import laspy
 import numpy as np
 import pytest
-from conftest import data_file, requires_gl
 from scipy.spatial import cKDTree
 
+from conftest import data_file, requires_gl
 from surfel.camera import frame
 from surfel.cloud import PointCloud
 from surfel.errors import InputError

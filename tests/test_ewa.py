@@ -32,7 +32,8 @@ def _setup(cloud, camera, sigma=0.5, lowpass=1.0):
     intr = np.array([camera.fx, camera.fy, camera.cx, camera.cy])
     ortho = 0.0 if camera.ortho_height is None else camera.height / camera.ortho_height
     return k.setup_splats(cloud.positions, cloud.local_origin, camera.world_to_eye, cloud.normals,
-                          np.ones((1, 3), np.float32), splat_axes(cloud), splat_clip_lines(cloud), splat_fields(cloud), intr, ortho, camera.near,
+                          np.ones((1, 3), np.float32), splat_axes(cloud), splat_clip_lines(cloud), splat_fields(cloud),
+                          intr, ortho, camera.near,
                           np.float32(1), np.float32(sigma ** 2), np.float32(lowpass ** 2), np.float32(0.04),
                           np.float32(9.21), np.float32(1), np.float32(4), False, camera.width, camera.height)
 
@@ -105,8 +106,8 @@ def test_minification_error_at_most_that_of_deferred_ewa():
     from surfel.gl.context import gl_available
     if not gl_available():
         pytest.skip("the deferred comparison needs OpenGL")
-    from surfel.rendering import render
     from scenes import checker_plane, checker_reference, far_half_rms, grazing_camera
+    from surfel.rendering import render
 
     cam = grazing_camera((512, 512))
     plane = checker_plane()

@@ -41,7 +41,7 @@ def test_clip_lines_and_normal_fields_match_cpu():
     from surfel.rendering import complete
 
     cloud = complete(load(data_file("fandisk.obj")), normal_field=True)[0]
-    assert (cloud.extras["clip_lines"][:, 0, 2] < 1).mean() > 0.1
+    assert (cloud.attributes["clip_lines"][:, 0, 2] < 1).mean() > 0.1
     for view in ("front", "right"):
         cam = frame(cloud.center, cloud.bounding_radius, view=view, size=(256, 256))
         cpu, gl = _both(cloud, cam)

@@ -65,7 +65,7 @@ def full_cloud(n: int = 50, seed: int = 0, **changes) -> PointCloud:
         colors=rng.integers(0, 256, size=(n, 3)) / 255,
         radii=rng.uniform(0.01, 1, size=n),
         axes=rng.normal(size=(n, 2, 3)),
-        extras={"slope": rng.normal(size=(n, 2)), "weight": rng.random(n),
+        attributes={"slope": rng.normal(size=(n, 2)), "weight": rng.random(n),
                 "tensor": rng.normal(size=(n, 2, 2))},
         geospatial=True,
     )
@@ -90,9 +90,9 @@ def assert_same_cloud(a: PointCloud, b: PointCloud) -> None:
     assert np.array_equal(a.colors, b.colors)
     assert np.array_equal(a.radii, b.radii)
     assert np.array_equal(a.axes, b.axes)
-    assert sorted(a.extras) == sorted(b.extras)
-    for key in a.extras:
-        assert np.array_equal(a.extras[key], b.extras[key]), key
+    assert sorted(a.attributes) == sorted(b.attributes)
+    for key in a.attributes:
+        assert np.array_equal(a.attributes[key], b.attributes[key]), key
     assert a.geospatial == b.geospatial
 
 
@@ -111,7 +111,7 @@ def test_ply_round_trip_keeps_everything(tmp_path, binary):
     write_ply(cloud, tmp_path / "c.ply", binary=binary)
     back = load(tmp_path / "c.ply")
     assert_same_cloud(cloud, back)
-    assert back.extras["tensor"].shape == (50, 2, 2)
+    assert back.attributes["tensor"].shape == (50, 2, 2)
     assert back.source == str(tmp_path / "c.ply")
     assert back.faces is None
 
@@ -146,7 +146,7 @@ def test_ply_write_errors(tmp_path):
     with pytest.raises(SurfelError, match="cannot write"):
         write_ply(full_cloud(), tmp_path / "missing-dir" / "c.ply")
     with pytest.raises(ValueError):
-        write_ply(full_cloud(extras={"red": np.zeros(50)}), tmp_path / "c.ply")
+        write_ply(full_cloud(attributes={"red": np.zeros(50)}), tmp_path / "c.ply")
     assert os.listdir(tmp_path) == []
 
 
@@ -167,7 +167,7 @@ def test_ply_formats_properties_and_skipped_elements(tmp_path, fmt):
     np.testing.assert_allclose(cloud.normals, [[0, 0, 1], [1, 0, 0]])
     np.testing.assert_allclose(cloud.colors, [[1, 0, 0.2], [0, 0.4, 1]], rtol=1e-6)
     np.testing.assert_allclose(cloud.radii, [0.25, 0.5])
-    assert cloud.extras == {} and cloud.faces is None
+    assert cloud.attributes == {} and cloud.faces is None
 
 
 @pytest.mark.parametrize("fmt", ["ascii", "binary_big_endian"])
@@ -408,7 +408,7 @@ def test_text_layouts(tmp_path):
     np.testing.assert_allclose(cloud.normals, [[0, 0, 1], [0.6, 0.8, 0]], rtol=1e-6)
     assert cloud.colors is None
     (tmp_path / "i.xyz").write_text("0 0 0 17\n1 1 1 18\n")
-    assert load(tmp_path / "i.xyz").attributes() == []
+    assert load(tmp_path / "i.xyz").attribute_names() == []
     (tmp_path / "nc.xyz").write_text("0 0 0 0 0 -1 10 20 30\n")
     cloud = load(tmp_path / "nc.xyz")
     np.testing.assert_allclose(cloud.normals, [[0, 0, -1]])
@@ -432,7 +432,7 @@ def test_npz_round_trip(tmp_path):
     positions, faces = grid_mesh()
     np.savez(tmp_path / "c.npz", points=cloud.positions, normals=cloud.normals,
              colors=np.round(cloud.colors * 255).astype(np.uint8), radii=cloud.radii,
-             axes=cloud.axes, meta=np.array("not per point"), geospatial=np.bool_(True), **cloud.extras)
+             axes=cloud.axes, meta=np.array("not per point"), geospatial=np.bool_(True), **cloud.attributes)
     assert_same_cloud(cloud, load(tmp_path / "c.npz"))
     np.savez_compressed(tmp_path / "m.npz", positions=positions, faces=faces.astype(np.uint32))
     mesh = load(tmp_path / "m.npz")

@@ -75,7 +75,7 @@ def fig13_draw(r: float) -> tuple[int, np.ndarray]:
     nodes = fig13_list()
     n = len(nodes["emin"])
     zeros = np.zeros(n, np.float32)
-    seq = PointCloud(np.zeros((n, 3)), extras={"lod_emin": nodes["emin"], "lod_emax": nodes["emax"],
+    seq = PointCloud(np.zeros((n, 3)), attributes={"lod_emin": nodes["emin"], "lod_emax": nodes["emax"],
                                                "lod_dparent": zeros, "lod_dsuffix": zeros})
     count = lod.prefix_count(seq, r, 1.0)
     keep = lod.lod_selected(r, nodes["emin"][:count].astype(np.float64),
@@ -188,16 +188,16 @@ def test_selected_disks_cover_every_point(tree, seq, bunny, zoom):
 # ---- recursive traversal vs sequential list ------------------------------------------------
 
 def test_sequential_order_sorted(tree, seq):
-    emax = seq.extras["lod_emax"]
+    emax = seq.attributes["lod_emax"]
     buckets = lod.sequential.r_max_bucket(emax).astype(np.int64)
     assert len(seq) == len(tree) and (np.diff(buckets) <= 0).all() and emax[0] == FLT_MAX
     ceiling = np.array([lod.sequential._bucket_ceiling(e) for e in emax[1:1000]])
     assert (ceiling >= emax[1:1000]).all() and (ceiling <= emax[1:1000] * (1 + 2 ** -8)).all()
     order = lod.sequential_order(tree)
     assert sorted(order.tolist()) == list(range(len(tree)))
-    assert np.array_equal(seq.extras["lod_emin"], tree.e_g[order])
-    dsuffix = seq.extras["lod_dsuffix"]
-    assert (np.diff(dsuffix) <= 0).all() and (dsuffix >= seq.extras["lod_dparent"]).all()
+    assert np.array_equal(seq.attributes["lod_emin"], tree.e_g[order])
+    dsuffix = seq.attributes["lod_dsuffix"]
+    assert (np.diff(dsuffix) <= 0).all() and (dsuffix >= seq.attributes["lod_dparent"]).all()
 
 
 @pytest.mark.parametrize("height_factor", [0.5, 2, 8, 32])
@@ -232,9 +232,9 @@ def test_prefix_never_cuts_a_selected_node(seq, bunny):
         k = lod.lod_scale(cam, 1.0)
         count = lod.prefix_count(seq, lod.near_distance(seq, cam), k)
         r = np.linalg.norm(seq.positions - cam.eye, axis=1)
-        everywhere = lod.lod_selected(r, seq.extras["lod_emin"].astype(np.float64),
-                                      seq.extras["lod_emax"].astype(np.float64),
-                                      seq.extras["lod_dparent"].astype(np.float64), k)
+        everywhere = lod.lod_selected(r, seq.attributes["lod_emin"].astype(np.float64),
+                                      seq.attributes["lod_emax"].astype(np.float64),
+                                      seq.attributes["lod_dparent"].astype(np.float64), k)
         assert not everywhere[count:].any()
         assert count < len(seq) or zoom < 1
 
@@ -245,7 +245,7 @@ def test_lod_reduces_with_distance_and_subset(seq, bunny):
     assert drawn[1] <= 0.3 * len(bunny)
     cam = camera_at(bunny, 4)
     subset = lod.lod_subset(seq, cam, 1.0)
-    assert len(subset) == drawn[1] and subset.extras == {}
+    assert len(subset) == drawn[1] and subset.attributes == {}
     assert lod.lod_subset(seq, cam, 1.0) is subset  # cached per view
 
 
@@ -306,9 +306,9 @@ def test_save_load_round_trip(tree, seq, tmp_path):
         assert np.array_equal(getattr(loaded, name), getattr(seq, name)), name
     assert np.allclose(loaded.normals, seq.normals, atol=1e-6)  # renormalised on loading
     for name in lod.sequential.EXTRAS:
-        assert np.array_equal(loaded.extras[name], seq.extras[name]), name
+        assert np.array_equal(loaded.attributes[name], seq.attributes[name]), name
     generic = load(path)  # any surfel reader of .npz sees the LOD extras
-    assert set(lod.sequential.EXTRAS) <= set(generic.extras)
+    assert set(lod.sequential.EXTRAS) <= set(generic.attributes)
     assert [p.name for p in tmp_path.iterdir()] == ["bunny.lod.npz"]  # no temporaries left
     plain = tmp_path / "plain.npz"
     np.savez(plain, positions=seq.positions)
@@ -369,11 +369,11 @@ def test_clip_lines_of_sharp_features_survive_the_hierarchy(tmp_path):
     dropped = clipped_away(cloud)
     tree = lod.build_lod(cloud, progress=False)
     assert tree.n_leaves == len(cloud) - dropped.sum() and dropped.sum() > 0
-    np.testing.assert_array_equal(tree.clip_lines[:tree.n_leaves], cloud.extras["clip_lines"][tree.point_index])
+    np.testing.assert_array_equal(tree.clip_lines[:tree.n_leaves], cloud.attributes["clip_lines"][tree.point_index])
     assert (tree.clip_lines[tree.n_leaves:, :, 2] == 1).all()
     lod.save_lod(tree, tmp_path / "fandisk.lod.npz")
     seq = lod.load_lod(tmp_path / "fandisk.lod.npz")
-    assert "clip_lines" in seq.extras
+    assert "clip_lines" in seq.attributes
     if gl_ok():
         cam = frame(mesh.center, mesh.bounding_radius, size=(256, 256))
         ref = render(mesh, cam, "mesh", shading="lambert")

@@ -2,16 +2,16 @@
 and against the CPU ray tracer of the same surface."""
 
 import numpy as np
-from conftest import requires_gl
 from scipy import ndimage
-from test_mls import SPHERE, sphere_points
 
+from conftest import requires_gl
 from surfel.camera import frame
 from surfel.cloud import PointCloud
 from surfel.metrics import compare_results
 from surfel.mls.gpu import render_mls_gl
 from surfel.mls.raytrace import render_mls_cpu
 from surfel.options import RenderOptions
+from test_mls import SPHERE, sphere_points
 
 pytestmark = requires_gl
 

@@ -296,7 +296,7 @@ def test_prepare_fills_exactly_what_is_missing():
                                normal_field=True)
     assert np.array_equal(ellipses.radii, np.full(len(p), 0.05, np.float32))
     assert report["axes"].startswith("fitted ellipses") and "normal_field" in report and "radii" not in report
-    assert ellipses.extras["phong_alpha"].shape == (len(p),) and (ellipses.extras["phong_alpha"] > 0).all()
+    assert ellipses.attributes["phong_alpha"].shape == (len(p),) and (ellipses.attributes["phong_alpha"] > 0).all()
 
     axes_only, report = prepare(PointCloud(p, axes=bare.axes))
     assert np.allclose(axes_only.normals, bare.normals, atol=1e-5) and np.array_equal(axes_only.axes, bare.axes)
@@ -348,7 +348,8 @@ def edge_wedge(h: float = 0.05):
 def covered_by(cloud: PointCloud, members: np.ndarray, samples: np.ndarray) -> np.ndarray:
     """Whether each sample point (lying in the members' common plane) is inside one of their
     clipped splats: within the ellipse and on the kept side of both clip lines."""
-    c, axes, lines = cloud.positions[members], cloud.axes[members].astype(np.float64), cloud.extras["clip_lines"][members]
+    c, axes = cloud.positions[members], cloud.axes[members].astype(np.float64)
+    lines = cloud.attributes["clip_lines"][members]
     d = samples[:, None, :] - c[None]
     u = np.einsum("skj,kj->sk", d, axes[:, 0]) / np.einsum("kj,kj->k", axes[:, 0], axes[:, 0])
     v = np.einsum("skj,kj->sk", d, axes[:, 1]) / np.einsum("kj,kj->k", axes[:, 1], axes[:, 1])
@@ -364,7 +365,7 @@ def test_sharp_edge_splats_end_at_the_edge():
     h = 0.05
     cloud, labels = edge_wedge(h)
     prepared, report = prepare(cloud)
-    lines = prepared.extras["clip_lines"]
+    lines = prepared.attributes["clip_lines"]
     assert "sharp_features" in report
     dropped = lines[:, 0, 2] < -1
     assert dropped[labels == 2].mean() > 0.8 and not dropped[labels < 2].any()
@@ -377,7 +378,7 @@ def test_sharp_edge_splats_end_at_the_edge():
     assert covered_by(prepared, face_a, strip).all()
     # without sharp features the edge's splats are whole disks, and they stick out of the solid
     plain, _ = prepare(cloud, sharp_features=False)
-    assert "clip_lines" not in plain.extras
+    assert "clip_lines" not in plain.attributes
     edge = np.flatnonzero(labels == 2)
     uv = rng.uniform(-0.7, 0.7, (500, 2))
     disk = (plain.positions[edge][:, None] + uv[None, :, :1] * plain.axes[edge][:, None, 0]
@@ -390,5 +391,5 @@ def test_smooth_surfaces_get_no_clip_lines():
     its splats stay whole disks."""
     p = sphere(300, seed=5)
     prepared, report = prepare(PointCloud(p, normals=p))
-    lines = prepared.extras.get("clip_lines")
+    lines = prepared.attributes.get("clip_lines")
     assert lines is None or (lines[:, :, 2] >= 1).all()

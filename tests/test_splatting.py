@@ -192,4 +192,5 @@ def test_dump_passes_writes_the_three_passes(bunny, tmp_path):
     cam = frame(bunny.center, bunny.bounding_radius, size=(64, 64))
     render(bunny.with_(faces=None), cam, "deferred", dump_passes=str(tmp_path))
     names = sorted(p.name for p in tmp_path.iterdir())
-    assert names == ["1-visibility-depth.png", "2-accumulated-weight.png", "3-accumulated-color.png", "4-normalized.png"]
+    assert names == ["1-visibility-depth.png", "2-accumulated-weight.png", "3-accumulated-color.png",
+                     "4-normalized.png"]

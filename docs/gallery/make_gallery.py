@@ -18,8 +18,8 @@ from PIL import Image
 
 import surfel
 from surfel.camera import frame
-from surfel.metrics import compare_results
 from surfel.methods import METHODS
+from surfel.metrics import compare_results
 from surfel.rendering import complete, render
 
 HERE = Path(__file__).resolve().parent

@@ -23,7 +23,7 @@ def from_numpy(positions, normals=None, colors=None, radii=None, **kwargs) -> Po
 def to_numpy(cloud: PointCloud) -> dict[str, np.ndarray]:
     names = ("positions", "normals", "colors", "radii", "axes", "faces")
     out = {name: getattr(cloud, name) for name in names if getattr(cloud, name) is not None}
-    return {**out, **cloud.extras}
+    return {**out, **cloud.attributes}
 
 
 def _mesh_cloud(vertices, faces, normals=None, colors=None, source=None) -> PointCloud:

@@ -135,7 +135,8 @@ def read_jobs_file(path) -> list[dict]:
         except ValueError as exc:
             raise SurfelError(f"{path}: not valid JSON ({exc})") from None
     if not isinstance(jobs, list) or not jobs or not all(isinstance(job, dict) for job in jobs):
-        raise SurfelError(f"{path}: a jobs file holds a non-empty list of jobs, each a mapping of `surfel render` options")
+        raise SurfelError(f"{path}: a jobs file holds a non-empty list of jobs, "
+                          "each a mapping of `surfel render` options")
     return jobs
 
 
@@ -360,7 +361,8 @@ def run_batch(jobs: list[Job], *, scheduler: str | None = None, workers: int | N
             job = futures.pop(future)
             if future.status == "error":
                 exc = future.exception()
-                summary.record("(no worker finished it)", None, job, f"{type(exc).__name__}: {exc} after {retries} retries")
+                summary.record("(no worker finished it)", None, job,
+                               f"{type(exc).__name__}: {exc} after {retries} retries")
                 continue
             outcome = future.result()
             future.release()

@@ -64,7 +64,7 @@ class Camera:
     # ---- construction -------------------------------------------------------------
     @classmethod
     def look_at(cls, eye, target, up=(0, 1, 0), *, fov: float = 30.0, size=(1024, 1024),
-                ortho_height: float | None = None, near: float = 0.01, far: float = 100.0) -> "Camera":
+                ortho_height: float | None = None, near: float = 0.01, far: float = 100.0) -> Camera:
         """A look-at camera with vertical field of view `fov` degrees and `size` = (W, H)."""
         w, h = (int(size[0]), int(size[1]))
         if w <= 0 or h <= 0:
@@ -76,7 +76,7 @@ class Camera:
                    ortho_height=ortho_height, near=near, far=far)
 
     @classmethod
-    def from_opencv(cls, K, R, t, size, *, near: float = 0.01, far: float = 100.0) -> "Camera":
+    def from_opencv(cls, K, R, t, size, *, near: float = 0.01, far: float = 100.0) -> Camera:
         """From OpenCV intrinsics K (3x3) and world-to-camera extrinsics x_cam = R x_world + t."""
         K = np.asarray(K, np.float64)
         cv_to_gl = np.diag([1.0, -1.0, -1.0])  # OpenCV: y down, z forward
@@ -94,7 +94,7 @@ class Camera:
         K = np.array([[self.fx, 0, self.cx - 0.5], [0, self.fy, self.cy - 0.5], [0, 0, 1]])
         return K, cv_to_gl @ self.world_to_eye[:3, :3], cv_to_gl @ self.world_to_eye[:3, 3]
 
-    def with_(self, **changes) -> "Camera":
+    def with_(self, **changes) -> Camera:
         return replace(self, **changes)
 
     # ---- derived quantities ---------------------------------------------------------
@@ -177,7 +177,7 @@ class Camera:
         d /= np.linalg.norm(d, axis=-1, keepdims=True)
         return np.zeros_like(d), d
 
-    def fit_clip_planes(self, center, radius: float) -> "Camera":
+    def fit_clip_planes(self, center, radius: float) -> Camera:
         """Near/far planes bracketing a bounding sphere (they change no output, only precision)."""
         d = float(-(self.view_matrix() @ np.append(np.asarray(center, np.float64), 1.0))[2])
         far = max(d + radius * 1.05, 1e-6)

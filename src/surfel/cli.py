@@ -20,7 +20,7 @@ def _floats(text: str | None, count: int, name: str):
     try:
         values = [float(v) for v in text.split(",")]
     except ValueError:
-        raise click.BadParameter(f"{name} needs {count} comma-separated numbers, got {text!r}")
+        raise click.BadParameter(f"{name} needs {count} comma-separated numbers, got {text!r}") from None
     if len(values) != count or not all(np.isfinite(values)):
         raise click.BadParameter(f"{name} needs {count} comma-separated finite numbers, got {text!r}")
     return values
@@ -30,7 +30,7 @@ def _size(text: str) -> tuple[int, int]:
     try:
         w, h = (int(v) for v in text.lower().split("x"))
     except ValueError:
-        raise click.BadParameter(f"size must look like 512x512, got {text!r}")
+        raise click.BadParameter(f"size must look like 512x512, got {text!r}") from None
     if w <= 0 or h <= 0 or w * h > 16384 * 16384:
         raise click.BadParameter(f"size {text!r} is out of range")
     return w, h
@@ -43,16 +43,19 @@ def camera_options(f):
     for option in reversed([
         click.option("--size", default="1024x1024", show_default=True, help="Image size WxH in pixels."),
         click.option("--view", type=click.Choice(VIEWS), default=None, help="Auto-framing direction (default front)."),
-        click.option("--azimuth", type=float, default=None, help="Degrees from the front view towards the right, about the up axis."),
+        click.option("--azimuth", type=float, default=None,
+                     help="Degrees from the front view towards the right, about the up axis."),
         click.option("--elevation", type=float, default=None, help="Degrees above the horizon."),
         click.option("--eye", default=None, help="Camera position X,Y,Z in file coordinates."),
         click.option("--target", default=None, help="Look-at point X,Y,Z (default: bounding-box centre)."),
         click.option("--up", default=None, help="Up vector (default 0,0,1 for LAS/LAZ, 0,1,0 otherwise)."),
         click.option("--fov", type=float, default=30.0, show_default=True, help="Vertical field of view in degrees."),
-        click.option("--ortho", type=float, default=None, metavar="HEIGHT", help="Orthographic camera showing HEIGHT world units vertically."),
+        click.option("--ortho", type=float, default=None, metavar="HEIGHT",
+                     help="Orthographic camera showing HEIGHT world units vertically."),
         click.option("--opencv", type=click.Path(dir_okay=False), default=None,
                      help='Pinhole camera from a JSON file {"K": 3x3, "R": 3x3, "t": 3} (OpenCV world-to-camera).'),
-        click.option("--zoom", type=float, default=1.0, show_default=True, help="Move the auto-framed camera this many times farther."),
+        click.option("--zoom", type=float, default=1.0, show_default=True,
+                     help="Move the auto-framed camera this many times farther."),
     ]):
         f = option(f)
     return f
@@ -64,17 +67,24 @@ def render_options(f):
     for option in reversed([
         click.option("--shading", type=click.Choice(MODELS), default="phong", show_default=True),
         click.option("--background", default="0,0,0", show_default=True, help="Background R,G,B in [0, 1]."),
-        click.option("--backend", type=click.Choice(["gl", "cpu"]), default=None, help="Default: gl, else cpu where the method has one."),
-        click.option("--supersample", type=click.IntRange(1, 8), default=None, help="Samples per pixel side (method default)."),
+        click.option("--backend", type=click.Choice(["gl", "cpu"]), default=None,
+                     help="Default: gl, else cpu where the method has one."),
+        click.option("--supersample", type=click.IntRange(1, 8), default=None,
+                     help="Samples per pixel side (method default)."),
         click.option("--radius-scale", type=float, default=1.0, show_default=True, help="Multiply every splat radius."),
-        click.option("--depth-offset", type=float, default=None, help="Visibility offset z_t as a fraction of the splat radius."),
+        click.option("--depth-offset", type=float, default=None,
+                     help="Visibility offset z_t as a fraction of the splat radius."),
         click.option("--backface-culling/--no-backface-culling", default=False, show_default=True),
-        click.option("--ewa-filter/--no-ewa-filter", default=None, help="Screen-space EWA filter approximation (default on for deferred)."),
-        click.option("--lowpass-radius", type=float, default=1.0, show_default=True, help="Screen-space low-pass radius in pixels."),
-        click.option("--lod-error", type=float, default=None, metavar="PX", help="Level of detail: allowed projected error in pixels."),
+        click.option("--ewa-filter/--no-ewa-filter", default=None,
+                     help="Screen-space EWA filter approximation (default on for deferred)."),
+        click.option("--lowpass-radius", type=float, default=1.0, show_default=True,
+                     help="Screen-space low-pass radius in pixels."),
+        click.option("--lod-error", type=float, default=None, metavar="PX",
+                     help="Level of detail: allowed projected error in pixels."),
         click.option("--point-budget", type=click.IntRange(1), default=None, metavar="N",
                      help="Most points drawn from a .lod hierarchy (its LOD error is raised to fit)."),
-        click.option("--dump-passes", type=click.Path(file_okay=False), default=None, help="Write the intermediate passes here as images."),
+        click.option("--dump-passes", type=click.Path(file_okay=False), default=None,
+                     help="Write the intermediate passes here as images."),
         click.option("--per-pixel-normalization/--per-surfel-normalization", default=True, show_default=True,
                      help="object-space: divide by the accumulated weight per pixel (Botsch & Kobbelt 2003), "
                           "or Ren et al.'s precomputed per-surfel weights."),
@@ -112,7 +122,7 @@ def make_camera(cloud, kw):
             cam = Camera.from_opencv(np.array(spec["K"], float), np.array(spec["R"], float),
                                      np.array(spec["t"], float), size)
         except (OSError, ValueError, KeyError, TypeError) as exc:
-            raise SurfelError(f"{path}: not an OpenCV camera JSON with K, R, t ({type(exc).__name__}: {exc})")
+            raise SurfelError(f"{path}: not an OpenCV camera JSON with K, R, t ({type(exc).__name__}: {exc})") from None
         return cam.fit_clip_planes(cloud.center, cloud.bounding_radius)
     return frame(cloud.center, cloud.bounding_radius, view=kw["view"], azimuth=kw["azimuth"],
                  elevation=kw["elevation"], up=_floats(kw["up"], 3, "--up"), geospatial=cloud.geospatial,
@@ -167,7 +177,8 @@ def main():
 @click.option("--method", "-m", default="deferred", show_default=True, help="Rendering method (see `surfel methods`).")
 @click.option("--demo", is_flag=True, help="Render the bundled demo model (Spot, CC0) instead of INPUT.")
 @click.option("--depth", type=click.Path(dir_okay=False), default=None, help="Write eye depth (H x W float32 .npy).")
-@click.option("--normals", type=click.Path(dir_okay=False), default=None, help="Write eye normals (H x W x 3 float32 .npy).")
+@click.option("--normals", type=click.Path(dir_okay=False), default=None,
+              help="Write eye normals (H x W x 3 float32 .npy).")
 @click.option("--stats", type=click.Path(dir_okay=False), default=None, help="Write render statistics (.json).")
 @camera_options
 @render_options
@@ -240,7 +251,7 @@ def info(input, as_json):
         report = {
             "file": str(input), "points": len(cloud), "faces": 0 if cloud.faces is None else len(cloud.faces),
             "bounds_min": lo.tolist(), "bounds_max": hi.tolist(), "local_origin": cloud.local_origin.tolist(),
-            "attributes": cloud.attributes(), "would_estimate": estimate, "geospatial": cloud.geospatial,
+            "attributes": cloud.attribute_names(), "would_estimate": estimate, "geospatial": cloud.geospatial,
             "opengl": renderer_string() if gl_available() else None,
         }
     if as_json:
@@ -310,7 +321,8 @@ def _side_by_side(reference, result, path):
 @main.command(context_settings=CONTEXT)
 @click.argument("input", type=click.Path(dir_okay=False))
 @click.option("-o", "--output", required=True, type=click.Path(dir_okay=False), help="PLY to write.")
-@click.option("-k", "--neighbors", type=click.IntRange(4, 256), default=16, show_default=True, help="Neighbours for normal estimation.")
+@click.option("-k", "--neighbors", type=click.IntRange(4, 256), default=16, show_default=True,
+              help="Neighbours for normal estimation.")
 @click.option("--viewpoint", default=None, help="Sensor position X,Y,Z to orient normals towards.")
 @click.option("--elliptical", is_flag=True, help="Fit elliptical splats to the neighbourhood (for phong).")
 @click.option("--normal-field", is_flag=True, help="Fit Phong splatting's linear normal fields.")
@@ -339,7 +351,8 @@ def prepare(input, output, neighbors, viewpoint, elliptical, normal_field, sharp
 @click.argument("input", required=False, type=click.Path(dir_okay=False))
 @click.option("--demo", is_flag=True, help="View the bundled demo model.")
 @click.option("--method", "-m", default="deferred", show_default=True)
-@click.option("--shading", type=click.Choice(["lambert", "phong", "none", "normals", "depth"]), default="phong", show_default=True)
+@click.option("--shading", type=click.Choice(["lambert", "phong", "none", "normals", "depth"]), default="phong",
+              show_default=True)
 @click.option("--size", default="800x800", show_default=True, help="Window size WxH.")
 @click.option("--screenshot", type=click.Path(dir_okay=False), default=None,
               help="Draw one frame in the window, save it as PNG and exit (for scripts and tests).")
@@ -370,13 +383,15 @@ def view(input, demo, method, shading, size, screenshot):
 
 @main.command(context_settings=CONTEXT)
 @click.argument("input", type=click.Path())
-@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False), help="Animation to write (.gif, or .mp4 with the video extra).")
+@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False),
+              help="Animation to write (.gif, or .mp4 with the video extra).")
 @click.option("--frames", type=click.IntRange(1, 3600), default=36, show_default=True)
 @click.option("--method", "-m", default="deferred", show_default=True)
 @click.option("--size", default="512x512", show_default=True)
 @click.option("--elevation", type=float, default=15.0, show_default=True, help="Degrees above the horizon.")
 @click.option("--fps", type=float, default=12.0, show_default=True)
-@click.option("--shading", type=click.Choice(["lambert", "phong", "none", "normals", "depth"]), default="phong", show_default=True)
+@click.option("--shading", type=click.Choice(["lambert", "phong", "none", "normals", "depth"]), default="phong",
+              show_default=True)
 def turntable(input, output, frames, method, size, elevation, fps, shading):
     """Render an orbit around INPUT to an animated GIF or MP4 (a .lod hierarchy or a COPC file
     is read lazily, each frame at 1 pixel of error).
@@ -453,14 +468,19 @@ def lod_build(input, output, stats, memory, resume):
 
 
 @main.command(context_settings=CONTEXT)
-@click.option("--input", "input_path", type=click.Path(dir_okay=False), default=None, help="Model to replicate (default: the demo model).")
+@click.option("--input", "input_path", type=click.Path(dir_okay=False), default=None,
+              help="Model to replicate (default: the demo model).")
 @click.option("--points", type=click.IntRange(1), default=None,
-              help="Replicate (or subsample) and jitter the input to N points [default: the input as it is; 1,000,000 for the demo model].")
+              help="Replicate (or subsample) and jitter the input to N points "
+                   "[default: the input as it is; 1,000,000 for the demo model].")
 @click.option("--size", default="1024x1024", show_default=True)
-@click.option("--methods", default="points,gaussian,deferred", show_default=True, help="Comma-separated, each NAME or NAME@BACKEND.")
-@click.option("--frames", type=click.IntRange(1), default=5, show_default=True, help="Timed frames per method (after one warm-up).")
+@click.option("--methods", default="points,gaussian,deferred", show_default=True,
+              help="Comma-separated, each NAME or NAME@BACKEND.")
+@click.option("--frames", type=click.IntRange(1), default=5, show_default=True,
+              help="Timed frames per method (after one warm-up).")
 @click.option("--lod-error", type=float, default=None, metavar="PX", help="Add a row per method with this LOD error.")
-@click.option("--zoom", type=float, default=1.0, show_default=True, help="Camera this many times farther than the default framing.")
+@click.option("--zoom", type=float, default=1.0, show_default=True,
+              help="Camera this many times farther than the default framing.")
 @click.option("--json", "as_json", is_flag=True, help="Print a JSON list of rows.")
 def bench(input_path, points, size, methods, frames, lod_error, zoom, as_json):
     """Median ms per frame and million splats per second of each method, in one process.
@@ -494,7 +514,8 @@ def bench(input_path, points, size, methods, frames, lod_error, zoom, as_json):
 @click.argument("jobs", required=False, type=click.Path())
 @click.option("--turntable", type=click.IntRange(1, 3600), default=None, metavar="N",
               help="Render N orbit frames of the input JOBS (or --demo): the cameras of `surfel turntable`.")
-@click.option("-o", "--output", default=None, help="With --turntable: PNG name, {frame} numbered (e.g. f-{frame:03d}.png).")
+@click.option("-o", "--output", default=None,
+              help="With --turntable: PNG name, {frame} numbered (e.g. f-{frame:03d}.png).")
 @click.option("--method", "-m", default=None, help="Rendering method of every job that names none (default deferred).")
 @click.option("--demo", is_flag=True, help="With --turntable: the bundled demo model.")
 @click.option("--depth", default=None, help="With --turntable: depth .npy name, {frame} numbered.")
@@ -504,7 +525,8 @@ def bench(input_path, points, size, methods, frames, lod_error, zoom, as_json):
               help="A running Dask scheduler (tcp://host:port, or its scheduler file) instead of a local cluster.")
 @click.option("--workers", type=click.IntRange(1, 256), default=None,
               help="Worker processes of the local cluster [default: one per core, at most one per job].")
-@click.option("--retries", type=click.IntRange(0, 10), default=2, show_default=True, help="Retries of a job that crashes.")
+@click.option("--retries", type=click.IntRange(0, 10), default=2, show_default=True,
+              help="Retries of a job that crashes.")
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
 @camera_options
 @render_options
@@ -535,7 +557,8 @@ def batch(jobs, turntable, output, method, demo, depth, normals, stats, schedule
         defaults["method"] = method
     if turntable is None:
         if demo or output or depth or normals or stats:
-            raise click.UsageError("--demo, -o, --depth, --normals and --stats go with --turntable; jobs name their outputs")
+            raise click.UsageError("--demo, -o, --depth, --normals and --stats go with --turntable; "
+                                   "jobs name their outputs")
         if jobs is None:
             raise click.UsageError("give a JOBS file, or an input with --turntable N")
         specs, where = read_jobs_file(jobs), jobs

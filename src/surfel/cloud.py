@@ -31,7 +31,7 @@ class PointCloud:
     axes      : (N, 2, 3) float32 tangent axes u, v of an elliptical splat, each scaled to
                 its ellipse semi-axis length (a circular splat has |u| = |v| = radius), or None
     faces     : (F, 3) int64 triangle indices when the input was a mesh, or None
-    extras    : further per-point float arrays keyed by name (e.g. Phong normal-field slopes)
+    attributes: further per-point arrays keyed by name (scanner fields, Phong normal-field slopes, ...)
     geospatial: True for LAS/LAZ-like data, whose up axis is +Z
     source    : file the cloud came from, for messages
     """
@@ -42,7 +42,7 @@ class PointCloud:
     radii: np.ndarray | None = None
     axes: np.ndarray | None = None
     faces: np.ndarray | None = None
-    extras: dict[str, np.ndarray] = field(default_factory=dict)
+    attributes: dict[str, np.ndarray] = field(default_factory=dict)
     geospatial: bool = False
     source: str | None = None
 
@@ -100,27 +100,27 @@ class PointCloud:
                 raise InputError(src, f"faces must have shape (F, 3), got {faces.shape}")
             if len(faces) and (faces.min() < 0 or faces.max() >= n):
                 raise InputError(src, "faces index vertices that do not exist")
-        extras = {k: per_point(k, v, np.shape(v)[1:]) for k, v in dict(self.extras).items()}
+        attributes = {k: per_point(k, v, np.shape(v)[1:]) for k, v in dict(self.attributes).items()}
         for name, value in [("normals", normals), ("colors", colors), ("radii", radii),
-                            ("axes", axes), ("faces", faces), ("extras", extras)]:
+                            ("axes", axes), ("faces", faces), ("attributes", attributes)]:
             object.__setattr__(self, name, value)
 
     def __len__(self) -> int:
         return len(self.positions)
 
-    def with_(self, **changes) -> "PointCloud":
+    def with_(self, **changes) -> PointCloud:
         """A copy with some fields replaced (validated again)."""
         return replace(self, **changes)
 
-    def take(self, index: np.ndarray) -> "PointCloud":
-        """The points at `index` (indices or a mask) with all their attributes and extras;
+    def take(self, index: np.ndarray) -> PointCloud:
+        """The points at `index` (indices or a mask) with all their attributes;
         the faces are dropped, since they refer to the old numbering."""
         def pick(value):
             return None if value is None else value[index]
 
         return PointCloud(self.positions[index], normals=pick(self.normals), colors=pick(self.colors),
                           radii=pick(self.radii), axes=pick(self.axes),
-                          extras={name: value[index] for name, value in self.extras.items()},
+                          attributes={name: value[index] for name, value in self.attributes.items()},
                           geospatial=self.geospatial, source=self.source)
 
     @cached_property
@@ -156,6 +156,6 @@ class PointCloud:
     def is_mesh(self) -> bool:
         return self.faces is not None and len(self.faces) > 0
 
-    def attributes(self) -> list[str]:
+    def attribute_names(self) -> list[str]:
         names = [n for n in ("normals", "colors", "radii", "axes", "faces") if getattr(self, n) is not None]
-        return names + sorted(self.extras)
+        return names + sorted(self.attributes)

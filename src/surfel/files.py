@@ -7,7 +7,8 @@ import contextlib
 import json
 import os
 import secrets
-from typing import BinaryIO, Callable
+from collections.abc import Callable
+from typing import BinaryIO
 
 from .errors import SurfelError
 

@@ -64,7 +64,7 @@ Sharp features (`prepare(sharp_features=True)`, the default when radii are estim
     scalloped rim. Following the clipped splats of Zwicker, Pauly, Knoll & Gross 2002
     ("Pointshop 3D") and Pauly, Keiser, Kobbelt & Gross 2003 ("Shape modeling with
     point-sampled geometry"), each splat carries up to CLIP_LINES clip lines a u + b v <= c in
-    its local coordinates (u, v) (1 on the rim), extras["clip_lines"] (N, CLIP_LINES, 3):
+    its local coordinates (u, v) (1 on the rim), attributes["clip_lines"] (N, CLIP_LINES, 3):
       * flat points: those whose neighbours with normals within SHARP_ANGLE lie within
         FLAT_SIN2 of their tangent plane (faces; not coarsely sampled curved surfaces, whose
         neighbours' planes would facet them);
@@ -685,7 +685,8 @@ def _cells(nbh: _Neighbourhood, normals: np.ndarray, k: int, ellipse: bool,
         for start, stop in _chunks(n):
             t, s = _orthonormal_basis(normals[start:stop])
             radius, semi, direction = _tangent_cells(nbh.points, index[start:stop], start, normals[start:stop],
-                                                     t, s, ellipse, ELLIPSE_MAX_ASPECT, normals, sharp_cos, flat, dropped,
+                                                     t, s, ellipse, ELLIPSE_MAX_ASPECT, normals, sharp_cos, flat,
+                                                     dropped,
                                                      SHEET_COS if oriented else -2.0)
             raw[start:stop] = radius
             if ellipse:
@@ -800,7 +801,7 @@ def _clip_lines(points, index, start, normals, axes, sharp_cos, flat, dropped): 
 
 def clipped_away(cloud: PointCloud) -> np.ndarray:
     """(N,) bool: the splats whose clip lines keep nothing of them (crease points)."""
-    lines = cloud.extras.get("clip_lines")
+    lines = cloud.attributes.get("clip_lines")
     if lines is None:
         return np.zeros(len(cloud), bool)
     return (lines[:, :, 2] < -1).any(axis=1)
@@ -921,15 +922,15 @@ def prepare(cloud: PointCloud, *, k_normals: int = 16, viewpoint: np.ndarray | N
     normals gets u x v, the orientation its splats already have.
     radii: estimated if None (covering radii of the tangent-plane Voronoi cells).
     axes: if None, fitted ellipses when `elliptical`, else circular frames of the radii.
-    normal_field: also fit extras["phong_alpha"], extras["phong_beta"] if missing.
+    normal_field: also fit attributes["phong_alpha"], attributes["phong_beta"] if missing.
     sharp_features: when radii and axes are estimated, cells end at creases and
-    extras["clip_lines"] (N, CLIP_LINES, 3) cut the splats there ("Sharp features" in the
+    attributes["clip_lines"] (N, CLIP_LINES, 3) cut the splats there ("Sharp features" in the
     module docstring).
     Given attributes are kept as they are. The report names every estimated attribute and
     how, plus "ambiguous_normals" when normals were estimated.
     """
     report: dict = {}
-    need_field = normal_field and not {"phong_alpha", "phong_beta"} <= set(cloud.extras)
+    need_field = normal_field and not {"phong_alpha", "phong_beta"} <= set(cloud.attributes)
     if cloud.normals is not None and cloud.radii is not None and cloud.axes is not None and not need_field:
         return cloud, report
     k = max(k_normals, RADIUS_NEIGHBOURS, FIELD_NEIGHBOURS if need_field else 1)
@@ -972,16 +973,17 @@ def prepare(cloud: PointCloud, *, k_normals: int = 16, viewpoint: np.ndarray | N
     if given["axes"] is None:
         estimated["axes"] = axes
     changes = {name: nbh.unsort(np.asarray(value, np.float32)) for name, value in estimated.items()}
-    extras = dict(cloud.extras)
+    attributes = dict(cloud.attributes)
     if features is not None:
         lines = _sharp_clip_lines(nbh, normals, axes, features, RADIUS_NEIGHBOURS, progress)
-        extras["clip_lines"] = nbh.unsort(lines)
+        attributes["clip_lines"] = nbh.unsort(lines)
         report["sharp_features"] = (f"{float(np.mean(lines[:, 0, 2] < 1)):.1%} of splats end at creases "
-                                    f"(normals > {SHARP_ANGLE:g} degrees apart), {int(features[1].sum())} crease points dropped")
+                                    f"(normals > {SHARP_ANGLE:g} degrees apart), "
+                                    f"{int(features[1].sum())} crease points dropped")
     if need_field:
         alpha, beta = _normal_field(nbh, normals, axes, FIELD_NEIGHBOURS, progress)
-        extras.update(phong_alpha=nbh.unsort(alpha), phong_beta=nbh.unsort(beta))
+        attributes.update(phong_alpha=nbh.unsort(alpha), phong_beta=nbh.unsort(beta))
         report["normal_field"] = f"fitted (least squares, k={FIELD_NEIGHBOURS})"
-    if extras.keys() != cloud.extras.keys():
-        changes["extras"] = extras
+    if attributes.keys() != cloud.attributes.keys():
+        changes["attributes"] = attributes
     return cloud.with_(**changes), report

@@ -21,7 +21,7 @@ def default_camera(cloud: PointCloud, size=(1024, 1024), **framing) -> Camera:
     return frame(cloud.center, cloud.bounding_radius, geospatial=cloud.geospatial, size=size, **framing)
 
 
-_completed: "weakref.WeakKeyDictionary[PointCloud, dict]" = weakref.WeakKeyDictionary()
+_completed: weakref.WeakKeyDictionary[PointCloud, dict] = weakref.WeakKeyDictionary()
 
 
 def complete(cloud: PointCloud, *, need_radii: bool = True, elliptical: bool = False,
@@ -31,7 +31,7 @@ def complete(cloud: PointCloud, *, need_radii: bool = True, elliptical: bool = F
     Cached per cloud, so repeated renders of one cloud (turntables, benchmarks) estimate once.
     """
     missing = cloud.normals is None or (need_radii and (cloud.radii is None or cloud.axes is None))
-    missing = missing or (normal_field and "phong_alpha" not in cloud.extras)
+    missing = missing or (normal_field and "phong_alpha" not in cloud.attributes)
     if not missing:
         return cloud, {}
     key = (need_radii, elliptical, normal_field)
@@ -50,7 +50,7 @@ def resolve_backend(method_name: str, backend: str | None) -> str:
         method.function(backend)  # validates
         return backend
     if "gl" in method.backends:
-        from .gl.context import gl_available, get_context
+        from .gl.context import get_context, gl_available
 
         if gl_available():
             return "gl"

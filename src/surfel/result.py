@@ -25,7 +25,8 @@ def _composite_over(shaded, coverage, depth, normals, background):  # pragma: no
             a = min(max(coverage[y, x], np.float32(0.0)), np.float32(1.0))
             alpha[y, x] = a
             for c in range(3):
-                color[y, x, c] = min(max(shaded[y, x, c] * a + (1 - a) * background[c], np.float32(0.0)), np.float32(1.0))
+                over = shaded[y, x, c] * a + (1 - a) * background[c]
+                color[y, x, c] = min(max(over, np.float32(0.0)), np.float32(1.0))
             depth_out[y, x] = depth[y, x] if a > 0 else np.inf
             length = np.sqrt(normals[y, x, 0] ** 2 + normals[y, x, 1] ** 2 + normals[y, x, 2] ** 2)
             if a > 0 and length > 1e-12:
@@ -48,7 +49,7 @@ class RenderResult:
 
     @classmethod
     def from_samples(cls, shaded, coverage, depth, normals, *, supersample: int, background,
-                     stats: dict) -> "RenderResult":
+                     stats: dict) -> RenderResult:
         """Box-filter supersampled buffers down to the output size.
 
         shaded (sH, sW, 3), coverage (sH, sW) in [0, 1], depth (sH, sW) (inf empty),
@@ -57,9 +58,8 @@ class RenderResult:
         """
         s = int(supersample)
         if s == 1:  # nothing to filter: composite and mask in one pass
-            return cls(*_composite_over(np.ascontiguousarray(shaded, np.float32), np.ascontiguousarray(coverage, np.float32),
-                                        np.ascontiguousarray(depth, np.float32), np.ascontiguousarray(normals, np.float32),
-                                        np.asarray(background, np.float32)), stats)
+            buffers = (np.ascontiguousarray(a, np.float32) for a in (shaded, coverage, depth, normals))
+            return cls(*_composite_over(*buffers, np.asarray(background, np.float32)), stats)
         cov = np.clip(coverage.astype(np.float32), 0, 1)
         bg = np.asarray(background, np.float32).reshape(1, 1, 3)
         h, w = coverage.shape[0] // s, coverage.shape[1] // s

@@ -34,7 +34,8 @@ def get_context():
         ctx = moderngl.create_context(standalone=True, require=REQUIRED_VERSION, **kwargs)
     except Exception as exc:  # moderngl raises plain Exceptions for missing libraries/drivers
         reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        _failure = f"no OpenGL {REQUIRED_VERSION // 100}.{REQUIRED_VERSION % 100 // 10} context ({backend}: {reason}); {INSTALL_HINT}"
+        version = f"{REQUIRED_VERSION // 100}.{REQUIRED_VERSION % 100 // 10}"
+        _failure = f"no OpenGL {version} context ({backend}: {reason}); {INSTALL_HINT}"
         raise NoOpenGLError(_failure) from None
     _context = ctx
     return ctx

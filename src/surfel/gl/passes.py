@@ -49,7 +49,7 @@ class _Targets:
     back_accum: list = field(default_factory=list)
 
     @classmethod
-    def allocate(cls, ctx, width: int, height: int, guard: int, back_layer: bool) -> "_Targets":
+    def allocate(cls, ctx, width: int, height: int, guard: int, back_layer: bool) -> _Targets:
         target = (width + 2 * guard, height + 2 * guard)
         visibility = ctx.texture(target, 2, dtype="f4")
         accum = [ctx.texture(target, 4, dtype="f4") for _ in range(2)]
@@ -72,7 +72,7 @@ class SplatPasses:
     """Use as a context manager around one frame. The targets of the last size used are kept
     for the next frame (animations and benchmarks render many frames of one size)."""
 
-    _kept: "dict[tuple, _Targets]" = {}
+    _kept: dict[tuple, _Targets] = {}
 
     def __init__(self, width: int, height: int, guard: int = 0, back_layer: bool = False):
         ctx = self.ctx = get_context()

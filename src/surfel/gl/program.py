@@ -8,7 +8,7 @@ shared code (resolved relative to the including file, then to the package's gl f
 from __future__ import annotations
 
 import re
-from functools import lru_cache
+from functools import cache
 from pathlib import Path
 
 from .context import get_context
@@ -17,7 +17,7 @@ _GL_DIR = Path(__file__).parent
 _INCLUDE = re.compile(r'^\s*#include\s+"([^"]+)"\s*$', re.M)
 
 
-@lru_cache(maxsize=None)
+@cache
 def _expand(path: Path) -> str:
     text = path.read_text()
 

@@ -32,7 +32,7 @@ LOD_EXTRAS = ("lod_emin", "lod_emax", "lod_dparent")
 FLOATS = sum(WIDTHS)
 CACHE_LIMIT_BYTES = 2_000_000_000
 
-_cache: "weakref.WeakKeyDictionary[PointCloud, list]" = weakref.WeakKeyDictionary()
+_cache: weakref.WeakKeyDictionary[PointCloud, list] = weakref.WeakKeyDictionary()
 
 
 def pack(cloud: PointCloud, start: int = 0, stop: int | None = None) -> np.ndarray:
@@ -48,13 +48,13 @@ def pack(cloud: PointCloud, start: int = 0, stop: int | None = None) -> np.ndarr
     else:
         out[:, 9:15] = 0.0
     for column, key in ((15, "phong_alpha"), (16, "phong_beta")):
-        out[:, column] = cloud.extras[key][start:stop] if key in cloud.extras else 0.0
-    if all(key in cloud.extras for key in LOD_EXTRAS):
-        out[:, 17:20] = np.stack([cloud.extras[key][start:stop] for key in LOD_EXTRAS], axis=1)
+        out[:, column] = cloud.attributes[key][start:stop] if key in cloud.attributes else 0.0
+    if all(key in cloud.attributes for key in LOD_EXTRAS):
+        out[:, 17:20] = np.stack([cloud.attributes[key][start:stop] for key in LOD_EXTRAS], axis=1)
     else:
         out[:, 17:20] = (0.0, np.finfo(np.float32).max, 0.0)
-    if "clip_lines" in cloud.extras:
-        out[:, 20:26] = cloud.extras["clip_lines"][start:stop].reshape(n, 6)
+    if "clip_lines" in cloud.attributes:
+        out[:, 20:26] = cloud.attributes["clip_lines"][start:stop].reshape(n, 6)
     else:
         out[:, 20:26] = INACTIVE_CLIP * 2
     return out
@@ -86,7 +86,7 @@ def vertex_array(ctx, program, vbo, *, instanced: bool, extra=()):
     """A VAO over a packed chunk; attributes the compiler dropped from `program` become padding.
     `extra`: further (buffer, name) pairs of one float per point."""
     fmt, names = [], []
-    for name, width in zip(ATTRIBUTES, WIDTHS):
+    for name, width in zip(ATTRIBUTES, WIDTHS, strict=True):
         if name in program:
             fmt.append(f"{width}f")
             names.append(name)

@@ -10,7 +10,7 @@ Arrays, by key:
   format, so faces are kept as stored: no vertices dropped, no normals computed;
 - ``geospatial``: an optional boolean scalar (as LOD files store it) marking the cloud
   geospatial (up axis +Z);
-- any other numeric array whose first dimension is N becomes ``extras[key]``; anything
+- any other numeric array whose first dimension is N becomes ``attributes[key]``; anything
   else (other scalars, metadata) is ignored.
 
 Pickles are never loaded: arrays are read with ``allow_pickle=False``, and an object array
@@ -70,7 +70,7 @@ def read_npz(path: str) -> PointCloud:
               and value.dtype.kind in "biuf" and value.ndim >= 1 and len(value) == n}
     return PointCloud(positions=positions, normals=arrays.get("normals"), colors=colors,
                       radii=arrays.get("radii"), axes=arrays.get("axes"), faces=faces,
-                      extras=extras, geospatial=geospatial, source=path)
+                      attributes=extras, geospatial=geospatial, source=path)
 
 
 def _read_arrays(path: str) -> dict[str, np.ndarray]:

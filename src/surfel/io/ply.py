@@ -13,7 +13,7 @@ the points; its properties, by name:
   clipped to [0, 1]. ``alpha`` is ignored;
 - ``radius``: splat radii; ``ux uy uz vx vy vz``: splat tangent axes;
 - the properties a ``comment surfel_extra NAME [D1 D2 ...]`` header line declares (as
-  `write_ply` writes them) come back as ``extras[NAME]`` with per-point shape (D1, D2, ...);
+  `write_ply` writes them) come back as ``attributes[NAME]`` with per-point shape (D1, D2, ...);
 - any other property is skipped.
 
 A ``face`` element with a list property ``vertex_indices`` (or ``vertex_index``) makes the
@@ -52,8 +52,8 @@ from typing import BinaryIO, NamedTuple
 import numpy as np
 
 from ..cloud import PointCloud
-from ..files import write_atomically
 from ..errors import InputError
+from ..files import write_atomically
 from ._parse import numbers_by_line, ragged_arange
 from .mesh import area_weighted_vertex_normals, referenced_vertices, triangles_from_polygons
 
@@ -409,7 +409,7 @@ def _cloud(header: _Header, found: dict[str, _Columns], path: str) -> PointCloud
         if normals is None:
             normals = area_weighted_vertex_normals(positions, faces)
     return PointCloud(positions=positions, normals=normals, colors=colors, radii=radii, axes=axes,
-                      faces=faces, extras=extras, geospatial=header.geospatial, source=path)
+                      faces=faces, attributes=extras, geospatial=header.geospatial, source=path)
 
 
 def _extra(name: str, shape: tuple[int, ...], stacked: Callable[..., np.ndarray | None],
@@ -468,7 +468,7 @@ def write_ply(cloud: PointCloud, path: str | os.PathLike, *, binary: bool = True
     comments = ["written by surfel"]
     if cloud.geospatial:
         comments.append(_GEOSPATIAL_COMMENT)
-    for key, value in cloud.extras.items():
+    for key, value in cloud.attributes.items():
         if not re.fullmatch(r"[!-~]+", key) or key in _RESERVED:
             raise ValueError(f"extras key {key!r} cannot be written as a PLY property name")
         shape = value.shape[1:]

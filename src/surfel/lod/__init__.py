@@ -11,9 +11,19 @@ Beyond memory: `outofcore` builds a partitioned hierarchy in a bounded memory bu
 
 from .build import LodTree, build_lod
 from .format import FORMAT_VERSION, build_command, load_lod, save_lod
-from .sequential import (as_sequential, frame_parameters, is_sequential, lod_scale, lod_selected,
-                         lod_subset, near_distance, prefix_count, select_sequential,
-                         sequential_order, to_sequential_cloud)
+from .sequential import (
+                         as_sequential,
+                         frame_parameters,
+                         is_sequential,
+                         lod_scale,
+                         lod_selected,
+                         lod_subset,
+                         near_distance,
+                         prefix_count,
+                         select_sequential,
+                         sequential_order,
+                         to_sequential_cloud,
+)
 from .source import LodSource, is_source, open_source
 from .traverse import select_recursive
 

@@ -339,7 +339,7 @@ def build_lod(cloud: PointCloud, *, progress: bool | None = None) -> LodTree:
     """
     if cloud.normals is None or (cloud.radii is None and cloud.axes is None):
         raise ValueError("build_lod needs normals and radii or axes (complete the cloud first)")
-    kept = np.flatnonzero(~clipped_away(cloud)) if "clip_lines" in cloud.extras else np.arange(len(cloud))
+    kept = np.flatnonzero(~clipped_away(cloud)) if "clip_lines" in cloud.attributes else np.arange(len(cloud))
     n = len(kept)
     capacity = 2 * n - 1  # every inner node has >= 2 children
     codes = morton_codes(cloud.positions[kept])
@@ -394,9 +394,9 @@ def build_lod(cloud: PointCloud, *, progress: bool | None = None) -> LodTree:
     for array in arrays:
         array.resize((m, *array.shape[1:]), refcheck=False)  # shrink in place, no copy
     clip_lines = None
-    if "clip_lines" in cloud.extras:
-        clip_lines = np.empty((m, *cloud.extras["clip_lines"].shape[1:]), np.float32)
-        clip_lines[:n] = cloud.extras["clip_lines"][point_index]
+    if "clip_lines" in cloud.attributes:
+        clip_lines = np.empty((m, *cloud.attributes["clip_lines"].shape[1:]), np.float32)
+        clip_lines[:n] = cloud.attributes["clip_lines"][point_index]
         clip_lines[n:] = INACTIVE_CLIP
     return LodTree(pos, nrm, col if with_color else None, rad, axes, e_p, e_t, e_g, parent,
                    d_parent, child_start, children, point_index, cloud.geospatial, clip_lines)

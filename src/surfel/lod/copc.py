@@ -346,7 +346,7 @@ class CopcSource:
             cloud, estimated = prepare(cloud, progress=False)
         own = cloud.radii
         radii = np.maximum(own, (COVER * region).astype(np.float32))
-        extras = dict(cloud.extras)
+        extras = dict(cloud.attributes)
         if self._clip_names is not None:
             lines = np.column_stack([np.asarray(record[n], np.float32) for n in self._clip_names])
             extras["clip_lines"] = lines.reshape(-1, 2, 3)
@@ -359,7 +359,7 @@ class CopcSource:
             tangent_frames,  # (numba module: imported when first needed)
         )
 
-        return cloud.with_(radii=radii, axes=tangent_frames(cloud.normals, radii), extras=extras), estimated
+        return cloud.with_(radii=radii, axes=tangent_frames(cloud.normals, radii), attributes=extras), estimated
 
     def _region_spacing(self, positions: np.ndarray, keys: np.ndarray, counts: np.ndarray) -> np.ndarray:
         """s_D of each point's deepest loaded node D, 0 where the file has nothing finer there.

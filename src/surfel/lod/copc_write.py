@@ -4,8 +4,8 @@ The octree (format in copc.py) is a cube from the bounds' minimum corner, half s
 largest extent), centre c = min + h (as Untwine, PDAL's COPC writer, places it), with root
 spacing s_0 = 2h / G. G, the root grid's cells per side, is the largest power of two up to
 MAX_ROOT_CELLS (Untwine's 128) whose occupied cells number at most a ROOT_SHARE of the points,
-so the root of a small model is a coarse preview, not most of the file. It is built top-down and additively: at depth d every node lays
-a grid of cells of side
+so the root of a small model is a coarse preview, not most of the file. It is built top-down
+and additively: at depth d every node lays a grid of cells of side
 
     s_d = s_0 / 2^d
 
@@ -78,7 +78,7 @@ def write_copc(cloud: PointCloud, path: str | os.PathLike, *, leaf_points: int =
     spacing = 2 * halfsize / root_cells
     keys, order = _octree(unit, root_cells, leaf_points)
     fmt = laspy.PointFormat(7 if cloud.colors is not None else 6)
-    extra = EXTRA_NAMES + (CLIP_NAMES if "clip_lines" in cloud.extras else ())
+    extra = EXTRA_NAMES + (CLIP_NAMES if "clip_lines" in cloud.attributes else ())
     for name in extra:
         fmt.add_extra_dimension(laspy.ExtraBytesParams(name=name, type=np.float32))
     record = _records(cloud, ints, fmt)
@@ -97,7 +97,7 @@ def write_copc(cloud: PointCloud, path: str | os.PathLike, *, leaf_points: int =
         entries = []
         starts = np.flatnonzero(np.r_[True, np.any(keys[order][1:] != keys[order][:-1], axis=1)])
         ends = np.r_[starts[1:], len(order)]
-        for number, (start, end) in enumerate(zip(starts, ends)):
+        for number, (start, end) in enumerate(zip(starts, ends, strict=True)):
             offset = file.tell()
             compressor.compress_many(record[order[start:end]].tobytes())
             if number + 1 < len(starts):  # done() closes the last chunk (no empty chunk after it)
@@ -212,8 +212,8 @@ def _records(cloud: PointCloud, ints: np.ndarray, fmt: laspy.PointFormat) -> np.
     for axis, name in enumerate(EXTRA_NAMES[:3]):
         record[name] = cloud.normals[:, axis]
     record["radius"] = cloud.radii
-    if "clip_lines" in cloud.extras:
-        lines = cloud.extras["clip_lines"].reshape(n, len(CLIP_NAMES))
+    if "clip_lines" in cloud.attributes:
+        lines = cloud.attributes["clip_lines"].reshape(n, len(CLIP_NAMES))
         for column, name in enumerate(CLIP_NAMES):
             record[name] = lines[:, column]
     return record.array

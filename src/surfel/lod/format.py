@@ -1,7 +1,7 @@
 """The LOD file: a sequential point tree stored as an uncompressed NumPy .npz (format 1).
 
 A LOD file is an ordinary surfel point-cloud NPZ (`surfel.io.npz`), so `surfel.io.load`
-reads it as a cloud whose extras carry the LOD data; by convention it is named *.lod.npz.
+reads it as a cloud whose attributes carry the LOD data; by convention it is named *.lod.npz.
 Every array has one row per tree node, in sequential order (r_max decreasing at 8-bit
 mantissa resolution, see sequential.py):
 
@@ -36,8 +36,8 @@ import time
 import numpy as np
 
 from ..cloud import PointCloud
-from ..files import write_atomically, write_json
 from ..errors import InputError
+from ..files import write_atomically, write_json
 from .build import LodTree, build_lod
 from .sequential import EXTRAS, is_sequential, r_max_bucket, to_sequential_cloud
 
@@ -50,12 +50,12 @@ def save_lod(lod: LodTree | PointCloud, path: str | os.PathLike) -> None:
     if not is_sequential(seq):
         raise ValueError("save_lod needs a LodTree or a cloud from to_sequential_cloud")
     arrays = {"positions": seq.positions, "normals": seq.normals, "radii": seq.radii,
-              "axes": seq.axes, **{name: seq.extras[name] for name in EXTRAS},
+              "axes": seq.axes, **{name: seq.attributes[name] for name in EXTRAS},
               "surfel_lod_version": np.int64(FORMAT_VERSION), "geospatial": np.bool_(seq.geospatial)}
     if seq.colors is not None:
         arrays["colors"] = seq.colors
-    if "clip_lines" in seq.extras:
-        arrays["clip_lines"] = seq.extras["clip_lines"]
+    if "clip_lines" in seq.attributes:
+        arrays["clip_lines"] = seq.attributes["clip_lines"]
     write_atomically(path, lambda file: np.savez(file, **arrays))
 
 
@@ -74,7 +74,7 @@ def load_lod(path: str | os.PathLike) -> PointCloud:
         raise InputError(path, f"LOD format version {version} is not supported (need {FORMAT_VERSION})")
     if not is_sequential(cloud) or cloud.normals is None or cloud.axes is None:
         raise InputError(path, "LOD file lacks normals, axes or lod_* arrays")
-    if np.any(np.diff(r_max_bucket(cloud.extras["lod_emax"]).astype(np.int32)) > 0):
+    if np.any(np.diff(r_max_bucket(cloud.attributes["lod_emax"]).astype(np.int32)) > 0):
         raise InputError(path, "LOD file is not sorted by lod_emax")
     return cloud.with_(geospatial=geospatial) if geospatial else cloud
 

@@ -67,8 +67,8 @@ import numpy as np
 from tqdm import tqdm
 
 from ..cloud import PointCloud
-from ..files import write_json
 from ..errors import InputError, SurfelError
+from ..files import write_json
 from .build import ROOT_PARENT_ERROR, _merge_cells, _next_level, build_lod, morton_codes
 from .sequential import EXTRAS, r_max_bucket, to_sequential_cloud
 
@@ -527,7 +527,7 @@ def _build_partition(partial: Path, name: str, dtype: np.dtype, geospatial: bool
     shutil.rmtree(work, ignore_errors=True)
     work.mkdir()
     arrays = {"positions": seq.positions, "normals": seq.normals, "colors": seq.colors,
-              "radii": seq.radii, "axes": seq.axes, **seq.extras}
+              "radii": seq.radii, "axes": seq.axes, **seq.attributes}
     for key, value in arrays.items():
         if value is not None:
             np.save(work / f"{key}.npy", value)

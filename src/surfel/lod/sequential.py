@@ -126,11 +126,11 @@ def to_sequential_cloud(tree: LodTree) -> PointCloud:
     if tree.clip_lines is not None:
         extras["clip_lines"] = tree.clip_lines[order]
     return PointCloud(pos, normals=nrm, colors=col if tree.colors is not None else None,
-                      radii=rad, axes=axes, extras=extras, geospatial=tree.geospatial)
+                      radii=rad, axes=axes, attributes=extras, geospatial=tree.geospatial)
 
 
 def is_sequential(cloud: PointCloud) -> bool:
-    return all(name in cloud.extras for name in EXTRAS)
+    return all(name in cloud.attributes for name in EXTRAS)
 
 
 def lod_scale(camera: Camera, epsilon: float) -> float:
@@ -152,7 +152,8 @@ def near_distance(cloud: PointCloud, camera: Camera) -> float:
 
 def prefix_count(seq: PointCloud, r_near: float, k: float, *, orthographic: bool = False) -> int:
     """Length of the list prefix that may pass (2) for any r >= r_near (binary search)."""
-    return prefix_length(seq.extras["lod_emax"], seq.extras["lod_dsuffix"], r_near, k, orthographic=orthographic)
+    return prefix_length(seq.attributes["lod_emax"], seq.attributes["lod_dsuffix"], r_near, k,
+                         orthographic=orthographic)
 
 
 def prefix_length(emax, dsuffix, r_near: float, k: float, *, orthographic: bool = False) -> int:
@@ -191,17 +192,17 @@ def select_sequential(seq: PointCloud, camera: Camera, epsilon: float) -> np.nda
     count, k = frame_parameters(seq, camera, epsilon)
     ortho = camera.ortho_height is not None
     mask = np.zeros(len(seq), bool)
-    emin = seq.extras["lod_emin"][:count].astype(np.float64)
-    emax = seq.extras["lod_emax"][:count].astype(np.float64)
+    emin = seq.attributes["lod_emin"][:count].astype(np.float64)
+    emax = seq.attributes["lod_emax"][:count].astype(np.float64)
     if ortho:  # r = 1, no parent distance (see the module docstring)
         mask[:count] = lod_selected(1.0, emin, emax, 0.0, k)
     else:
         r = view_distances(seq.positions[:count], camera)
-        mask[:count] = lod_selected(r, emin, emax, seq.extras["lod_dparent"][:count].astype(np.float64), k)
+        mask[:count] = lod_selected(r, emin, emax, seq.attributes["lod_dparent"][:count].astype(np.float64), k)
     return mask
 
 
-_sequential: "weakref.WeakKeyDictionary[PointCloud, PointCloud]" = weakref.WeakKeyDictionary()
+_sequential: weakref.WeakKeyDictionary[PointCloud, PointCloud] = weakref.WeakKeyDictionary()
 
 
 def as_sequential(cloud: PointCloud, *, progress: bool | None = None) -> PointCloud:
@@ -217,7 +218,7 @@ def as_sequential(cloud: PointCloud, *, progress: bool | None = None) -> PointCl
     return seq
 
 
-_subsets: "weakref.WeakKeyDictionary[PointCloud, tuple]" = weakref.WeakKeyDictionary()
+_subsets: weakref.WeakKeyDictionary[PointCloud, tuple] = weakref.WeakKeyDictionary()
 
 
 def lod_subset(seq: PointCloud, camera: Camera, epsilon: float) -> PointCloud:
@@ -234,6 +235,7 @@ def lod_subset(seq: PointCloud, camera: Camera, epsilon: float) -> PointCloud:
                         colors=None if seq.colors is None else seq.colors[mask],
                         radii=seq.radii[mask], axes=seq.axes[mask], geospatial=seq.geospatial,
                         source=seq.source,
-                        extras={"clip_lines": seq.extras["clip_lines"][mask]} if "clip_lines" in seq.extras else {})
+                        attributes={"clip_lines": seq.attributes["clip_lines"][mask]}
+                        if "clip_lines" in seq.attributes else {})
     _subsets[seq] = (key, subset)
     return subset

@@ -37,7 +37,8 @@ METHODS: dict[str, Method] = {
     for m in [
         Method("mesh", "the input mesh's triangles, supersampled: the ground truth",
                {"gl": "mesh:render_mesh"}, needs_mesh=True, needs_radii=False),
-        Method("points", "naive: screen-aligned disks of the projected radius, z-buffer, flat shading (survey Fig. 6 left)",
+        Method("points",
+               "naive: screen-aligned disks of the projected radius, z-buffer, flat shading (survey Fig. 6 left)",
                {"gl": "points:render_points"}, shader_lod=True),
         Method("gaussian", "Botsch & Kobbelt 2003: three-pass Gaussian splatting, per-splat shading (Fig. 6 middle)",
                {"gl": "splatting:render_gaussian"}, shader_lod=True),

@@ -30,8 +30,9 @@ Z = min over fragments of (depth + z_t); pass 2 blends the fragments with depth 
 front layer and the others into a back layer, a running z-buffer with the same rule (a
 fragment nearer than its depth minus z_t replaces the layer, one within z_t blends). The two
 layers are composited front to back ("over") with their coverages, so at an occlusion contour,
-where the front surface covers a pixel only partly, the surface behind fills the rest. A fragment's depth is the splat plane's eye depth, linear in
-the pixel offset through J^-1 (clamped to the kernel's extent where J is near singular).
+where the front surface covers a pixel only partly, the surface behind fills the rest. A
+fragment's depth is the splat plane's eye depth, linear in the pixel offset through J^-1
+(clamped to the kernel's extent where J is near singular).
 Pass 2 accumulates w, w*albedo, w*normal, w*depth; the pixel's albedo, normal and depth are
 the normalised sums (per-pixel normalisation) and are shaded afterwards (deferred shading).
 Normals are flipped to face the viewer per splat. Colours are thus filtered exactly as the
@@ -63,8 +64,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..cloud import PointCloud
 from ..camera import Camera
+from ..cloud import PointCloud
 from ..options import RenderOptions
 from ..preprocess import INACTIVE_CLIP
 from ..result import RenderResult
@@ -98,7 +99,7 @@ class EwaParams:
     supersample: int
 
     @classmethod
-    def from_options(cls, options: RenderOptions) -> "EwaParams":
+    def from_options(cls, options: RenderOptions) -> EwaParams:
         p = options.params
         mass = float(p.get("cutoff_mass", DEFAULT_CUTOFF_MASS))
         if not 0 < mass < 1:
@@ -108,7 +109,8 @@ class EwaParams:
                    visibility=float(p.get("visibility", DEFAULT_VISIBILITY)),
                    depth_offset=DEFAULT_DEPTH_OFFSET if options.depth_offset is None else float(options.depth_offset),
                    coverage=float(p.get("coverage", DEFAULT_COVERAGE)),
-                   depth_clamp=float(p.get("depth_clamp", DEFAULT_DEPTH_CLAMP)), supersample=int(options.supersample or 1))
+                   depth_clamp=float(p.get("depth_clamp", DEFAULT_DEPTH_CLAMP)),
+                   supersample=int(options.supersample or 1))
 
 
 def target_camera(camera: Camera, supersample: int) -> Camera:
@@ -132,19 +134,20 @@ def splat_colors(cloud: PointCloud) -> np.ndarray:
 
 def splat_clip_lines(cloud: PointCloud) -> np.ndarray:
     """(N, 2, 3) clip lines at sharp features (surfel.preprocess), or (1, 2, 3) inactive ones."""
-    if "clip_lines" in cloud.extras:
-        return np.ascontiguousarray(cloud.extras["clip_lines"], np.float32)
+    if "clip_lines" in cloud.attributes:
+        return np.ascontiguousarray(cloud.attributes["clip_lines"], np.float32)
     return np.array([[INACTIVE_CLIP, INACTIVE_CLIP]], np.float32)
 
 
 def has_normal_field(cloud: PointCloud) -> bool:
-    return "phong_alpha" in cloud.extras and "phong_beta" in cloud.extras
+    return "phong_alpha" in cloud.attributes and "phong_beta" in cloud.attributes
 
 
 def splat_fields(cloud: PointCloud) -> np.ndarray:
     """(N, 2) Phong normal-field slopes (alpha, beta), or (1, 2) zeros: flat splats."""
     if has_normal_field(cloud):
-        return np.ascontiguousarray(np.stack([cloud.extras["phong_alpha"], cloud.extras["phong_beta"]], 1), np.float32)
+        slopes = np.stack([cloud.attributes["phong_alpha"], cloud.attributes["phong_beta"]], 1)
+        return np.ascontiguousarray(slopes, np.float32)
     return np.zeros((1, 2), np.float32)
 
 
@@ -188,7 +191,7 @@ def resolve_accumulators(acc: np.ndarray, camera: Camera, options: RenderOptions
                                      background=options.background, stats=stats)
 
 
-_spatial: "weakref.WeakKeyDictionary[PointCloud, PointCloud]" = weakref.WeakKeyDictionary()
+_spatial: weakref.WeakKeyDictionary[PointCloud, PointCloud] = weakref.WeakKeyDictionary()
 
 
 def spatially_ordered(cloud: PointCloud) -> PointCloud:
@@ -220,7 +223,8 @@ def render_ewa_cpu(cloud: PointCloud, camera: Camera, options: RenderOptions) ->
                                  np.float32(options.radius_scale), np.float32(params.sigma ** 2),
                                  np.float32(params.lowpass ** 2), np.float32(params.visibility ** 2),
                                  np.float32(params.cutoff2),
-                                 np.float32(params.depth_offset), np.float32(params.depth_clamp), bool(options.backface_culling), w, h)
+                                 np.float32(params.depth_offset), np.float32(params.depth_clamp),
+                                 bool(options.backface_culling), w, h)
     tiles_x, tiles_y = -(-w // k.TILE), -(-h // k.TILE)
     offsets, index = k.bin_splats(box, tiles_x, tiles_y)
     acc, fragments = k.rasterize_tiles(splats, extra, box, offsets, index, tile_order(tiles_x, tiles_y), tiles_x,

@@ -386,18 +386,20 @@ def normalise_layers(acc, scale):
     alpha = np.zeros((layers, h, w), np.float32)
     for y in nb.prange(h):
         for x in range(w):
-            for l in range(layers):
-                c = acc[y, x, l * LAYER:(l + 1) * LAYER]
+            for layer in range(layers):
+                c = acc[y, x, layer * LAYER:(layer + 1) * LAYER]
                 weight = c[3]
                 if weight <= 0:
                     continue
                 inv = np.float32(1.0) / weight
-                albedo[l, y, x, 0], albedo[l, y, x, 1], albedo[l, y, x, 2] = c[0] * inv, c[1] * inv, c[2] * inv
+                for channel in range(3):
+                    albedo[layer, y, x, channel] = c[channel] * inv
                 length = math.sqrt(c[4] * c[4] + c[5] * c[5] + c[6] * c[6])
                 if length > 1e-20:
-                    normals[l, y, x, 0], normals[l, y, x, 1], normals[l, y, x, 2] = c[4] / length, c[5] / length, c[6] / length
-                depth[l, y, x] = c[7] * inv
-                alpha[l, y, x] = min(weight * scale, np.float32(1.0))
+                    for axis in range(3):
+                        normals[layer, y, x, axis] = c[4 + axis] / length
+                depth[layer, y, x] = c[7] * inv
+                alpha[layer, y, x] = min(weight * scale, np.float32(1.0))
     return albedo, normals, depth, alpha
 
 
@@ -417,15 +419,15 @@ def composite_layers(shaded, alpha, depth, normals):  # pragma: no cover - compi
             best = np.float32(-1.0)
             top = 0
             r = g = b = np.float32(0.0)
-            for l in range(layers):
-                contribution = (np.float32(1.0) - so_far) * alpha[l, y, x]
-                r += contribution * shaded[l, y, x, 0]
-                g += contribution * shaded[l, y, x, 1]
-                b += contribution * shaded[l, y, x, 2]
+            for layer in range(layers):
+                contribution = (np.float32(1.0) - so_far) * alpha[layer, y, x]
+                r += contribution * shaded[layer, y, x, 0]
+                g += contribution * shaded[layer, y, x, 1]
+                b += contribution * shaded[layer, y, x, 2]
                 so_far += contribution
                 if contribution > best:
                     best = contribution
-                    top = l
+                    top = layer
             total[y, x] = so_far
             depth_out[y, x] = depth[top, y, x]
             for c in range(3):

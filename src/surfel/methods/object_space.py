@@ -53,8 +53,8 @@ from scipy.spatial import cKDTree
 from ..cloud import PointCloud
 from ..gl import splats
 from ..gl.context import get_context
-from ..gl.program import build_program
 from ..gl.passes import UNIFORM_UNITS, SplatPasses
+from ..gl.program import build_program
 from ..gl.uniforms import apply_common
 
 SHADER = Path(__file__).with_suffix(".glsl")
@@ -68,7 +68,7 @@ DEFAULT_NORMALIZATION = "per-pixel"  # per-surfel darkens and mottles wherever s
 NEIGHBOURS = 32             # kernels summed per surfel centre in the normalization pass
 QUERY_CHUNK = 500_000       # surfels per neighbour query (bounds memory on big clouds)
 
-_weights: "weakref.WeakKeyDictionary[PointCloud, dict[float, np.ndarray]]" = weakref.WeakKeyDictionary()
+_weights: weakref.WeakKeyDictionary[PointCloud, dict[float, np.ndarray]] = weakref.WeakKeyDictionary()
 
 
 @dataclass(frozen=True)
@@ -154,7 +154,7 @@ def render_object_space(cloud, camera, options):
     width, height = camera.width * ss, camera.height * ss
     per_surfel = options.params.get("normalization", DEFAULT_NORMALIZATION) == "per-surfel"
     programs = {p: build_program(SHADER, {p: True, "PER_SURFEL_NORMALIZATION": per_surfel,
-                                          "CLIP_LINES": "clip_lines" in cloud.extras})
+                                          "CLIP_LINES": "clip_lines" in cloud.attributes})
                 for p in ("PASS_VISIBILITY", "PASS_ATTRIBUTE", "PASS_NORMALIZE")}
     depth_offset = DEFAULT_DEPTH_OFFSET if options.depth_offset is None else options.depth_offset
     for program in programs.values():

@@ -43,8 +43,8 @@ import numpy as np
 
 from ..gl import splats
 from ..gl.context import get_context
-from ..gl.program import build_program
 from ..gl.passes import UNIFORM_UNITS, SplatPasses
+from ..gl.program import build_program
 from ..gl.uniforms import apply_common
 
 SHADER = Path(__file__).with_suffix(".glsl")
@@ -109,7 +109,7 @@ def _render(cloud, camera, options, *, per_splat_shading: bool, ewa_filter: bool
     sprites = use_point_sprites(cloud, camera, options.radius_scale, ss, lowpass, drawn)
     guard = GUARD if sprites else 0
     variant = {"PER_SPLAT_SHADING": per_splat_shading, "EWA_FILTER": ewa_filter, "NORMAL_FIELD": normal_field,
-               "POINT_SPRITES": sprites, "CLIP_LINES": "clip_lines" in cloud.extras}
+               "POINT_SPRITES": sprites, "CLIP_LINES": "clip_lines" in cloud.attributes}
     programs = {p: build_program(SHADER, {p: True, **variant})
                 for p in ("PASS_VISIBILITY", "PASS_ATTRIBUTE", "PASS_NORMALIZE")}
     depth_offset = DEFAULT_DEPTH_OFFSET if options.depth_offset is None else options.depth_offset

@@ -36,8 +36,19 @@ import numpy as np
 
 from ..result import RenderResult
 from ..shading import _LIGHT, shade
-from .surface import (FIT_OK, MAX_NEIGHBOURS, POLY_SIZE, SUPPORT, MLSSurface, build_surface, fit,
-                      point_polynomials, poly_normal, poly_project, poly_ray)
+from .surface import (
+    FIT_OK,
+    MAX_NEIGHBOURS,
+    POLY_SIZE,
+    SUPPORT,
+    MLSSurface,
+    build_surface,
+    fit,
+    point_polynomials,
+    poly_normal,
+    poly_project,
+    poly_ray,
+)
 
 LEAF = 8
 MAX_CANDIDATES = 4096
@@ -59,7 +70,7 @@ class MLSScene:
     boxes: np.ndarray       # (2L - 1, 2, 3) node AABBs of the implicit heap-ordered tree
 
 
-_scenes: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+_scenes: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
 def _morton(points: np.ndarray) -> np.ndarray:
@@ -190,7 +201,7 @@ def trace_ray(o, d, t_min, t_max, points, spacing, h, colors, domain, cell, lowe
         t = poly_ray(polys[i], o, d, t_in, t_out)
         if t < 0.0:
             continue
-        for it in range(max_iter):
+        for _ in range(max_iter):
             for a in range(3):
                 x[a] = o[a] + t * d[a]
             fits += 1
