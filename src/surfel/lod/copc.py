@@ -54,7 +54,7 @@ import numpy as np
 from ..camera import Camera
 from ..cloud import PointCloud, framing_sphere
 from ..errors import InputError
-from ..io.las import _check_header
+from ..io.las import check_header
 
 VLR_HEADER = struct.Struct("<H16sHH32s")     # reserved, user id, record id, length, description
 EVLR_HEADER = struct.Struct("<H16sHQ32s")
@@ -119,7 +119,7 @@ class CopcSource:
 
     def __init__(self, path: str | os.PathLike):
         self.path = os.fspath(path)
-        _check_header(self.path)  # the sanity checks of plain LAS/LAZ: sizes, (E)VLR bounds
+        check_header(self.path)  # the sanity checks of plain LAS/LAZ: sizes, (E)VLR bounds
         self.size = os.path.getsize(self.path)
         self.bytes_read = 0
         self._entries: dict[int, Entry] = {}

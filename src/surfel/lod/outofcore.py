@@ -188,13 +188,13 @@ def _checked(path: str, positions: np.ndarray, normals: np.ndarray | None,
 
 
 def _open_ply(path: str) -> _Input:
-    from ..io.ply import _color_scale, _parse_header, _record_fields
+    from ..io.ply import color_scale, parse_header, record_fields
 
     with open(path, "rb") as file:
         head = file.read(1 << 16)  # headers are small; parse only this much
     if not head:
         raise InputError(path, "file is empty")
-    header = _parse_header(head, path)  # reads bytes like its usual memory map
+    header = parse_header(head, path)  # reads bytes like its usual memory map
     if header.format == "ascii":
         return _whole(path)
     offset = header.body_offset
@@ -204,7 +204,7 @@ def _open_ply(path: str) -> _Input:
             if element.name == "vertex":
                 raise InputError(path, "PLY vertex element has list properties")
             return _whole(path)  # a list element before the vertices: sizes unknown, load it
-        dtype = np.dtype([f for p in props for f in _record_fields(p, header.format, {})])
+        dtype = np.dtype([f for p in props for f in record_fields(p, header.format, {})])
         if element.name == "vertex":
             break
         offset += element.count * dtype.itemsize
@@ -221,7 +221,7 @@ def _open_ply(path: str) -> _Input:
     if element.count == 0:
         raise InputError(path, "no points")
     has_colors = {"red", "green", "blue"} <= names
-    scale = _color_scale(element.properties["red"].type) if has_colors else 1.0
+    scale = color_scale(element.properties["red"].type) if has_colors else 1.0
     return _Input(path, "ply", element.count, {"nx", "ny", "nz"} <= names, has_colors,
                   header.geospatial, offset, dtype, scale)
 
@@ -229,9 +229,9 @@ def _open_ply(path: str) -> _Input:
 def _open_las(path: str) -> _Input:
     import laspy
 
-    from ..io.las import _check_header
+    from ..io.las import check_header
 
-    _check_header(path)
+    check_header(path)
     try:
         with laspy.open(path) as reader:
             count = int(reader.header.point_count)
