@@ -214,8 +214,12 @@ class Schema(Mapping):
         """The attributes read from the data, without surfel's derived arrays."""
         return [spec for spec in self._specs.values() if not spec.derived]
 
+    def to_list(self) -> list[dict]:
+        """The JSON-ready form: one `AttributeSpec.to_json` dict per attribute, in order."""
+        return [spec.to_json() for spec in self._specs.values()]
+
     def to_json(self) -> str:
-        return json.dumps([spec.to_json() for spec in self._specs.values()])
+        return json.dumps(self.to_list())
 
     @classmethod
     def from_json(cls, text: str | list) -> Schema:
@@ -259,6 +263,6 @@ def summary_lines(summary: Mapping[str, dict]) -> list[str]:
             shown = ", ".join(f"{code}: {count}" for code, count in entry["values"].items())
             what = shown + (f", ... {entry['more']} more" if entry.get("more") else "")
         else:
-            what = f"{entry['min']:.6g} .. {entry['max']:.6g}" if "min" in entry else "empty"
+            what = f"{entry['min']:.10g} .. {entry['max']:.10g}" if "min" in entry else "empty"
         lines.append(f"{name:{width}s}  {dtype:10s} {kind:24s} {what}")
     return lines
