@@ -26,6 +26,12 @@ def _read_only(array: np.ndarray) -> np.ndarray:
     return array
 
 
+def _contiguous(value, dtype) -> np.ndarray:
+    """`value` as a C-contiguous array of `dtype`: the caller's array itself when it is one."""
+    array = np.asarray(value, dtype=dtype)
+    return array if array.flags.c_contiguous else np.ascontiguousarray(array)
+
+
 def framing_sphere(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, float]:
     """Centre and radius of the sphere auto framing fits (CONVENTIONS.md): the bounding box's
     centre and half its diagonal (never 0, so a single point can still be framed)."""
@@ -66,7 +72,7 @@ class PointCloud:
 
     def __post_init__(self):
         src = self.source
-        pos = np.ascontiguousarray(np.asarray(self.positions, dtype=np.float64))
+        pos = _contiguous(self.positions, np.float64)
         if pos.ndim != 2 or pos.shape[1] != 3:
             raise InputError(src, f"positions must have shape (N, 3), got {pos.shape}")
         n = len(pos)
@@ -81,7 +87,7 @@ class PointCloud:
         def per_point(name, value, tail, dtype=np.float32):
             if value is None:
                 return None
-            arr = np.ascontiguousarray(np.asarray(value, dtype=dtype))
+            arr = _contiguous(value, dtype)
             if arr.shape != (n, *tail):
                 raise InputError(src, f"{name} must have shape {(n, *tail)}, got {arr.shape}")
             if arr.dtype.kind == "f" and not np.isfinite(arr).all():
@@ -96,7 +102,7 @@ class PointCloud:
             if name in DERIVED:
                 dtype = DERIVED_DTYPE
             elif value.dtype.kind in "biuf" and value.dtype.fields is None:
-                dtype = value.dtype.newbyteorder("=")
+                dtype = value.dtype if value.dtype.isnative else value.dtype.newbyteorder("=")
             else:
                 raise InputError(src, f"attribute '{name}' is not numeric ({value.dtype})")
             return per_point(name, value, value.shape[1:], dtype)
@@ -124,7 +130,7 @@ class PointCloud:
         axes = per_point("axes", self.axes, (2, 3))
         faces = self.faces
         if faces is not None:
-            faces = np.ascontiguousarray(np.asarray(faces, dtype=np.int64))
+            faces = _contiguous(faces, np.int64)
             if faces.ndim != 2 or faces.shape[1] != 3:
                 raise InputError(src, f"faces must have shape (F, 3), got {faces.shape}")
             if len(faces) and (faces.min() < 0 or faces.max() >= n):
