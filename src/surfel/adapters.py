@@ -9,7 +9,8 @@ PyVista: from_pyvista(pv.PolyData) / to_pyvista(cloud)
 Attributes (surfel.attributes) go where each library keeps per-point data: to_numpy's
 "attributes" (with their kinds under "kinds"), trimesh's vertex_attributes (a Trimesh) or
 metadata["vertex_attributes"] (a PointCloud, which has no per-vertex store), PyVista's
-point_data (arrays of more than two dimensions flattened to (N, k)), and Open3D's tensor point
+point_data (arrays of more than two dimensions flattened to (N, k), float16 as float32, both
+restored from the schema), and Open3D's tensor point
 clouds (`to_open3d(cloud, tensor=True)`: the legacy o3d.geometry.PointCloud holds no
 attributes). Kinds travel in trimesh's metadata["attribute_kinds"] and, with the whole schema,
 in PyVista's field_data["surfel_schema"]; from Open3D they are resolved again
@@ -93,7 +94,7 @@ def to_open3d(cloud: PointCloud, *, tensor: bool = False):
 def from_trimesh(geometry) -> PointCloud:
     colors = None
     visual = getattr(geometry, "visual", None)
-    if visual is not None and getattr(visual, "kind", None) == "vertex":
+    if visual is not None and getattr(visual, "kind", None) == "vertex" and len(visual.vertex_colors):
         colors = np.asarray(visual.vertex_colors)[:, :3].astype(np.float32) / 255
     metadata = getattr(geometry, "metadata", None) or {}
     kinds = metadata.get(_KINDS_KEY, {})
@@ -130,8 +131,8 @@ def from_pyvista(polydata) -> PointCloud:
     if _SCHEMA_KEY in polydata.field_data.keys():
         schema = Schema.from_json(str(np.asarray(polydata.field_data[_SCHEMA_KEY]).ravel()[0]))
         kinds = schema.kinds
-        attributes = {name: values.reshape(len(values), *schema[name].shape) if name in schema else values
-                      for name, values in attributes.items()}
+        attributes = {name: values.reshape(len(values), *schema[name].shape).astype(schema[name].dtype)
+                      if name in schema else values for name, values in attributes.items()}
     if polydata.faces.size and polydata.is_all_triangles:
         faces = np.asarray(polydata.faces).reshape(-1, 4)[:, 1:]
         return _mesh_cloud(points, faces, normals=normals, colors=colors, attributes=attributes, kinds=kinds,
@@ -152,6 +153,7 @@ def to_pyvista(cloud: PointCloud):
     if cloud.colors is not None:
         data.point_data["RGB"] = np.round(cloud.colors * 255).astype(np.uint8)
     for name, values in cloud.attributes.items():
-        data.point_data[name] = values.reshape(len(values), -1) if values.ndim > 2 else values
+        values = values.reshape(len(values), -1) if values.ndim > 2 else values
+        data.point_data[name] = values.astype(np.float32) if values.dtype == np.float16 else values  # VTK lacks it
     data.field_data[_SCHEMA_KEY] = [cloud.schema.to_json()]  # dtypes, shapes and kinds
     return data
