@@ -195,6 +195,15 @@ def test_ply_scalar_properties_of_other_tools(tmp_path):
         load(bad)
 
 
+def test_ply_of_older_surfel_versions(tmp_path):
+    props = [("x", "float"), ("y", "float"), ("z", "float")] + [(f"clip_lines_{i}", "float") for i in range(6)]
+    path = ply_file(tmp_path / "old.ply", "ascii", [("vertex", props, [(0, 0, 0, 1, 2, 3, 4, 5, 6)])],
+                    comments=("surfel_extra clip_lines 2 3",))
+    cloud = load(path)
+    assert list(cloud.attributes) == ["clip_lines"] and cloud.schema["clip_lines"].shape == (2, 3)
+    np.testing.assert_array_equal(cloud.attributes["clip_lines"], [[[1, 2, 3], [4, 5, 6]]])
+
+
 def test_npz_keeps_arrays_and_stated_kinds(tmp_path):
     cloud = typed_cloud()
     np.savez(tmp_path / "t.npz", **cloud_arrays(cloud))

@@ -17,7 +17,8 @@ the points; its properties, by name:
   ``scalar_Intensity`` becomes ``intensity``). A ``comment surfel_attribute NAME DTYPE KIND
   [D1 D2 ...]`` header line (as `write_ply` writes them) states an attribute's numpy dtype,
   kind and per-point shape (D1, D2, ...): it is read from the property NAME, or from
-  NAME_0 .. NAME_{D1 D2 ... - 1} in C order, and keeps its name;
+  NAME_0 .. NAME_{D1 D2 ... - 1} in C order, and keeps its name (``comment surfel_extra NAME
+  [D1 D2 ...]``, from older versions of surfel, declares a float32 continuous one);
 - list properties of the vertex element are skipped.
 
 A ``face`` element with a list property ``vertex_indices`` (or ``vertex_index``) makes the
@@ -78,6 +79,7 @@ _STRUCT_CODES = {"i1": "b", "u1": "B", "i2": "h", "u2": "H", "i4": "i", "u4": "I
 _FORMATS = {"ascii": "ascii", "binary_little_endian": "<", "binary_big_endian": ">"}
 _FACE_LISTS = ("vertex_indices", "vertex_index")
 _ATTRIBUTE_COMMENT = "surfel_attribute"
+_EXTRA_COMMENT = "surfel_extra"  # older writers' NAME [D1 ...]: float32, continuous
 _GEOSPATIAL_COMMENT = "surfel_geospatial"
 _POSITION = ("x", "y", "z")
 _NORMAL = ("nx", "ny", "nz")
@@ -190,6 +192,10 @@ def parse_header(data: mmap.mmap | bytes, path: str) -> Header:
                 except ValueError:
                     raise _bad_line(line, path) from None
                 declared[spec.name] = spec
+            elif words[1:2] == [_EXTRA_COMMENT]:
+                if len(words) < 3 or not all(_COUNT.fullmatch(w) for w in words[3:]):
+                    raise _bad_line(line, path)
+                declared[words[2]] = AttributeSpec(words[2], np.dtype(np.float32), tuple(int(w) for w in words[3:]))
         elif keyword == "format":
             if fmt is not None or len(words) != 3 or words[1] not in _FORMATS:
                 raise _bad_line(line, path)
