@@ -15,7 +15,7 @@ import pytest
 from surfel.adapters import from_numpy, from_trimesh, to_numpy, to_trimesh
 from surfel.attributes import CATEGORICAL, CONTINUOUS, MAX_CATEGORIES, AttributeSpec, Schema, canonical_names
 from surfel.cloud import PointCloud
-from surfel.errors import InputError
+from surfel.errors import InputError, SurfelError
 from surfel.io import load, write_ply
 from surfel.io.npz import cloud_arrays
 from test_io import ply_file
@@ -177,7 +177,7 @@ def test_ply_round_trip_keeps_types_shapes_and_kinds(tmp_path, binary):
 
 def test_ply_with_unknown_64_bit_integers_refuses_what_double_cannot_hold(tmp_path):
     cloud = PointCloud(np.zeros((2, 3)), attributes={"id": np.array([0, 2 ** 60])})
-    with pytest.raises(ValueError, match="64-bit"):
+    with pytest.raises(SurfelError, match="64-bit"):
         write_ply(cloud, tmp_path / "big.ply")
 
 

@@ -145,7 +145,7 @@ def test_ply_write_is_atomic(tmp_path, monkeypatch):
 def test_ply_write_errors(tmp_path):
     with pytest.raises(SurfelError, match="cannot write"):
         write_ply(full_cloud(), tmp_path / "missing-dir" / "c.ply")
-    with pytest.raises(ValueError):
+    with pytest.raises(SurfelError, match="'red' cannot be a PLY property"):
         write_ply(full_cloud(attributes={"red": np.zeros(50)}), tmp_path / "c.ply")
     assert os.listdir(tmp_path) == []
 

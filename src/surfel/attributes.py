@@ -253,16 +253,18 @@ def summarize(attributes: Mapping[str, np.ndarray], schema: Schema, max_values: 
 
 
 def summary_lines(summary: Mapping[str, dict]) -> list[str]:
-    """One line per attribute of a `summarize` result, for people."""
-    width = max((len(name) for name in summary), default=0)
-    lines = []
+    """One line per attribute of a `summarize` result, for people: name, dtype[shape], kind,
+    range or values, in aligned columns."""
+    rows = []
     for name, entry in summary.items():
         dtype = entry["dtype"] + ("" if not entry["shape"] else "[" + ",".join(map(str, entry["shape"])) + "]")
         kind = entry["kind"] + (" (derived)" if entry.get("derived") else "")
         if "values" in entry:
-            shown = ", ".join(f"{code}: {count}" for code, count in entry["values"].items())
-            what = shown + (f", ... {entry['more']} more" if entry.get("more") else "")
+            what = ", ".join(f"{code}: {count}" for code, count in entry["values"].items())
+            what += f", ... {entry['more']} more" if entry.get("more") else ""
         else:
             what = f"{entry['min']:.10g} .. {entry['max']:.10g}" if "min" in entry else "empty"
-        lines.append(f"{name:{width}s}  {dtype:10s} {kind:24s} {what}")
-    return lines
+        rows.append((name, dtype, kind, what))
+    widths = [max((len(row[column]) for row in rows), default=0) for column in range(3)]
+    return [f"{name:{widths[0]}s}  {dtype:{widths[1]}s}  {kind:{widths[2]}s}  {what}"
+            for name, dtype, kind, what in rows]

@@ -57,7 +57,7 @@ import numpy as np
 
 from ..attributes import KINDS, AttributeSpec, canonical_names
 from ..cloud import PointCloud
-from ..errors import InputError
+from ..errors import InputError, SurfelError
 from ..files import write_atomically
 from ._parse import numbers_by_line, ragged_arange
 from .mesh import area_weighted_vertex_normals, referenced_vertices, triangles_from_polygons
@@ -514,8 +514,9 @@ def write_ply(cloud: PointCloud, path: str | os.PathLike, *, binary: bool = True
     Everything the cloud holds is written (see the module docstring), so `read_ply` gives it
     back: positions bit-exact, attributes exact in their own dtype and kind, colours quantised
     to 8 bits. The file appears complete or not at all: it is written to a temporary file
-    beside it and renamed. Raises ValueError for an attribute that cannot be a PLY property
-    (its name, or 64-bit integers beyond 2^53), SurfelError when the file cannot be written.
+    beside it and renamed. Raises SurfelError, naming the file, for an attribute that cannot be
+    a PLY property (its name, or 64-bit integers beyond 2^53) and when the file cannot be
+    written.
     """
     n = len(cloud)
     columns: list[tuple[str, str, np.ndarray]] = [
@@ -536,11 +537,11 @@ def write_ply(cloud: PointCloud, path: str | os.PathLike, *, binary: bool = True
     for spec in cloud.schema.values():
         name, value = spec.name, cloud.attributes[spec.name]
         if not re.fullmatch(r"[!-~]+", name) or name in _RESERVED:
-            raise ValueError(f"attribute {name!r} cannot be written as a PLY property name")
+            raise SurfelError(f"{path}: attribute {name!r} cannot be a PLY property name")
         code = _WRITTEN_AS[value.dtype.kind + str(value.dtype.itemsize)]
         if value.dtype.kind in "iu" and value.dtype.itemsize == 8 and value.size and \
                 max(-int(value.min()), int(value.max())) > _EXACT_IN_DOUBLE:
-            raise ValueError(f"attribute {name!r} holds 64-bit integers that PLY cannot store exactly")
+            raise SurfelError(f"{path}: attribute {name!r} holds 64-bit integers that PLY cannot store exactly")
         comments.append(" ".join([_ATTRIBUTE_COMMENT, name, spec.dtype.name, spec.kind, *map(str, spec.shape)]))
         if not spec.shape:
             columns.append((name, code, value))
@@ -549,7 +550,7 @@ def write_ply(cloud: PointCloud, path: str | os.PathLike, *, binary: bool = True
             columns += [(f"{name}_{i}", code, flat[:, i]) for i in range(flat.shape[1])]
     names = [name for name, _, _ in columns]
     if len(set(names)) != len(names):
-        raise ValueError("attribute names give duplicate PLY property names")
+        raise SurfelError(f"{path}: attribute names give duplicate PLY property names")
 
     faces = cloud.faces if cloud.faces is not None and len(cloud.faces) else None
     lines = ["ply", f"format {'binary_little_endian' if binary else 'ascii'} 1.0"]
