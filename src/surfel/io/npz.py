@@ -33,7 +33,7 @@ import numpy as np
 
 from ..attributes import Schema
 from ..cloud import PointCloud
-from ..errors import InputError
+from ..errors import InputError, SurfelError
 
 _POSITION_KEYS = ("positions", "points", "xyz")
 _ATTRIBUTE_KEYS = {"normals", "colors", "radii", "axes", "faces"}
@@ -90,7 +90,7 @@ def read_npz(path: str) -> PointCloud:
 
 
 def cloud_arrays(cloud: PointCloud) -> dict[str, np.ndarray]:
-    """The arrays of `cloud` by NPZ key (module docstring); ValueError for an attribute whose
+    """The arrays of `cloud` by NPZ key (module docstring); SurfelError for an attribute whose
     name this layout gives another meaning."""
     arrays = {"positions": cloud.positions, GEOSPATIAL_KEY: np.bool_(cloud.geospatial),
               SCHEMA_KEY: np.str_(cloud.schema.to_json())}
@@ -99,7 +99,8 @@ def cloud_arrays(cloud: PointCloud) -> dict[str, np.ndarray]:
             arrays[key] = getattr(cloud, key)
     for name, values in cloud.attributes.items():
         if name in arrays or name in _POSITION_KEYS:
-            raise ValueError(f"attribute {name!r} cannot be stored in an NPZ (the name is taken)")
+            raise SurfelError(f"attribute {name!r} cannot be stored in an NPZ: the layout gives the name "
+                              f"another meaning")
         arrays[name] = values
     return arrays
 

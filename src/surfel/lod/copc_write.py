@@ -55,6 +55,7 @@ import numpy as np
 
 from ..attributes import AttributeSpec
 from ..cloud import PointCloud
+from ..errors import SurfelError
 from ..files import write_atomically, write_json
 from ..io.las import SCAN_ANGLE_UNIT, SURFEL_VLR
 from .copc import ENTRY, EVLR_HEADER, INFO, VLR_HEADER
@@ -312,7 +313,7 @@ def _extra_bytes_payload(extra: list[tuple[str, np.dtype, str]]) -> bytes:
 
 def _payload(data: bytes) -> bytes:
     if len(data) > 0xFFFF:  # a VLR's length is 16 bits
-        raise ValueError(f"the attribute schema ({len(data)} bytes of JSON) does not fit a LAS VLR")
+        raise SurfelError(f"the attribute schema ({len(data)} bytes of JSON) does not fit a LAS VLR")
     return data
 
 
