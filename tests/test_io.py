@@ -145,7 +145,7 @@ def test_ply_write_is_atomic(tmp_path, monkeypatch):
 def test_ply_write_errors(tmp_path):
     with pytest.raises(SurfelError, match="cannot write"):
         write_ply(full_cloud(), tmp_path / "missing-dir" / "c.ply")
-    with pytest.raises(ValueError):
+    with pytest.raises(SurfelError, match="'red' cannot be a PLY property"):
         write_ply(full_cloud(attributes={"red": np.zeros(50)}), tmp_path / "c.ply")
     assert os.listdir(tmp_path) == []
 
@@ -167,7 +167,10 @@ def test_ply_formats_properties_and_skipped_elements(tmp_path, fmt):
     np.testing.assert_allclose(cloud.normals, [[0, 0, 1], [1, 0, 0]])
     np.testing.assert_allclose(cloud.colors, [[1, 0, 0.2], [0, 0.4, 1]], rtol=1e-6)
     np.testing.assert_allclose(cloud.radii, [0.25, 0.5])
-    assert cloud.attributes == {} and cloud.faces is None
+    # every other scalar property is an attribute of its own type
+    assert sorted(cloud.attributes) == ["alpha", "confidence"] and cloud.faces is None
+    assert cloud.attributes["alpha"].dtype == np.uint8 and cloud.attributes["confidence"].dtype == np.float32
+    np.testing.assert_array_equal(cloud.attributes["confidence"], np.float32([0.5, 0.1]))
 
 
 @pytest.mark.parametrize("fmt", ["ascii", "binary_big_endian"])
@@ -407,8 +410,9 @@ def test_text_layouts(tmp_path):
     cloud = load(tmp_path / "n.txt")
     np.testing.assert_allclose(cloud.normals, [[0, 0, 1], [0.6, 0.8, 0]], rtol=1e-6)
     assert cloud.colors is None
-    (tmp_path / "i.xyz").write_text("0 0 0 17\n1 1 1 18\n")
-    assert load(tmp_path / "i.xyz").attribute_names() == []
+    (tmp_path / "i.xyz").write_text("0 0 0 17\n1 1 1 18.5\n")
+    intensity = load(tmp_path / "i.xyz").attributes["intensity"]
+    assert intensity.dtype == np.float64 and intensity.tolist() == [17, 18.5]
     (tmp_path / "nc.xyz").write_text("0 0 0 0 0 -1 10 20 30\n")
     cloud = load(tmp_path / "nc.xyz")
     np.testing.assert_allclose(cloud.normals, [[0, 0, -1]])
@@ -602,7 +606,10 @@ def test_obj_bad_faces(tmp_path, faces):
     ("word.obj", b"v 0 zero 0\n"),
     ("ragged.xyz", b"0 0 0\n1 1 1 1\n"),
     ("five.xyz", b"0 0 0 0 0\n"),
-    ("word.xyz", b"x y z\n1 2 3\n"),
+    ("word.xyz", b"1 2 3\n4 five 6\n"),
+    ("noz.xyz", b"x y intensity\n1 2 3\n"),
+    ("columns.xyz", b"x y z intensity\n1 2 3\n"),
+    ("twice.xyz", b"x y z a a\n1 2 3 4 5\n"),
     ("count.pts", b"5\n1 2 3\n"),
     ("notzip.npz", b"PK but not really a zip file"),
     ("garbage.las", b"LASF" + b"\0" * 10),

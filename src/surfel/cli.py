@@ -234,6 +234,7 @@ def info(input, as_json):
     Example:
       surfel info scan.laz
     """
+    from .attributes import summarize, summary_lines
     from .gl.context import gl_available, renderer_string
     from .lod.source import open_source
 
@@ -251,13 +252,16 @@ def info(input, as_json):
         report = {
             "file": str(input), "points": len(cloud), "faces": 0 if cloud.faces is None else len(cloud.faces),
             "bounds_min": lo.tolist(), "bounds_max": hi.tolist(), "local_origin": cloud.local_origin.tolist(),
-            "attributes": cloud.attribute_names(), "would_estimate": estimate, "geospatial": cloud.geospatial,
+            "attributes": cloud.attribute_names(), "schema": summarize(cloud.attributes, cloud.schema),
+            "would_estimate": estimate, "geospatial": cloud.geospatial,
             "opengl": renderer_string() if gl_available() else None,
         }
     if as_json:
         click.echo(json.dumps(report, indent=2))
         return
     for key, value in report.items():
+        if key == "schema":
+            value = "".join(f"\n  {line}" for line in summary_lines(value)) or "none"
         click.echo(f"{key:15s} {value if value is not None else 'unavailable (use --backend cpu)'}")
 
 

@@ -1,7 +1,13 @@
-"""The point cloud: positions and the per-point attributes splatting and ray tracing need.
+"""The point cloud: positions, the geometry splatting and ray tracing need, and attributes.
 
 Positions stay float64 so georeferenced data (LiDAR coordinates near 10^6 m) keeps its
 precision; renderers subtract `local_origin` before converting to float32 for the GPU.
+Attributes keep their own dtype and are described by `cloud.schema` (surfel.attributes).
+
+A cloud never changes: every array it holds is read-only (caches of radii, trees and GPU
+buffers are keyed by the cloud, so an array changed in place would leave them stale).
+Arrays handed to the constructor are used as they are when their dtype and layout fit, and
+are then marked read-only in place; changing a cloud means making a new one (`with_`).
 """
 
 from __future__ import annotations
@@ -11,7 +17,19 @@ from functools import cached_property
 
 import numpy as np
 
+from .attributes import CONTINUOUS, DERIVED, DERIVED_DTYPE, GEOMETRY, KINDS, Schema
 from .errors import InputError
+
+
+def _read_only(array: np.ndarray) -> np.ndarray:
+    array.setflags(write=False)
+    return array
+
+
+def _contiguous(value, dtype) -> np.ndarray:
+    """`value` as a C-contiguous array of `dtype`: the caller's array itself when it is one."""
+    array = np.asarray(value, dtype=dtype)
+    return array if array.flags.c_contiguous else np.ascontiguousarray(array)
 
 
 def framing_sphere(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, float]:
@@ -31,7 +49,12 @@ class PointCloud:
     axes      : (N, 2, 3) float32 tangent axes u, v of an elliptical splat, each scaled to
                 its ellipse semi-axis length (a circular splat has |u| = |v| = radius), or None
     faces     : (F, 3) int64 triangle indices when the input was a mesh, or None
-    attributes: further per-point arrays keyed by name (scanner fields, Phong normal-field slopes, ...)
+    attributes: every other per-point array, (N, ...) keyed by name, in its own numeric dtype
+                (scanner fields such as intensity or classification; surfel's derived arrays,
+                float32, under the reserved names of surfel.attributes.DERIVED)
+    kinds     : the kind ("categorical" or "continuous") of attributes whose reader knows
+                it; the others' are resolved by surfel.attributes.resolve_kind. Kinds of
+                names the cloud does not hold are dropped.
     geospatial: True for LAS/LAZ-like data, whose up axis is +Z
     source    : file the cloud came from, for messages
     """
@@ -43,12 +66,13 @@ class PointCloud:
     axes: np.ndarray | None = None
     faces: np.ndarray | None = None
     attributes: dict[str, np.ndarray] = field(default_factory=dict)
+    kinds: dict[str, str] = field(default_factory=dict)
     geospatial: bool = False
     source: str | None = None
 
     def __post_init__(self):
         src = self.source
-        pos = np.ascontiguousarray(np.asarray(self.positions, dtype=np.float64))
+        pos = _contiguous(self.positions, np.float64)
         if pos.ndim != 2 or pos.shape[1] != 3:
             raise InputError(src, f"positions must have shape (N, 3), got {pos.shape}")
         n = len(pos)
@@ -59,18 +83,29 @@ class PointCloud:
             nan = int(np.isnan(pos).any(axis=1).sum())
             what = "NaN" if nan == int(bad.sum()) else "NaN or infinite"
             raise InputError(src, f"{int(bad.sum())} points have {what} coordinates")
-        object.__setattr__(self, "positions", pos)
 
         def per_point(name, value, tail, dtype=np.float32):
             if value is None:
                 return None
-            arr = np.ascontiguousarray(np.asarray(value, dtype=dtype))
+            arr = _contiguous(value, dtype)
             if arr.shape != (n, *tail):
                 raise InputError(src, f"{name} must have shape {(n, *tail)}, got {arr.shape}")
-            if not np.isfinite(arr).all():
+            if arr.dtype.kind == "f" and not np.isfinite(arr).all():
                 count = int((~np.isfinite(arr.reshape(n, -1))).any(axis=1).sum())
                 raise InputError(src, f"{count} points have NaN or infinite {name}")
             return arr
+
+        def attribute(name, value):
+            if not isinstance(name, str) or not name or name in GEOMETRY:
+                raise InputError(src, f"{name!r} cannot name an attribute (a geometry field, or not a name)")
+            value = np.asarray(value)
+            if name in DERIVED:
+                dtype = DERIVED_DTYPE
+            elif value.dtype.kind in "biuf" and value.dtype.fields is None:
+                dtype = value.dtype if value.dtype.isnative else value.dtype.newbyteorder("=")
+            else:
+                raise InputError(src, f"attribute '{name}' is not numeric ({value.dtype})")
+            return per_point(name, value, value.shape[1:], dtype)
 
         normals = per_point("normals", self.normals, (3,))
         if normals is not None:
@@ -95,14 +130,23 @@ class PointCloud:
         axes = per_point("axes", self.axes, (2, 3))
         faces = self.faces
         if faces is not None:
-            faces = np.ascontiguousarray(np.asarray(faces, dtype=np.int64))
+            faces = _contiguous(faces, np.int64)
             if faces.ndim != 2 or faces.shape[1] != 3:
                 raise InputError(src, f"faces must have shape (F, 3), got {faces.shape}")
             if len(faces) and (faces.min() < 0 or faces.max() >= n):
                 raise InputError(src, "faces index vertices that do not exist")
-        attributes = {k: per_point(k, v, np.shape(v)[1:]) for k, v in dict(self.attributes).items()}
-        for name, value in [("normals", normals), ("colors", colors), ("radii", radii),
-                            ("axes", axes), ("faces", faces), ("attributes", attributes)]:
+        attributes = {name: attribute(name, value) for name, value in dict(self.attributes).items()}
+        kinds = {name: kind for name, kind in dict(self.kinds).items() if name in attributes}
+        for name, kind in kinds.items():
+            if kind not in KINDS:
+                raise InputError(src, f"attribute '{name}': kind {kind!r} is not one of {', '.join(KINDS)}")
+            if name in DERIVED and kind != CONTINUOUS:
+                raise InputError(src, f"attribute '{name}' is derived, hence continuous, not {kind}")
+        for array in (pos, normals, colors, radii, axes, faces, *attributes.values()):
+            if array is not None:
+                _read_only(array)
+        for name, value in [("positions", pos), ("normals", normals), ("colors", colors), ("radii", radii),
+                            ("axes", axes), ("faces", faces), ("attributes", attributes), ("kinds", kinds)]:
             object.__setattr__(self, name, value)
 
     def __len__(self) -> int:
@@ -121,12 +165,17 @@ class PointCloud:
         return PointCloud(self.positions[index], normals=pick(self.normals), colors=pick(self.colors),
                           radii=pick(self.radii), axes=pick(self.axes),
                           attributes={name: value[index] for name, value in self.attributes.items()},
-                          geospatial=self.geospatial, source=self.source)
+                          kinds=self.schema.kinds, geospatial=self.geospatial, source=self.source)
+
+    @cached_property
+    def schema(self) -> Schema:
+        """The attributes' names, dtypes, per-point shapes and kinds (surfel.attributes)."""
+        return Schema.of(self.attributes, self.kinds)
 
     @cached_property
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """(min, max) corners; computed once, since renderers ask every frame."""
-        return self.positions.min(axis=0), self.positions.max(axis=0)
+        return _read_only(self.positions.min(axis=0)), _read_only(self.positions.max(axis=0))
 
     @cached_property
     def max_splat_radius(self) -> float:

@@ -18,8 +18,8 @@ MODELS = ("lambert", "phong", "none", "normals", "depth")
 MODEL_IDS = {"lambert": 0, "phong": 1, "none": 2, "normals": 3, "depth": 4}
 DEFAULT = "phong"
 
-_LIGHT = np.array([-0.4, 0.6, 0.8]) / np.linalg.norm([-0.4, 0.6, 0.8])
-_HALFWAY = (_LIGHT + [0, 0, 1]) / np.linalg.norm(_LIGHT + [0, 0, 1])
+KEY_LIGHT = np.array([-0.4, 0.6, 0.8]) / np.linalg.norm([-0.4, 0.6, 0.8])
+_HALFWAY = (KEY_LIGHT + [0, 0, 1]) / np.linalg.norm(KEY_LIGHT + [0, 0, 1])
 
 
 def check_model(model: str) -> int:
@@ -38,7 +38,7 @@ def shade(model: str, albedo: np.ndarray, normals: np.ndarray, depth: np.ndarray
         return albedo * (0.2 + 0.8 * np.abs(n[..., 2:3]))
     if model == "phong":
         nf = np.where(n[..., 2:3] < 0, -n, n)
-        diffuse = 0.25 + 0.75 * np.maximum(nf @ _LIGHT.astype(np.float32), 0)[..., None]
+        diffuse = 0.25 + 0.75 * np.maximum(nf @ KEY_LIGHT.astype(np.float32), 0)[..., None]
         specular = 0.3 * np.maximum(nf @ _HALFWAY.astype(np.float32), 0) ** 40
         return (albedo * diffuse + specular[..., None]).astype(np.float32)
     if model == "normals":

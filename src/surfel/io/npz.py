@@ -10,8 +10,12 @@ Arrays, by key:
   format, so faces are kept as stored: no vertices dropped, no normals computed;
 - ``geospatial``: an optional boolean scalar (as LOD files store it) marking the cloud
   geospatial (up axis +Z);
-- any other numeric array whose first dimension is N becomes ``attributes[key]``; anything
-  else (other scalars, metadata) is ignored.
+- any other numeric array whose first dimension is N becomes ``attributes[key]``, in its own
+  dtype; anything else (other scalars, metadata) is ignored;
+- ``surfel_schema``: an optional string scalar, the JSON of the attributes' schema
+  (`surfel.attributes.Schema.to_json`), giving the kinds of the attributes it names.
+
+`cloud_arrays` gives the arrays of a cloud in this layout (what `np.savez` needs to write it).
 
 Pickles are never loaded: arrays are read with ``allow_pickle=False``, and an object array
 is refused with InputError before numpy reads it. Each array's header is also checked
@@ -27,11 +31,14 @@ import zipfile
 
 import numpy as np
 
+from ..attributes import Schema
 from ..cloud import PointCloud
-from ..errors import InputError
+from ..errors import InputError, SurfelError
 
 _POSITION_KEYS = ("positions", "points", "xyz")
 _ATTRIBUTE_KEYS = {"normals", "colors", "radii", "axes", "faces"}
+SCHEMA_KEY = "surfel_schema"
+GEOSPATIAL_KEY = "geospatial"
 # Deflate cannot expand data more than about 1032 times.
 _MAX_EXPANSION = 1100
 _HEADER_READERS = {(1, 0): np.lib.format.read_array_header_1_0,
@@ -63,14 +70,39 @@ def read_npz(path: str) -> PointCloud:
     faces = arrays.get("faces")
     if faces is not None and faces.dtype.kind not in "iu":
         raise InputError(path, f"NPZ faces must be integers, got {faces.dtype}")
-    flag = arrays.get("geospatial")
+    flag = arrays.get(GEOSPATIAL_KEY)
     geospatial = flag is not None and flag.shape == () and flag.dtype.kind in "biu" and bool(flag)
-    extras = {key: value for key, value in arrays.items()
-              if key not in _ATTRIBUTE_KEYS and key not in _POSITION_KEYS
-              and value.dtype.kind in "biuf" and value.ndim >= 1 and len(value) == n}
+    attributes = {key: value for key, value in arrays.items()
+                  if key not in _ATTRIBUTE_KEYS and key not in _POSITION_KEYS
+                  and value.dtype.kind in "biuf" and value.ndim >= 1 and len(value) == n}
+    kinds = {}
+    stated = arrays.get(SCHEMA_KEY)
+    if stated is not None:
+        try:
+            if stated.shape != () or stated.dtype.kind != "U":
+                raise ValueError("not a string")
+            kinds = {name: kind for name, kind in Schema.from_json(str(stated)).kinds.items() if name in attributes}
+        except ValueError as error:
+            raise InputError(path, f"NPZ '{SCHEMA_KEY}' is not an attribute schema: {error}") from None
     return PointCloud(positions=positions, normals=arrays.get("normals"), colors=colors,
                       radii=arrays.get("radii"), axes=arrays.get("axes"), faces=faces,
-                      attributes=extras, geospatial=geospatial, source=path)
+                      attributes=attributes, kinds=kinds, geospatial=geospatial, source=path)
+
+
+def cloud_arrays(cloud: PointCloud) -> dict[str, np.ndarray]:
+    """The arrays of `cloud` by NPZ key (module docstring); SurfelError for an attribute whose
+    name this layout gives another meaning."""
+    arrays = {"positions": cloud.positions, GEOSPATIAL_KEY: np.bool_(cloud.geospatial),
+              SCHEMA_KEY: np.str_(cloud.schema.to_json())}
+    for key in ("normals", "colors", "radii", "axes", "faces"):
+        if getattr(cloud, key) is not None:
+            arrays[key] = getattr(cloud, key)
+    for name, values in cloud.attributes.items():
+        if name in arrays or name in _POSITION_KEYS:
+            raise SurfelError(f"attribute {name!r} cannot be stored in an NPZ: the layout gives the name "
+                              f"another meaning")
+        arrays[name] = values
+    return arrays
 
 
 def _read_arrays(path: str) -> dict[str, np.ndarray]:

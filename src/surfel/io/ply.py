@@ -12,9 +12,14 @@ the points; its properties, by name:
   65535, wider integers are read as 0..255 values, floats are taken as they are; all are
   clipped to [0, 1]. ``alpha`` is ignored;
 - ``radius``: splat radii; ``ux uy uz vx vy vz``: splat tangent axes;
-- the properties a ``comment surfel_extra NAME [D1 D2 ...]`` header line declares (as
-  `write_ply` writes them) come back as ``attributes[NAME]`` with per-point shape (D1, D2, ...);
-- any other property is skipped.
+- every other scalar property is an attribute with the property's type (char .. double as
+  int8 .. float64), named as `surfel.attributes.canonical_names` spells it (CloudCompare's
+  ``scalar_Intensity`` becomes ``intensity``). A ``comment surfel_attribute NAME DTYPE KIND
+  [D1 D2 ...]`` header line (as `write_ply` writes them) states an attribute's numpy dtype,
+  kind and per-point shape (D1, D2, ...): it is read from the property NAME, or from
+  NAME_0 .. NAME_{D1 D2 ... - 1} in C order, and keeps its name (``comment surfel_extra NAME
+  [D1 D2 ...]``, from older versions of surfel, declares a float32 continuous one);
+- list properties of the vertex element are skipped.
 
 A ``face`` element with a list property ``vertex_indices`` (or ``vertex_index``) makes the
 file a mesh: polygons are fan-triangulated, only the vertices the faces reference are kept,
@@ -32,27 +37,27 @@ file holds before anything is decoded, so a lying header cannot cause a large al
 Writing
 -------
 `write_ply` writes x y z (double), nx ny nz (float), red green blue (uchar), radius,
-ux uy uz vx vy vz (float) and the extras (float: an (N,) array as NAME, an (N, k) one as
-NAME_0 .. NAME_{k-1}, higher ranks flattened likewise, each declared by a surfel_extra
-comment), each only when the cloud has it, and the faces as ``vertex_indices`` lists of
-3 ints. The geospatial flag becomes a surfel_geospatial comment.
+ux uy uz vx vy vz (float), each only when the cloud has it, and every attribute in the PLY
+type of its dtype (bool as uchar; 64-bit integers, which PLY lacks, as double when every
+value is exact there), an (N,) array as NAME, an (N, k) one as NAME_0 .. NAME_{k-1}, higher
+ranks flattened likewise, each declared by a surfel_attribute comment; and the faces as
+``vertex_indices`` lists of 3 ints. The geospatial flag becomes a surfel_geospatial comment.
 """
 
 from __future__ import annotations
 
-import math
 import mmap
 import os
 import re
 import struct
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import BinaryIO, NamedTuple
 
 import numpy as np
 
+from ..attributes import KINDS, AttributeSpec, canonical_names
 from ..cloud import PointCloud
-from ..errors import InputError
+from ..errors import InputError, SurfelError
 from ..files import write_atomically
 from ._parse import numbers_by_line, ragged_arange
 from .mesh import area_weighted_vertex_normals, referenced_vertices, triangles_from_polygons
@@ -63,11 +68,18 @@ _TYPES = {
     "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
     "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
 }
-_TYPE_NAMES = {"u1": "uchar", "f4": "float", "f8": "double"}
+_TYPE_NAMES = {"i1": "char", "u1": "uchar", "i2": "short", "u2": "ushort", "i4": "int", "u4": "uint",
+               "f4": "float", "f8": "double"}
+# The PLY type an attribute of each numpy type is written as (PLY has no bool, 64-bit integer
+# or half float; those are declared with their own dtype and converted back on reading).
+_WRITTEN_AS = {"b1": "u1", "i1": "i1", "u1": "u1", "i2": "i2", "u2": "u2", "i4": "i4", "u4": "u4",
+               "i8": "f8", "u8": "f8", "f2": "f4", "f4": "f4", "f8": "f8"}
+_EXACT_IN_DOUBLE = 2 ** 53
 _STRUCT_CODES = {"i1": "b", "u1": "B", "i2": "h", "u2": "H", "i4": "i", "u4": "I"}
 _FORMATS = {"ascii": "ascii", "binary_little_endian": "<", "binary_big_endian": ">"}
 _FACE_LISTS = ("vertex_indices", "vertex_index")
-_EXTRA_COMMENT = "surfel_extra"
+_ATTRIBUTE_COMMENT = "surfel_attribute"
+_EXTRA_COMMENT = "surfel_extra"  # older writers' NAME [D1 ...]: float32, continuous
 _GEOSPATIAL_COMMENT = "surfel_geospatial"
 _POSITION = ("x", "y", "z")
 _NORMAL = ("nx", "ny", "nz")
@@ -78,7 +90,7 @@ _COUNT = re.compile(r"[0-9]+")
 
 
 @dataclass(frozen=True)
-class _Property:
+class Property:
     name: str
     type: str  # numpy type code without byte order, e.g. "f4"
     length_type: str | None = None  # set for list properties: numpy code of the length
@@ -89,19 +101,31 @@ class _Property:
 
 
 @dataclass
-class _Element:
+class Element:
     name: str
     count: int
-    properties: dict[str, _Property] = field(default_factory=dict)
+    properties: dict[str, Property] = field(default_factory=dict)
 
 
 @dataclass
-class _Header:
+class Header:
+    """A parsed PLY header; `parse_header` makes it."""
+
     format: str  # "ascii", or the byte order ("<" or ">") of a binary body
-    elements: list[_Element]
-    extras: dict[str, tuple[int, ...]]  # surfel_extra name -> per-point shape
+    elements: list[Element]
+    declared: dict[str, AttributeSpec]  # the surfel_attribute comments, by name
     geospatial: bool
     body_offset: int
+
+
+@dataclass(frozen=True)
+class VertexAttribute:
+    """An attribute of the vertex element: its spec and the properties holding its components
+    (C order). `stated` is true where a surfel_attribute comment gave the kind."""
+
+    spec: AttributeSpec
+    properties: tuple[str, ...]
+    stated: bool
 
 
 class _List(NamedTuple):
@@ -120,7 +144,7 @@ def read_ply(path: str) -> PointCloud:
         # Not closed explicitly: the map lives while arrays view it, and a traceback may
         # still hold such views when an error propagates.
         data = mmap.mmap(file.fileno(), 0, access=mmap.ACCESS_READ)
-    header = _parse_header(data, path)
+    header = parse_header(data, path)
     wanted = {"vertex", "face"} & {element.name for element in header.elements}
     if header.format == "ascii":
         found = _read_ascii(data, header, wanted, path)
@@ -131,7 +155,9 @@ def read_ply(path: str) -> PointCloud:
 
 # --- header -----------------------------------------------------------------------------
 
-def _parse_header(data: mmap.mmap, path: str) -> _Header:
+def parse_header(data: mmap.mmap | bytes, path: str) -> Header:
+    """The header at the start of `data` (a memory map, or enough leading bytes of the file);
+    InputError for anything that is not a PLY header."""
     if data[:4] not in (b"ply\n", b"ply\r"):
         raise InputError(path, "not a PLY file (it does not start with 'ply')")
     end = data.find(b"\nend_header")
@@ -146,8 +172,8 @@ def _parse_header(data: mmap.mmap, path: str) -> _Header:
         raise InputError(path, "malformed end_header line")
 
     fmt = None
-    elements: list[_Element] = []
-    extras: dict[str, tuple[int, ...]] = {}
+    elements: list[Element] = []
+    declared: dict[str, AttributeSpec] = {}
     geospatial = False
     for line in data[:end].decode("latin-1").splitlines()[1:]:
         words = line.split()
@@ -157,10 +183,19 @@ def _parse_header(data: mmap.mmap, path: str) -> _Header:
         if keyword == "comment":
             if words[1:2] == [_GEOSPATIAL_COMMENT]:
                 geospatial = True
+            elif words[1:2] == [_ATTRIBUTE_COMMENT]:
+                if len(words) < 5 or words[4] not in KINDS or not all(_COUNT.fullmatch(w) for w in words[5:]):
+                    raise _bad_line(line, path)
+                try:
+                    spec = AttributeSpec.from_json({"name": words[2], "dtype": words[3], "kind": words[4],
+                                                    "shape": [int(w) for w in words[5:]]})
+                except ValueError:
+                    raise _bad_line(line, path) from None
+                declared[spec.name] = spec
             elif words[1:2] == [_EXTRA_COMMENT]:
                 if len(words) < 3 or not all(_COUNT.fullmatch(w) for w in words[3:]):
                     raise _bad_line(line, path)
-                extras[words[2]] = tuple(int(w) for w in words[3:])
+                declared[words[2]] = AttributeSpec(words[2], np.dtype(np.float32), tuple(int(w) for w in words[3:]))
         elif keyword == "format":
             if fmt is not None or len(words) != 3 or words[1] not in _FORMATS:
                 raise _bad_line(line, path)
@@ -170,7 +205,7 @@ def _parse_header(data: mmap.mmap, path: str) -> _Header:
                 raise _bad_line(line, path)
             if any(element.name == words[1] for element in elements):
                 raise InputError(path, f"PLY header declares element '{words[1]}' twice")
-            elements.append(_Element(words[1], int(words[2])))
+            elements.append(Element(words[1], int(words[2])))
         elif keyword == "property":
             if not elements:
                 raise InputError(path, "PLY header has a property before any element")
@@ -185,15 +220,15 @@ def _parse_header(data: mmap.mmap, path: str) -> _Header:
         raise InputError(path, "PLY header has no format line")
     if not any(element.name == "vertex" for element in elements):
         raise InputError(path, "PLY file has no vertex element")
-    return _Header(fmt, elements, extras, geospatial, body)
+    return Header(fmt, elements, declared, geospatial, body)
 
 
-def _parse_property(words: list[str], line: str, path: str) -> _Property:
+def _parse_property(words: list[str], line: str, path: str) -> Property:
     if len(words) == 3 and words[1] in _TYPES:
-        return _Property(words[2], _TYPES[words[1]])
+        return Property(words[2], _TYPES[words[1]])
     if (len(words) == 5 and words[1] == "list" and words[2] in _TYPES and words[3] in _TYPES
             and _TYPES[words[2]][0] in "iu"):
-        return _Property(words[4], _TYPES[words[3]], _TYPES[words[2]])
+        return Property(words[4], _TYPES[words[3]], _TYPES[words[2]])
     raise _bad_line(line, path)
 
 
@@ -203,7 +238,7 @@ def _bad_line(line: str, path: str) -> InputError:
 
 # --- binary body ------------------------------------------------------------------------
 
-def _read_binary(data: mmap.mmap, header: _Header, wanted: set[str], path: str) -> dict[str, _Columns]:
+def _read_binary(data: mmap.mmap, header: Header, wanted: set[str], path: str) -> dict[str, _Columns]:
     found: dict[str, _Columns] = {}
     offset = header.body_offset
     for element in header.elements:
@@ -215,7 +250,7 @@ def _read_binary(data: mmap.mmap, header: _Header, wanted: set[str], path: str) 
     return found
 
 
-def _binary_element(data: mmap.mmap, offset: int, element: _Element, order: str,
+def _binary_element(data: mmap.mmap, offset: int, element: Element, order: str,
                     path: str) -> tuple[_Columns, int]:
     """The element's columns (views into `data` where possible) and the offset after it."""
     props = list(element.properties.values())
@@ -232,7 +267,7 @@ def _binary_element(data: mmap.mmap, offset: int, element: _Element, order: str,
         lengths = {p.name: int(first_lengths[p.name][0]) for p in lists}
     else:
         lengths = {p.name: 0 for p in lists}
-    dtype = np.dtype([field for p in props for field in _record_fields(p, order, lengths)])
+    dtype = np.dtype([field for p in props for field in record_fields(p, order, lengths)])
     size = n * dtype.itemsize
     if size <= len(data) - offset:
         records = np.frombuffer(data, dtype=dtype, count=n, offset=offset)
@@ -257,18 +292,20 @@ def _binary_element(data: mmap.mmap, offset: int, element: _Element, order: str,
     return columns, end
 
 
-def _record_fields(prop: _Property, order: str, lengths: dict[str, int]) -> list[tuple]:
+def record_fields(prop: Property, order: str, lengths: dict[str, int]) -> list[tuple]:
+    """The numpy structured-dtype fields of one property in a binary record (a list property:
+    its length, then `lengths[name]` items)."""
     if prop.length_type is None:
         return [(prop.name, order + prop.type)]
     return [(_length_field(prop), order + prop.length_type),
             (prop.name, order + prop.type, (lengths[prop.name],))]
 
 
-def _length_field(prop: _Property) -> str:
+def _length_field(prop: Property) -> str:
     return f"{prop.name} length"  # PLY names have no spaces, so this never collides
 
 
-def _walk_records(data: mmap.mmap, offset: int, props: list[_Property], count: int, order: str,
+def _walk_records(data: mmap.mmap, offset: int, props: list[Property], count: int, order: str,
                   element: str, path: str) -> tuple[dict[str, list[int]], dict[str, list[int]], int]:
     """Record by record: where each property starts, each list's length, and the end offset."""
     end = len(data)
@@ -300,7 +337,7 @@ def _gather(codes: np.ndarray, starts: np.ndarray, dtype: np.dtype) -> np.ndarra
     return codes[starts[:, None] + np.arange(dtype.itemsize)].view(dtype).reshape(-1)
 
 
-def _check_fits(element: _Element, need: int, have: int, path: str) -> None:
+def _check_fits(element: Element, need: int, have: int, path: str) -> None:
     if need > have:
         raise InputError(path, f"PLY file is truncated: element '{element.name}' "
                                f"({element.count} records) needs at least {need} bytes, "
@@ -313,7 +350,7 @@ def _truncated(element: str, path: str) -> InputError:
 
 # --- ascii body -------------------------------------------------------------------------
 
-def _read_ascii(data: mmap.mmap, header: _Header, wanted: set[str], path: str) -> dict[str, _Columns]:
+def _read_ascii(data: mmap.mmap, header: Header, wanted: set[str], path: str) -> dict[str, _Columns]:
     values, per_line, _ = numbers_by_line(data[header.body_offset:], np.float64, path)
     counts = per_line[per_line > 0]  # one record per non-blank line
     firsts = np.cumsum(counts) - counts
@@ -334,7 +371,7 @@ def _read_ascii(data: mmap.mmap, header: _Header, wanted: set[str], path: str) -
 
 
 def _ascii_element(values: np.ndarray, firsts: np.ndarray, counts: np.ndarray,
-                   element: _Element, path: str) -> _Columns:
+                   element: Element, path: str) -> _Columns:
     """Columns of an element from its lines, walking all lines' properties at once."""
     position = firsts.copy()
     end = firsts + counts
@@ -358,13 +395,13 @@ def _ascii_element(values: np.ndarray, firsts: np.ndarray, counts: np.ndarray,
     return columns
 
 
-def _wrong_count(element: _Element, path: str) -> InputError:
+def _wrong_count(element: Element, path: str) -> InputError:
     return InputError(path, f"PLY element '{element.name}': a line does not match its properties")
 
 
 # --- building the cloud -----------------------------------------------------------------
 
-def _cloud(header: _Header, found: dict[str, _Columns], path: str) -> PointCloud:
+def _cloud(header: Header, found: dict[str, _Columns], path: str) -> PointCloud:
     vertex = next(element for element in header.elements if element.name == "vertex")
     columns = found["vertex"]
 
@@ -384,14 +421,15 @@ def _cloud(header: _Header, found: dict[str, _Columns], path: str) -> PointCloud
         normals = None
     colors = stacked(_COLOR)
     if colors is not None:
-        scale = [_color_scale(vertex.properties[name].type) for name in _COLOR]
+        scale = [color_scale(vertex.properties[name].type) for name in _COLOR]
         colors = np.clip(colors / scale, 0.0, 1.0)
     radius = stacked(("radius",))
     radii = None if radius is None else radius[:, 0]
     axes = stacked(_AXES)
     if axes is not None:
         axes = axes.reshape(n, 2, 3)
-    extras = {name: _extra(name, shape, stacked, vertex, n, path) for name, shape in header.extras.items()}
+    layout = vertex_layout(header, path)
+    attributes = vertex_attributes(layout, columns, n, path)
 
     faces = None
     face_columns = found.get("face", {})
@@ -405,29 +443,56 @@ def _cloud(header: _Header, found: dict[str, _Columns], path: str) -> PointCloud
             positions = positions[keep]
             normals, colors, radii, axes = (
                 None if a is None else a[keep] for a in (normals, colors, radii, axes))
-            extras = {name: value[keep] for name, value in extras.items()}
+            attributes = {name: value[keep] for name, value in attributes.items()}
         if normals is None:
             normals = area_weighted_vertex_normals(positions, faces)
     return PointCloud(positions=positions, normals=normals, colors=colors, radii=radii, axes=axes,
-                      faces=faces, attributes=extras, geospatial=header.geospatial, source=path)
+                      faces=faces, attributes=attributes,
+                      kinds={a.spec.name: a.spec.kind for a in layout if a.stated},
+                      geospatial=header.geospatial, source=path)
 
 
-def _extra(name: str, shape: tuple[int, ...], stacked: Callable[..., np.ndarray | None],
-           vertex: _Element, n: int, path: str) -> np.ndarray:
-    """The extra `name` of per-point `shape`, from NAME or NAME_0 .. NAME_{size-1}."""
-    size = math.prod(shape)
-    if size == 0:
-        return np.zeros((n, *shape), dtype=np.float32)
-    # Compare with the property count first: a comment must not make us build huge name lists.
-    values = None
-    if size <= len(vertex.properties):
-        values = stacked((name,) if not shape else tuple(f"{name}_{i}" for i in range(size)))
-    if values is None:
-        raise InputError(path, f"PLY header declares extra '{name}' but its vertex properties are missing")
-    return values.reshape(n, *shape)
+def vertex_layout(header: Header, path: str) -> list[VertexAttribute]:
+    """The attributes of the vertex element (module docstring), in property order."""
+    vertex = next(element for element in header.elements if element.name == "vertex")
+    props = vertex.properties
+    layout, used = [], set()
+    for spec in header.declared.values():
+        size = spec.components
+        # Compare with the property count first: a comment must not make us build huge name lists.
+        names = None
+        if size <= len(props):
+            names = (spec.name,) if not spec.shape else tuple(f"{spec.name}_{i}" for i in range(size))
+        if names is None or not all(name in props and not props[name].is_list for name in names):
+            raise InputError(path, f"PLY header declares attribute '{spec.name}' but its vertex properties "
+                                   f"are missing")
+        layout.append(VertexAttribute(spec, names, True))
+        used.update(names)
+    rest = [name for name, prop in props.items()
+            if name not in _RESERVED and name not in used and not prop.is_list]
+    taken = {*header.declared, *_RESERVED}
+    for name, prop in zip(canonical_names(rest, taken=taken), (props[p] for p in rest), strict=True):
+        layout.append(VertexAttribute(AttributeSpec(name, np.dtype(prop.type)), (prop.name,), False))
+    return layout
 
 
-def _color_scale(code: str) -> float:
+def vertex_attributes(layout: list[VertexAttribute], columns, n: int, path: str) -> dict[str, np.ndarray]:
+    """The attributes of `layout` from the vertex columns (name -> (n,) array: decoded records,
+    or the float64 numbers of an ascii body), each in its spec's dtype and shape."""
+    attributes = {}
+    for item in layout:
+        spec = item.spec
+        values = (np.column_stack([columns[name] for name in item.properties]) if spec.shape
+                  else columns[item.properties[0]])
+        converted = values.astype(spec.dtype)
+        if spec.dtype.kind in "biu" and values.dtype != spec.dtype and not np.array_equal(converted, values):
+            raise InputError(path, f"PLY attribute '{spec.name}' holds values that are not {spec.dtype}")
+        attributes[spec.name] = converted.reshape(n, *spec.shape)
+    return attributes
+
+
+def color_scale(code: str) -> float:
+    """What a colour property of PLY type `code` is divided by to lie in [0, 1]."""
     if code[0] == "f":
         return 1.0
     return 65535.0 if code[1] == "2" else 255.0
@@ -447,10 +512,11 @@ def write_ply(cloud: PointCloud, path: str | os.PathLike, *, binary: bool = True
     """Write `cloud` as PLY (binary little-endian by default), atomically.
 
     Everything the cloud holds is written (see the module docstring), so `read_ply` gives it
-    back: positions bit-exact, float attributes exact, colours quantised to 8 bits. The file
-    appears complete or not at all: it is written to a temporary file beside it and renamed.
-    Raises ValueError for an extras key that cannot be a PLY property name, SurfelError when
-    the file cannot be written.
+    back: positions bit-exact, attributes exact in their own dtype and kind, colours quantised
+    to 8 bits. The file appears complete or not at all: it is written to a temporary file
+    beside it and renamed. Raises SurfelError, naming the file, for an attribute that cannot be
+    a PLY property (its name, or 64-bit integers beyond 2^53) and when the file cannot be
+    written.
     """
     n = len(cloud)
     columns: list[tuple[str, str, np.ndarray]] = [
@@ -468,19 +534,23 @@ def write_ply(cloud: PointCloud, path: str | os.PathLike, *, binary: bool = True
     comments = ["written by surfel"]
     if cloud.geospatial:
         comments.append(_GEOSPATIAL_COMMENT)
-    for key, value in cloud.attributes.items():
-        if not re.fullmatch(r"[!-~]+", key) or key in _RESERVED:
-            raise ValueError(f"extras key {key!r} cannot be written as a PLY property name")
-        shape = value.shape[1:]
-        comments.append(" ".join([_EXTRA_COMMENT, key, *map(str, shape)]))
-        if not shape:
-            columns.append((key, "f4", value))
+    for spec in cloud.schema.values():
+        name, value = spec.name, cloud.attributes[spec.name]
+        if not re.fullmatch(r"[!-~]+", name) or name in _RESERVED:
+            raise SurfelError(f"{path}: attribute {name!r} cannot be a PLY property name")
+        code = _WRITTEN_AS[value.dtype.kind + str(value.dtype.itemsize)]
+        if value.dtype.kind in "iu" and value.dtype.itemsize == 8 and value.size and \
+                max(-int(value.min()), int(value.max())) > _EXACT_IN_DOUBLE:
+            raise SurfelError(f"{path}: attribute {name!r} holds 64-bit integers that PLY cannot store exactly")
+        comments.append(" ".join([_ATTRIBUTE_COMMENT, name, spec.dtype.name, spec.kind, *map(str, spec.shape)]))
+        if not spec.shape:
+            columns.append((name, code, value))
         else:
             flat = value.reshape(n, -1)
-            columns += [(f"{key}_{i}", "f4", flat[:, i]) for i in range(flat.shape[1])]
+            columns += [(f"{name}_{i}", code, flat[:, i]) for i in range(flat.shape[1])]
     names = [name for name, _, _ in columns]
     if len(set(names)) != len(names):
-        raise ValueError("extras keys give duplicate PLY property names")
+        raise SurfelError(f"{path}: attribute names give duplicate PLY property names")
 
     faces = cloud.faces if cloud.faces is not None and len(cloud.faces) else None
     lines = ["ply", f"format {'binary_little_endian' if binary else 'ascii'} 1.0"]
@@ -506,7 +576,7 @@ def write_ply(cloud: PointCloud, path: str | os.PathLike, *, binary: bool = True
                 face_records.tofile(file)
         else:
             # 17 significant digits read back to the same double, 9 to the same float.
-            formats = {"f8": "%.17g", "f4": "%.9g", "u1": "%d"}
+            formats = {"f8": "%.17g", "f4": "%.9g", **dict.fromkeys(("i1", "u1", "i2", "u2", "i4", "u4"), "%d")}
             table = np.column_stack([values.astype(np.float64) for _, _, values in columns])
             np.savetxt(file, table, fmt=[formats[code] for _, code, _ in columns])
             if faces is not None:

@@ -39,17 +39,26 @@ within r_i of c_i in its own plane), a parent disk covers all its descendants' d
 seen along its normal: replacing children by their parent never opens a hole.
 Leaves are the input points with their own radii, normals, colours and axes; their errors
 are 0 and their area weight is |u| |v| (the ellipse area / pi).
+
+Attributes (surfel.attributes). A parent's continuous attribute a is the area-weighted mean
+of its children's, a = sum w_i a_i / sum w_i (the colour's rule; integers are rounded back
+to their dtype). A categorical attribute is never averaged, since the mean of two classes is
+no class: the parent takes the value of its heaviest child (the largest w_i, the child its
+normal is aligned with), which by induction is the value of one leaf below it, its
+representative. Derived arrays are not aggregated: the leaves keep their clip lines and inner
+nodes cut nothing; the Phong slopes are dropped, since an inner node is a new disk.
 """
 
 from __future__ import annotations
 
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numba
 import numpy as np
 from tqdm import tqdm
 
+from ..attributes import CATEGORICAL
 from ..cloud import PointCloud
 from ..preprocess import INACTIVE_CLIP, clipped_away
 
@@ -72,6 +81,8 @@ class LodTree:
     root), child_start (M + 1,) int64 and children (M - 1,) int64: the children of node j
     are children[child_start[j]:child_start[j + 1]]. clip_lines (M, 2, 3) float32 or None:
     the leaves' clip lines at sharp features (surfel.preprocess); inner nodes' cut nothing.
+    attributes: the input's scanner attributes (M, ...) in their dtypes, aggregated for inner
+    nodes (module docstring); kinds: their kinds.
     """
 
     positions: np.ndarray
@@ -89,6 +100,8 @@ class LodTree:
     point_index: np.ndarray
     geospatial: bool = False
     clip_lines: np.ndarray | None = None
+    attributes: dict[str, np.ndarray] = field(default_factory=dict)
+    kinds: dict[str, str] = field(default_factory=dict)
 
     def __len__(self) -> int:
         return len(self.positions)
@@ -234,8 +247,9 @@ def _reach(dx, dy, dz, nx, ny, nz, ux, uy, uz, radius, slab):  # pragma: no cove
 
 @numba.njit(parallel=True, cache=True)
 def _merge_cells(starts, counts, members, first, pos, nrm, col, rad, axes, weight, lo, hi,
-                 e_p, e_t, e_g, parent, d_parent, with_color):  # pragma: no cover - compiled
-    """Create node first + g from the children members[starts[g]:starts[g] + counts[g]]."""
+                 e_p, e_t, e_g, parent, d_parent, representative, with_color):  # pragma: no cover - compiled
+    """Create node first + g from the children members[starts[g]:starts[g] + counts[g]];
+    its representative leaf is that of its heaviest child."""
     for g in numba.prange(len(starts)):
         s = starts[g]
         e = s + counts[g]
@@ -323,6 +337,7 @@ def _merge_cells(starts, counts, members, first, pos, nrm, col, rad, axes, weigh
         axes[out, 0, 0], axes[out, 0, 1], axes[out, 0, 2] = tx * radius, ty * radius, tz * radius
         axes[out, 1, 0], axes[out, 1, 1], axes[out, 1, 2] = bx * radius, by * radius, bz * radius
         weight[out] = wsum
+        representative[out] = representative[best]
         lo[out] = slo
         hi[out] = shi
         e_p[out] = ep
@@ -354,6 +369,8 @@ def build_lod(cloud: PointCloud, *, progress: bool | None = None) -> LodTree:
     rad = np.empty(capacity, np.float32)
     axes = np.empty((capacity, 2, 3), np.float32)
     weight = np.empty(capacity, np.float64)
+    representative = np.empty(capacity, np.int64)
+    representative[:n] = np.arange(n)
     _init_leaves(point_index, cloud.positions,
                  cloud.colors if with_color else np.empty((0, 3), np.float32),
                  cloud.axes if cloud.axes is not None else np.empty((0, 2, 3), np.float32),
@@ -378,7 +395,7 @@ def build_lod(cloud: PointCloud, *, progress: bool | None = None) -> LodTree:
         next_active, active_codes, starts, sizes, children = _next_level(active, active_codes, count)
         if len(starts):
             _merge_cells(starts, sizes, active, count, pos, nrm, col, rad, axes, weight,
-                         lo, hi, e_p, e_t, e_g, parent, d_parent, with_color)
+                         lo, hi, e_p, e_t, e_g, parent, d_parent, representative, with_color)
             child_lists.append(children)
             child_counts.append(sizes)
             count += len(starts)
@@ -389,7 +406,12 @@ def build_lod(cloud: PointCloud, *, progress: bool | None = None) -> LodTree:
     if m > n:  # inner nodes were numbered in the order their child runs were listed
         child_start[n + 1:] = np.cumsum(np.concatenate(child_counts))
     children = np.concatenate(child_lists) if child_lists else np.empty(0, np.int64)
-    del weight, lo, hi
+    del lo, hi
+    scanner = cloud.schema.scanner()
+    attributes = aggregate_attributes({spec.name: cloud.attributes[spec.name][point_index] for spec in scanner},
+                                      {spec.name: spec.kind for spec in scanner}, child_start, children,
+                                      weight[:m], representative[:m])
+    del weight, representative
     arrays = [pos, nrm, rad, axes, e_p, e_t, e_g, parent, d_parent] + ([col] if with_color else [])
     for array in arrays:
         array.resize((m, *array.shape[1:]), refcheck=False)  # shrink in place, no copy
@@ -399,4 +421,58 @@ def build_lod(cloud: PointCloud, *, progress: bool | None = None) -> LodTree:
         clip_lines[:n] = cloud.attributes["clip_lines"][point_index]
         clip_lines[n:] = INACTIVE_CLIP
     return LodTree(pos, nrm, col if with_color else None, rad, axes, e_p, e_t, e_g, parent,
-                   d_parent, child_start, children, point_index, cloud.geospatial, clip_lines)
+                   d_parent, child_start, children, point_index, cloud.geospatial, clip_lines,
+                   attributes, {spec.name: spec.kind for spec in scanner})
+
+
+def aggregate_attributes(leaves: dict[str, np.ndarray], kinds: dict[str, str], child_start: np.ndarray,
+                         children: np.ndarray, weight: np.ndarray, representative: np.ndarray
+                         ) -> dict[str, np.ndarray]:
+    """Every node's attributes (M, ...) from the leaves' (L, ...) (module docstring).
+
+    Nodes 0..L-1 are the leaves, inner nodes follow their children; child_start (M + 1,) and
+    children list each node's children, weight (M,) are the area weights and representative
+    (M,) each node's representative leaf (`_merge_cells`).
+    """
+    count = len(representative)
+    out = {}
+    for name, values in leaves.items():
+        if kinds[name] == CATEGORICAL:
+            out[name] = values[representative]
+            continue
+        flat = values.reshape(len(values), -1)
+        means = np.empty((count, flat.shape[1]), np.float64)
+        means[:len(values)] = flat
+        _weighted_means(child_start, children, weight, means, len(values))
+        out[name] = from_mean(means, values.dtype).reshape(count, *values.shape[1:])
+    return out
+
+
+@numba.njit(cache=True)
+def _weighted_means(child_start, children, weight, values, first):  # pragma: no cover - compiled
+    """values[node] = sum w_i values[i] / sum w_i over the children i of each inner node
+    first.. (in order: children come before their parents)."""
+    components = values.shape[1]
+    for node in range(first, len(values)):
+        total = 0.0
+        for c in range(components):
+            values[node, c] = 0.0
+        for j in range(child_start[node], child_start[node + 1]):
+            child = children[j]
+            w = weight[child]
+            total += w
+            for c in range(components):
+                values[node, c] += w * values[child, c]
+        for c in range(components):
+            values[node, c] /= total
+
+
+def from_mean(means: np.ndarray, dtype: np.dtype) -> np.ndarray:
+    """Means (float64) in an attribute's dtype: integers rounded (a mean of values that fit
+    fits too), booleans true from one half up."""
+    dtype = np.dtype(dtype)
+    if dtype.kind == "b":
+        return means >= 0.5
+    if dtype.kind in "iu":
+        return np.rint(means).astype(dtype)
+    return means.astype(dtype)

@@ -34,6 +34,9 @@ r_own the stored radius (extra-bytes dimension "radius") or, for files without o
 covering radius `surfel.preprocess` estimates on the selected points. Normals come from the
 extra-bytes dimensions normal_x/y/z when present, else PCA on the selection, facing up (+Z).
 Colours: RGB (16-bit fields; divided by 255 when no value exceeds 255), else intensity as grey.
+Every other dimension of the loaded nodes is decoded and becomes an attribute, as
+`surfel.io.las` reads a LAS file (the surfel VLR's schema when the file has one); kinds that
+the file does not state are fixed by the first cut, so that they do not change between views.
 
 `write_copc` (copc_write.py) writes a surfel cloud as COPC with these extra bytes.
 """
@@ -41,7 +44,6 @@ Colours: RGB (16-bit fields; divided by 255 when no value exceeds 255), else int
 from __future__ import annotations
 
 import io
-import json
 import math
 import os
 import struct
@@ -54,23 +56,16 @@ import numpy as np
 from ..camera import Camera
 from ..cloud import PointCloud, framing_sphere
 from ..errors import InputError
-from ..io.las import _check_header
+from ..io.las import check_header, las_layout, layout_values
 
 VLR_HEADER = struct.Struct("<H16sHH32s")     # reserved, user id, record id, length, description
 EVLR_HEADER = struct.Struct("<H16sHQ32s")
 INFO = struct.Struct("<3dddQQdd88x")         # centre, halfsize, spacing, root page offset/size, gps
 ENTRY = struct.Struct("<4iQii")              # key d, x, y, z; offset; byte size; point count
 COVER = math.sqrt(3)                         # splat radius / spacing that covers a cell's diagonal
-NORMAL_NAMES = (("normal_x", "normal_y", "normal_z"), ("NormalX", "NormalY", "NormalZ"))
-RADIUS_NAMES = ("radius", "Radius")
-SURFEL_VLR = b"surfel"                       # user id of the VLR holding {"geospatial": bool}
-CLIP_NAMES = tuple(f"clip{line}_{part}" for line in range(2) for part in "abc")
 INACTIVE_CLIP = (0.0, 0.0, 1.0)              # a u + b v <= 1 cuts nothing (surfel.preprocess)
-# what the cut needs decoded (LAZ 1.4 skips the other fields' layers: gps time, angles, ...)
-_DECODE = lazrs.DecompressionSelection(
-    lazrs.SELECTIVE_DECOMPRESS_XY_RETURNS_CHANNEL | lazrs.SELECTIVE_DECOMPRESS_Z
-    | lazrs.SELECTIVE_DECOMPRESS_RGB | lazrs.SELECTIVE_DECOMPRESS_INTENSITY
-    | lazrs.SELECTIVE_DECOMPRESS_ALL_EXTRA_BYTES)
+# every field is an attribute of the cut, so every layer of LAZ 1.4 is decoded
+_DECODE = lazrs.DecompressionSelection(lazrs.SELECTIVE_DECOMPRESS_ALL)
 _KEY_BITS = 20                               # per coordinate in the packed key codes: depth <= 20
 
 
@@ -119,7 +114,7 @@ class CopcSource:
 
     def __init__(self, path: str | os.PathLike):
         self.path = os.fspath(path)
-        _check_header(self.path)  # the sanity checks of plain LAS/LAZ: sizes, (E)VLR bounds
+        check_header(self.path)  # the sanity checks of plain LAS/LAZ: sizes, (E)VLR bounds
         self.size = os.path.getsize(self.path)
         self.bytes_read = 0
         self._entries: dict[int, Entry] = {}
@@ -132,6 +127,7 @@ class CopcSource:
             raise InputError(self.path, "COPC hierarchy has no root node")
         self._rgb_scale: float | None = None      # 255 or 65535, fixed by the first cut
         self._intensity_scale: float | None = None
+        self._kinds: dict[str, str] | None = None  # the attributes' kinds, fixed by the first cut
 
     # ---- opening --------------------------------------------------------------------------
     def _read_header(self, file: _CountingFile) -> None:
@@ -159,16 +155,9 @@ class CopcSource:
             raise InputError(self.path, "not a COPC file (no LAZ VLR: points are not compressed)")
         self._laszip = laszip[0].record_data
         self.point_format = self.header.point_format
-        names = set(self.point_format.dimension_names)
-        flags = [v for v in self.header.vlrs if v.user_id == SURFEL_VLR.decode()]
-        if flags:  # written by surfel: keeps the input's up axis (+Y for meshes)
-            try:
-                self.geospatial = bool(json.loads(flags[0].record_data)["geospatial"])
-            except (ValueError, KeyError, TypeError) as error:
-                raise InputError(self.path, "the surfel VLR is not valid JSON with 'geospatial'") from error
-        self._normal_names = next((n for n in NORMAL_NAMES if set(n) <= names), None)
-        self._radius_name = next((n for n in RADIUS_NAMES if n in names), None)
-        self._clip_names = CLIP_NAMES if set(CLIP_NAMES) <= names else None
+        # a surfel VLR keeps the written cloud's up axis (+Y for meshes) and attribute schema
+        self.layout = las_layout(self.point_format, self.header.vlrs, self.path)
+        self.geospatial = self.layout.geospatial
         self.total_points = int(self.header.point_count)
         lo, hi = np.asarray(self.header.mins, np.float64), np.asarray(self.header.maxs, np.float64)
         self.bounds = (lo, hi)
@@ -195,7 +184,8 @@ class CopcSource:
         return {"format": "COPC", "points": self.total_points, "point_format": self.point_format.id,
                 "file_bytes": self.size, "spacing": self.spacing, "halfsize": self.halfsize,
                 "nodes_in_root_page": len(self._entries), "depth": max(depths) if depths else 0,
-                "normals": self._normal_names is not None, "radii": self._radius_name is not None}
+                "normals": self.layout.normals is not None, "radii": self.layout.radius is not None,
+                "attributes": [spec.name for spec, _ in self.layout.attributes]}
 
     # ---- selection ------------------------------------------------------------------------
     def select(self, camera: Camera, epsilon: float, point_budget: int | None = None
@@ -287,7 +277,7 @@ class CopcSource:
         return _member(codes, self._codes)
 
     def _read_points(self, file: _CountingFile, nodes: list
-                     ) -> tuple[np.ndarray, np.ndarray, laspy.PackedPointRecord]:
+                     ) -> tuple[np.ndarray, np.ndarray, laspy.ScaleAwarePointRecord]:
         """Read and decompress the chunks of `nodes` (contiguous ones in one read).
 
         Returns the node keys (M, 4) in file order, their point counts (M,) and the decoded
@@ -314,12 +304,13 @@ class CopcSource:
             if not isinstance(error, Exception) and type(error).__name__ != "PanicException":
                 raise
             raise InputError(self.path, f"cannot decompress COPC points: {_first_line(error)}") from error
-        record = laspy.PackedPointRecord.from_buffer(out, self.point_format)
+        record = laspy.ScaleAwarePointRecord(np.frombuffer(out, self.point_format.dtype()), self.point_format,
+                                             self.header.scales, self.header.offsets)
         keys = np.array([key for key, _ in nodes], np.int64)
         return keys, np.array([entry.point_count for _, entry in nodes]), record
 
     # ---- the cloud ------------------------------------------------------------------------
-    def _cloud(self, keys: np.ndarray, counts: np.ndarray, record: laspy.PackedPointRecord
+    def _cloud(self, keys: np.ndarray, counts: np.ndarray, record: laspy.ScaleAwarePointRecord
                ) -> tuple[PointCloud, dict]:
         scales, offsets = self.header.scales, self.header.offsets
         positions = np.column_stack([record["X"] * scales[0] + offsets[0], record["Y"] * scales[1] + offsets[1],
@@ -328,17 +319,15 @@ class CopcSource:
             raise InputError(self.path, "COPC points have non-finite coordinates")
         colors = self._colors(record)
         region = self._region_spacing(positions, keys, counts)
-        normals = radii = None
-        if self._normal_names is not None:
-            normals = np.column_stack([np.asarray(record[n], np.float64) for n in self._normal_names])
-            if not np.isfinite(normals).all() or (np.linalg.norm(normals, axis=1) < 1e-6).any():
-                raise InputError(self.path, "COPC normals (extra bytes) are zero or not finite")
-        if self._radius_name is not None:
-            radii = np.asarray(record[self._radius_name], np.float32)
-            if not (np.isfinite(radii).all() and (radii > 0).all()):
-                raise InputError(self.path, "COPC radii (extra bytes) are not positive numbers")
-        cloud = PointCloud(positions, normals=normals, colors=colors, radii=radii,
+        normals, radii, attributes = layout_values(record, self.layout)
+        if normals is not None and (not np.isfinite(normals).all() or (np.linalg.norm(normals, axis=1) < 1e-6).any()):
+            raise InputError(self.path, "COPC normals (extra bytes) are zero or not finite")
+        if radii is not None and not (np.isfinite(radii).all() and (radii > 0).all()):
+            raise InputError(self.path, "COPC radii (extra bytes) are not positive numbers")
+        cloud = PointCloud(positions, normals=normals, colors=colors, radii=radii, attributes=attributes,
+                           kinds=self.layout.kinds if self._kinds is None else self._kinds,
                            geospatial=self.geospatial, source=self.path)
+        self._kinds = self._kinds or cloud.schema.kinds
         estimated: dict = {}
         if normals is None or radii is None:
             from ..preprocess import prepare  # numba kernels: loaded only when needed
@@ -347,9 +336,6 @@ class CopcSource:
         own = cloud.radii
         radii = np.maximum(own, (COVER * region).astype(np.float32))
         extras = dict(cloud.attributes)
-        if self._clip_names is not None:
-            lines = np.column_stack([np.asarray(record[n], np.float32) for n in self._clip_names])
-            extras["clip_lines"] = lines.reshape(-1, 2, 3)
         if "clip_lines" in extras:
             # Clip lines cut a full-detail splat at a crease; a splat grown to cover the gaps
             # of a coarse sample must not be cut by them.

@@ -20,11 +20,24 @@ so a reader recomputing a point's node from its decoded position finds the same 
 The file: LAS 1.4, point format 7 (with RGB, 16-bit: round(65535 c)) or 6; VLRs: COPC info
 (first, as the spec requires), LAZ (variable-size chunks, one per node, coarse levels first so a
 far view reads one contiguous prefix), extra bytes normal_x, normal_y, normal_z, radius
-(float32: what COPC lacks and splatting needs), and when the cloud has sharp-feature clip lines
-(surfel.preprocess) clip0_a .. clip1_c; a "surfel" VLR with {"geospatial": bool} (a mesh or scan
-with +Y up stays +Y up: COPC readers otherwise assume +Z); after the points and the LAZ chunk table, the
-hierarchy EVLR with one page holding every node's entry. The file is written to a temporary
+(float32: what COPC lacks and splatting needs) and the attributes' (below); a "surfel" VLR with
+JSON {"geospatial": bool, "attributes": schema} (a mesh or scan with +Y up stays +Y up: COPC
+readers otherwise assume +Z; surfel.io.las reads it); after the points and the LAZ chunk table,
+the hierarchy EVLR with one page holding every node's entry. The file is written to a temporary
 name beside the target and renamed at the end.
+
+Attributes (surfel.attributes). A scanner attribute that a LAS 1.4 standard dimension of the
+format can hold without loss is stored there (ASPRS LAS 1.4 R15, table 15): intensity,
+return_number, number_of_returns, classification, user_data, point_source_id,
+scanner_channel, the flags, gps_time (as float64) and scan_angle (degrees, stored in units of
+0.006 degrees: quantised to that). Any other attribute, or one whose values the standard
+field cannot hold (a float intensity, a return number above 15), is stored as extra bytes of
+its own type (bool as uint8, float16 as float32), one scalar dimension per component, under
+its name (made unique, ASCII, at most 32 bytes). Of the derived arrays only clip_lines are
+written: lod_* describe another hierarchy and Phong slopes splats of other sizes. Fields the
+format requires but the cloud lacks get defaults (return 1 of 1); the schema in the surfel VLR
+names which dimensions hold attributes, so readers leave the defaults out. laspy's CopcReader
+gives the same values back under the dimensions' names.
 """
 
 from __future__ import annotations
@@ -40,9 +53,12 @@ import laspy
 import lazrs
 import numpy as np
 
+from ..attributes import AttributeSpec
 from ..cloud import PointCloud
+from ..errors import SurfelError
 from ..files import write_atomically, write_json
-from .copc import ENTRY, EVLR_HEADER, INFO, SURFEL_VLR, VLR_HEADER
+from ..io.las import SCAN_ANGLE_UNIT, SURFEL_VLR
+from .copc import ENTRY, EVLR_HEADER, INFO, VLR_HEADER
 
 MAX_ROOT_CELLS = 128      # most grid cells per side of the root node (s_0 = 2h / cells)
 ROOT_SHARE = 1 / 8        # the root grid occupies at most this share of the points ...
@@ -51,10 +67,22 @@ LEAF_POINTS = 8192        # a node with at most this many points left keeps them
 MAX_DEPTH = 12            # keeps cell indices (root cells * 2^d per axis) well inside int64
 HEADER_SIZE = 375
 EXTRA_NAMES = ("normal_x", "normal_y", "normal_z", "radius")
-# surfel.preprocess's sharp-feature clip lines (a u + b v <= c in splat coordinates), when present
-CLIP_NAMES = tuple(f"clip{line}_{part}" for line in range(2) for part in "abc")
+# attribute -> (standard dimension of point formats 6 and 7, least and greatest value it holds)
+STANDARD_FIELDS = {
+    "intensity": ("intensity", 0, 65535), "return_number": ("return_number", 0, 15),
+    "number_of_returns": ("number_of_returns", 0, 15), "classification": ("classification", 0, 255),
+    "user_data": ("user_data", 0, 255), "point_source_id": ("point_source_id", 0, 65535),
+    "scanner_channel": ("scanner_channel", 0, 3), "synthetic": ("synthetic", 0, 1),
+    "key_point": ("key_point", 0, 1), "withheld": ("withheld", 0, 1), "overlap": ("overlap", 0, 1),
+    "scan_direction_flag": ("scan_direction_flag", 0, 1), "edge_of_flight_line": ("edge_of_flight_line", 0, 1),
+    "scan_angle": ("scan_angle", -32768 * SCAN_ANGLE_UNIT, 32767 * SCAN_ANGLE_UNIT),
+    "gps_time": ("gps_time", -np.inf, np.inf),
+}
+_WRITTEN_DERIVED = {"clip_lines"}
 _EXTRA_BYTES = struct.Struct("<2xBB32s4x24x24x24x24x24x32s")  # one extra-bytes descriptor: 192
-_FLOAT32 = 9              # LAS extra-bytes data type of a float
+# LAS extra-bytes data types (LAS 1.4 R15, table 24) of the numpy types they hold
+_EXTRA_TYPES = {"u1": 1, "i1": 2, "u2": 3, "i2": 4, "u4": 5, "i4": 6, "u8": 7, "i8": 8, "f4": 9, "f8": 10}
+_STORED_AS = {"b1": "u1", "f2": "f4"}  # types extra bytes lack, and the one each is stored as
 
 
 def write_copc(cloud: PointCloud, path: str | os.PathLike, *, leaf_points: int = LEAF_POINTS,
@@ -78,15 +106,21 @@ def write_copc(cloud: PointCloud, path: str | os.PathLike, *, leaf_points: int =
     spacing = 2 * halfsize / root_cells
     keys, order = _octree(unit, root_cells, leaf_points)
     fmt = laspy.PointFormat(7 if cloud.colors is not None else 6)
-    extra = EXTRA_NAMES + (CLIP_NAMES if "clip_lines" in cloud.attributes else ())
-    for name in extra:
-        fmt.add_extra_dimension(laspy.ExtraBytesParams(name=name, type=np.float32))
-    record = _records(cloud, ints, fmt)
+    placement = _placement(cloud, fmt)
+    extra = [(name, np.dtype(np.float32), description) for name, description in
+             zip(EXTRA_NAMES, ("unit normal x", "unit normal y", "unit normal z", "splat radius"), strict=True)]
+    extra += [(dim, _extra_type(spec.dtype), spec.name) for spec, dims in placement for dim in dims
+              if dim not in fmt.dimension_names]
+    for name, dtype, _ in extra:
+        fmt.add_extra_dimension(laspy.ExtraBytesParams(name=name, type=dtype))
+    record = _records(cloud, ints, fmt, placement)
     laz = lazrs.LazVlr.new_for_compression(fmt.id, fmt.num_extra_bytes, True)
+    metadata = {"geospatial": cloud.geospatial, "attributes": [{**spec.to_json(), "las": list(dims)}
+                                                               for spec, dims in placement]}
     vlrs = [_vlr(b"copc", 1, b"COPC info", bytes(INFO.size)),
             _vlr(b"laszip encoded", 22204, b"lazrs variable chunks", laz.record_data()),
-            _vlr(b"LASF_Spec", 4, b"surfel normals and radii", _extra_bytes_payload(extra)),
-            _vlr(SURFEL_VLR, 1, b"surfel cloud", json.dumps({"geospatial": cloud.geospatial}).encode())]
+            _vlr(b"LASF_Spec", 4, b"surfel normals, radii, attributes", _extra_bytes_payload(extra)),
+            _vlr(SURFEL_VLR.encode(), 1, b"surfel cloud", _payload(json.dumps(metadata).encode()))]
     point_offset = HEADER_SIZE + sum(len(v) for v in vlrs)
     summary: dict = {}
 
@@ -197,7 +231,51 @@ def _octree(unit: np.ndarray, root_cells: int, leaf_points: int) -> tuple[np.nda
     return keys, order
 
 
-def _records(cloud: PointCloud, ints: np.ndarray, fmt: laspy.PointFormat) -> np.ndarray:
+def _placement(cloud: PointCloud, fmt: laspy.PointFormat) -> list[tuple[AttributeSpec, tuple[str, ...]]]:
+    """Each written attribute's spec and the dimensions that will hold its components
+    (module docstring): a standard one where it fits, else new extra-bytes names."""
+    taken = set(fmt.dimension_names) | set(EXTRA_NAMES)
+    out = []
+    for spec in cloud.schema.values():
+        if spec.derived and spec.name not in _WRITTEN_DERIVED:
+            continue
+        values = cloud.attributes[spec.name]
+        standard = STANDARD_FIELDS.get(spec.name)
+        if standard is not None and not spec.shape and _fits(values, *standard[1:],
+                                                             integer=standard[0] not in ("scan_angle", "gps_time")):
+            out.append((spec, (standard[0],)))
+            continue
+        names = [spec.name] if not spec.shape else [f"{spec.name}_{i}" for i in range(spec.components)]
+        dims = tuple(_unique_name(name, taken) for name in names)
+        taken.update(dims)
+        out.append((spec, dims))
+    return out
+
+
+def _fits(values: np.ndarray, lowest: float, highest: float, *, integer: bool) -> bool:
+    """Whether a standard field holding whole numbers (or any) in [lowest, highest] holds `values`."""
+    if integer and values.dtype.kind not in "biu":
+        return False
+    return not len(values) or bool(lowest <= values.min() and values.max() <= highest)
+
+
+def _unique_name(name: str, taken: set[str]) -> str:
+    """An ASCII extra-bytes name of at most 32 bytes, not in `taken`."""
+    base = name.encode("ascii", "replace").decode()[:32]
+    candidate, number = base, 1
+    while candidate in taken:
+        suffix = f"_{number}"
+        candidate, number = base[:32 - len(suffix)] + suffix, number + 1
+    return candidate
+
+
+def _extra_type(dtype: np.dtype) -> np.dtype:
+    code = dtype.kind + str(dtype.itemsize)
+    return np.dtype(_STORED_AS.get(code, code))
+
+
+def _records(cloud: PointCloud, ints: np.ndarray, fmt: laspy.PointFormat,
+             placement: list[tuple[AttributeSpec, tuple[str, ...]]]) -> np.ndarray:
     """The LAS point records (structured array) in the input order."""
     n = len(cloud)
     record = laspy.PackedPointRecord.zeros(n, fmt)
@@ -212,10 +290,13 @@ def _records(cloud: PointCloud, ints: np.ndarray, fmt: laspy.PointFormat) -> np.
     for axis, name in enumerate(EXTRA_NAMES[:3]):
         record[name] = cloud.normals[:, axis]
     record["radius"] = cloud.radii
-    if "clip_lines" in cloud.attributes:
-        lines = cloud.attributes["clip_lines"].reshape(n, len(CLIP_NAMES))
-        for column, name in enumerate(CLIP_NAMES):
-            record[name] = lines[:, column]
+    for spec, dims in placement:
+        values = cloud.attributes[spec.name].reshape(n, -1)
+        for column, dim in enumerate(dims):
+            if dim == "scan_angle":  # the standard field: units of SCAN_ANGLE_UNIT degrees
+                record[dim] = np.round(values[:, column].astype(np.float64) / SCAN_ANGLE_UNIT).astype(np.int16)
+            else:
+                record[dim] = values[:, column]
     return record.array
 
 
@@ -223,12 +304,17 @@ def _vlr(user: bytes, record_id: int, description: bytes, payload: bytes) -> byt
     return VLR_HEADER.pack(0, user, record_id, len(payload), description) + payload
 
 
-def _extra_bytes_payload(names: tuple[str, ...]) -> bytes:
-    descriptions = {"normal_x": b"unit normal x", "normal_y": b"unit normal y",
-                    "normal_z": b"unit normal z", "radius": b"splat radius"}
-    return b"".join(_EXTRA_BYTES.pack(_FLOAT32, 0, name.encode(),
-                                      descriptions.get(name, b"splat clip line a u + b v <= c"))
-                    for name in names)
+def _extra_bytes_payload(extra: list[tuple[str, np.dtype, str]]) -> bytes:
+    """The extra-bytes VLR: one descriptor per (name, type, description)."""
+    return b"".join(_EXTRA_BYTES.pack(_EXTRA_TYPES[dtype.kind + str(dtype.itemsize)], 0, name.encode(),
+                                      description.encode("ascii", "replace")[:32])
+                    for name, dtype, description in extra)
+
+
+def _payload(data: bytes) -> bytes:
+    if len(data) > 0xFFFF:  # a VLR's length is 16 bits
+        raise SurfelError(f"the attribute schema ({len(data)} bytes of JSON) does not fit a LAS VLR")
+    return data
 
 
 def _header(fmt: laspy.PointFormat, vlr_count: int, point_offset: int, count: int, scales: np.ndarray,

@@ -19,6 +19,10 @@ mantissa resolution, see sequential.py):
     lod_dsuffix  (M,)   float32   max of lod_dparent over this row and all later ones
     clip_lines   (M, 2, 3) float32 leaves' clip lines at sharp features (absent if the input
                                   had none; inner nodes cut nothing)
+    NAME         (M, ...) any     each scanner attribute of the input in its own dtype
+                                  (inner nodes: aggregated, build.py)
+    surfel_schema ()    str       the attributes' schema as JSON (surfel.attributes): their
+                                  dtypes, shapes and kinds
     surfel_lod_version ()  int64  FORMAT_VERSION
     geospatial   ()     bool      the input's up axis is +Z (LAS/LAZ)
 
@@ -38,8 +42,9 @@ import numpy as np
 from ..cloud import PointCloud
 from ..errors import InputError
 from ..files import write_atomically, write_json
+from ..io.npz import cloud_arrays, read_npz
 from .build import LodTree, build_lod
-from .sequential import EXTRAS, is_sequential, r_max_bucket, to_sequential_cloud
+from .sequential import is_sequential, r_max_bucket, to_sequential_cloud
 
 FORMAT_VERSION = 1
 
@@ -49,34 +54,25 @@ def save_lod(lod: LodTree | PointCloud, path: str | os.PathLike) -> None:
     seq = to_sequential_cloud(lod) if isinstance(lod, LodTree) else lod
     if not is_sequential(seq):
         raise ValueError("save_lod needs a LodTree or a cloud from to_sequential_cloud")
-    arrays = {"positions": seq.positions, "normals": seq.normals, "radii": seq.radii,
-              "axes": seq.axes, **{name: seq.attributes[name] for name in EXTRAS},
-              "surfel_lod_version": np.int64(FORMAT_VERSION), "geospatial": np.bool_(seq.geospatial)}
-    if seq.colors is not None:
-        arrays["colors"] = seq.colors
-    if "clip_lines" in seq.attributes:
-        arrays["clip_lines"] = seq.attributes["clip_lines"]
+    arrays = {**cloud_arrays(seq), "surfel_lod_version": np.int64(FORMAT_VERSION)}
     write_atomically(path, lambda file: np.savez(file, **arrays))
 
 
 def load_lod(path: str | os.PathLike) -> PointCloud:
     """Read a LOD file as a sequential cloud (InputError if it is not one)."""
-    from ..io.npz import read_npz
-
     path = str(path)
     cloud = read_npz(path)
     with np.load(path, allow_pickle=False) as archive:
         if "surfel_lod_version" not in archive.files:
             raise InputError(path, "not a surfel LOD file (no surfel_lod_version)")
         version = int(archive["surfel_lod_version"])
-        geospatial = bool(archive["geospatial"]) if "geospatial" in archive.files else False
     if version != FORMAT_VERSION:
         raise InputError(path, f"LOD format version {version} is not supported (need {FORMAT_VERSION})")
     if not is_sequential(cloud) or cloud.normals is None or cloud.axes is None:
         raise InputError(path, "LOD file lacks normals, axes or lod_* arrays")
     if np.any(np.diff(r_max_bucket(cloud.attributes["lod_emax"]).astype(np.int32)) > 0):
         raise InputError(path, "LOD file is not sorted by lod_emax")
-    return cloud.with_(geospatial=geospatial) if geospatial else cloud
+    return cloud
 
 
 def build_command(in_path: str | os.PathLike, out_path: str | os.PathLike,

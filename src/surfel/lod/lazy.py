@@ -13,7 +13,8 @@ of the per-node test arrays (positions, lod_emin, lod_emax, lod_dparent) is read
 
     e_g(node) k <= r     and     r - d_parent < e_g(parent) k                         (2)
 
-selects nodes, and only the selected rows of normals, radii, axes and colours are gathered.
+selects nodes, and only the selected rows of normals, radii, axes, colours and every
+attribute (the manifest's schema, surfel.attributes) are gathered.
 Partitions whose box, grown by their largest disk radius, lies outside the view frustum are
 skipped. The top-tree nodes above the partitions are few and always tested.
 
@@ -35,10 +36,11 @@ from pathlib import Path
 
 import numpy as np
 
+from ..attributes import Schema
 from ..camera import Camera
 from ..cloud import PointCloud, framing_sphere
 from ..errors import InputError
-from .outofcore import DIR_FORMAT, DIR_VERSION, MANIFEST
+from .outofcore import DIR_FORMAT, DIR_VERSION, MANIFEST, attribute_key
 from .sequential import lod_scale, lod_selected, prefix_length
 
 TEST_ARRAYS = ("positions", "lod_emin", "lod_emax", "lod_dparent")
@@ -91,6 +93,10 @@ class LazyHierarchy:
         self.total_points = int(manifest["total_points"])
         self.nodes = int(manifest["nodes"])
         self.has_colors = bool(manifest["colors"])
+        try:
+            self.schema = Schema.from_json(manifest.get("attributes", []))
+        except ValueError as error:
+            raise InputError(self.path, f"the LOD manifest's attribute schema is invalid: {error}") from None
         lo, hi = (np.array(b, np.float64) for b in manifest["bounds"])
         self.bounds = (lo, hi)
         self.center, self.bounding_radius = framing_sphere(lo, hi)
@@ -110,7 +116,8 @@ class LazyHierarchy:
         """What `surfel info` reports besides the LodSource fields."""
         return {"nodes": self.nodes, "partitions": len(self.partitions),
                 "top_nodes": 0 if self.top is None else len(self.top["positions"]),
-                "attributes": ["normals", "radii", "axes"] + (["colors"] if self.has_colors else [])}
+                "attributes": ["normals", "radii", "axes"] + (["colors"] if self.has_colors else []) + [
+                    f"{spec.name} ({spec.dtype.name}, {spec.kind})" for spec in self.schema.values()]}
 
     def _array(self, part: str, name: str) -> np.ndarray:
         try:
@@ -118,9 +125,13 @@ class LazyHierarchy:
         except (OSError, ValueError) as error:
             raise InputError(self.path, f"cannot read {part}/{name}.npy ({error})") from None
 
+    def _geometry(self) -> tuple[str, ...]:
+        """The per-node arrays a cut holds besides positions: file names, attributes by index."""
+        return ("normals", "radii", "axes") + (("colors",) if self.has_colors else ()) + tuple(
+            attribute_key(i) for i in range(len(self.schema)))
+
     def _read_all(self, part: str) -> dict[str, np.ndarray]:
-        names = ("positions", "normals", "radii", "axes", "lod_emin", "lod_emax", "lod_dparent") + (
-            ("colors",) if self.has_colors else ())
+        names = ("positions", "lod_emin", "lod_emax", "lod_dparent") + self._geometry()
         return {name: np.array(self._array(part, name)) for name in names}
 
     # --- selection ----------------------------------------------------------------------
@@ -148,14 +159,17 @@ class LazyHierarchy:
         if self.top is not None and masks["top"].any():
             pieces.append({key: value[masks["top"]] for key, value in self.top.items()})
         if not pieces:  # nothing in view: one root keeps the cloud valid (it is off screen)
-            names = ("positions", "normals", "radii", "axes") + (("colors",) if self.has_colors else ())
-            pieces.append({key: np.array(self._array(self.partitions[0].name, key)[:1]) for key in names})
-        cloud = PointCloud(np.concatenate([p["positions"] for p in pieces]),
-                           normals=np.concatenate([p["normals"] for p in pieces]),
-                           colors=np.concatenate([p["colors"] for p in pieces]) if self.has_colors else None,
-                           radii=np.concatenate([p["radii"] for p in pieces]),
-                           axes=np.concatenate([p["axes"] for p in pieces]),
-                           geospatial=self.geospatial, source=self.path)
+            pieces.append({key: np.array(self._array(self.partitions[0].name, key)[:1])
+                           for key in ("positions", *self._geometry())})
+
+        def joined(key: str) -> np.ndarray:
+            return np.concatenate([p[key] for p in pieces])
+
+        cloud = PointCloud(joined("positions"), normals=joined("normals"),
+                           colors=joined("colors") if self.has_colors else None,
+                           radii=joined("radii"), axes=joined("axes"),
+                           attributes={name: joined(attribute_key(i)) for i, name in enumerate(self.schema)},
+                           kinds=self.schema.kinds, geospatial=self.geospatial, source=self.path)
         self._trim_cache(keep=set(prefixes))
         stats = {"nodes_loaded": sum(p.count for p in prefixes.values()), "bytes_read": int(bytes_read),
                  "points_selected": len(cloud), "epsilon_used": float(eps),
@@ -236,9 +250,8 @@ class LazyHierarchy:
         rows = np.flatnonzero(mask)
         cached = self._cache[name]
         out = {"positions": cached.positions[rows]}
-        names = ("normals", "radii", "axes") + (("colors",) if self.has_colors else ())
         read = 0
-        for key in names:
+        for key in self._geometry():
             array = self._array(name, key)
             out[key] = np.asarray(array[rows])
             read += out[key].nbytes

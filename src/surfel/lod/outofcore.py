@@ -2,16 +2,19 @@
 for clouds larger than memory: a hierarchy directory read lazily by `surfel.lod.lazy`.
 
 The input (binary PLY read in chunks at file offsets, LAS/LAZ through laspy's chunk
-iterator, a directory of such tiles as one cloud; other formats are loaded whole) is read
-three times and never held in memory:
+iterator, a directory of such tiles as one cloud; other formats are loaded whole: see
+streaming.py) is read three times and never held in memory:
 
-1. scan: bounds, and for LAS the colour range (8-bit values in 16-bit fields);
+1. scan: bounds, for LAS the colour range (8-bit values in 16-bit fields), and the kinds of
+   the attributes (streaming.KindVote);
 2. histogram: point counts of the 2^7 x 2^7 x 2^7 cells of the bounding cube; the cube is
    split octree-wise, a cell being split while it holds more than `cap` points, into
    partitions (the non-empty leaves of that octree), where
-       cap = (memory - MEMORY_OVERHEAD) / BYTES_PER_POINT
-   bounds the points one partition's processing holds at once;
-3. binning: each chunk's points are appended to their partition's file.
+       cap = (memory - MEMORY_OVERHEAD) / (BYTES_PER_POINT + ATTRIBUTE_COPIES * a)
+   (a: the bytes of one point's attributes) bounds the points one partition's processing
+   holds at once;
+3. binning: each chunk's points, with all their attributes, are appended to their
+   partition's file.
 
 Each partition is then loaded, completed (radii and tangent axes estimated as for any cloud,
 `preprocess.prepare`; normals from the input when it has them), built (`build_lod`),
@@ -21,7 +24,8 @@ widens their covering radii (the Voronoi cell is unbounded on that side) and so 
 open holes; it costs some overlap along the seams.
 
 Top levels: the partition roots become the leaves of a small tree built by the same merge
-rule (`build._merge_cells`), so that a far view draws a few disks instead of every root. A
+rule (`build._merge_cells`, attributes by `build.aggregate_attributes` from the roots'), so
+that a far view draws a few disks instead of every root. A
 partition root enters it as a disk at the root's centre and normal whose radius R and
 normal slab [lo, hi] bound all of the partition's leaf disks (with d_i = c_i - c, the leaf
 disk of radius r_i and normal n_i, dn_i = d_i . n, s_i = |n_i x n|):
@@ -38,11 +42,14 @@ double layers beyond that test's band.
 Layout of NAME.lod/ (format "surfel-lod-dir", version 1):
 
     manifest.json      format, version, geospatial, total_points, nodes, bounds [lo, hi],
-                       colors, top_nodes, and per partition: name, points, nodes, bounds
-                       (of its leaves, hence of all its node centres), max_radius (its root's)
+                       colors, attributes (the JSON schema of the stored attributes, see
+                       surfel.attributes: the input's, and clip_lines when estimated),
+                       top_nodes, and per partition: name, points, nodes, bounds (of its
+                       leaves, hence of all its node centres), max_radius (its root's)
     part-NNNNN/*.npy   one partition in sequential order, the arrays of a .lod.npz file
                        (format.py: positions, normals, [colors], radii, axes, lod_emin,
-                       lod_emax, lod_dparent, lod_dsuffix); row 0 is the partition root
+                       lod_emax, lod_dparent, lod_dsuffix), and attribute i of the
+                       manifest's schema as attribute-<i>.npy; row 0 is the partition root
     top/*.npy          the top-tree nodes (absent with one partition), likewise
 
 Files: everything is written into NAME.partial/; a finished partition is a directory
@@ -59,18 +66,20 @@ import re
 import shutil
 import sys
 import time
-from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 from tqdm import tqdm
 
+from ..attributes import Schema
 from ..cloud import PointCloud
-from ..errors import InputError, SurfelError
+from ..errors import SurfelError
 from ..files import write_json
-from .build import ROOT_PARENT_ERROR, _merge_cells, _next_level, build_lod, morton_codes
+from ..preprocess import INACTIVE_CLIP
+from .build import ROOT_PARENT_ERROR, _merge_cells, _next_level, aggregate_attributes, build_lod, morton_codes
 from .sequential import EXTRAS, r_max_bucket, to_sequential_cloud
+from .streaming import KindVote, StreamInput, all_chunks, open_inputs
 
 DIR_FORMAT = "surfel-lod-dir"
 DIR_VERSION = 1
@@ -80,9 +89,10 @@ MEMORY_OVERHEAD = 900 << 20
 # peak bytes per point while a partition is completed, built and sequentialised (measured
 # ~350: input, k-nearest-neighbour lists, 2n tree nodes, their sequential copy; with margin)
 BYTES_PER_POINT = 500
+# ... plus this many copies of each point's attributes (the input, up to 2n tree nodes,
+# their sequential copy)
+ATTRIBUTE_COPIES = 5
 HISTOGRAM_BITS = 7
-CHUNK_POINTS = 2_000_000
-ARRAYS = ("positions", "normals", "colors", "radii", "axes", *EXTRAS)
 _SIZE = re.compile(r"^\s*([0-9]*\.?[0-9]+)\s*([kmgt]?)(i?b)?\s*$", re.IGNORECASE)
 
 
@@ -93,192 +103,6 @@ def parse_size(text: str) -> int:
         raise SurfelError(f"cannot read the size {text!r} (use e.g. 512MB or 4GB)")
     value, unit = float(match.group(1)), match.group(2).lower()
     return int(value * 1024 ** " kmgt".index(unit or " "))
-
-
-# --------------------------------------------------------------------------------------------
-# streaming inputs
-
-
-@dataclass
-class Chunk:
-    """Consecutive input points: positions (m, 3) float64, normals (m, 3) float32 or None,
-    colours (m, 3) float32 in [0, 1] or None."""
-
-    positions: np.ndarray
-    normals: np.ndarray | None
-    colors: np.ndarray | None
-
-
-@dataclass
-class _Input:
-    """One input file, read chunk by chunk."""
-
-    path: str
-    kind: str  # "ply" (binary, read at offsets), "las" (laspy chunks), "whole" (io.load)
-    count: int
-    has_normals: bool
-    has_colors: bool
-    geospatial: bool
-    offset: int = 0
-    dtype: np.dtype | None = None
-    color_scale: float = 1.0
-
-    def chunks(self, size: int = CHUNK_POINTS) -> Iterator[Chunk]:
-        if self.kind == "ply":
-            yield from self._ply_chunks(size)
-        elif self.kind == "las":
-            yield from self._las_chunks(size)
-        else:
-            from ..io import load
-
-            cloud = load(self.path)
-            for start in range(0, len(cloud), size):
-                part = slice(start, start + size)
-                yield Chunk(cloud.positions[part], None if cloud.normals is None else cloud.normals[part],
-                            None if cloud.colors is None else cloud.colors[part])
-
-    def _ply_chunks(self, size: int) -> Iterator[Chunk]:
-        # plain reads, not a memory map of the whole file: mapped pages would count as
-        # resident memory until unmapped, growing with the file
-        with open(self.path, "rb") as file:
-            for start in range(0, self.count, size):
-                m = min(size, self.count - start)
-                file.seek(self.offset + start * self.dtype.itemsize)
-                records = np.fromfile(file, self.dtype, count=m)
-                if len(records) < m:
-                    raise InputError(self.path, f"truncated PLY body (vertex {start + len(records)} of {self.count})")
-                positions = np.column_stack([records[c] for c in "xyz"]).astype(np.float64)
-                normals = (np.column_stack([records[c] for c in ("nx", "ny", "nz")]).astype(np.float32)
-                           if self.has_normals else None)
-                colors = None
-                if self.has_colors:
-                    rgb = np.column_stack([records[c] for c in ("red", "green", "blue")]).astype(np.float32)
-                    colors = np.clip(rgb / self.color_scale, 0.0, 1.0)
-                yield _checked(self.path, positions, normals, colors)
-
-    def _las_chunks(self, size: int) -> Iterator[Chunk]:
-        import laspy
-
-        try:
-            with laspy.open(self.path) as reader:
-                for points in reader.chunk_iterator(size):
-                    positions = np.column_stack([np.asarray(points.x), np.asarray(points.y),
-                                                 np.asarray(points.z)]).astype(np.float64)
-                    colors = None
-                    if self.has_colors:
-                        rgb = np.column_stack([points.red, points.green, points.blue]).astype(np.float32)
-                        colors = np.clip(rgb / self.color_scale, 0.0, 1.0)
-                    yield _checked(self.path, positions, None, colors)
-        except SurfelError:
-            raise
-        except Exception as error:  # laspy and lazrs raise many types; all mean a bad file here
-            message = (str(error).splitlines() or [type(error).__name__])[0][:120]
-            raise InputError(self.path, f"cannot decode LAS data: {message}") from error
-
-
-def _checked(path: str, positions: np.ndarray, normals: np.ndarray | None,
-             colors: np.ndarray | None) -> Chunk:
-    if not np.isfinite(positions).all():
-        raise InputError(path, "points have NaN or infinite coordinates")
-    if normals is not None:
-        bad = ~np.isfinite(normals).all(axis=1) | ~normals.any(axis=1)
-        if bad.any():
-            raise InputError(path, f"{int(bad.sum())} points in a chunk have invalid or zero normals")
-    return Chunk(positions, normals, colors)
-
-
-def _open_ply(path: str) -> _Input:
-    from ..io.ply import _color_scale, _parse_header, _record_fields
-
-    with open(path, "rb") as file:
-        head = file.read(1 << 16)  # headers are small; parse only this much
-    if not head:
-        raise InputError(path, "file is empty")
-    header = _parse_header(head, path)  # reads bytes like its usual memory map
-    if header.format == "ascii":
-        return _whole(path)
-    offset = header.body_offset
-    for element in header.elements:
-        props = list(element.properties.values())
-        if any(p.is_list for p in props):
-            if element.name == "vertex":
-                raise InputError(path, "PLY vertex element has list properties")
-            return _whole(path)  # a list element before the vertices: sizes unknown, load it
-        dtype = np.dtype([f for p in props for f in _record_fields(p, header.format, {})])
-        if element.name == "vertex":
-            break
-        offset += element.count * dtype.itemsize
-    else:
-        raise InputError(path, "PLY has no vertex element")
-    if any(e.name == "face" and e.count for e in header.elements):
-        return _whole(path)  # a mesh: its referenced vertices are the points
-    names = set(element.properties)
-    if not {"x", "y", "z"} <= names:
-        raise InputError(path, "PLY vertex element lacks x, y or z")
-    need = offset + element.count * dtype.itemsize
-    if os.path.getsize(path) < need:
-        raise InputError(path, f"truncated PLY body ({os.path.getsize(path)} bytes, header needs {need})")
-    if element.count == 0:
-        raise InputError(path, "no points")
-    has_colors = {"red", "green", "blue"} <= names
-    scale = _color_scale(element.properties["red"].type) if has_colors else 1.0
-    return _Input(path, "ply", element.count, {"nx", "ny", "nz"} <= names, has_colors,
-                  header.geospatial, offset, dtype, scale)
-
-
-def _open_las(path: str) -> _Input:
-    import laspy
-
-    from ..io.las import _check_header
-
-    _check_header(path)
-    try:
-        with laspy.open(path) as reader:
-            count = int(reader.header.point_count)
-            names = set(reader.header.point_format.dimension_names)
-    except Exception as error:
-        message = (str(error).splitlines() or [type(error).__name__])[0][:120]
-        raise InputError(path, f"cannot decode LAS data: {message}") from error
-    if count == 0:
-        raise InputError(path, "no points")
-    return _Input(path, "las", count, False, {"red", "green", "blue"} <= names, True)
-
-
-def _whole(path: str) -> _Input:
-    from ..io import load
-
-    cloud = load(path)  # small formats (ascii, meshes): load once to learn what they hold
-    return _Input(path, "whole", len(cloud), cloud.normals is not None, cloud.colors is not None,
-                  cloud.geospatial)
-
-
-def open_inputs(path: str | os.PathLike) -> list[_Input]:
-    """The input files of `path` (a file, or a directory of tiles read as one cloud)."""
-    from ..io import FORMATS
-
-    name = os.fspath(path)
-    if os.path.isdir(name):
-        files = sorted(str(p) for p in Path(name).iterdir()
-                       if p.is_file() and p.suffix.lower().lstrip(".") in FORMATS)
-        if not files:
-            raise InputError(name, "directory holds no point-cloud files")
-    elif os.path.isfile(name):
-        files = [name]
-    else:
-        raise InputError(name, "no such file")
-    inputs = []
-    for file in files:
-        ext = os.path.splitext(file)[1].lower()
-        inputs.append(_open_ply(file) if ext == ".ply" else _open_las(file) if ext in (".las", ".laz")
-                      else _whole(file))
-    if len({i.has_normals for i in inputs}) > 1 or len({i.has_colors for i in inputs}) > 1:
-        raise InputError(name, "tiles differ in whether they have normals or colours")
-    return inputs
-
-
-def _all_chunks(inputs: list[_Input]) -> Iterator[Chunk]:
-    for source in inputs:
-        yield from source.chunks()
 
 
 # --------------------------------------------------------------------------------------------
@@ -333,12 +157,14 @@ def _plan(histogram: np.ndarray, lo: np.ndarray, size: float, cap: int) -> Plan:
     return Plan(lo, size, cells, counts)
 
 
-def partition_capacity(memory: int) -> int:
-    """Points one partition may hold under the memory budget."""
-    cap = (memory - MEMORY_OVERHEAD) // BYTES_PER_POINT
+def partition_capacity(memory: int, attribute_bytes: int = 0) -> int:
+    """Points one partition may hold under the memory budget, with `attribute_bytes` of
+    attributes per point."""
+    per_point = BYTES_PER_POINT + ATTRIBUTE_COPIES * attribute_bytes
+    cap = (memory - MEMORY_OVERHEAD) // per_point
     if cap < 10_000:
         raise SurfelError(f"--memory {memory >> 20} MB is too small (need at least "
-                          f"{(MEMORY_OVERHEAD + 10_000 * BYTES_PER_POINT) >> 20} MB)")
+                          f"{(MEMORY_OVERHEAD + 10_000 * per_point) >> 20} MB)")
     return int(cap)
 
 
@@ -352,16 +178,24 @@ def _bar(total: int, desc: str, progress: bool | None) -> tqdm:
     return tqdm(total=total, desc=f"surfel: {desc}", unit="pt", unit_scale=True, disable=not show, leave=False)
 
 
-def _record_dtype(has_normals: bool, has_colors: bool) -> np.dtype:
+def _record_dtype(has_normals: bool, has_colors: bool, schema: Schema) -> np.dtype:
+    """A binned point: position, normal, colour, and attribute i as field a<i>."""
     fields = [("p", "<f8", (3,))]
     if has_normals:
         fields.append(("n", "<f4", (3,)))
     if has_colors:
         fields.append(("c", "<f4", (3,)))
+    fields += [(f"a{i}", spec.dtype, spec.shape) for i, spec in enumerate(schema.values())]
     return np.dtype(fields)
 
 
-def _input_signature(inputs: list[_Input], memory: int) -> dict:
+def attribute_key(index: int) -> str:
+    """The file name (without .npy) of attribute `index` of the manifest's schema in a
+    partition or top/: by position, so that any attribute name is safe as a file name."""
+    return f"attribute-{index}"
+
+
+def _input_signature(inputs: list[StreamInput], memory: int) -> dict:
     return {"files": [[i.path, os.path.getsize(i.path), os.path.getmtime(i.path)] for i in inputs],
             "memory": memory}
 
@@ -380,7 +214,7 @@ def build_outofcore(in_path: str | os.PathLike, out_path: str | os.PathLike, *, 
     if out.exists() and not (out / MANIFEST).is_file():
         raise SurfelError(f"{out}: exists and is not a surfel LOD directory; not replacing it")
     inputs = open_inputs(in_path)
-    cap = partition_capacity(memory)
+    cap = partition_capacity(memory, sum(spec.dtype.itemsize * spec.components for spec in inputs[0].specs))
     signature = _input_signature(inputs, memory)
     plan_file = partial / "plan.json"
     saved = json.loads(plan_file.read_text()) if resume and plan_file.exists() else None
@@ -399,7 +233,8 @@ def build_outofcore(in_path: str | os.PathLike, out_path: str | os.PathLike, *, 
         write_json(plan_file, saved)
     total = sum(saved["counts"])
     has_normals, has_colors = saved["has_normals"], saved["has_colors"]
-    dtype = _record_dtype(has_normals, has_colors)
+    schema = Schema.from_json(saved["schema"])
+    dtype = _record_dtype(has_normals, has_colors, schema)
     geospatial = saved["geospatial"]
 
     from .format import warm_up
@@ -412,16 +247,19 @@ def build_outofcore(in_path: str | os.PathLike, out_path: str | os.PathLike, *, 
             if (partial / name / "root.json").exists():
                 resumed += 1
             else:
-                _build_partition(partial, name, dtype, geospatial)
+                _build_partition(partial, name, dtype, schema, geospatial)
             parts.append(json.loads((partial / name / "root.json").read_text()))
             bar.update(count)
-    top = _top_tree(partial, parts, has_colors)
+    stored = parts[0]["attributes"]
+    if any(part["attributes"] != stored for part in parts):
+        raise SurfelError(f"{partial}: partitions hold different attributes")
+    top = _top_tree(partial, parts, has_colors, Schema.from_json(stored))
     nodes = sum(p["nodes"] for p in parts) + top
     lo = np.min([p["bounds"][0] for p in parts], axis=0)
     hi = np.max([p["bounds"][1] for p in parts], axis=0)
     manifest = {"format": DIR_FORMAT, "version": DIR_VERSION, "geospatial": geospatial,
                 "total_points": total, "nodes": nodes, "bounds": [lo.tolist(), hi.tolist()],
-                "colors": has_colors, "top_nodes": top,
+                "colors": has_colors, "attributes": stored, "top_nodes": top,
                 "partitions": [{"name": p["name"], "points": p["points"], "nodes": p["nodes"],
                                 "bounds": p["bounds"], "max_radius": p["radius"]} for p in parts]}
     shutil.rmtree(partial / "bins", ignore_errors=True)
@@ -451,18 +289,20 @@ def _replace_dir(partial: Path, out: Path) -> None:
         old.unlink()
 
 
-def _bin_input(inputs: list[_Input], partial: Path, cap: int, signature: dict,
+def _bin_input(inputs: list[StreamInput], partial: Path, cap: int, signature: dict,
                progress: bool | None) -> dict:
     """Passes 1-3 of the module docstring; returns the plan as saved in plan.json."""
     total = sum(i.count for i in inputs)
     lo = np.full(3, np.inf)
     hi = np.full(3, -np.inf)
+    vote = KindVote(inputs)
     for source in inputs:  # colour ranges of LAS files are needed before the colours are scaled
         color_max = 0.0
         with _bar(source.count, f"scan {os.path.basename(source.path)}", progress) as bar:
             for chunk in source.chunks():
                 lo = np.minimum(lo, chunk.positions.min(axis=0))
                 hi = np.maximum(hi, chunk.positions.max(axis=0))
+                vote.add(chunk)
                 if chunk.colors is not None and source.kind == "las":
                     color_max = max(color_max, float(chunk.colors.max()))
                 bar.update(len(chunk.positions))
@@ -475,18 +315,20 @@ def _bin_input(inputs: list[_Input], partial: Path, cap: int, signature: dict,
     plan = Plan(lo, size, [], [])
     histogram = np.zeros(res ** 3, np.int64)
     with _bar(total, "histogram", progress) as bar:
-        for chunk in _all_chunks(inputs):
+        for chunk in all_chunks(inputs):
             histogram += np.bincount(plan.fine_cells(chunk.positions), minlength=res ** 3)
             bar.update(len(chunk.positions))
     plan = _plan(histogram.reshape(res, res, res), lo, size, cap)
     del histogram
     lookup = plan.lookup()
     has_normals, has_colors = inputs[0].has_normals, any(i.has_colors for i in inputs)
-    dtype = _record_dtype(has_normals, has_colors)
+    kinds = vote.kinds
+    schema = Schema(replace(spec, kind=kinds[spec.name]) for spec in vote.specs)
+    dtype = _record_dtype(has_normals, has_colors, schema)
     bins = partial / "bins"
     bins.mkdir()
     with _bar(total, "partition", progress) as bar:
-        for chunk in _all_chunks(inputs):
+        for chunk in all_chunks(inputs):
             part = lookup[plan.fine_cells(chunk.positions)]
             order = np.argsort(part, kind="stable")
             records = np.empty(len(order), dtype)
@@ -495,6 +337,8 @@ def _bin_input(inputs: list[_Input], partial: Path, cap: int, signature: dict,
                 records["n"] = chunk.normals[order]
             if has_colors:
                 records["c"] = chunk.colors[order] if chunk.colors is not None else 1.0
+            for i, name in enumerate(schema):
+                records[f"a{i}"] = chunk.attributes[name][order]
             sorted_part = part[order]
             bounds = np.flatnonzero(np.diff(sorted_part)) + 1
             for run in np.split(np.arange(len(order)), bounds):
@@ -503,17 +347,18 @@ def _bin_input(inputs: list[_Input], partial: Path, cap: int, signature: dict,
             bar.update(len(order))
     return {"signature": signature, "lo": lo.tolist(), "size": size, "cells": plan.cells,
             "counts": plan.counts, "has_normals": has_normals, "has_colors": has_colors,
-            "geospatial": any(i.geospatial for i in inputs)}
+            "schema": schema.to_list(), "geospatial": any(i.geospatial for i in inputs)}
 
 
-def _build_partition(partial: Path, name: str, dtype: np.dtype, geospatial: bool) -> None:
+def _build_partition(partial: Path, name: str, dtype: np.dtype, schema: Schema, geospatial: bool) -> None:
     """Complete, build, sequentialise and write one partition; its root summary last."""
     from ..preprocess import prepare
 
     records = np.fromfile(partial / "bins" / f"{name}.bin", dtype)
     cloud = PointCloud(records["p"], normals=records["n"] if "n" in dtype.names else None,
                        colors=records["c"] if "c" in dtype.names else None, geospatial=geospatial,
-                       source=name)
+                       attributes={spec.name: records[f"a{i}"] for i, spec in enumerate(schema.values())},
+                       kinds=schema.kinds, source=name)
     del records
     cloud, _ = prepare(cloud, progress=False)
     points = len(cloud)
@@ -526,13 +371,15 @@ def _build_partition(partial: Path, name: str, dtype: np.dtype, geospatial: bool
     work = partial / f".{name}.tmp"
     shutil.rmtree(work, ignore_errors=True)
     work.mkdir()
+    stored = Schema(spec for spec in seq.schema.values() if spec.name not in EXTRAS)
     arrays = {"positions": seq.positions, "normals": seq.normals, "colors": seq.colors,
-              "radii": seq.radii, "axes": seq.axes, **seq.attributes}
+              "radii": seq.radii, "axes": seq.axes, **{name: seq.attributes[name] for name in EXTRAS},
+              **{attribute_key(i): seq.attributes[name] for i, name in enumerate(stored)}}
     for key, value in arrays.items():
         if value is not None:
             np.save(work / f"{key}.npy", value)
     summary = {"name": name, "points": points, "nodes": len(seq), "bounds": [lo.tolist(), hi.tolist()],
-               "radius": float(seq.radii[0]), **root}
+               "radius": float(seq.radii[0]), "attributes": stored.to_list(), **root}
     (work / "root.json").write_text(json.dumps(summary))
     del seq, arrays
     final = partial / name
@@ -560,9 +407,11 @@ def _root_summary(tree) -> dict:
             "slab": [float((dn - r * s).min()), float((dn + r * s).max())], "weight": weight}
 
 
-def _top_tree(partial: Path, parts: list[dict], has_colors: bool) -> int:
+def _top_tree(partial: Path, parts: list[dict], has_colors: bool, stored: Schema) -> int:
     """Build the top levels over the partition roots, write them (top/*.npy, sequential
-    order) and give each partition root its r_max and d_parent. Returns the top node count."""
+    order) and give each partition root its r_max and d_parent. Returns the top node count.
+    The top nodes' attributes are aggregated from the roots' as in build_lod; their clip
+    lines cut nothing."""
     p = len(parts)
     top_dir = partial / "top"
     shutil.rmtree(top_dir, ignore_errors=True)
@@ -583,6 +432,7 @@ def _top_tree(partial: Path, parts: list[dict], has_colors: bool) -> int:
     e_g = np.zeros(capacity, np.float32)
     parent = np.full(capacity, -1, np.int64)
     d_parent = np.zeros(capacity, np.float32)
+    representative = np.arange(capacity)
     for i, part in enumerate(parts):
         pos[i], nrm[i], rad[i] = part["center"], part["normal"], part["enclosing"]
         weight[i], (lo[i], hi[i]), e_g[i] = part["weight"], part["slab"], part["e_g"]
@@ -592,13 +442,29 @@ def _top_tree(partial: Path, parts: list[dict], has_colors: bool) -> int:
     active = np.argsort(codes)
     active_codes = codes[active]
     count = p
+    child_lists, child_counts = [], []
     while len(active) > 1:  # as in build_lod: one octree level up per step
-        next_active, active_codes, starts, sizes, _ = _next_level(active, active_codes, count)
+        next_active, active_codes, starts, sizes, children = _next_level(active, active_codes, count)
         if len(starts):
             _merge_cells(starts, sizes, active, count, pos, nrm, col, rad, axes, weight, lo, hi,
-                         e_p, e_t, e_g, parent, d_parent, has_colors)
+                         e_p, e_t, e_g, parent, d_parent, representative, has_colors)
+            child_lists.append(children)
+            child_counts.append(sizes)
             count += len(starts)
         active = next_active
+    child_start = np.zeros(count + 1, np.int64)
+    child_start[p + 1:] = np.cumsum(np.concatenate(child_counts))
+    scanner = {i: spec for i, spec in enumerate(stored.values()) if not spec.derived}
+
+    def root_values(index: int) -> np.ndarray:  # row 0 of each partition: its root
+        return np.stack([np.load(partial / part["name"] / f"{attribute_key(index)}.npy", mmap_mode="r")[0]
+                         for part in parts])
+
+    roots = {spec.name: root_values(i) for i, spec in scanner.items()}
+    attributes = aggregate_attributes(roots, {spec.name: spec.kind for spec in scanner.values()}, child_start,
+                                      np.concatenate(child_lists), weight[:count], representative[:count])
+    if "clip_lines" in stored:
+        attributes["clip_lines"] = np.broadcast_to(np.float32(INACTIVE_CLIP), (count, *stored["clip_lines"].shape))
     for i, part in enumerate(parts):
         _patch_root(partial / part["name"], float(e_g[parent[i]]), float(d_parent[i]))
     inner = np.arange(p, count)
@@ -612,6 +478,7 @@ def _top_tree(partial: Path, parts: list[dict], has_colors: bool) -> int:
               "lod_dsuffix": np.maximum.accumulate(dpar[::-1])[::-1].copy()}
     if has_colors:
         arrays["colors"] = col[order]
+    arrays.update({attribute_key(i): attributes[name][order] for i, name in enumerate(stored)})
     top_dir.mkdir()
     for key, value in arrays.items():
         np.save(top_dir / f"{key}.npy", value)

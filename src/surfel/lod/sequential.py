@@ -115,18 +115,20 @@ def _gather(order, pos, nrm, col, rad, axes, e_g, parent, d_parent, root_error):
 
 
 def to_sequential_cloud(tree: LodTree) -> PointCloud:
-    """All nodes of `tree` as one cloud in sequential order, with the LOD extras."""
+    """All nodes of `tree` as one cloud in sequential order, with its attributes and the LOD
+    extras."""
     order = sequential_order(tree)
     colors = tree.colors if tree.colors is not None else np.empty((0, 3), np.float32)
     pos, nrm, col, rad, axes, emin, emax, dparent = _gather(
         order, tree.positions, tree.normals, colors, tree.radii, tree.axes, tree.e_g,
         tree.parent, tree.d_parent, ROOT_PARENT_ERROR)
     dsuffix = np.maximum.accumulate(dparent[::-1])[::-1]
-    extras = {"lod_emin": emin, "lod_emax": emax, "lod_dparent": dparent, "lod_dsuffix": dsuffix}
+    attributes = {name: values[order] for name, values in tree.attributes.items()}
+    attributes.update(lod_emin=emin, lod_emax=emax, lod_dparent=dparent, lod_dsuffix=dsuffix)
     if tree.clip_lines is not None:
-        extras["clip_lines"] = tree.clip_lines[order]
-    return PointCloud(pos, normals=nrm, colors=col if tree.colors is not None else None,
-                      radii=rad, axes=axes, attributes=extras, geospatial=tree.geospatial)
+        attributes["clip_lines"] = tree.clip_lines[order]
+    return PointCloud(pos, normals=nrm, colors=col if tree.colors is not None else None, radii=rad, axes=axes,
+                      attributes=attributes, kinds=tree.kinds, geospatial=tree.geospatial)
 
 
 def is_sequential(cloud: PointCloud) -> bool:
@@ -222,7 +224,8 @@ _subsets: weakref.WeakKeyDictionary[PointCloud, tuple] = weakref.WeakKeyDictiona
 
 
 def lod_subset(seq: PointCloud, camera: Camera, epsilon: float) -> PointCloud:
-    """The selected nodes only, as a plain cloud: LOD for backends without vertex shaders.
+    """The selected nodes only, as a plain cloud with every attribute but the LOD extras:
+    LOD for backends without vertex shaders.
 
     The last result per cloud is cached so repeated renders of one view (benchmarks) reuse it.
     """
@@ -234,8 +237,8 @@ def lod_subset(seq: PointCloud, camera: Camera, epsilon: float) -> PointCloud:
     subset = PointCloud(seq.positions[mask], normals=seq.normals[mask],
                         colors=None if seq.colors is None else seq.colors[mask],
                         radii=seq.radii[mask], axes=seq.axes[mask], geospatial=seq.geospatial,
-                        source=seq.source,
-                        attributes={"clip_lines": seq.attributes["clip_lines"][mask]}
-                        if "clip_lines" in seq.attributes else {})
+                        source=seq.source, kinds=seq.schema.kinds,
+                        attributes={name: values[mask] for name, values in seq.attributes.items()
+                                    if name not in EXTRAS})
     _subsets[seq] = (key, subset)
     return subset

@@ -35,7 +35,7 @@ import numba
 import numpy as np
 
 from ..result import RenderResult
-from ..shading import _LIGHT, shade
+from ..shading import KEY_LIGHT, shade
 from .surface import (
     FIT_OK,
     MAX_NEIGHBOURS,
@@ -321,7 +321,7 @@ def render_mls_cpu(cloud, camera, options) -> RenderResult:
     idx = np.flatnonzero(hit)
     n_world = n_eye[idx] @ rot  # flipped towards the viewer
     if p.get("shadows", False) and idx.size:
-        light = _LIGHT @ rot  # eye-space key light to world
+        light = KEY_LIGHT @ rot  # eye-space key light to world
         facing = n_world @ light > 0
         start = x_local[idx] + offset * np.where(facing[:, None], n_world, -n_world)
         blocked = trace(scene, start, np.broadcast_to(light, start.shape), 0.0, t_max, tolerance, max_iter).hit

@@ -1,0 +1,267 @@
+"""Point-cloud files read chunk by chunk, for the out-of-core build (outofcore.py).
+
+Binary PLY is read at file offsets (one structured record per vertex, `surfel.io.ply`'s
+header and layout), LAS/LAZ through laspy's chunk iterator (`surfel.io.las`'s layout); other
+formats, and PLY meshes or ascii bodies, are loaded whole. A directory of such tiles reads as
+one cloud. Each chunk carries positions, normals and colours where the input has them, and
+every attribute the readers keep: the same fields `surfel.io.load` gives, chunk by chunk.
+
+Attribute kinds (surfel.attributes) must be the same for every partition, so they are
+decided for the whole input, not per chunk: a kind the file states (a surfel_attribute PLY
+comment, a surfel LAS VLR) or a known name's kind, else by `KindVote` over every chunk of
+the scan pass (an integer or bool scalar attribute with at most MAX_CATEGORIES distinct
+values in the whole input is categorical).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..attributes import CATEGORICAL, CONTINUOUS, DERIVED, MAX_CATEGORIES, AttributeSpec, known_name, resolve_kind
+from ..errors import InputError, SurfelError
+
+CHUNK_POINTS = 2_000_000
+
+
+@dataclass
+class Chunk:
+    """Consecutive input points: positions (m, 3) float64, normals (m, 3) float32 or None,
+    colours (m, 3) float32 in [0, 1] or None, attributes by name (m, ...)."""
+
+    positions: np.ndarray
+    normals: np.ndarray | None
+    colors: np.ndarray | None
+    attributes: dict[str, np.ndarray] = field(default_factory=dict)
+
+
+@dataclass
+class StreamInput:
+    """One input file, read chunk by chunk. specs: its attributes (name, dtype, shape; the
+    kind only where `stated`)."""
+
+    path: str
+    kind: str  # "ply" (binary, read at offsets), "las" (laspy chunks), "whole" (io.load)
+    count: int
+    has_normals: bool
+    has_colors: bool
+    geospatial: bool
+    specs: list[AttributeSpec]
+    stated: set[str]
+    offset: int = 0
+    dtype: np.dtype | None = None
+    color_scale: float = 1.0
+    layout: object = None  # the io reader's layout of the fields (PLY vertex layout, LasLayout)
+
+    def chunks(self, size: int = CHUNK_POINTS) -> Iterator[Chunk]:
+        if self.kind == "ply":
+            yield from self._ply_chunks(size)
+        elif self.kind == "las":
+            yield from self._las_chunks(size)
+        else:
+            from ..io import load
+
+            cloud = load(self.path)
+            for start in range(0, len(cloud), size):
+                part = slice(start, start + size)
+                yield Chunk(cloud.positions[part], None if cloud.normals is None else cloud.normals[part],
+                            None if cloud.colors is None else cloud.colors[part],
+                            {name: values[part] for name, values in cloud.attributes.items()})
+
+    def _ply_chunks(self, size: int) -> Iterator[Chunk]:
+        from ..io.ply import vertex_attributes
+
+        # plain reads, not a memory map of the whole file: mapped pages would count as
+        # resident memory until unmapped, growing with the file
+        with open(self.path, "rb") as file:
+            for start in range(0, self.count, size):
+                m = min(size, self.count - start)
+                file.seek(self.offset + start * self.dtype.itemsize)
+                records = np.fromfile(file, self.dtype, count=m)
+                if len(records) < m:
+                    raise InputError(self.path, f"truncated PLY body (vertex {start + len(records)} of {self.count})")
+                positions = np.column_stack([records[c] for c in "xyz"]).astype(np.float64)
+                normals = (np.column_stack([records[c] for c in ("nx", "ny", "nz")]).astype(np.float32)
+                           if self.has_normals else None)
+                colors = None
+                if self.has_colors:
+                    rgb = np.column_stack([records[c] for c in ("red", "green", "blue")]).astype(np.float32)
+                    colors = np.clip(rgb / self.color_scale, 0.0, 1.0)
+                attributes = vertex_attributes(self.layout, records, m, self.path)
+                yield checked(self.path, positions, normals, colors, attributes)
+
+    def _las_chunks(self, size: int) -> Iterator[Chunk]:
+        import laspy
+
+        from ..io.las import COLOR_NAMES, layout_values
+
+        try:
+            with laspy.open(self.path) as reader:
+                for points in reader.chunk_iterator(size):
+                    positions = np.column_stack([np.asarray(points.x), np.asarray(points.y),
+                                                 np.asarray(points.z)]).astype(np.float64)
+                    colors = None
+                    if self.has_colors:
+                        rgb = np.column_stack([points[name] for name in COLOR_NAMES]).astype(np.float32)
+                        colors = np.clip(rgb / self.color_scale, 0.0, 1.0)
+                    normals, _, attributes = layout_values(points, self.layout)
+                    yield checked(self.path, positions, normals, colors, attributes)
+        except SurfelError:
+            raise
+        except Exception as error:  # laspy and lazrs raise many types; all mean a bad file here
+            message = (str(error).splitlines() or [type(error).__name__])[0][:120]
+            raise InputError(self.path, f"cannot decode LAS data: {message}") from error
+
+
+def checked(path: str, positions: np.ndarray, normals: np.ndarray | None, colors: np.ndarray | None,
+            attributes: dict[str, np.ndarray]) -> Chunk:
+    """The chunk, if its values are what a PointCloud accepts (InputError otherwise)."""
+    if not np.isfinite(positions).all():
+        raise InputError(path, "points have NaN or infinite coordinates")
+    if normals is not None:
+        bad = ~np.isfinite(normals).all(axis=1) | ~normals.any(axis=1)
+        if bad.any():
+            raise InputError(path, f"{int(bad.sum())} points in a chunk have invalid or zero normals")
+    for name, values in attributes.items():
+        if values.dtype.kind == "f" and not np.isfinite(values).all():
+            raise InputError(path, f"points have NaN or infinite {name}")
+    return Chunk(positions, normals, colors, attributes)
+
+
+def open_ply(path: str) -> StreamInput:
+    from ..io.ply import color_scale, parse_header, record_fields, vertex_layout
+
+    with open(path, "rb") as file:
+        head = file.read(1 << 16)  # headers are small; parse only this much
+    if not head:
+        raise InputError(path, "file is empty")
+    header = parse_header(head, path)  # reads bytes like its usual memory map
+    if header.format == "ascii":
+        return whole(path)
+    offset = header.body_offset
+    for element in header.elements:
+        props = list(element.properties.values())
+        if any(p.is_list for p in props):
+            if element.name == "vertex":
+                raise InputError(path, "PLY vertex element has list properties")
+            return whole(path)  # a list element before the vertices: sizes unknown, load it
+        dtype = np.dtype([f for p in props for f in record_fields(p, header.format, {})])
+        if element.name == "vertex":
+            break
+        offset += element.count * dtype.itemsize
+    else:
+        raise InputError(path, "PLY has no vertex element")
+    if any(e.name == "face" and e.count for e in header.elements):
+        return whole(path)  # a mesh: its referenced vertices are the points
+    names = set(element.properties)
+    if not {"x", "y", "z"} <= names:
+        raise InputError(path, "PLY vertex element lacks x, y or z")
+    need = offset + element.count * dtype.itemsize
+    if os.path.getsize(path) < need:
+        raise InputError(path, f"truncated PLY body ({os.path.getsize(path)} bytes, header needs {need})")
+    if element.count == 0:
+        raise InputError(path, "no points")
+    has_colors = {"red", "green", "blue"} <= names
+    scale = color_scale(element.properties["red"].type) if has_colors else 1.0
+    layout = vertex_layout(header, path)
+    return StreamInput(path, "ply", element.count, {"nx", "ny", "nz"} <= names, has_colors, header.geospatial,
+                       [item.spec for item in layout], {item.spec.name for item in layout if item.stated},
+                       offset, dtype, scale, layout)
+
+
+def open_las(path: str) -> StreamInput:
+    import laspy
+
+    from ..io.las import COLOR_NAMES, check_header, las_layout
+
+    check_header(path)
+    try:
+        with laspy.open(path) as reader:
+            count = int(reader.header.point_count)
+            point_format = reader.header.point_format
+            layout = las_layout(point_format, reader.header.vlrs, path)
+    except SurfelError:
+        raise
+    except Exception as error:
+        message = (str(error).splitlines() or [type(error).__name__])[0][:120]
+        raise InputError(path, f"cannot decode LAS data: {message}") from error
+    if count == 0:
+        raise InputError(path, "no points")
+    return StreamInput(path, "las", count, layout.normals is not None,
+                       set(COLOR_NAMES) <= set(point_format.dimension_names), layout.geospatial,
+                       [spec for spec, _ in layout.attributes], set(layout.kinds), layout=layout)
+
+
+def whole(path: str) -> StreamInput:
+    from ..io import load
+
+    cloud = load(path)  # small formats (ascii, meshes): load once to learn what they hold
+    schema = cloud.schema
+    return StreamInput(path, "whole", len(cloud), cloud.normals is not None, cloud.colors is not None,
+                       cloud.geospatial, list(schema.values()), set(schema))
+
+
+def open_inputs(path: str | os.PathLike) -> list[StreamInput]:
+    """The input files of `path` (a file, or a directory of tiles read as one cloud)."""
+    from ..io import FORMATS
+
+    name = os.fspath(path)
+    if os.path.isdir(name):
+        files = sorted(str(p) for p in Path(name).iterdir()
+                       if p.is_file() and p.suffix.lower().lstrip(".") in FORMATS)
+        if not files:
+            raise InputError(name, "directory holds no point-cloud files")
+    elif os.path.isfile(name):
+        files = [name]
+    else:
+        raise InputError(name, "no such file")
+    inputs = []
+    for file in files:
+        ext = os.path.splitext(file)[1].lower()
+        inputs.append(open_ply(file) if ext == ".ply" else open_las(file) if ext in (".las", ".laz")
+                      else whole(file))
+    if len({i.has_normals for i in inputs}) > 1 or len({i.has_colors for i in inputs}) > 1:
+        raise InputError(name, "tiles differ in whether they have normals or colours")
+    if len({tuple((s.name, s.dtype, s.shape) for s in i.specs) for i in inputs}) > 1:
+        raise InputError(name, "tiles differ in their attributes (names, types or shapes)")
+    return inputs
+
+
+def all_chunks(inputs: list[StreamInput]) -> Iterator[Chunk]:
+    for source in inputs:
+        yield from source.chunks()
+
+
+class KindVote:
+    """The kinds of the inputs' attributes, decided over every chunk (module docstring):
+    `add` each chunk of the scan pass, then read `kinds`."""
+
+    def __init__(self, inputs: list[StreamInput]):
+        self.specs = inputs[0].specs
+        stated = set.intersection(*(source.stated for source in inputs))
+        self._kinds = {spec.name: spec.kind for spec in self.specs if spec.name in stated}
+        self._distinct: dict[str, np.ndarray | None] = {}
+        for spec in self.specs:
+            if spec.name in self._kinds:
+                continue
+            if spec.name in DERIVED or known_name(spec.name) is not None:
+                self._kinds[spec.name] = resolve_kind(spec.name, np.zeros((0, *spec.shape), spec.dtype))
+            elif spec.shape or spec.dtype.kind not in "biu":
+                self._kinds[spec.name] = CONTINUOUS
+            else:
+                self._distinct[spec.name] = np.zeros(0, spec.dtype)
+
+    def add(self, chunk: Chunk) -> None:
+        for name, seen in self._distinct.items():
+            if seen is not None:
+                seen = np.union1d(seen, np.unique(chunk.attributes[name]))
+                self._distinct[name] = seen if len(seen) <= MAX_CATEGORIES else None
+
+    @property
+    def kinds(self) -> dict[str, str]:
+        return {**self._kinds, **{name: CONTINUOUS if seen is None else CATEGORICAL
+                                  for name, seen in self._distinct.items()}}
