@@ -43,8 +43,9 @@ def table_options(*names: str, required: tuple[str, ...] = (), defaults: dict | 
             declarations = [name, *([option.short] if option.short else []), option.flag or option.label]
             shown = defaults.get(name, option.shown_default())
             help = helps.get(name, option.help) + (f"  [default: {shown}]" if shown is not None else "")
-            function = click.option(*declarations, default=None, is_flag=option.parse is None or None,
-                                    required=name in required, help=help, metavar=option.metavar)(function)
+            unset = {} if name in required else {"default": None}  # None: not given, a flag too
+            function = click.option(*declarations, is_flag=option.parse is None or None, required=name in required,
+                                    help=help, metavar=option.metavar, **unset)(function)
         return function
 
     return decorate
