@@ -120,6 +120,21 @@ def test_a_renderer_keeps_what_it_derives_once_per_cloud_and_lets_go_with_the_cl
     assert gone() is None  # the renderer held the cloud weakly
 
 
+def test_a_versioned_entry_keeps_only_the_latest_version():
+    """How the Renderer keeps the last LOD subset of a cloud: one per view, the latest only."""
+    cloud, renderer, made = small_cloud(), Renderer(), []
+
+    def make():
+        made.append(object())
+        return made[-1]
+
+    first = renderer.cached(cloud, "subset", make, version="view 1")
+    assert renderer.cached(cloud, "subset", make, version="view 1") is first
+    second = renderer.cached(cloud, "subset", make, version="view 2")
+    assert second is not first and renderer.cached(cloud, "subset", make, version="view 1") is not first
+    assert len(made) == 3
+
+
 @requires_gl
 def test_renders_through_a_renderer_match_and_outlive_close():
     cloud = small_cloud()

@@ -138,8 +138,8 @@ def info(input, as_json):
       surfel info scan.laz
     """
     from .gl.context import gl_available, renderer_string
+    from .io import load
     from .lod.source import open_source
-    from .request import open_input
 
     source = open_source(input)
     if source is not None:  # described from its metadata, without loading its points
@@ -149,7 +149,7 @@ def info(input, as_json):
                   **(source.describe() if hasattr(source, "describe") else {}),
                   "opengl": renderer_string() if gl_available() else None}
     else:
-        cloud = open_input(input)
+        cloud = load(input)
         lo, hi = cloud.bounds
         estimate = [name for name in ("normals", "radii", "axes") if getattr(cloud, name) is None]
         report = {

@@ -68,20 +68,22 @@ SOURCE_DEFAULT_LOD_ERROR = 1.0
 
 
 def split_options(method: str, values: dict, options: RenderOptions | None = None) -> RenderOptions:
-    """RenderOptions from keyword values: the RenderOptions fields, and the method's parameters
-    (on top of `options` and `options.params` when given); any other name is refused."""
+    """RenderOptions from keyword values: RenderOptions fields and the method's parameters, on
+    top of `options` (and its params) when given; a name that is neither is refused."""
     m = get_method(method)
-    base = options or RenderOptions()
-    common = {k: v for k, v in values.items() if k in RenderOptions.names() and k != "params"}
+    common = {k: v for k, v in values.items() if k in RenderOptions.names()}
     named = {k: v for k, v in values.items() if k not in common}
+    options = replace(options or RenderOptions(), **common)
     if not named:
-        return replace(base, **common) if common else base
-    known = ", ".join([n for n in RenderOptions.names() if n != "params"] + list(m.params_class().names()))
+        return options
+    cls = m.params_class()
     for name in named:
-        if name == "params" or name not in m.params_class().names():
+        if name not in cls.names():
+            known = ", ".join([n for n in RenderOptions.names() if n != "params"] + list(cls.names()))
             raise SurfelError(f"render: method {method!r} has no option {name!r}; it has: {known}")
-    start = base.params if base.params is not None else m.make_params()
-    return replace(base, **common, params=replace(start, **named))
+    m.check_options(options)
+    start = options.params if options.params is not None else m.make_params()
+    return replace(options, params=replace(start, **named))
 
 
 class Renderer:

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import math
 import time
+import warnings
 
 import numpy as np
 
@@ -155,8 +156,10 @@ def view(cloud, *, method: str = "deferred", shading: str = DEFAULT_SHADING, siz
         raise SurfelError("the viewer needs GLFW: pip install 'surfel[view]'") from None
     import moderngl
 
-    if not glfw.init():
-        raise SurfelError("cannot open a window (no display?); set DISPLAY or run under Xvfb")
+    with warnings.catch_warnings():  # GLFW warns of a missing display: the error below says it in one line
+        warnings.simplefilter("ignore", glfw.GLFWError)
+        if not glfw.init():
+            raise SurfelError("cannot open a window (no display?); set DISPLAY or run under Xvfb")
     state = None
     try:
         glfw.window_hint(glfw.CONTEXT_VERSION_MAJOR, 3)
