@@ -17,6 +17,7 @@ import types
 import typing
 from collections.abc import Callable, Mapping
 from dataclasses import MISSING, dataclass, field, fields
+from functools import cache
 
 from .errors import SurfelError
 from .shading import DEFAULT as DEFAULT_SHADING
@@ -118,12 +119,17 @@ def _refuse(name: str, value, hint):
     raise SettingError(name, f"must be {wanted or getattr(hint, '__name__', hint)}, got {value!r}")
 
 
+@cache  # a class's annotations never change; resolving them costs more than a frame's bookkeeping
+def _field_types(cls) -> dict:
+    return typing.get_type_hints(cls)
+
+
 @dataclass(frozen=True)
 class Settings:
     """Base of typed settings: checks every field's type and value on construction."""
 
     def __post_init__(self):
-        hints = typing.get_type_hints(type(self))
+        hints = _field_types(type(self))
         for f in fields(self):
             value = _coerce(f.name, getattr(self, f.name), hints[f.name])
             object.__setattr__(self, f.name, value)  # the coerced value (an int given for a float)

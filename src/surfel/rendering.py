@@ -73,7 +73,9 @@ def split_options(method: str, values: dict, options: RenderOptions | None = Non
     m = get_method(method)
     common = {k: v for k, v in values.items() if k in RenderOptions.names()}
     named = {k: v for k, v in values.items() if k not in common}
-    options = replace(options or RenderOptions(), **common)
+    options = options or RenderOptions()
+    if common:
+        options = replace(options, **common)
     if not named:
         return options
     cls = m.params_class()
