@@ -58,6 +58,9 @@ class SurfelGroup(click.Group):
     def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True, **extra):
         try:
             status = super().main(args, prog_name, complete_var, standalone_mode=False, **extra)
+        except click.exceptions.NoArgsIsHelpError as exc:  # a bare `surfel` or `surfel lod`: the help
+            exc.show()
+            status = 2
         except (SurfelError, click.ClickException) as exc:
             message = exc.format_message() if isinstance(exc, click.ClickException) else str(exc)
             click.echo(f"surfel: error: {' '.join(message.split())}", err=True)

@@ -4,7 +4,7 @@ RenderResult out), and the one owner of everything kept from one frame to the ne
 A Renderer keeps, per cloud, what is derived from it once and reused every frame: the
 completed cloud (estimated normals, radii, normal fields), its sequential point tree and the
 last level-of-detail subset, the EWA rasterizer's Morton order, object-space EWA's per-surfel
-weights, the MLS ray tracing scene, and the cloud's GPU buffers. Clouds are keys by identity,
+weights, the MLS ray tracing scene, and the cloud's GPU buffers. Clouds are keyed by identity,
 held weakly: a PointCloud and its arrays cannot change, so what was derived from one stays
 true, and an entry goes when its cloud goes (its GL objects are released on the next frame).
 It also keeps the compiled GL programs and the three-pass targets of the last frame size.

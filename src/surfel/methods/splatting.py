@@ -33,6 +33,10 @@ splats stick out past the outline of a coarsely sampled curved surface, dark (th
 normals turn edge-on there) over the bright surface behind: the largest error of sparse
 sampling (bunny thinned to every 4th point: +0.7 to +2.5 dB interior PSNR over five views;
 spot, coarsely sampled: +6 dB).
+
+Parameters: those every blended splat method has (`params.SplatParams`: radius_scale, z_t as
+depth_offset, backface_culling, lowpass_radius r_lp) and ewa_filter, whose default is each
+paper's: on for `deferred` (`DeferredParams`), off for `gaussian` and `phong`.
 """
 
 from __future__ import annotations
