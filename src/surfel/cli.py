@@ -184,11 +184,11 @@ def compare(mesh, output, as_json, every, **values):
       surfel compare bunny.obj --method deferred --size 512x512 --shading lambert --json
       surfel compare bunny.obj --method phong --every 4 --size 512x512 --shading lambert
     """
-    from .files import write_atomically
+    from .files import check_output, write_atomically
     from .io import load
     from .metrics import compare_with_mesh, side_by_side
     from .rendering import Renderer
-    from .request import check_output, parse_render
+    from .request import parse_render
 
     request = parse_render({**values, "input": mesh}, require_output=False)
     output = output or f"compare-{request.method}.png"
@@ -211,11 +211,11 @@ def compare(mesh, output, as_json, every, **values):
 @click.option("-o", "--output", required=True, help="PLY to write.")
 @click.option("-k", "--neighbors", type=click.IntRange(4, 256), default=16, show_default=True,
               help="Neighbours for normal estimation.")
-@click.option("--viewpoint", default=None, help="Sensor position X,Y,Z to orient normals towards.")
 @click.option("--elliptical", is_flag=True, help="Fit elliptical splats to the neighbourhood (for phong).")
 @click.option("--normal-field", is_flag=True, help="Fit Phong splatting's linear normal fields.")
 @click.option("--sharp-features/--no-sharp-features", default=True, show_default=True,
               help="Cut splats at creases with clip lines (stored as clip_lines).")
+@table_options("viewpoint")
 def prepare(input, output, neighbors, viewpoint, elliptical, normal_field, sharp_features):
     """Estimate normals, splat radii and tangent frames; write a PLY.
 
@@ -223,11 +223,12 @@ def prepare(input, output, neighbors, viewpoint, elliptical, normal_field, sharp
     Example:
       surfel prepare scan.xyz -o scan.ply --viewpoint 0,0,10
     """
+    from .files import check_output
     from .io import load, write_ply
     from .preprocess import prepare as do_prepare
-    from .request import check_output, direction, parse_option
+    from .request import parse_values
 
-    view = parse_option("--viewpoint", direction, viewpoint)
+    view = parse_values({"viewpoint": viewpoint}, ("viewpoint",)).get("viewpoint")
     check_output(output, "--output")
     cloud = load(input)
     prepared, report = do_prepare(cloud.with_(radii=None, axes=None) if elliptical else cloud, k_normals=neighbors,
@@ -305,7 +306,7 @@ def lod_build(input, output, stats, memory, resume):
     """
     import os
 
-    from .request import check_folder, check_output
+    from .files import check_folder, check_output
 
     if stats is not None:
         check_output(stats, "--stats")

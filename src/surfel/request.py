@@ -16,7 +16,7 @@ names the flag: text that is not a value of the option's kind; values that canno
 are checked here: a field of view outside (0, 180), an orthographic height or a zoom that is
 not positive, an OpenCV K that is not an invertible 3x3 pinhole matrix or an R that is not a
 rotation); an option the chosen method does not use, when the user set it; camera options
-that contradict each other; and every output location (`check_output`).
+that contradict each other; and every output location (`files.check_output`).
 """
 
 from __future__ import annotations
@@ -24,7 +24,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import stat
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
@@ -33,6 +32,7 @@ import numpy as np
 
 from .camera import VIEWS, Camera, frame
 from .errors import SurfelError
+from .files import check_folder, check_output
 from .methods import METHODS, get_method
 from .methods.params import SplatParams
 from .options import RenderOptions, SettingError
@@ -43,7 +43,6 @@ TURNTABLE_FRAMES = 36
 TURNTABLE_FPS = 12.0
 TURNTABLE_ELEVATION = 15.0
 TURNTABLE_SIZE = (512, 512)
-TURNTABLE_FORMATS = (".gif", ".mp4")
 VIEW_SIZE = (800, 800)  # `surfel view`'s window
 IMAGE_FORMATS = (".png", "")  # colour images are PNG; a name without extension gets PNG too
 MAX_PIXELS = 16384 * 16384
@@ -75,6 +74,16 @@ def integer(text: str) -> int:
         return int(text)
     except ValueError:
         raise ValueError(f"needs an integer, got {text!r}") from None
+
+
+def integer_in(low: int, high: int) -> Callable[[str], int]:
+    def parse(text: str) -> int:
+        value = integer(text)
+        if not low <= value <= high:
+            raise ValueError(f"must be in {low}..{high}, got {text!r}")
+        return value
+
+    return parse
 
 
 def numbers(count: int) -> Callable[[str], tuple[float, ...]]:
@@ -120,16 +129,6 @@ def text(value: str) -> str:
     if not value:
         raise ValueError("must not be empty")
     return value
-
-
-def parse_option(label: str, parse: Callable[[str], object], value: str | None):
-    """One value outside the table (a command's own option), parsed or refused naming `label`."""
-    if value is None:
-        return None
-    try:
-        return parse(value)
-    except ValueError as exc:
-        raise SurfelError(f"{label}: {exc}") from None
 
 
 def field_of_view(text: str) -> float:
@@ -289,8 +288,10 @@ OPTIONS: dict[str, Option] = {o.name: o for o in [
            value=_normalization),
     Option("shadows", None, "Ray-traced shadows (mls).", "params", flag="--shadows"),
     Option("reflect", None, "One mirror bounce (mls).", "params", flag="--reflect"),
+    # `surfel prepare`
+    Option("viewpoint", numbers(3), "Sensor position to orient normals towards.", "prepare", metavar="X,Y,Z"),
     # turntables
-    Option("frames", integer, "Frames in the orbit, 1 to 3600.", "turntable", default=str(TURNTABLE_FRAMES),
+    Option("frames", integer_in(1, 3600), "Frames in the orbit.", "turntable", default=str(TURNTABLE_FRAMES),
            metavar="N"),
     Option("fps", positive_number, "Frames per second of the animation.", "turntable", default=f"{TURNTABLE_FPS:g}",
            metavar="RATE"),
@@ -299,8 +300,9 @@ OPTIONS: dict[str, Option] = {o.name: o for o in [
 CAMERA = tuple(name for name, o in OPTIONS.items() if o.sets == "camera")
 RENDER = tuple(name for name, o in OPTIONS.items() if o.sets in ("options", "params"))
 OUTPUTS = ("output", "depth", "normals", "stats")
-# what `surfel render` takes, and hence a batch job
+# what `surfel render` takes, and hence a batch job; what `surfel turntable` takes
 RENDER_COMMAND = ("input", "demo", *OUTPUTS, "method", "backend", *CAMERA, *RENDER)
+TURNTABLE_COMMAND = ("input", "output", "frames", "fps", "elevation", "size", "method", "backend", *RENDER)
 
 
 def option_text(option: Option, value, where: str) -> str | bool:
@@ -371,11 +373,6 @@ def argv_of(values: Mapping[str, object]) -> tuple[str, ...]:
 # Options and parameters of a method
 
 
-def users(name: str) -> list[str]:
-    """The methods that use the RenderOptions field or parameter `name`."""
-    return [m.name for m in METHODS.values() if m.uses(name)]
-
-
 def render_options(method: str, values: Mapping[str, object], *, strict: bool = True,
                    labels: Mapping[str, str] | None = None, where: str = "") -> RenderOptions:
     """RenderOptions (with the method's parameters) from values keyed by RenderOptions field
@@ -390,8 +387,9 @@ def render_options(method: str, values: Mapping[str, object], *, strict: bool = 
             continue
         if not m.uses(name):
             if strict:
+                users = ", ".join(other.name for other in METHODS.values() if other.uses(name))
                 raise SurfelError(f"{where}{labels.get(name, name)}: method {method!r} does not use it "
-                                  f"(it applies to {', '.join(users(name)) or 'no method'})")
+                                  f"(it applies to {users or 'no method'})")
             continue
         kept[name] = value
     common = {k: v for k, v in kept.items() if k in RenderOptions.names()}
@@ -404,40 +402,6 @@ def render_options(method: str, values: Mapping[str, object], *, strict: bool = 
 
 # ---------------------------------------------------------------------------------------------
 # Outputs
-
-
-def check_output(path: str, label: str, formats: tuple[str, ...] | None = None) -> None:
-    """Refuse, before anything is rendered, an output that cannot be written: its folder
-    missing or not writable, the path an existing directory or other non-regular file, or
-    (with `formats`) an extension that is not one of them."""
-    if formats is not None and Path(path).suffix.lower() not in formats:
-        named = " or ".join(f or "no extension" for f in formats)
-        raise SurfelError(f"{path}: {label} must be named {named}")
-    target = os.path.abspath(path)
-    folder = os.path.dirname(target)
-    if not os.path.isdir(folder):
-        raise SurfelError(f"{path}: cannot write: no such directory {os.path.dirname(path) or folder}")
-    if not os.access(folder, os.W_OK | os.X_OK):
-        raise SurfelError(f"{path}: cannot write: permission denied in {os.path.dirname(path) or folder}")
-    if os.path.lexists(target):
-        try:
-            mode = os.stat(target).st_mode
-        except OSError as exc:
-            raise SurfelError(f"{path}: cannot write: {exc.strerror}") from None
-        if not stat.S_ISREG(mode):
-            kind = "a directory" if stat.S_ISDIR(mode) else "not a regular file"
-            raise SurfelError(f"{path}: cannot write: it exists and is {kind}")
-
-
-def check_folder(path: str, label: str) -> None:
-    """A folder an option writes into, created if missing: its parent must exist."""
-    if os.path.exists(path):
-        if not os.path.isdir(path):
-            raise SurfelError(f"{path}: {label} needs a folder, and this is a file")
-        return
-    parent = os.path.dirname(os.path.abspath(path))
-    if not os.path.isdir(parent):
-        raise SurfelError(f"{path}: cannot write: no such directory {os.path.dirname(path) or parent}")
 
 
 @dataclass(frozen=True)
@@ -470,8 +434,7 @@ class Outputs:
             check_output(path, label)
 
     def absolute(self) -> Outputs:
-        return Outputs(*(None if p is None else os.path.abspath(p) for p in (self.png, self.depth, self.normals,
-                                                                              self.stats)))
+        return Outputs(*(p and os.path.abspath(p) for p in (self.png, self.depth, self.normals, self.stats)))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -627,47 +590,5 @@ def parse_render(values: Mapping[str, object], *, where: str = "", require_outpu
                          CameraSpec.from_parsed(parsed, where), options, outputs, argv_of(given))
 
 
-@dataclass(frozen=True)
-class TurntableRequest:
-    """`surfel turntable`: an orbit of auto-framed cameras rendered to a GIF or MP4."""
-
-    input: str
-    output: str
-    frames: int
-    fps: float
-    elevation: float
-    size: tuple[int, int]
-    method: str
-    backend: str | None
-    options: RenderOptions
-
-
-def check_animation(path) -> None:
-    """A turntable's output: .gif, or .mp4 with the video extra installed, in an existing folder."""
-    check_output(os.fspath(path), "a turntable", TURNTABLE_FORMATS)
-    if os.fspath(path).lower().endswith(".mp4"):
-        try:
-            import imageio.v3  # noqa: F401
-        except ImportError:
-            raise SurfelError("mp4 output needs the video extra: pip install 'surfel[video]'") from None
-
-
-TURNTABLE_COMMAND = ("input", "output", "frames", "fps", "elevation", "size", "method", "backend", *RENDER)
-
-
-def parse_turntable(values: Mapping[str, object]) -> TurntableRequest:
-    """`surfel turntable`'s request; its output is checked here, before anything is loaded."""
-    parsed = parse_values(values, TURNTABLE_COMMAND)
-    frames = default("frames", parsed)
-    if not 1 <= frames <= 3600:
-        raise SurfelError(f"--frames: must be in 1..3600, got {frames}")
-    method, backend = method_and_backend(parsed)
-    check_animation(parsed["output"])
-    return TurntableRequest(parsed["input"], parsed["output"], frames, default("fps", parsed),
-                            parsed.get("elevation", TURNTABLE_ELEVATION), parsed.get("size", TURNTABLE_SIZE),
-                            method, backend, options_from(parsed, method))
-
-
-__all__ = ["OPTIONS", "Option", "CameraSpec", "Outputs", "RenderRequest", "TurntableRequest", "check_animation",
-           "check_folder", "check_output", "open_input", "parse_option", "parse_render", "parse_turntable",
-           "parse_values", "render_options"]
+__all__ = ["OPTIONS", "Option", "CameraSpec", "Outputs", "RenderRequest", "default", "method_and_backend",
+           "open_input", "options_from", "parse_render", "parse_values", "render_options"]

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import io
+import os
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -10,18 +12,23 @@ from tqdm import tqdm
 
 from .camera import frame
 from .errors import SurfelError
-from .files import write_atomically
+from .files import check_output, write_atomically
+from .options import RenderOptions
 from .rendering import Renderer
 from .request import (
+    TURNTABLE_COMMAND,
     TURNTABLE_ELEVATION,
     TURNTABLE_FPS,
     TURNTABLE_FRAMES,
     TURNTABLE_SIZE,
-    TurntableRequest,
-    check_animation,
+    default,
+    method_and_backend,
     open_input,
-    parse_turntable,
+    options_from,
+    parse_values,
 )
+
+FORMATS = (".gif", ".mp4")
 
 
 def orbit_cameras(cloud, frames: int, *, size=TURNTABLE_SIZE, elevation: float = TURNTABLE_ELEVATION,
@@ -30,6 +37,16 @@ def orbit_cameras(cloud, frames: int, *, size=TURNTABLE_SIZE, elevation: float =
     for i in range(frames):
         yield frame(cloud.center, cloud.bounding_radius, azimuth=360.0 * i / frames, elevation=elevation,
                     geospatial=cloud.geospatial, size=size, fov=fov)
+
+
+def check_animation(path) -> None:
+    """A turntable's output: .gif, or .mp4 with the video extra installed, in an existing folder."""
+    check_output(os.fspath(path), "a turntable", FORMATS)
+    if os.fspath(path).lower().endswith(".mp4"):
+        try:
+            import imageio.v3  # noqa: F401
+        except ImportError:
+            raise SurfelError("mp4 output needs the video extra: pip install 'surfel[video]'") from None
 
 
 def write_animation(images: list[np.ndarray], path, fps: float = TURNTABLE_FPS) -> None:
@@ -74,6 +91,32 @@ def turntable(cloud, path, *, frames: int = TURNTABLE_FRAMES, method: str = "def
                        leave=False):
         images.append(renderer.render(cloud, camera, method, backend=backend, **options).rgba8())
     write_animation(images, path, fps)
+
+
+@dataclass(frozen=True)
+class TurntableRequest:
+    """`surfel turntable`: an orbit of auto-framed cameras rendered to a GIF or MP4."""
+
+    input: str
+    output: str
+    frames: int
+    fps: float
+    elevation: float
+    size: tuple[int, int]
+    method: str
+    backend: str | None
+    options: RenderOptions
+
+
+def parse_turntable(values: dict) -> TurntableRequest:
+    """`surfel turntable`'s request, parsed by the request layer; its output is checked here,
+    before anything is loaded."""
+    parsed = parse_values(values, TURNTABLE_COMMAND)
+    method, backend = method_and_backend(parsed)
+    check_animation(parsed["output"])
+    return TurntableRequest(parsed["input"], parsed["output"], default("frames", parsed), default("fps", parsed),
+                            parsed.get("elevation", TURNTABLE_ELEVATION), parsed.get("size", TURNTABLE_SIZE),
+                            method, backend, options_from(parsed, method))
 
 
 def turntable_command(values: dict) -> TurntableRequest:
