@@ -4,6 +4,7 @@ import json
 import subprocess
 import sys
 import time
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -62,35 +63,36 @@ def test_jobs_file_must_be_a_list_of_mappings(tmp_path):
     assert result.exit_code == 2 and "non-empty list" in result.output
 
 
-def test_a_job_means_what_the_same_render_flags_mean(tmp_path):
-    """The YAML job's parameters are those `surfel render` parses from the same flags."""
+def test_a_job_means_what_the_same_render_flags_mean(tmp_path, monkeypatch):
+    """The YAML job's request is the one `surfel render` makes of the same flags."""
     from surfel.batch import make_jobs, read_jobs_file
     from surfel.cli import render
+    from surfel.request import parse_render
 
+    monkeypatch.chdir(tmp_path)
     (tmp_path / "jobs.yaml").write_text("- {demo: true, output: a.png, size: [96, 64], radius-scale: 1.5, "
-                                        "ewa_filter: false, eye: [0, 0, 3], per-pixel-normalization: false}\n")
+                                        "method: object-space, eye: [0, 0, 3], per-pixel-normalization: false}\n")
     job, = make_jobs(read_jobs_file(tmp_path / "jobs.yaml"))
-    flags = ["--demo", "-o", "a.png", "--size", "96x64", "--radius-scale", "1.5", "--no-ewa-filter", "--eye", "0,0,3",
-             "--per-surfel-normalization"]
-    expected = render.make_context("render", flags).params
-    def without_output(params):
-        return {k: v for k, v in params.items() if k != "output"}
-
-    assert without_output(job.params) == without_output(expected)
-    assert job.params["output"].endswith("a.png")
+    flags = ["--demo", "-o", "a.png", "--size", "96x64", "--radius-scale", "1.5", "--method", "object-space",
+             "--eye", "0,0,3", "--per-surfel-normalization"]
+    expected = parse_render(render.make_context("render", flags).params).absolute()
+    assert replace(job.request, argv=()) == replace(expected, argv=())
+    assert job.request.options.params.normalization == "per-surfel" and job.request.camera.size == (96, 64)
+    assert job.request.outputs.png == str(tmp_path / "a.png")
+    rerun = parse_render(render.make_context("render", list(job.request.argv)).params).absolute()
+    assert replace(rerun, argv=()) == replace(expected, argv=())  # the command that reruns the job alone
 
 
 def test_turntable_jobs_have_the_cameras_of_surfel_turntable():
     from surfel.batch import make_jobs, turntable_jobs
-    from surfel.cli import make_camera
     from surfel.data import demo_cloud
     from surfel.turntable import orbit_cameras
 
     cloud = demo_cloud()
     jobs = make_jobs(turntable_jobs(6, "f-{frame:02d}.png", demo=True), defaults={"size": "64x48"})
-    assert [j.params["output"].rsplit("/", 1)[1] for j in jobs] == [f"f-{i:02d}.png" for i in range(6)]
+    assert [j.request.outputs.png.rsplit("/", 1)[1] for j in jobs] == [f"f-{i:02d}.png" for i in range(6)]
     for job, camera in zip(jobs, orbit_cameras(cloud, 6, size=(64, 48)), strict=True):
-        assert np.array_equal(make_camera(cloud, job.params).world_to_eye, camera.world_to_eye)
+        assert np.array_equal(job.request.camera.camera(cloud).world_to_eye, camera.world_to_eye)
 
 
 @requires_gl
@@ -113,16 +115,15 @@ def test_turntable_on_a_local_cluster_equals_separate_renders(tmp_path):
 @requires_gl
 def test_a_crashing_job_is_retried_then_reported_and_the_others_are_written(tmp_path):
     pytest.importorskip("distributed")
-    from dataclasses import replace
-
     from surfel.batch import make_jobs, run_batch
 
     good, other = make_jobs([{"demo": True, "output": str(tmp_path / f"{n}.png"), "size": "32x32"} for n in "ab"])
-    crashing = replace(other, params={**other.params, "size": "0x0"})  # raises on the worker, not a SurfelError
-    summary = run_batch([good, crashing], workers=1, retries=1, progress=False)
+    # a field of view that is no number raises a TypeError on the worker, not a SurfelError
+    broken = replace(other.request, camera=replace(other.request.camera, fov="wide"))
+    summary = run_batch([good, replace(other, request=broken)], workers=1, retries=1, progress=False)
     assert summary.done == 1 and list(summary.failed) == [1]
     error = summary.failed[1]["error"]
-    assert "after 1 retries" in error and "size" in error
+    assert "after 1 retries" in error and "TypeError" in error
     assert (tmp_path / "a.png").exists() and not (tmp_path / "b.png").exists()
 
 

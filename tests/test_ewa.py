@@ -12,7 +12,8 @@ from surfel.camera import frame
 from surfel.cloud import PointCloud
 from surfel.methods import ewa_kernels as k
 from surfel.methods.ewa import EwaParams, render_ewa_cpu, splat_axes, splat_clip_lines, splat_fields
-from surfel.options import RenderOptions
+from surfel.options import RenderOptions, SettingError
+from surfel.rendering import Renderer
 
 BUNNY = Path(__file__).resolve().parents[2] / "shared" / "data" / "stanford-bunny.obj"
 
@@ -26,6 +27,10 @@ def _plane(n: int = 40) -> PointCloud:
     r = 1.2 / n
     axes = np.tile([[[r, 0, 0], [0, r, 0]]], (n * n, 1, 1))
     return PointCloud(pos, normals=normals, radii=np.full(n * n, r), axes=axes)
+
+
+def ewa_cpu(cloud, camera, **options):
+    return render_ewa_cpu(cloud, camera, RenderOptions(**options), EwaParams(), Renderer())
 
 
 def _setup(cloud, camera, sigma=0.5, lowpass=1.0):
@@ -59,16 +64,18 @@ def test_conic_matches_finite_differences_of_project(ortho):
 
 
 def test_default_cutoff_keeps_90_percent_of_the_mass():
-    params = EwaParams.from_options(RenderOptions())
+    params = EwaParams()
     assert 1 - math.exp(-params.cutoff2 / 2) == pytest.approx(0.9)
-    assert EwaParams.from_options(RenderOptions(params={"cutoff_mass": 0.99})).cutoff2 > params.cutoff2
+    assert EwaParams(cutoff_mass=0.99).cutoff2 > params.cutoff2
+    with pytest.raises(SettingError, match="cutoff_mass"):
+        EwaParams(cutoff_mass=1.0)
 
 
 @pytest.mark.parametrize("ortho", [None, 1.5])
 def test_plane_is_covered_without_holes(ortho):
     cloud = _plane()
     cam = frame(cloud.center, 0.7, size=(96, 96), ortho_height=ortho)
-    res = render_ewa_cpu(cloud, cam, RenderOptions(shading="lambert"))
+    res = ewa_cpu(cloud, cam, shading="lambert")
     inner = res.alpha[30:66, 30:66]
     assert inner.min() > 0.99
     np.testing.assert_allclose(res.color[30:66, 30:66], 1.0, atol=1e-3)  # lambert, facing the camera
@@ -93,7 +100,7 @@ def test_against_mesh(model, view):
     cloud = load(str(BUNNY.parent / model))
     cam = default_camera(cloud, (512, 512), view=view)
     ref = render(cloud, cam, "mesh", shading="lambert")
-    res = render_ewa_cpu(complete(cloud, normal_field=True)[0], cam, RenderOptions(shading="lambert"))
+    res = ewa_cpu(complete(cloud, normal_field=True)[0], cam, shading="lambert")
     m = compare_results(ref, res)
     assert m["psnr"] >= 27 and m["holes"] <= 0.001
     both = (ref.alpha > 0.99) & (res.alpha > 0.99)
@@ -113,7 +120,7 @@ def test_minification_error_at_most_that_of_deferred_ewa():
     plane = checker_plane()
     reference = checker_reference(cam, samples=8)
     deferred = far_half_rms(reference, render(plane, cam, "deferred", shading="none", ewa_filter=True))
-    ours = far_half_rms(reference, render_ewa_cpu(plane, cam, RenderOptions(shading="none")))
+    ours = far_half_rms(reference, ewa_cpu(plane, cam, shading="none"))
     assert ours <= deferred
 
 
@@ -126,7 +133,7 @@ def test_partly_covered_front_layer_shows_the_surface_behind():
     both = PointCloud(np.vstack([back.positions, front.positions]), normals=np.vstack([back.normals, front.normals]),
                       radii=np.concatenate([back.radii, front.radii]), axes=np.vstack([back.axes, front.axes]))
     cam = frame(back.center, 0.7, size=(96, 96))
-    res = render_ewa_cpu(both, cam, RenderOptions(shading="lambert"))
+    res = ewa_cpu(both, cam, shading="lambert")
     inner = res.alpha[30:66, 30:66]
     assert inner.min() > 0.99
     np.testing.assert_allclose(res.color[30:66, 30:66], 1.0, atol=1e-3)

@@ -7,22 +7,24 @@ import pytest
 
 from conftest import requires_gl
 from surfel.camera import frame
-from surfel.methods.ewa import render_ewa_cpu
+from surfel.methods.ewa import EwaParams, render_ewa_cpu
 from surfel.metrics import compare_results
 from surfel.options import RenderOptions
+from surfel.rendering import Renderer
 
 pytestmark = requires_gl
 
 MIN_PSNR = 35.0
 
 
-def _both(cloud, camera, **options):
+def _both(cloud, camera, supersample=None, **params):
     from surfel.methods.ewa_gl import render_ewa_gl
 
-    opts = RenderOptions(shading="lambert", **options)
+    opts, params = RenderOptions(shading="lambert", supersample=supersample), EwaParams(**params)
     # Clip planes around the splats, as render() sets them.
     camera = camera.fit_clip_planes(cloud.center, 1.1 * cloud.bounding_radius)
-    return render_ewa_cpu(cloud, camera, opts), render_ewa_gl(cloud, camera, opts)
+    renderer = Renderer()
+    return render_ewa_cpu(cloud, camera, opts, params, renderer), render_ewa_gl(cloud, camera, opts, params, renderer)
 
 
 @pytest.mark.parametrize("size", [256, 512])

@@ -6,8 +6,9 @@ from scipy import ndimage
 from surfel.camera import frame
 from surfel.cloud import PointCloud
 from surfel.mls import surface as S
-from surfel.mls.raytrace import prepare_scene, render_mls_cpu, trace
+from surfel.mls.raytrace import MlsParams, prepare_scene, render_mls_cpu, trace
 from surfel.options import RenderOptions
+from surfel.rendering import Renderer
 
 
 def sphere_points(n: int) -> np.ndarray:
@@ -17,6 +18,13 @@ def sphere_points(n: int) -> np.ndarray:
 
 
 SPHERE = PointCloud(sphere_points(40000), normals=sphere_points(40000))
+
+
+RENDERER = Renderer()  # shared, so that each cloud's MLS scene is prepared once for these tests
+
+
+def mls_cpu(cloud, camera, options, **params):
+    return render_mls_cpu(cloud, camera, options, MlsParams(**params), RENDERER)
 
 
 def test_projection_onto_sphere():
@@ -40,7 +48,7 @@ def test_fit_failure_statuses():
 
 def test_sphere_depth_accuracy():
     cam = frame(SPHERE.center, SPHERE.bounding_radius, size=(256, 256))
-    res = render_mls_cpu(SPHERE, cam, RenderOptions(shading="lambert"))
+    res = mls_cpu(SPHERE, cam, RenderOptions(shading="lambert"))
     o, d = cam.rays()
     c = (cam.world_to_eye @ np.r_[0, 0, 0, 1.0])[:3]
     b = (d * (o - c)).sum(-1)
@@ -66,8 +74,8 @@ def test_domain_test_keeps_holes_open():
 
 def test_shadows_darken():
     cam = frame(SPHERE.center, SPHERE.bounding_radius, size=(64, 64))
-    lit = render_mls_cpu(SPHERE, cam, RenderOptions(shading="phong"))
-    shadowed = render_mls_cpu(SPHERE, cam, RenderOptions(shading="phong", params={"shadows": True}))
+    lit = mls_cpu(SPHERE, cam, RenderOptions(shading="phong"))
+    shadowed = mls_cpu(SPHERE, cam, RenderOptions(shading="phong"), shadows=True)
     assert shadowed.stats["shadowed"] > 0
     assert (shadowed.color.sum(-1) < lit.color.sum(-1) - 0.05).any()
     assert (shadowed.color <= lit.color + 1e-6).all()
@@ -102,4 +110,4 @@ def assert_depth_on_torus(render_function, major: float = 1.0, minor: float = 0.
 
 
 def test_torus_depth_lies_on_the_torus():
-    assert_depth_on_torus(render_mls_cpu)
+    assert_depth_on_torus(mls_cpu)

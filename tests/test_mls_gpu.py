@@ -8,12 +8,15 @@ from conftest import requires_gl
 from surfel.camera import frame
 from surfel.cloud import PointCloud
 from surfel.metrics import compare_results
-from surfel.mls.gpu import render_mls_gl
-from surfel.mls.raytrace import render_mls_cpu
+from surfel.mls.gpu import MlsGpuParams, render_mls_gl
 from surfel.options import RenderOptions
-from test_mls import SPHERE, sphere_points
+from test_mls import RENDERER, SPHERE, mls_cpu, sphere_points
 
 pytestmark = requires_gl
+
+
+def mls_gl(cloud, camera, options):
+    return render_mls_gl(cloud, camera, options, MlsGpuParams(), RENDERER)
 
 
 def exact_sphere_depth(cam) -> np.ndarray:
@@ -30,14 +33,14 @@ def test_sphere_depth_accuracy():
     cam = frame(SPHERE.center, SPHERE.bounding_radius, size=(256, 256))
     exact = exact_sphere_depth(cam)
     inner = ndimage.binary_erosion(np.isfinite(exact), iterations=2)
-    res = render_mls_gl(SPHERE, cam, RenderOptions(shading="lambert"))
+    res = mls_gl(SPHERE, cam, RenderOptions(shading="lambert"))
     both = np.isfinite(exact) & np.isfinite(res.depth)
     # 2x2 supersampled: a pixel's depth is its nearest sample, a quarter pixel off the centre
     assert np.median(np.abs(res.depth[both] - exact[both]) / exact[both]) <= 1e-3
     assert not (inner & (res.alpha < 0.5)).any()
     assert res.stats["hits"] > 0 and res.stats["last_step_median"] < 1e-3
     # one ray per pixel centre: the converged hit is on the sphere to float32 precision
-    single = render_mls_gl(SPHERE, cam, RenderOptions(shading="lambert", supersample=1))
+    single = mls_gl(SPHERE, cam, RenderOptions(shading="lambert", supersample=1))
     both = np.isfinite(exact) & np.isfinite(single.depth)
     assert np.median(np.abs(single.depth[both] - exact[both]) / exact[both]) <= 1e-5
     o, d = cam.rays()
@@ -50,15 +53,15 @@ def test_domain_test_keeps_holes_open():
     p = sphere_points(40000)
     cloud = PointCloud(p[p[:, 2] < 0.8], normals=p[p[:, 2] < 0.8])  # cap removed around +z
     cam = frame(np.zeros(3), 1.0, eye=[0, 0, 4.0], target=[0, 0, 0], up=[0, 1.0, 0], size=(64, 64))
-    res = render_mls_gl(cloud, cam, RenderOptions(shading="lambert", supersample=1))
+    res = mls_gl(cloud, cam, RenderOptions(shading="lambert", supersample=1))
     assert np.allclose(res.depth[31:33, 31:33], 5.0, rtol=1e-4)  # through the hole onto z = -1
 
 
 def test_agrees_with_cpu_mls_on_bunny(bunny):
     cam = frame(bunny.center, bunny.bounding_radius, size=(256, 256))
     options = RenderOptions(shading="lambert")
-    gpu = render_mls_gl(bunny, cam, options)
-    cpu = render_mls_cpu(bunny, cam, options)
+    gpu = mls_gl(bunny, cam, options)
+    cpu = mls_cpu(bunny, cam, options)
     metrics = compare_results(cpu, gpu)
     assert metrics["psnr"] >= 30 and metrics["holes"] <= 0.005
     both = np.isfinite(cpu.depth) & np.isfinite(gpu.depth)
@@ -69,4 +72,4 @@ def test_agrees_with_cpu_mls_on_bunny(bunny):
 def test_gpu_torus_depth_lies_on_the_torus():
     from test_mls import assert_depth_on_torus
 
-    assert_depth_on_torus(render_mls_gl)
+    assert_depth_on_torus(mls_gl)

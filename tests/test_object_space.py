@@ -38,8 +38,7 @@ def test_resampling_matrix_adds_the_lowpass_mapped_to_object_space():
 def test_object_space_against_the_mesh(bunny, normalization):
     cam = frame(bunny.center, bunny.bounding_radius, size=(256, 256))
     ref = render(bunny, cam, "mesh", shading="lambert")
-    result = render(bunny.with_(faces=None), cam, "object-space", shading="lambert",
-                    params={"normalization": normalization})
+    result = render(bunny.with_(faces=None), cam, "object-space", shading="lambert", normalization=normalization)
     metrics = compare_results(ref, result)
     assert metrics["holes"] <= 0.001
     if normalization == "per-pixel":

@@ -14,8 +14,11 @@ from surfel.viewer import ViewState
 
 def test_keys_change_the_view_state():
     state = ViewState(load(data_file("spot.obj")), "deferred", "phong")
-    assert state.key("3") and state.method == state.methods[2]
-    assert state.key("e") and state.ewa_filter is False
+    assert state.ewa_filter_on() is True  # deferred's own default, as on the command line
+    assert state.key("3") and state.method == state.methods[2] == "gaussian"
+    assert state.ewa_filter_on() is False  # gaussian's: the viewer forces nothing
+    assert state.key("e") and state.ewa_filter_on() is True
+    assert state.key("2") and state.method == "points" and state.ewa_filter_on() is None
     assert state.key("+") and state.lod_error == 1.0
     assert state.key("+") and state.lod_error == 2.0
     assert state.key("-") and state.key("-") and state.lod_error == 0.0

@@ -9,9 +9,10 @@
 from .cloud import PointCloud
 from .errors import InputError, SurfelError
 from .io import load, write_ply
-from .rendering import default_camera, render
+from .rendering import Renderer, default_camera, render
 
-__all__ = ["PointCloud", "InputError", "SurfelError", "load", "write_ply", "render", "default_camera", "show"]
+__all__ = ["PointCloud", "InputError", "SurfelError", "Renderer", "load", "write_ply", "render", "default_camera",
+           "show"]
 __version__ = "0.1.0"
 
 

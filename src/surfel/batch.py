@@ -1,22 +1,25 @@
 """`surfel batch`: many renders on a Dask distributed cluster, each identical to a `surfel render`.
 
 A job is one `surfel render` invocation written as a dict of its option names (``input``,
-``output``, ``method``, ``size``, ``azimuth``, ``depth``, ...; ``-`` or ``_`` alike). The dict is
-turned back into the command's arguments and parsed by the `render` command itself, so a job
-has exactly that command's defaults, validation and meaning, and the worker then runs the
-same steps as the command (`open_input`, `make_camera`, `make_options`, `rendering.render`) and the
-driver writes the files with the same `RenderResult.save`: the outputs are byte-identical to
-rendering the jobs one by one. ``--turntable N`` makes the N jobs of `surfel turntable`'s orbit,
-frame i at azimuth 360 i / N degrees (the cameras of `turntable.orbit_cameras`).
+``output``, ``method``, ``size``, ``azimuth``, ``depth``, ...; ``-`` or ``_`` alike). It is
+parsed by `request.parse_render`, the parser of the `render` command's own flags, so a job has
+exactly that command's defaults, validation and meaning; the worker then runs the same steps
+as the command (`RenderRequest.render`) and the driver writes the files with the same
+`RenderRequest.write`: the outputs are byte-identical to rendering the jobs one by one.
+``--turntable N`` makes the N jobs of `surfel turntable`'s orbit, frame i at azimuth
+360 i / N degrees (the cameras of `turntable.orbit_cameras`), named by a {frame} pattern, a
+number before the extension, or FOLDER/000.png ... for a folder.
 
 Execution (issue 9): an embedded `LocalCluster` of single-threaded worker processes, or a
 running scheduler. OpenGL contexts belong to one thread of one process, so every worker
-process renders on one dedicated thread of its own, whatever the Dask thread count; each
-worker keeps the clouds it has loaded (keyed by path, size and modification time), so an input
-is read and its normals/radii estimated once per worker (`rendering.complete` caches per cloud).
-A job that raises is retried by Dask; an input the user must fix (a `SurfelError`) fails the job
-at once, since a retry would fail the same way. Failures are listed in the summary, never
-dropped. Dask is imported only here, inside the functions that need it: `import surfel` does not.
+process renders on one dedicated thread of its own, whatever the Dask thread count, with its
+own Renderer (`Worker`); it keeps the clouds it has loaded (keyed by path, size and
+modification time), so an input is read and its normals/radii estimated once per worker.
+A job whose output locations cannot be written is reported failed before it runs, and the
+others go on. A job that raises is retried by Dask; an input the user must fix (a
+`SurfelError`) fails the job at once, since a retry would fail the same way. Failures are
+listed in the summary, never dropped. Dask is imported only here, inside the functions that
+need it: `import surfel` does not.
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ from __future__ import annotations
 import json
 import os
 import shlex
+import string
 import threading
 import time
 from collections import OrderedDict
@@ -35,26 +39,25 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from .errors import InputError, SurfelError
+from .rendering import Renderer
+from .request import TURNTABLE_ELEVATION, RenderRequest, parse_render
 
 if TYPE_CHECKING:
     from .cloud import PointCloud
     from .result import RenderResult
 
 INSTALL_HINT = "surfel batch needs the distributed extra: pip install 'surfel[distributed]'"
-PATH_KEYS = ("input", "output", "depth", "normals", "stats", "opencv", "dump_passes")
-OUTPUT_KEYS = ("output", "depth", "normals", "stats")
-TURNTABLE_ELEVATION = 15.0  # `surfel turntable`'s default
 CACHED_INPUTS = 4  # clouds kept per worker process
+EXTENSIONS = {"output": ".png", "depth": ".npy", "normals": ".npy", "stats": ".json"}
 
 
 @dataclass(frozen=True)
 class Job:
-    """One render: `params` are the parsed `surfel render` parameters (paths absolute, so that
-    workers started in another directory find them); `argv` the equivalent command line."""
+    """One render: the parsed request (paths absolute, so that workers started in another
+    directory find them); `request.argv` is the equivalent command line."""
 
     index: int
-    params: dict
-    argv: tuple[str, ...]
+    request: RenderRequest
 
 
 @dataclass
@@ -92,7 +95,7 @@ class Summary:
             self.done += 1
         else:
             row["failed"] += 1
-            self.failed[job.index] = {"error": error, "command": shlex.join(("surfel", "render", *job.argv))}
+            self.failed[job.index] = {"error": error, "command": shlex.join(("surfel", "render", *job.request.argv))}
 
     def as_dict(self) -> dict:
         return {"cluster": self.cluster, "jobs": self.jobs, "done": self.done, "seconds": round(self.seconds, 3),
@@ -117,9 +120,11 @@ def read_jobs_file(path) -> list[dict]:
     """A JSON or YAML (.yaml/.yml, needs PyYAML) list of job dicts."""
     path = Path(path)
     try:
-        text = path.read_text()
-    except (OSError, UnicodeDecodeError) as exc:
+        text = path.read_text(encoding="utf-8")
+    except OSError as exc:
         raise SurfelError(f"{path}: cannot read the jobs file ({exc.strerror or exc})") from None
+    except UnicodeDecodeError as exc:
+        raise SurfelError(f"{path}: the jobs file is not UTF-8 text (byte {exc.start})") from None
     if path.suffix.lower() in (".yaml", ".yml"):
         try:
             import yaml
@@ -143,175 +148,166 @@ def read_jobs_file(path) -> list[dict]:
 def turntable_jobs(frames: int, output: str, *, input: str | None = None, demo: bool = False,
                    depth: str | None = None, normals: str | None = None, stats: str | None = None,
                    elevation: float = TURNTABLE_ELEVATION) -> list[dict]:
-    """The `frames` jobs of a turntable: output names from patterns with ``{frame}`` (e.g.
-    ``spot-{frame:03d}.png``), or the frame number appended to the file name."""
-    jobs = []
-    for i in range(frames):
-        job = {"input": input, "demo": demo, "azimuth": 360.0 * i / frames, "elevation": elevation}
-        for key, pattern in (("output", output), ("depth", depth), ("normals", normals), ("stats", stats)):
-            if pattern is not None:
-                job[key] = _frame_name(pattern, i, frames)
-        jobs.append(job)
-    return jobs
+    """The `frames` jobs of a turntable, their files named by `frame_names`."""
+    names = {key: frame_names(pattern, frames, key) for key, pattern in
+             (("output", output), ("depth", depth), ("normals", normals), ("stats", stats)) if pattern is not None}
+    return [{"input": input, "demo": demo, "azimuth": 360.0 * i / frames, "elevation": elevation,
+             **{key: files[i] for key, files in names.items()}} for i in range(frames)]
 
 
-def _frame_name(pattern: str, i: int, frames: int) -> str:
-    if "{" in pattern:
-        try:
-            return pattern.format(frame=i)
-        except (KeyError, IndexError, ValueError) as exc:
-            raise SurfelError(f"output pattern {pattern!r}: use {{frame}} or e.g. {{frame:03d}} ({exc})") from None
+def frame_names(pattern: str, frames: int, key: str = "output") -> list[str]:
+    """The file of each frame: a pattern with {frame} (e.g. spot-{frame:03d}.png); an existing
+    folder, or a name ending in a separator, gets FOLDER/000.png ...; a name with an extension
+    gets the frame number before it (spot.png: spot-000.png ...)."""
+    label, extension = f"--{key}", EXTENSIONS[key]
+    digits = max(3, len(str(frames - 1)))
+    if "{" in pattern or "}" in pattern:
+        check_frame_pattern(pattern, label)
+        return [pattern.format(frame=i) for i in range(frames)]
+    if os.path.isdir(pattern) or pattern.endswith(("/", os.sep)):
+        return [os.path.join(pattern, f"{i:0{digits}d}{extension}") for i in range(frames)]
     path = Path(pattern)
-    return str(path.with_name(f"{path.stem}-{i:0{max(3, len(str(frames - 1)))}d}{path.suffix}"))
+    if not path.suffix:
+        raise SurfelError(f"{label} {pattern}: no such folder; give an existing folder, or a name with "
+                          f"{{frame}} or an extension (e.g. {pattern}-{{frame:03d}}{extension})")
+    return [str(path.with_name(f"{path.stem}-{i:0{digits}d}{path.suffix}")) for i in range(frames)]
+
+
+def check_frame_pattern(pattern: str, label: str) -> None:
+    """A pattern's only field is {frame}, with an integer format (no attributes, no indexing)."""
+    usage = f"{label} {pattern!r}: use {{frame}} or e.g. {{frame:03d}}"
+    try:
+        fields = [(name, spec) for _, name, spec, _ in string.Formatter().parse(pattern) if name is not None]
+    except ValueError as exc:
+        raise SurfelError(f"{usage} ({exc})") from None
+    if not fields:
+        raise SurfelError(usage)
+    for name, spec in fields:
+        if name != "frame":
+            raise SurfelError(f"{usage}, not {{{name}}}")
+        try:
+            format(0, spec)
+        except ValueError as exc:
+            raise SurfelError(f"{usage} ({exc})") from None
 
 
 def make_jobs(specs: list[dict], *, defaults: dict | None = None, where: str = "jobs") -> list[Job]:
-    """Validate every job up front (one-line SurfelError naming `where` and the job index).
+    """Parse and check every job up front (one-line SurfelError naming `where` and the job index).
 
     `defaults` are options applying to every job that does not set them itself.
     """
-    jobs = [_make_job(i, {**(defaults or {}), **spec}, f"{where}: job {i}") for i, spec in enumerate(specs)]
+    def keyed(mapping):
+        return {str(key).replace("-", "_"): value for key, value in mapping.items()}
+
+    base = {key: value for key, value in keyed(defaults or {}).items() if value is not None}
+    jobs = [Job(i, _parse_job({**base, **keyed(spec)}, f"{where}: job {i}: ")) for i, spec in enumerate(specs)]
     owner: dict[str, int] = {}
     for job in jobs:
-        for key in OUTPUT_KEYS:
-            path = job.params[key]
-            if path is not None and owner.setdefault(path, job.index) != job.index:
-                raise SurfelError(f"{where}: job {job.index}: {key} {path} is also written by job {owner[path]}")
+        for path in job.request.outputs.named().values():
+            if owner.setdefault(path, job.index) != job.index:
+                raise SurfelError(f"{where}: job {job.index}: {path} is also written by job {owner[path]}")
     return jobs
 
 
-def _make_job(index: int, spec: dict, where: str) -> Job:
-    import click
-
-    from .cli import _floats, _size, make_options, render
-    from .methods import get_method
-
-    argv = _render_argv(spec, where)
-    try:
-        params = render.make_context("render", list(argv)).params
-        _size(params["size"])
-        make_options(params)
-        for name in ("eye", "target", "up"):
-            _floats(params[name], 3, f"--{name}")
-    except click.ClickException as exc:
-        raise SurfelError(f"{where}: {exc.format_message()}") from None
-    if params["demo"] == (params["input"] is not None):
-        raise SurfelError(f"{where}: give an input file or demo: true (not both)")
-    try:
-        method = get_method(params["method"])
-    except SurfelError as exc:
-        raise SurfelError(f"{where}: {exc}") from None
-    if params["backend"] is not None and params["backend"] not in method.backends:
-        raise SurfelError(f"{where}: method {method.name!r} has no {params['backend']!r} backend")
-    for key in ("input", "opencv"):
-        if params[key] is not None and not Path(params[key]).exists():
-            raise SurfelError(f"{where}: {key} {params[key]}: no such file")
-    params = {k: (os.path.abspath(v) if k in PATH_KEYS and v is not None else v) for k, v in params.items()}
-    return Job(index, params, argv)
+def _parse_job(spec: dict, where: str) -> RenderRequest:
+    request = parse_render(spec, where=where)
+    if request.input is not None and not Path(request.input).exists():
+        raise SurfelError(f"{where}input {request.input}: no such file")
+    return request.absolute()
 
 
-def _render_argv(spec: dict, where: str) -> tuple[str, ...]:
-    """The `surfel render` arguments meaning what the job dict says."""
-    from .cli import render
-
-    options = {p.name: p for p in render.params if p.name != "help"}
-    argv: list[str] = []
-    positional: list[str] = []
-    for key, value in spec.items():
-        name = str(key).replace("-", "_")
-        if name not in options:
-            raise SurfelError(f"{where}: unknown option {key!r} (a job takes the options of `surfel render`)")
-        param = options[name]
-        if value is None:
-            continue
-        if param.param_type_name == "argument":
-            positional = ["--", str(value)]
-            continue
-        flag = max(param.opts, key=len)
-        if param.is_flag:
-            if not isinstance(value, bool):
-                raise SurfelError(f"{where}: {key} is true or false, got {value!r}")
-            if param.secondary_opts:
-                argv.append(flag if value else max(param.secondary_opts, key=len))
-            elif value:
-                argv.append(flag)
-            continue
-        if isinstance(value, (list, tuple)):
-            value = ("x" if name == "size" else ",").join(str(v) for v in value)
-        elif isinstance(value, (bool, dict)):
-            raise SurfelError(f"{where}: {key} takes a value, got {value!r}")
-        argv += [flag, str(value)]
-    return tuple(argv + positional)
+def batch_command(jobs, *, defaults: dict, turntable: int | None, demo: bool, outputs: dict,
+                  scheduler: str | None, workers: int | None, retries: int) -> Summary:
+    """`surfel batch`: the jobs of a file, or of a turntable, run; the summary."""
+    given = {key: value for key, value in defaults.items() if value is not None}
+    if turntable is None:
+        if demo or any(outputs.values()):
+            raise SurfelError("--demo, -o, --depth, --normals and --stats go with --turntable; "
+                              "jobs name their outputs")
+        if jobs is None:
+            raise SurfelError("give a JOBS file, or an input with --turntable N")
+        specs, where = read_jobs_file(jobs), jobs
+    else:
+        if demo == (jobs is not None):
+            raise SurfelError("with --turntable give an input file or --demo (not both)")
+        if outputs["output"] is None:
+            raise SurfelError("--turntable needs -o/--output")
+        fixed = sorted({"view", "azimuth", "eye", "opencv"} & set(given))
+        if fixed:
+            raise SurfelError(f"--turntable sets the camera; drop --{', --'.join(fixed)}")
+        specs = turntable_jobs(turntable, outputs["output"], input=jobs, demo=demo, depth=outputs["depth"],
+                               normals=outputs["normals"], stats=outputs["stats"],
+                               elevation=given.pop("elevation", TURNTABLE_ELEVATION))
+        where = "turntable"
+    return run_batch(make_jobs(specs, defaults=given, where=where), scheduler=scheduler, workers=workers,
+                     retries=retries)
 
 
 # ---------------------------------------------------------------------------------------------
 # Worker side
 
-_inputs: OrderedDict[tuple, PointCloud] = OrderedDict()
-_gl_thread: ThreadPoolExecutor | None = None
-_gl_thread_lock = threading.Lock()
+
+class Worker:
+    """What a worker process keeps from job to job: the one thread that renders (an OpenGL
+    context belongs to one thread), its Renderer, and the inputs it has loaded."""
+
+    def __init__(self):
+        self.thread = ThreadPoolExecutor(max_workers=1, thread_name_prefix="surfel-render")
+        self.renderer = Renderer()
+        self.inputs: OrderedDict[tuple, PointCloud] = OrderedDict()
+
+    def render(self, request: RenderRequest) -> tuple[RenderResult, bool]:
+        """The body of `surfel render`, with the input cached (runs on the render thread)."""
+        cloud, loaded = self.input(request)
+        result = request.render(self.renderer, cloud)
+        # ship back only the buffers the job writes
+        empty = np.empty((0, 0), np.float32)
+        outputs = request.outputs
+        result = replace(result, depth=result.depth if outputs.depth else empty,
+                         normals=result.normals if outputs.normals else empty)
+        return result, loaded
+
+    def input(self, request: RenderRequest) -> tuple[PointCloud, bool]:
+        """The job's cloud, loaded at most once per process while its file is unchanged."""
+        if request.demo:
+            key = ("demo",)
+        else:
+            try:
+                st = os.stat(request.input)
+            except OSError as exc:  # a remote worker that does not share the driver's files
+                raise InputError(request.input, f"not readable on this worker ({exc.strerror})") from None
+            key = (request.input, st.st_size, st.st_mtime_ns)
+        if key in self.inputs:
+            self.inputs.move_to_end(key)
+            return self.inputs[key], False
+        cloud = self.inputs[key] = request.open_input()
+        while len(self.inputs) > CACHED_INPUTS:
+            self.inputs.popitem(last=False)
+        return cloud, True
 
 
-def run_job(params: dict) -> JobOutcome:
+_worker: Worker | None = None  # this process's, made by its first job
+_worker_lock = threading.Lock()
+
+
+def run_job(request: RenderRequest) -> JobOutcome:
     """Render one job on this worker (a Dask task); a SurfelError becomes a failed outcome."""
+    global _worker
     try:
         from distributed import get_worker
 
-        worker = get_worker().address
+        address = get_worker().address
     except (ImportError, ValueError):
-        worker = f"pid {os.getpid()}"
-    global _gl_thread
-    with _gl_thread_lock:
-        if _gl_thread is None:  # OpenGL: one context, used from one thread, for the life of the process
-            _gl_thread = ThreadPoolExecutor(max_workers=1, thread_name_prefix="surfel-render")
+        address = f"pid {os.getpid()}"
+    with _worker_lock:
+        if _worker is None:
+            _worker = Worker()
     start = time.perf_counter()
     try:
-        result, loaded = _gl_thread.submit(_render, params).result()
+        result, loaded = _worker.thread.submit(_worker.render, request).result()
     except SurfelError as exc:
-        return JobOutcome(worker, time.perf_counter() - start, error=str(exc))
-    return JobOutcome(worker, time.perf_counter() - start, loaded, result)
-
-
-def _render(params: dict) -> tuple[RenderResult, bool]:
-    """The body of `surfel render`, with the input cached per process."""
-    from .cli import make_camera, make_options
-    from .rendering import render
-
-    cloud, loaded = _cached_input(params)
-    result = render(cloud, make_camera(cloud, params), params["method"], backend=params["backend"],
-                    options=make_options(params))
-    # ship back only the buffers the job writes
-    empty = np.empty((0, 0), np.float32)
-    result = replace(result, depth=result.depth if params["depth"] else empty,
-                     normals=result.normals if params["normals"] else empty)
-    return result, loaded
-
-
-def _cached_input(params: dict) -> tuple[PointCloud, bool]:
-    """The job's cloud, loaded at most once per process while its file is unchanged."""
-    from .cli import open_input
-
-    if params["demo"]:
-        key = ("demo",)
-    else:
-        try:
-            st = os.stat(params["input"])
-        except OSError as exc:  # a remote worker that does not share the driver's files
-            raise InputError(params["input"], f"not readable on this worker ({exc.strerror})") from None
-        key = (params["input"], st.st_size, st.st_mtime_ns)
-    if key in _inputs:
-        _inputs.move_to_end(key)
-        return _inputs[key], False
-    if params["demo"]:
-        from .data import demo_cloud
-
-        cloud = demo_cloud()
-    else:
-        cloud = open_input(params["input"])
-    _inputs[key] = cloud
-    while len(_inputs) > CACHED_INPUTS:
-        _inputs.popitem(last=False)
-    return cloud, True
+        return JobOutcome(address, time.perf_counter() - start, error=str(exc))
+    return JobOutcome(address, time.perf_counter() - start, loaded, result)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -353,9 +349,17 @@ def run_batch(jobs: list[Job], *, scheduler: str | None = None, workers: int | N
         except TimeoutError:
             raise SurfelError(f"no Dask worker joined the {name} within 60 s") from None
         summary = Summary(name, len(jobs))
-        futures = {client.submit(run_job, job.params, pure=False, retries=retries,
-                                 key=f"surfel-job-{job.index}-{os.getpid()}-{time.time_ns()}"): job for job in jobs}
-        bar = tqdm(as_completed(futures), total=len(jobs), desc="batch", unit="job", leave=False,
+        runnable = []
+        for job in jobs:  # a job that could not write its files is not run; the others are
+            try:
+                job.request.check_outputs()
+                runnable.append(job)
+            except SurfelError as exc:
+                summary.record("(not run)", None, job, str(exc))
+        futures = {client.submit(run_job, job.request, pure=False, retries=retries,
+                                 key=f"surfel-job-{job.index}-{os.getpid()}-{time.time_ns()}"): job
+                   for job in runnable}
+        bar = tqdm(as_completed(futures), total=len(futures), desc="batch", unit="job", leave=False,
                    disable=None if progress is None else not progress)  # None: only on a terminal
         for future in bar:
             job = futures.pop(future)
@@ -368,14 +372,14 @@ def run_batch(jobs: list[Job], *, scheduler: str | None = None, workers: int | N
             future.release()
             error = outcome.error
             if error is None:
-                p = job.params
                 try:
-                    outcome.result.save(p["output"], depth=p["depth"], normals=p["normals"], stats=p["stats"])
-                except OSError as exc:
-                    error = f"cannot write {exc.filename}: {exc.strerror}"
+                    job.request.write(outcome.result)
+                except SurfelError as exc:
+                    error = str(exc)
             summary.record(outcome.worker, outcome, job, error)
     summary.seconds = time.perf_counter() - start
     return summary
 
 
-__all__ = ["Job", "JobOutcome", "Summary", "make_jobs", "read_jobs_file", "run_batch", "run_job", "turntable_jobs"]
+__all__ = ["Job", "JobOutcome", "Summary", "Worker", "batch_command", "frame_names", "make_jobs", "read_jobs_file",
+           "run_batch", "run_job", "turntable_jobs"]

@@ -3,19 +3,24 @@
 The input is replicated with jitter to the requested point count; radii shrink by
 1/sqrt(copies) so that the splats keep their overlap, as a denser scan of the same surface
 would. Each frame is one full `render()` call (all passes, ctx.finish(), readback), timed
-after warm-up frames; the median over the frames is reported.
+after warm-up frames; the median over the frames is reported. The benchmark holds its own
+Renderer, so its caches (GPU buffers, programs, targets) live exactly as long as the run.
 """
 
 from __future__ import annotations
 
+import json
 import statistics
 import time
 
 import numpy as np
 
 from .cloud import PointCloud
+from .errors import SurfelError
+from .methods import get_method
 from .options import RenderOptions
-from .rendering import complete, default_camera, render
+from .rendering import Renderer, complete, default_camera
+from .request import parse_values
 
 
 def replicate(cloud: PointCloud, points: int, seed: int = 0) -> PointCloud:
@@ -45,26 +50,70 @@ def run(cloud: PointCloud, methods: list[str], *, points: int | None = None, siz
         frames: int = 5, warmup: int = 1, lod_error: float | None = None, zoom: float = 1.0,
         shading: str = "lambert") -> list[dict]:
     """One row per method (and per LOD setting): the median ms per frame and Msplats/s."""
+    specs = [parse_method(spec, lod_error) for spec in methods]
     data = replicate(cloud, points) if points else complete(cloud)[0]
     camera = default_camera(data, size, zoom=zoom)
     rows = []
-    for spec in methods:
-        name, _, backend = spec.partition("@")
-        for lod in [None] if lod_error is None else [None, lod_error]:
-            options = RenderOptions(shading=shading, lod_error=lod)
-            times, result = [], None
-            for i in range(warmup + frames):
-                start = time.perf_counter()
-                result = render(data, camera, name, backend=backend or None, options=options)
-                if i >= warmup:
-                    times.append((time.perf_counter() - start) * 1000)
-            ms = statistics.median(times)
-            row = {"method": name, "backend": result.stats["backend"], "renderer": result.stats["renderer"],
-                   "points": len(data), "splats": result.stats["splats"], "width": size[0], "height": size[1],
-                   "ms": round(ms, 2), "msplats_per_s": round(len(data) / ms / 1000, 3), "frames": frames}
-            if lod is not None:
-                row["lod"] = lod
-            if zoom != 1.0:
-                row["zoom"] = zoom
-            rows.append(row)
+    with Renderer() as renderer:
+        for name, backend in specs:
+            for lod in [None] if lod_error is None else [None, lod_error]:
+                options = RenderOptions(shading=shading, lod_error=lod)
+                rows.append(_timed(renderer, data, camera, name, backend, options, warmup, frames, size, zoom))
     return rows
+
+
+def parse_method(spec: str, lod_error: float | None) -> tuple[str, str | None]:
+    """NAME or NAME@BACKEND, checked (with --lod-error, only methods that draw splats)."""
+    name, _, backend = spec.partition("@")
+    method = get_method(name)
+    if backend:
+        method.function(backend)
+    if lod_error is not None and not method.uses("lod_error"):
+        raise SurfelError(f"--lod-error: method {name!r} does not use it")
+    return name, backend or None
+
+
+def _timed(renderer, data, camera, name, backend, options, warmup, frames, size, zoom) -> dict:
+    times, result = [], None
+    for i in range(warmup + frames):
+        start = time.perf_counter()
+        result = renderer.render(data, camera, name, backend=backend, options=options)
+        if i >= warmup:
+            times.append((time.perf_counter() - start) * 1000)
+    ms = statistics.median(times)
+    row = {"method": name, "backend": result.stats["backend"], "renderer": result.stats["renderer"],
+           "points": len(data), "splats": result.stats["splats"], "width": size[0], "height": size[1],
+           "ms": round(ms, 2), "msplats_per_s": round(len(data) / ms / 1000, 3), "frames": frames}
+    if options.lod_error is not None:
+        row["lod"] = options.lod_error
+    if zoom != 1.0:
+        row["zoom"] = zoom
+    return row
+
+
+def bench_command(input_path, points, methods: str, frames: int, values: dict, *, as_json: bool) -> str:
+    """`surfel bench`: the report, as text or JSON."""
+    parsed = parse_values(values, ("size", "lod_error", "zoom"))
+    size, zoom = parsed.get("size", (1024, 1024)), parsed.get("zoom", 1.0)
+    lod_error = parsed.get("lod_error")
+    names = [m.strip() for m in methods.split(",") if m.strip()]
+    for spec in names:  # before anything is loaded
+        parse_method(spec, lod_error)
+    if input_path:
+        from .io import load
+
+        cloud = load(input_path)
+    else:
+        from .data import demo_cloud
+
+        cloud = demo_cloud()
+        points = points or 1_000_000
+    rows = run(cloud, names, points=points, size=size, frames=frames, lod_error=lod_error, zoom=zoom)
+    if as_json:
+        return json.dumps(rows, indent=2)
+    lines = [f"{rows[0]['points']} points, {size[0]}x{size[1]}, renderer: {rows[0]['renderer']}"]
+    for row in rows:
+        lod = f" lod {row['lod']}px" if "lod" in row else ""
+        lines.append(f"{row['method'] + '@' + row['backend'] + lod:24s} {row['ms']:9.1f} ms  "
+                     f"{row['msplats_per_s']:7.2f} Msplats/s  ({row['splats']} splats)")
+    return "\n".join(lines)

@@ -1,160 +1,79 @@
-"""The `surfel` command line. Every user-fixable error is one line on stderr and exit status 2."""
+"""The `surfel` command line: declarations. The options come from `request.OPTIONS`; what a
+command does lives in `request`, `rendering`, `batch`, `turntable`, `viewer`, `bench`,
+`metrics`, `preprocess` and `lod`. Every user-fixable error, a usage error too, is one line on
+stderr (`surfel: error: ...`) and exit status 2.
+"""
 
 from __future__ import annotations
 
 import json
 import sys
-from pathlib import Path
 
 import click
 import numpy as np
 
 from .errors import SurfelError
+from .request import (
+    CAMERA,
+    OPTIONS,
+    RENDER,
+    RENDER_COMMAND,
+    TURNTABLE_COMMAND,
+    TURNTABLE_ELEVATION,
+    TURNTABLE_SIZE,
+    VIEW_SIZE,
+)
 
 CONTEXT = {"help_option_names": ["-h", "--help"], "max_content_width": 100}
 
 
-def _floats(text: str | None, count: int, name: str):
-    if text is None:
-        return None
-    try:
-        values = [float(v) for v in text.split(",")]
-    except ValueError:
-        raise click.BadParameter(f"{name} needs {count} comma-separated numbers, got {text!r}") from None
-    if len(values) != count or not all(np.isfinite(values)):
-        raise click.BadParameter(f"{name} needs {count} comma-separated finite numbers, got {text!r}")
-    return values
+def table_options(*names: str, required: tuple[str, ...] = (), defaults: dict | None = None,
+                  helps: dict | None = None):
+    """The click declarations of these rows of `request.OPTIONS`, in order. Every value comes
+    in as given (text, or a flag's bool; None when not given) for `request` to parse.
+    `defaults` and `helps`: the shown default and help where the command's differ from the table's."""
+    defaults, helps = defaults or {}, helps or {}
 
+    def decorate(function):
+        for name in reversed(names):
+            option = OPTIONS[name]
+            if name == "input":
+                function = click.argument("input", required="input" in required, type=click.Path())(function)
+                continue
+            declarations = [name, *([option.short] if option.short else []), option.flag or option.label]
+            shown = defaults.get(name, option.shown_default())
+            help = helps.get(name, option.help) + (f"  [default: {shown}]" if shown is not None else "")
+            unset = {} if name in required else {"default": None}  # None: not given, a flag too
+            function = click.option(*declarations, is_flag=option.parse is None or None, required=name in required,
+                                    help=help, metavar=option.metavar, **unset)(function)
+        return function
 
-def _size(text: str) -> tuple[int, int]:
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise click.BadParameter(f"size must look like 512x512, got {text!r}") from None
-    if w <= 0 or h <= 0 or w * h > 16384 * 16384:
-        raise click.BadParameter(f"size {text!r} is out of range")
-    return w, h
-
-
-def camera_options(f):
-    """The camera flags of CONVENTIONS.md."""
-    from .camera import VIEWS
-
-    for option in reversed([
-        click.option("--size", default="1024x1024", show_default=True, help="Image size WxH in pixels."),
-        click.option("--view", type=click.Choice(VIEWS), default=None, help="Auto-framing direction (default front)."),
-        click.option("--azimuth", type=float, default=None,
-                     help="Degrees from the front view towards the right, about the up axis."),
-        click.option("--elevation", type=float, default=None, help="Degrees above the horizon."),
-        click.option("--eye", default=None, help="Camera position X,Y,Z in file coordinates."),
-        click.option("--target", default=None, help="Look-at point X,Y,Z (default: bounding-box centre)."),
-        click.option("--up", default=None, help="Up vector (default 0,0,1 for LAS/LAZ, 0,1,0 otherwise)."),
-        click.option("--fov", type=float, default=30.0, show_default=True, help="Vertical field of view in degrees."),
-        click.option("--ortho", type=float, default=None, metavar="HEIGHT",
-                     help="Orthographic camera showing HEIGHT world units vertically."),
-        click.option("--opencv", type=click.Path(dir_okay=False), default=None,
-                     help='Pinhole camera from a JSON file {"K": 3x3, "R": 3x3, "t": 3} (OpenCV world-to-camera).'),
-        click.option("--zoom", type=float, default=1.0, show_default=True,
-                     help="Move the auto-framed camera this many times farther."),
-    ]):
-        f = option(f)
-    return f
-
-
-def render_options(f):
-    from .shading import MODELS
-
-    for option in reversed([
-        click.option("--shading", type=click.Choice(MODELS), default="phong", show_default=True),
-        click.option("--background", default="0,0,0", show_default=True, help="Background R,G,B in [0, 1]."),
-        click.option("--backend", type=click.Choice(["gl", "cpu"]), default=None,
-                     help="Default: gl, else cpu where the method has one."),
-        click.option("--supersample", type=click.IntRange(1, 8), default=None,
-                     help="Samples per pixel side (method default)."),
-        click.option("--radius-scale", type=float, default=1.0, show_default=True, help="Multiply every splat radius."),
-        click.option("--depth-offset", type=float, default=None,
-                     help="Visibility offset z_t as a fraction of the splat radius."),
-        click.option("--backface-culling/--no-backface-culling", default=False, show_default=True),
-        click.option("--ewa-filter/--no-ewa-filter", default=None,
-                     help="Screen-space EWA filter approximation (default on for deferred)."),
-        click.option("--lowpass-radius", type=float, default=1.0, show_default=True,
-                     help="Screen-space low-pass radius in pixels."),
-        click.option("--lod-error", type=float, default=None, metavar="PX",
-                     help="Level of detail: allowed projected error in pixels."),
-        click.option("--point-budget", type=click.IntRange(1), default=None, metavar="N",
-                     help="Most points drawn from a .lod hierarchy (its LOD error is raised to fit)."),
-        click.option("--dump-passes", type=click.Path(file_okay=False), default=None,
-                     help="Write the intermediate passes here as images."),
-        click.option("--per-pixel-normalization/--per-surfel-normalization", default=True, show_default=True,
-                     help="object-space: divide by the accumulated weight per pixel (Botsch & Kobbelt 2003), "
-                          "or Ren et al.'s precomputed per-surfel weights."),
-        click.option("--shadows", is_flag=True, help="Ray-traced shadows (mls)."),
-        click.option("--reflect", is_flag=True, help="One mirror bounce (mls)."),
-    ]):
-        f = option(f)
-    return f
-
-
-def make_options(kw):
-    from .options import RenderOptions
-
-    background = _floats(kw["background"], 3, "--background")
-    if min(background) < 0 or max(background) > 1:
-        raise click.BadParameter("--background values must lie in [0, 1]")
-    params = {k: True for k in ("shadows", "reflect") if kw.get(k)}
-    params["normalization"] = "per-pixel" if kw.get("per_pixel_normalization", True) else "per-surfel"
-    return RenderOptions(shading=kw["shading"], background=tuple(background), supersample=kw["supersample"],
-                         radius_scale=kw["radius_scale"], depth_offset=kw["depth_offset"],
-                         backface_culling=kw["backface_culling"], ewa_filter=kw["ewa_filter"],
-                         lowpass_radius=kw["lowpass_radius"], lod_error=kw["lod_error"],
-                         point_budget=kw.get("point_budget"),
-                         dump_passes=kw["dump_passes"], params=params)
-
-
-def make_camera(cloud, kw):
-    from .camera import Camera, frame
-
-    size = _size(kw["size"])
-    if kw.get("opencv"):
-        path = kw["opencv"]
-        try:
-            spec = json.loads(Path(path).read_text())
-            cam = Camera.from_opencv(np.array(spec["K"], float), np.array(spec["R"], float),
-                                     np.array(spec["t"], float), size)
-        except (OSError, ValueError, KeyError, TypeError) as exc:
-            raise SurfelError(f"{path}: not an OpenCV camera JSON with K, R, t ({type(exc).__name__}: {exc})") from None
-        return cam.fit_clip_planes(cloud.center, cloud.bounding_radius)
-    return frame(cloud.center, cloud.bounding_radius, view=kw["view"], azimuth=kw["azimuth"],
-                 elevation=kw["elevation"], up=_floats(kw["up"], 3, "--up"), geospatial=cloud.geospatial,
-                 fov=kw["fov"], size=size, eye=_floats(kw["eye"], 3, "--eye"),
-                 target=_floats(kw["target"], 3, "--target"), ortho_height=kw["ortho"], zoom=kw["zoom"])
-
-
-def load_input(path):
-    from .io import load
-
-    return load(path)
-
-
-def open_input(path):
-    """A lazy LOD source (a .lod directory, a COPC file) if PATH is one, else the loaded cloud."""
-    from .lod.source import open_source
-
-    return open_source(path) or load_input(path)
+    return decorate
 
 
 class SurfelGroup(click.Group):
-    """Turns SurfelErrors into one line on stderr and exit status 2, never a traceback."""
+    """One line on stderr and exit status 2 for every error the user can fix: SurfelErrors,
+    usage errors (click prints three lines of its own), running out of memory."""
 
-    def invoke(self, ctx):
+    def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True, **extra):
         try:
-            return super().invoke(ctx)
-        except SurfelError as exc:
-            click.echo(f"surfel: error: {exc}", err=True)
-            ctx.exit(2)
+            status = super().main(args, prog_name, complete_var, standalone_mode=False, **extra)
+        except click.exceptions.NoArgsIsHelpError as exc:  # a bare `surfel` or `surfel lod`: the help
+            exc.show()
+            status = 2
+        except (SurfelError, click.ClickException) as exc:
+            message = exc.format_message() if isinstance(exc, click.ClickException) else str(exc)
+            click.echo(f"surfel: error: {' '.join(message.split())}", err=True)
+            status = 2
         except MemoryError:
             click.echo("surfel: error: out of memory", err=True)
-            ctx.exit(2)
+            status = 2
+        except click.Abort:
+            click.echo("surfel: aborted", err=True)
+            status = 1
+        if not standalone_mode:
+            return status
+        sys.exit(status if isinstance(status, int) else 0)
 
 
 @click.group(cls=SurfelGroup, context_settings=CONTEXT)
@@ -172,42 +91,29 @@ def main():
 
 
 @main.command(context_settings=CONTEXT)
-@click.argument("input", required=False, type=click.Path())
-@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False), help="PNG to write.")
-@click.option("--method", "-m", default="deferred", show_default=True, help="Rendering method (see `surfel methods`).")
-@click.option("--demo", is_flag=True, help="Render the bundled demo model (Spot, CC0) instead of INPUT.")
-@click.option("--depth", type=click.Path(dir_okay=False), default=None, help="Write eye depth (H x W float32 .npy).")
-@click.option("--normals", type=click.Path(dir_okay=False), default=None,
-              help="Write eye normals (H x W x 3 float32 .npy).")
-@click.option("--stats", type=click.Path(dir_okay=False), default=None, help="Write render statistics (.json).")
-@camera_options
-@render_options
-def render(input, output, method, demo, depth, normals, stats, **kw):
+@table_options(*RENDER_COMMAND)
+def render(**values):
     """Render INPUT (PLY, OBJ, LAS/LAZ, XYZ/PTS/TXT, NPZ, a .lod hierarchy, COPC) to a PNG.
 
     A .lod directory (`surfel lod build -o NAME.lod`) or a COPC file (NAME.copc.laz) is read
     lazily: only the nodes the view selects at --lod-error (default 1 pixel) are loaded, at
-    most --point-budget.
+    most --point-budget. An option the method does not use is refused.
 
     \b
     Example:
       surfel render bunny.obj -o bunny.png --method deferred --size 512x512
       surfel render big.lod -o far.png --lod-error 1 --point-budget 5000000
     """
-    from .rendering import render as do_render
+    from .rendering import Renderer
+    from .request import parse_render
 
-    if demo == (input is not None):
-        raise click.UsageError("give an INPUT file or --demo (not both)")
-    if demo:
-        from .data import demo_cloud
-
-        cloud = demo_cloud()
-    else:
-        cloud = open_input(input)
-    result = do_render(cloud, make_camera(cloud, kw), method, backend=kw["backend"], options=make_options(kw))
-    result.save(output, depth=depth, normals=normals, stats=stats)
-    click.echo(f"{output}: {result.width}x{result.height} {method}@{result.stats['backend']} "
-               f"{result.stats['splats']} splats in {result.stats['ms']:.0f} ms", err=True)
+    request = parse_render(values)
+    request.check_outputs()
+    result = request.render(Renderer())
+    request.write(result)
+    s = result.stats
+    click.echo(f"{request.outputs.png}: {result.width}x{result.height} {request.method}@{s['backend']} "
+               f"{s['splats']} splats in {s['ms']:.0f} ms", err=True)
 
 
 @main.command(context_settings=CONTEXT)
@@ -236,6 +142,7 @@ def info(input, as_json):
     """
     from .attributes import summarize, summary_lines
     from .gl.context import gl_available, renderer_string
+    from .io import load
     from .lod.source import open_source
 
     source = open_source(input)
@@ -246,7 +153,7 @@ def info(input, as_json):
                   **(source.describe() if hasattr(source, "describe") else {}),
                   "opengl": renderer_string() if gl_available() else None}
     else:
-        cloud = load_input(input)
+        cloud = load(input)
         lo, hi = cloud.bounds
         estimate = [name for name in ("normals", "radii", "axes") if getattr(cloud, name) is None]
         report = {
@@ -267,15 +174,13 @@ def info(input, as_json):
 
 @main.command(context_settings=CONTEXT)
 @click.argument("mesh", type=click.Path(dir_okay=False))
-@click.option("--method", "-m", default="deferred", show_default=True)
-@click.option("-o", "--output", type=click.Path(dir_okay=False), default=None,
+@click.option("-o", "--output", default=None,
               help="Side-by-side PNG: mesh, method, error x4 (default compare-METHOD.png).")
 @click.option("--json", "as_json", is_flag=True, help="Print the metrics as JSON.")
 @click.option("--every", type=click.IntRange(1), default=1, show_default=True, metavar="N",
               help="Splat every Nth vertex only (normals kept, splat sizes estimated): sparse sampling.")
-@camera_options
-@render_options
-def compare(mesh, method, output, as_json, every, **kw):
+@table_options("method", "backend", *CAMERA, *RENDER)
+def compare(mesh, output, as_json, every, **values):
     """Render MESH's ground truth and METHOD on its vertices; print PSNR, holes and spill.
 
     \b
@@ -283,55 +188,38 @@ def compare(mesh, method, output, as_json, every, **kw):
       surfel compare bunny.obj --method deferred --size 512x512 --shading lambert --json
       surfel compare bunny.obj --method phong --every 4 --size 512x512 --shading lambert
     """
-    from .metrics import compare_results
-    from .rendering import render as do_render
+    from .files import check_output, write_atomically
+    from .io import load
+    from .metrics import compare_with_mesh, side_by_side
+    from .rendering import Renderer
+    from .request import parse_render
 
-    cloud = load_input(mesh)
-    if not cloud.is_mesh:
-        raise SurfelError(f"{mesh}: compare needs a mesh (faces) as ground truth")
-    camera = make_camera(cloud, kw)
-    kw = {**kw, "background": "0,0,0"}  # the metrics are defined over black
-    options = make_options(kw)
-    reference = do_render(cloud, camera, "mesh", options=make_options({**kw, "supersample": None}))
-    vertices = cloud.take(np.arange(0, len(cloud), every))  # every = 1: all of them, without the faces
-    result = do_render(vertices, camera, method, backend=kw["backend"], options=options)
-    metrics = {"method": method, "backend": result.stats["backend"], **compare_results(reference, result),
-               "ms": result.stats["ms"], "splats": result.stats["splats"]}
-    output = output or f"compare-{method}.png"
-    _side_by_side(reference, result, output)
+    request = parse_render({**values, "input": mesh}, require_output=False)
+    output = output or f"compare-{request.method}.png"
+    check_output(output, "--output")
+    cloud = load(mesh)
+    reference, result, metrics = compare_with_mesh(cloud, request.camera.camera(cloud), request.method,
+                                                   request.options, Renderer(), backend=request.backend,
+                                                   every=every)
+    write_atomically(output, side_by_side(reference, result))
     if as_json:
         click.echo(json.dumps(metrics, indent=2))
     else:
-        click.echo(f"{method}@{metrics['backend']}: PSNR {metrics['psnr']:.2f} dB, interior PSNR "
+        click.echo(f"{request.method}@{metrics['backend']}: PSNR {metrics['psnr']:.2f} dB, interior PSNR "
                    f"{metrics['interior_psnr']:.2f} dB, holes {100 * metrics['holes']:.3f}%, "
                    f"spill {100 * metrics['spill']:.3f}%  ({output})")
 
 
-def _side_by_side(reference, result, path):
-    from PIL import Image
-
-    from .files import write_atomically
-
-    error = np.abs(reference.color - result.color).mean(axis=-1, keepdims=True)
-    error = np.repeat(np.clip(4 * error, 0, 1), 3, axis=-1)
-    strip = np.concatenate([reference.color, result.color, error], axis=1)
-    import io
-
-    buf = io.BytesIO()
-    Image.fromarray(np.round(strip * 255).astype(np.uint8)).save(buf, format="PNG")
-    write_atomically(path, buf.getvalue())
-
-
 @main.command(context_settings=CONTEXT)
 @click.argument("input", type=click.Path(dir_okay=False))
-@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False), help="PLY to write.")
+@click.option("-o", "--output", required=True, help="PLY to write.")
 @click.option("-k", "--neighbors", type=click.IntRange(4, 256), default=16, show_default=True,
               help="Neighbours for normal estimation.")
-@click.option("--viewpoint", default=None, help="Sensor position X,Y,Z to orient normals towards.")
 @click.option("--elliptical", is_flag=True, help="Fit elliptical splats to the neighbourhood (for phong).")
 @click.option("--normal-field", is_flag=True, help="Fit Phong splatting's linear normal fields.")
 @click.option("--sharp-features/--no-sharp-features", default=True, show_default=True,
               help="Cut splats at creases with clip lines (stored as clip_lines).")
+@table_options("viewpoint")
 def prepare(input, output, neighbors, viewpoint, elliptical, normal_field, sharp_features):
     """Estimate normals, splat radii and tangent frames; write a PLY.
 
@@ -339,11 +227,14 @@ def prepare(input, output, neighbors, viewpoint, elliptical, normal_field, sharp
     Example:
       surfel prepare scan.xyz -o scan.ply --viewpoint 0,0,10
     """
-    from .io import write_ply
+    from .files import check_output
+    from .io import load, write_ply
     from .preprocess import prepare as do_prepare
+    from .request import parse_values
 
-    cloud = load_input(input)
-    view = _floats(viewpoint, 3, "--viewpoint")
+    view = parse_values({"viewpoint": viewpoint}, ("viewpoint",)).get("viewpoint")
+    check_output(output, "--output")
+    cloud = load(input)
     prepared, report = do_prepare(cloud.with_(radii=None, axes=None) if elliptical else cloud, k_normals=neighbors,
                                   viewpoint=None if view is None else np.array(view),
                                   elliptical=elliptical, normal_field=normal_field, sharp_features=sharp_features)
@@ -352,15 +243,10 @@ def prepare(input, output, neighbors, viewpoint, elliptical, normal_field, sharp
 
 
 @main.command(context_settings=CONTEXT)
-@click.argument("input", required=False, type=click.Path(dir_okay=False))
-@click.option("--demo", is_flag=True, help="View the bundled demo model.")
-@click.option("--method", "-m", default="deferred", show_default=True)
-@click.option("--shading", type=click.Choice(["lambert", "phong", "none", "normals", "depth"]), default="phong",
-              show_default=True)
-@click.option("--size", default="800x800", show_default=True, help="Window size WxH.")
 @click.option("--screenshot", type=click.Path(dir_okay=False), default=None,
               help="Draw one frame in the window, save it as PNG and exit (for scripts and tests).")
-def view(input, demo, method, shading, size, screenshot):
+@table_options("input", "demo", "method", "shading", "size", defaults={"size": "x".join(map(str, VIEW_SIZE))})
+def view(screenshot, **values):
     """Open INPUT in an interactive window (needs the view extra: pip install 'surfel[view]').
 
     \b
@@ -370,33 +256,16 @@ def view(input, demo, method, shading, size, screenshot):
       surfel view bunny.obj --method phong
       xvfb-run surfel view bunny.obj --screenshot shot.png
     """
-    from .methods import get_method
-    from .viewer import view as open_view
+    from .viewer import view_command
 
-    if demo == (input is not None):
-        raise click.UsageError("give an INPUT file or --demo (not both)")
-    get_method(method)
-    if demo:
-        from .data import demo_cloud
-
-        cloud = demo_cloud()
-    else:
-        cloud = load_input(input)
-    open_view(cloud, method=method, shading=shading, size=_size(size), screenshot=screenshot)
+    view_command(values, screenshot=screenshot)
 
 
 @main.command(context_settings=CONTEXT)
-@click.argument("input", type=click.Path())
-@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False),
-              help="Animation to write (.gif, or .mp4 with the video extra).")
-@click.option("--frames", type=click.IntRange(1, 3600), default=36, show_default=True)
-@click.option("--method", "-m", default="deferred", show_default=True)
-@click.option("--size", default="512x512", show_default=True)
-@click.option("--elevation", type=float, default=15.0, show_default=True, help="Degrees above the horizon.")
-@click.option("--fps", type=float, default=12.0, show_default=True)
-@click.option("--shading", type=click.Choice(["lambert", "phong", "none", "normals", "depth"]), default="phong",
-              show_default=True)
-def turntable(input, output, frames, method, size, elevation, fps, shading):
+@table_options(*TURNTABLE_COMMAND, required=("input", "output"),
+               defaults={"size": "x".join(map(str, TURNTABLE_SIZE)), "elevation": f"{TURNTABLE_ELEVATION:g}"},
+               helps={"output": "Animation to write (.gif, or .mp4 with the video extra)."})
+def turntable(**values):
     """Render an orbit around INPUT to an animated GIF or MP4 (a .lod hierarchy or a COPC file
     is read lazily, each frame at 1 pixel of error).
 
@@ -404,12 +273,10 @@ def turntable(input, output, frames, method, size, elevation, fps, shading):
     Example:
       surfel turntable bunny.obj -o bunny.gif --frames 24 --method phong
     """
-    from .turntable import turntable as do_turntable
+    from .turntable import turntable_command
 
-    cloud = open_input(input)
-    do_turntable(cloud, output, frames=frames, method=method, size=_size(size), elevation=elevation, fps=fps,
-                 shading=shading)
-    click.echo(f"{output}: {frames} frames of {method}", err=True)
+    request = turntable_command(values)
+    click.echo(f"{request.output}: {request.frames} frames of {request.method}", err=True)
 
 
 @main.group(context_settings=CONTEXT)
@@ -443,11 +310,16 @@ def lod_build(input, output, stats, memory, resume):
     """
     import os
 
+    from .files import check_folder, check_output
+
+    if stats is not None:
+        check_output(stats, "--stats")
     if output.lower().endswith(".copc.laz"):
         if resume:
             raise click.UsageError("--resume applies to out-of-core builds (-o NAME.lod)")
         from .lod.copc_write import build_command as build_copc
 
+        check_output(output, "--output")
         result = build_copc(input, output, stats)
         click.echo(f"{output}: {result['points']} points, {result['nodes']} COPC nodes (depth {result['depth']}), "
                    f"{result['bytes'] / 1e6:.1f} MB in {result['ms']:.0f} ms", err=True)
@@ -456,6 +328,7 @@ def lod_build(input, output, stats, memory, resume):
     if output.rstrip("/").endswith(".lod") or os.path.isdir(output):
         from .lod.outofcore import build_outofcore, parse_size
 
+        check_folder(output, "--output")
         result = build_outofcore(input, output.rstrip("/"), memory=parse_size(memory), resume=resume,
                                  stats_path=stats)
         click.echo(f"{output}: {result['points']} points, {result['nodes']} nodes in {result['partitions']} "
@@ -466,6 +339,7 @@ def lod_build(input, output, stats, memory, resume):
         raise click.UsageError("--resume applies to out-of-core builds (-o NAME.lod)")
     from .lod import build_command
 
+    check_output(output, "--output")
     result = build_command(input, output, stats)
     click.echo(f"{output}: {result['points']} points, {result['nodes']} nodes in {result['ms']:.0f} ms "
                f"({result['points_per_s'] / 1e6:.2f} M points/s)", err=True)
@@ -477,41 +351,22 @@ def lod_build(input, output, stats, memory, resume):
 @click.option("--points", type=click.IntRange(1), default=None,
               help="Replicate (or subsample) and jitter the input to N points "
                    "[default: the input as it is; 1,000,000 for the demo model].")
-@click.option("--size", default="1024x1024", show_default=True)
 @click.option("--methods", default="points,gaussian,deferred", show_default=True,
               help="Comma-separated, each NAME or NAME@BACKEND.")
 @click.option("--frames", type=click.IntRange(1), default=5, show_default=True,
               help="Timed frames per method (after one warm-up).")
-@click.option("--lod-error", type=float, default=None, metavar="PX", help="Add a row per method with this LOD error.")
-@click.option("--zoom", type=float, default=1.0, show_default=True,
-              help="Camera this many times farther than the default framing.")
 @click.option("--json", "as_json", is_flag=True, help="Print a JSON list of rows.")
-def bench(input_path, points, size, methods, frames, lod_error, zoom, as_json):
+@table_options("size", "lod_error", "zoom")
+def bench(input_path, points, methods, frames, as_json, **values):
     """Median ms per frame and million splats per second of each method, in one process.
 
     \b
     Example:
       surfel bench --methods points@gl,deferred,ewa@cpu --points 1000000 --size 1024x1024 --json
     """
-    from .bench import run
+    from .bench import bench_command
 
-    if input_path:
-        cloud = load_input(input_path)
-    else:
-        from .data import demo_cloud
-
-        cloud = demo_cloud()
-        points = points or 1_000_000
-    rows = run(cloud, [m.strip() for m in methods.split(",") if m.strip()], points=points, size=_size(size),
-               frames=frames, lod_error=lod_error, zoom=zoom)
-    if as_json:
-        click.echo(json.dumps(rows, indent=2))
-        return
-    click.echo(f"{rows[0]['points']} points, {size}, renderer: {rows[0]['renderer']}")
-    for row in rows:
-        lod = f" lod {row['lod']}px" if "lod" in row else ""
-        click.echo(f"{row['method'] + '@' + row['backend'] + lod:24s} {row['ms']:9.1f} ms  "
-                   f"{row['msplats_per_s']:7.2f} Msplats/s  ({row['splats']} splats)")
+    click.echo(bench_command(input_path, points, methods, frames, values, as_json=as_json))
 
 
 @main.command(context_settings=CONTEXT)
@@ -519,7 +374,8 @@ def bench(input_path, points, size, methods, frames, lod_error, zoom, as_json):
 @click.option("--turntable", type=click.IntRange(1, 3600), default=None, metavar="N",
               help="Render N orbit frames of the input JOBS (or --demo): the cameras of `surfel turntable`.")
 @click.option("-o", "--output", default=None,
-              help="With --turntable: PNG name, {frame} numbered (e.g. f-{frame:03d}.png).")
+              help="With --turntable: a folder (frames FOLDER/000.png, ...), or a PNG name, {frame} numbered "
+                   "(e.g. f-{frame:03d}.png) or numbered before its extension.")
 @click.option("--method", "-m", default=None, help="Rendering method of every job that names none (default deferred).")
 @click.option("--demo", is_flag=True, help="With --turntable: the bundled demo model.")
 @click.option("--depth", default=None, help="With --turntable: depth .npy name, {frame} numbered.")
@@ -532,9 +388,9 @@ def bench(input_path, points, size, methods, frames, lod_error, zoom, as_json):
 @click.option("--retries", type=click.IntRange(0, 10), default=2, show_default=True,
               help="Retries of a job that crashes.")
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
-@camera_options
-@render_options
-def batch(jobs, turntable, output, method, demo, depth, normals, stats, scheduler, workers, retries, as_json, **kw):
+@table_options("backend", *CAMERA, *RENDER)
+def batch(jobs, turntable, output, method, demo, depth, normals, stats, scheduler, workers, retries, as_json,
+          **values):
     """Render the jobs of JOBS (a JSON or YAML list of `surfel render` options) on Dask distributed.
 
     Each job is a mapping of `surfel render`'s options (input, output, method, size, azimuth, depth,
@@ -542,8 +398,9 @@ def batch(jobs, turntable, output, method, demo, depth, normals, stats, schedule
     directory. Workers read the inputs at the same absolute paths (remote workers need a shared
     file system); this command writes the outputs. Render options on this command line apply to
     every job that does not set them (with --turntable, as in `surfel render`: --size defaults to
-    1024x1024, --elevation to 15). Exit status 1 if a job failed (the others are written), 2 if
-    a job is invalid (none is run). Needs the distributed extra: pip install 'surfel[distributed]'.
+    1024x1024, --elevation to 15). Exit status 1 if a job failed (the others are written; a job
+    whose output folder is missing fails), 2 if a job is invalid (none is run). Needs the
+    distributed extra: pip install 'surfel[distributed]'.
 
     \b
     Examples:
@@ -551,37 +408,14 @@ def batch(jobs, turntable, output, method, demo, depth, normals, stats, schedule
       surfel batch spot.obj --turntable 24 -o frames/spot-{frame:02d}.png --size 512x512
       surfel batch renders.json --scheduler tcp://10.0.0.5:8786 --json
     """
-    from click.core import ParameterSource
+    from .batch import batch_command
 
-    from .batch import TURNTABLE_ELEVATION, make_jobs, read_jobs_file, run_batch, turntable_jobs
-
-    ctx = click.get_current_context()
-    defaults = {k: v for k, v in kw.items() if ctx.get_parameter_source(k) is not ParameterSource.DEFAULT}
-    if method is not None:
-        defaults["method"] = method
-    if turntable is None:
-        if demo or output or depth or normals or stats:
-            raise click.UsageError("--demo, -o, --depth, --normals and --stats go with --turntable; "
-                                   "jobs name their outputs")
-        if jobs is None:
-            raise click.UsageError("give a JOBS file, or an input with --turntable N")
-        specs, where = read_jobs_file(jobs), jobs
-    else:
-        if demo == (jobs is not None):
-            raise click.UsageError("with --turntable give an input file or --demo (not both)")
-        if output is None:
-            raise click.UsageError("--turntable needs -o/--output")
-        fixed = sorted({"view", "azimuth", "eye", "opencv"} & set(defaults))
-        if fixed:
-            raise click.UsageError(f"--turntable sets the camera; drop --{', --'.join(fixed)}")
-        specs = turntable_jobs(turntable, output, input=jobs, demo=demo, depth=depth, normals=normals, stats=stats,
-                               elevation=defaults.pop("elevation", TURNTABLE_ELEVATION))
-        where = "turntable"
-    summary = run_batch(make_jobs(specs, defaults=defaults, where=where), scheduler=scheduler, workers=workers,
-                        retries=retries)
+    summary = batch_command(jobs, defaults={**values, "method": method}, turntable=turntable, demo=demo,
+                            outputs={"output": output, "depth": depth, "normals": normals, "stats": stats},
+                            scheduler=scheduler, workers=workers, retries=retries)
     click.echo(json.dumps(summary.as_dict(), indent=2) if as_json else summary.text())
     if summary.failed:
-        ctx.exit(1)
+        click.get_current_context().exit(1)
 
 
 if __name__ == "__main__":  # pragma: no cover

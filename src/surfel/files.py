@@ -1,5 +1,6 @@
 """Writing files so that a reader never sees half of one: every output surfel writes goes
-through `write_atomically`."""
+through `write_atomically`, and every output location is checked (`check_output`) before
+the work that fills it, so that a command writes all it was asked for or nothing."""
 
 from __future__ import annotations
 
@@ -7,7 +8,9 @@ import contextlib
 import json
 import os
 import secrets
+import stat
 from collections.abc import Callable
+from pathlib import Path
 from typing import BinaryIO
 
 from .errors import SurfelError
@@ -43,3 +46,37 @@ def write_atomically(path: str | os.PathLike, write_body: Callable[[BinaryIO], o
 def write_json(path: str | os.PathLike, data) -> None:
     """`data` as indented JSON (values JSON lacks, such as paths, as their strings), atomically."""
     write_atomically(path, (json.dumps(data, indent=2, default=str) + "\n").encode())
+
+
+def check_output(path: str, label: str, formats: tuple[str, ...] | None = None) -> None:
+    """Refuse, before anything is rendered, an output that cannot be written: its folder
+    missing or not writable, the path an existing directory or other non-regular file, or
+    (with `formats`) an extension that is not one of them."""
+    if formats is not None and Path(path).suffix.lower() not in formats:
+        named = " or ".join(f or "no extension" for f in formats)
+        raise SurfelError(f"{path}: {label} must be named {named}")
+    target = os.path.abspath(path)
+    folder = os.path.dirname(target)
+    if not os.path.isdir(folder):
+        raise SurfelError(f"{path}: cannot write: no such directory {os.path.dirname(path) or folder}")
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise SurfelError(f"{path}: cannot write: permission denied in {os.path.dirname(path) or folder}")
+    if os.path.lexists(target):
+        try:
+            mode = os.stat(target).st_mode
+        except OSError as exc:
+            raise SurfelError(f"{path}: cannot write: {exc.strerror}") from None
+        if not stat.S_ISREG(mode):
+            kind = "a directory" if stat.S_ISDIR(mode) else "not a regular file"
+            raise SurfelError(f"{path}: cannot write: it exists and is {kind}")
+
+
+def check_folder(path: str, label: str) -> None:
+    """A folder an option writes into, created if missing: its parent must exist."""
+    if os.path.exists(path):
+        if not os.path.isdir(path):
+            raise SurfelError(f"{path}: {label} needs a folder, and this is a file")
+        return
+    parent = os.path.dirname(os.path.abspath(path))
+    if not os.path.isdir(parent):
+        raise SurfelError(f"{path}: cannot write: no such directory {os.path.dirname(path) or parent}")

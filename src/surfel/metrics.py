@@ -44,3 +44,37 @@ def compare_images(reference_rgb, reference_alpha, rgb, alpha) -> dict:
 def compare_results(reference, result) -> dict:
     """compare_images on two RenderResults rendered over a black background."""
     return compare_images(reference.color, reference.alpha, result.color, result.alpha)
+
+
+def compare_with_mesh(mesh, camera, method: str, options, renderer, *, backend: str | None = None,
+                      every: int = 1) -> tuple:
+    """Render `mesh`'s ground truth and `method` on its vertices (every `every`th only: sparse
+    sampling, normals kept, splat sizes estimated), both over black; (reference, result, metrics)."""
+    from dataclasses import replace
+
+    from .errors import SurfelError
+    from .options import RenderOptions
+
+    if not mesh.is_mesh:
+        raise SurfelError(f"{mesh.source}: compare needs a mesh (faces) as ground truth")
+    black = (0.0, 0.0, 0.0)  # the metrics are defined over black
+    reference = renderer.render(mesh, camera, "mesh", options=RenderOptions(shading=options.shading, background=black))
+    vertices = mesh.take(np.arange(0, len(mesh), every))  # every = 1: all of them, without the faces
+    result = renderer.render(vertices, camera, method, backend=backend, options=replace(options, background=black))
+    metrics = {"method": method, "backend": result.stats["backend"], **compare_results(reference, result),
+               "ms": result.stats["ms"], "splats": result.stats["splats"]}
+    return reference, result, metrics
+
+
+def side_by_side(reference, result) -> bytes:
+    """A PNG of the mesh, the method and their error x4, side by side."""
+    import io
+
+    from PIL import Image
+
+    error = np.abs(reference.color - result.color).mean(axis=-1, keepdims=True)
+    error = np.repeat(np.clip(4 * error, 0, 1), 3, axis=-1)
+    strip = np.concatenate([reference.color, result.color, error], axis=1)
+    buffer = io.BytesIO()
+    Image.fromarray(np.round(strip * 255).astype(np.uint8)).save(buffer, format="PNG")
+    return buffer.getvalue()

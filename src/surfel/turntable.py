@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import io
+import os
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -10,17 +12,44 @@ from tqdm import tqdm
 
 from .camera import frame
 from .errors import SurfelError
-from .files import write_atomically
+from .files import check_output, write_atomically
+from .options import RenderOptions
+from .rendering import Renderer
+from .request import (
+    TURNTABLE_COMMAND,
+    TURNTABLE_ELEVATION,
+    TURNTABLE_FPS,
+    TURNTABLE_FRAMES,
+    TURNTABLE_SIZE,
+    default,
+    method_and_backend,
+    open_input,
+    options_from,
+    parse_values,
+)
+
+FORMATS = (".gif", ".mp4")
 
 
-def orbit_cameras(cloud, frames: int, *, size=(512, 512), elevation: float = 15.0, fov: float = 30.0):
+def orbit_cameras(cloud, frames: int, *, size=TURNTABLE_SIZE, elevation: float = TURNTABLE_ELEVATION,
+                  fov: float = 30.0):
     """`frames` auto-framed cameras at evenly spaced azimuths, starting from the front view."""
     for i in range(frames):
         yield frame(cloud.center, cloud.bounding_radius, azimuth=360.0 * i / frames, elevation=elevation,
                     geospatial=cloud.geospatial, size=size, fov=fov)
 
 
-def write_animation(images: list[np.ndarray], path, fps: float = 12.0) -> None:
+def check_animation(path) -> None:
+    """A turntable's output: .gif, or .mp4 with the video extra installed, in an existing folder."""
+    check_output(os.fspath(path), "a turntable", FORMATS)
+    if os.fspath(path).lower().endswith(".mp4"):
+        try:
+            import imageio.v3  # noqa: F401
+        except ImportError:
+            raise SurfelError("mp4 output needs the video extra: pip install 'surfel[video]'") from None
+
+
+def write_animation(images: list[np.ndarray], path, fps: float = TURNTABLE_FPS) -> None:
     """RGBA uint8 frames to a GIF (Pillow) or MP4 (imageio with its ffmpeg plugin, optional)."""
     path = Path(path)
     suffix = path.suffix.lower()
@@ -47,15 +76,54 @@ def write_animation(images: list[np.ndarray], path, fps: float = 12.0) -> None:
         raise SurfelError(f"{path}: turntable output must be .gif or .mp4")
 
 
-def turntable(cloud, path, *, frames: int = 36, method: str = "deferred", size=(512, 512),
-              elevation: float = 15.0, fps: float = 12.0, progress: bool | None = None, **options) -> None:
-    from .rendering import render
-
+def turntable(cloud, path, *, frames: int = TURNTABLE_FRAMES, method: str = "deferred", size=TURNTABLE_SIZE,
+              elevation: float = TURNTABLE_ELEVATION, fps: float = TURNTABLE_FPS, progress: bool | None = None,
+              backend: str | None = None, renderer: Renderer | None = None, **options) -> None:
+    """Render `frames` orbit frames of `cloud` with `method` (options as `Renderer.render`
+    takes them) and write them to `path`, a .gif or .mp4."""
     if frames < 1:
         raise SurfelError("a turntable needs at least one frame")
+    check_animation(path)
+    renderer = renderer or Renderer()
     images = []
     cameras = orbit_cameras(cloud, frames, size=size, elevation=elevation)
     for camera in tqdm(cameras, total=frames, desc="turntable", unit="frame", disable=progress is False,
                        leave=False):
-        images.append(render(cloud, camera, method, **options).rgba8())
+        images.append(renderer.render(cloud, camera, method, backend=backend, **options).rgba8())
     write_animation(images, path, fps)
+
+
+@dataclass(frozen=True)
+class TurntableRequest:
+    """`surfel turntable`: an orbit of auto-framed cameras rendered to a GIF or MP4."""
+
+    input: str
+    output: str
+    frames: int
+    fps: float
+    elevation: float
+    size: tuple[int, int]
+    method: str
+    backend: str | None
+    options: RenderOptions
+
+
+def parse_turntable(values: dict) -> TurntableRequest:
+    """`surfel turntable`'s request, parsed by the request layer; its output is checked here,
+    before anything is loaded."""
+    parsed = parse_values(values, TURNTABLE_COMMAND)
+    method, backend = method_and_backend(parsed)
+    check_animation(parsed["output"])
+    return TurntableRequest(parsed["input"], parsed["output"], default("frames", parsed), default("fps", parsed),
+                            parsed.get("elevation", TURNTABLE_ELEVATION), parsed.get("size", TURNTABLE_SIZE),
+                            method, backend, options_from(parsed, method))
+
+
+def turntable_command(values: dict) -> TurntableRequest:
+    """`surfel turntable`: the request parsed, then rendered and written."""
+    request = parse_turntable(values)
+    with Renderer() as renderer:
+        turntable(open_input(request.input), request.output, frames=request.frames, method=request.method,
+                  size=request.size, elevation=request.elevation, fps=request.fps, backend=request.backend,
+                  renderer=renderer, options=request.options)
+    return request

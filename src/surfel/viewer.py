@@ -1,7 +1,10 @@
 """`surfel view`: an interactive window (GLFW, the optional `view` extra).
 
-Frames are rendered by the same headless pipeline as `surfel render` and shown in the window
-through a textured full-screen triangle, with the status line and help drawn over them.
+Frames are rendered by the same headless pipeline as `surfel render`, by the viewer's own
+Renderer, and shown in the window through a textured full-screen triangle, with the status
+line and help drawn over them. The keys set options wherever the method has them
+(`request.render_options`): the EWA filter starts at each method's own default, as on the
+command line.
 
     mouse: left drag orbits, right drag pans, wheel zooms
     1-9  : choose the method (the order of `surfel methods`)    e: EWA filter on/off
@@ -14,12 +17,16 @@ from __future__ import annotations
 
 import math
 import time
+import warnings
 
 import numpy as np
 
 from .camera import frame
 from .errors import SurfelError
-from .methods import METHODS
+from .methods import METHODS, get_method
+from .rendering import Renderer
+from .request import VIEW_SIZE, default, parse_values, render_options
+from .shading import DEFAULT as DEFAULT_SHADING
 from .shading import MODELS
 
 HELP = [line.strip() for line in __doc__.split("\n\n")[2].splitlines() if line.strip()]
@@ -40,12 +47,13 @@ void main() { color = vec4(texture(image, uv).rgb, 1.0); }"""
 class ViewState:
     """What the keys and the mouse change; everything a frame needs to render."""
 
-    def __init__(self, cloud, method: str, shading: str):
+    def __init__(self, cloud, method: str, shading: str, renderer: Renderer | None = None):
         self.cloud = cloud
         self.methods = [m.name for m in METHODS.values() if m.name != "mesh" or cloud.is_mesh]
         self.method = method
         self.shading = shading
-        self.ewa_filter = True
+        self.renderer = renderer or Renderer()
+        self.ewa_filter: bool | None = None  # None: the method's own default
         self.lod_error = 0.0
         self.backface_culling = False
         self.show_help = True
@@ -66,8 +74,8 @@ class ViewState:
             return False
         if name.isdigit() and 1 <= int(name) <= len(self.methods):
             self.method = self.methods[int(name) - 1]
-        elif name == "e":
-            self.ewa_filter = not self.ewa_filter
+        elif name == "e" and self.ewa_filter_on() is not None:
+            self.ewa_filter = not self.ewa_filter_on()
         elif name in ("+", "="):
             self.lod_error = 1.0 if self.lod_error == 0 else self.lod_error * 2
         elif name == "-":
@@ -82,13 +90,19 @@ class ViewState:
             self.reset()
         return True
 
-    def render(self, size):
-        from .rendering import render
+    def ewa_filter_on(self) -> bool | None:
+        """Whether the method filters with the EWA approximation; None if it has no such setting."""
+        m = get_method(self.method)
+        if not m.uses("ewa_filter"):
+            return None
+        return m.make_params().ewa_filter if self.ewa_filter is None else self.ewa_filter
 
-        options = {"shading": self.shading, "backface_culling": self.backface_culling,
-                   "ewa_filter": self.ewa_filter, "lod_error": self.lod_error or None}
+    def render(self, size):
+        values = {"shading": self.shading, "backface_culling": self.backface_culling,
+                  "ewa_filter": self.ewa_filter, "lod_error": self.lod_error or None}
+        options = render_options(self.method, values, strict=False)
         start = time.perf_counter()
-        result = render(self.cloud, self.camera(size), self.method, **options)
+        result = self.renderer.render(self.cloud, self.camera(size), self.method, options=options)
         return result, (time.perf_counter() - start) * 1000
 
 
@@ -99,8 +113,10 @@ def annotate(rgb: np.ndarray, state: ViewState, result, ms: float) -> np.ndarray
     image = Image.fromarray(rgb)
     draw = ImageDraw.Draw(image)
     lod = f"  lod {state.lod_error:g}px" if state.lod_error else ""
+    ewa = state.ewa_filter_on()
+    ewa = "" if ewa is None else f"  ewa filter {'on' if ewa else 'off'}"
     status = (f"{state.method}@{result.stats['backend']}  {ms:.0f} ms  {result.stats['splats']} splats"
-              f"  {state.shading}{lod}  ewa filter {'on' if state.ewa_filter else 'off'}")
+              f"  {state.shading}{lod}{ewa}")
     draw.rectangle([0, 0, image.width, 16], fill=(0, 0, 0))
     draw.text((4, 2), status, fill=(255, 255, 255))
     if state.show_help:
@@ -112,7 +128,26 @@ def annotate(rgb: np.ndarray, state: ViewState, result, ms: float) -> np.ndarray
     return np.asarray(image)
 
 
-def view(cloud, *, method: str = "deferred", shading: str = "phong", size=(800, 800),
+def view_command(values: dict, screenshot=None) -> None:
+    """`surfel view`: the options parsed as the other commands parse them, then the window."""
+    parsed = parse_values(values, ("input", "demo", "method", "shading", "size"))
+    if parsed.get("demo", False) == ("input" in parsed):
+        raise SurfelError("give an INPUT file or --demo (not both)")
+    method = default("method", parsed)
+    get_method(method)
+    if parsed.get("demo"):
+        from .data import demo_cloud
+
+        cloud = demo_cloud()
+    else:
+        from .io import load
+
+        cloud = load(parsed["input"])
+    view(cloud, method=method, shading=parsed.get("shading", DEFAULT_SHADING), size=parsed.get("size", VIEW_SIZE),
+         screenshot=screenshot)
+
+
+def view(cloud, *, method: str = "deferred", shading: str = DEFAULT_SHADING, size=VIEW_SIZE,
          screenshot=None) -> None:
     """Open the window; with `screenshot`, draw one frame, save what the window shows, close."""
     try:
@@ -121,8 +156,11 @@ def view(cloud, *, method: str = "deferred", shading: str = "phong", size=(800, 
         raise SurfelError("the viewer needs GLFW: pip install 'surfel[view]'") from None
     import moderngl
 
-    if not glfw.init():
-        raise SurfelError("cannot open a window (no display?); set DISPLAY or run under Xvfb")
+    with warnings.catch_warnings():  # GLFW warns of a missing display: the error below says it in one line
+        warnings.simplefilter("ignore", glfw.GLFWError)
+        if not glfw.init():
+            raise SurfelError("cannot open a window (no display?); set DISPLAY or run under Xvfb")
+    state = None
     try:
         glfw.window_hint(glfw.CONTEXT_VERSION_MAJOR, 3)
         glfw.window_hint(glfw.CONTEXT_VERSION_MINOR, 3)
@@ -135,7 +173,7 @@ def view(cloud, *, method: str = "deferred", shading: str = "phong", size=(800, 
         ctx = moderngl.create_context()
         program = ctx.program(vertex_shader=VERTEX, fragment_shader=FRAGMENT)
         triangle = ctx.vertex_array(program, [])
-        state = ViewState(cloud, method, shading)
+        state = ViewState(cloud, method, shading, Renderer())
         drag = {"button": None, "x": 0.0, "y": 0.0}
         dirty = [True]
 
@@ -196,6 +234,11 @@ def view(cloud, *, method: str = "deferred", shading: str = "phong", size=(800, 
                     break
             glfw.wait_events_timeout(0.1)
     finally:
+        if state is not None:
+            from .gl.context import get_context
+
+            with get_context():  # the Renderer's objects live in the headless context
+                state.renderer.close()
         glfw.terminate()
 
 

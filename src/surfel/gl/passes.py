@@ -27,18 +27,21 @@ from pathlib import Path
 
 import numpy as np
 
+from ..errors import SurfelError
 from .context import get_context
 from .targets import GBuffer, gbuffer_result, read_texture
 
-UNIFORM_UNITS = {"u_visibility": 1, "u_accum_color": 2, "u_accum_normal": 3, "u_back": 4}
+UNIFORM_UNITS = {"u_visibility": 1, "u_accum_color": 2, "u_accum_normal": 3}
+BACK_LAYER_UNITS = {"u_visibility": 1, "u_back": 4}  # the back layer's programs (ewa_gl.glsl)
 FAR = 3.0e38
 
 
 @dataclass
-class _Targets:
+class SplatTargets:
     """The float targets of one frame size and their framebuffers; the back layer's only with
-    `back_layer` (else None and empty)."""
+    `back_layer` (else None and empty). Kept from frame to frame by `rendering.Renderer`."""
 
+    guard: int
     visibility: object
     visibility_fbo: object
     accum: list
@@ -49,7 +52,8 @@ class _Targets:
     back_accum: list = field(default_factory=list)
 
     @classmethod
-    def allocate(cls, ctx, width: int, height: int, guard: int, back_layer: bool) -> _Targets:
+    def allocate(cls, width: int, height: int, guard: int = 0, back_layer: bool = False) -> SplatTargets:
+        ctx = get_context()
         target = (width + 2 * guard, height + 2 * guard)
         visibility = ctx.texture(target, 2, dtype="f4")
         accum = [ctx.texture(target, 4, dtype="f4") for _ in range(2)]
@@ -57,7 +61,7 @@ class _Targets:
         back_accum = [ctx.texture(target, 4, dtype="f4") for _ in range(2)] if back_layer else []
         for tex in (visibility, *accum, *back_accum, *([back] if back else [])):
             tex.filter = (ctx.NEAREST, ctx.NEAREST)
-        return cls(visibility, ctx.framebuffer(color_attachments=[visibility]), accum,
+        return cls(guard, visibility, ctx.framebuffer(color_attachments=[visibility]), accum,
                    ctx.framebuffer(color_attachments=accum + back_accum), GBuffer(width, height),
                    back, ctx.framebuffer(color_attachments=[back]) if back else None, back_accum)
 
@@ -69,21 +73,12 @@ class _Targets:
 
 
 class SplatPasses:
-    """Use as a context manager around one frame. The targets of the last size used are kept
-    for the next frame (animations and benchmarks render many frames of one size)."""
+    """Use as a context manager around one frame drawn into `targets`."""
 
-    _kept: dict[tuple, _Targets] = {}
-
-    def __init__(self, width: int, height: int, guard: int = 0, back_layer: bool = False):
+    def __init__(self, targets: SplatTargets):
         ctx = self.ctx = get_context()
-        self.guard = guard
-        key = (id(ctx), width, height, guard, back_layer)
-        if key not in self._kept:
-            for old in self._kept.values():
-                old.release()
-            self._kept.clear()
-            self._kept[key] = _Targets.allocate(ctx, width, height, guard, back_layer)
-        t = self._kept[key]
+        t = self.targets = targets
+        self.guard = t.guard
         self.visibility, self.visibility_fbo, self.accum, self.accum_fbo, self.out = \
             t.visibility, t.visibility_fbo, t.accum, t.accum_fbo, t.out
         self.back, self.back_fbo, self.back_accum = t.back, t.back_fbo, t.back_accum
@@ -142,7 +137,7 @@ class SplatPasses:
 
     def result(self, camera, options, supersample: int, stats: dict):
         result = gbuffer_result(self.out, camera, options, supersample, stats)
-        if options.dump_passes:
+        if options.dump_passes is not None:
             self.dump(options.dump_passes, result)
         return result
 
@@ -151,7 +146,10 @@ class SplatPasses:
         from PIL import Image
 
         folder = Path(folder)
-        folder.mkdir(parents=True, exist_ok=True)
+        try:
+            folder.mkdir(exist_ok=True)  # not its parents: like every output, it goes in an existing folder
+        except OSError as exc:
+            raise SurfelError(f"{folder}: cannot write the passes here: {exc.strerror}") from None
         g = self.guard
         inner = (slice(g, self.visibility.height - g), slice(g, self.visibility.width - g))
         depth = read_texture(self.visibility)[inner][..., 0]

@@ -11,7 +11,7 @@ Every splat method reads the same layout (see splat_common.glsl):
     in_clip0 (3), in_clip1 (3) clip lines (a, b, c) at sharp features: the splat keeps
                   a u + b v <= c in its local coordinates (surfel.preprocess; (0, 0, 1) cuts nothing)
 Clouds larger than CHUNK points are drawn one chunk at a time so 10M+ points fit in memory;
-buffers are cached per cloud (weakly) so benchmarks measure drawing, not uploading.
+a cloud's buffers are kept (by `rendering.Renderer`) so benchmarks measure drawing, not uploading.
 """
 
 from __future__ import annotations
@@ -31,9 +31,6 @@ WIDTHS = (3, 3, 3, 3, 3, 2, 3, 3, 3)
 LOD_EXTRAS = ("lod_emin", "lod_emax", "lod_dparent")
 FLOATS = sum(WIDTHS)
 CACHE_LIMIT_BYTES = 2_000_000_000
-
-_cache: weakref.WeakKeyDictionary[PointCloud, list] = weakref.WeakKeyDictionary()
-
 
 def pack(cloud: PointCloud, start: int = 0, stop: int | None = None) -> np.ndarray:
     """(n, FLOATS) float32 interleaved attributes for points [start, stop)."""
@@ -60,26 +57,36 @@ def pack(cloud: PointCloud, start: int = 0, stop: int | None = None) -> np.ndarr
     return out
 
 
-def chunks(cloud: PointCloud):
-    """Yield (vbo, count) pairs covering the cloud; cached when they fit the cache limit."""
-    cached = _cache.get(cloud)
-    if cached is not None:
-        yield from cached
-        return
-    ctx = get_context()
-    n = len(cloud)
-    keep = n * FLOATS * 4 <= CACHE_LIMIT_BYTES
-    buffers = []
-    for start in range(0, n, CHUNK):
-        stop = min(start + CHUNK, n)
-        vbo = ctx.buffer(pack(cloud, start, stop))
-        if keep:
-            buffers.append((vbo, stop - start))
-        yield vbo, stop - start
-        if not keep:
+class SplatBuffers:
+    """A cloud's packed attributes on the GPU, in chunks: uploaded once and kept (by their
+    owner, `rendering.Renderer`) when they fit CACHE_LIMIT_BYTES, else uploaded chunk by
+    chunk on every draw."""
+
+    def __init__(self, cloud: PointCloud):
+        self.cloud = weakref.ref(cloud)  # not a strong reference: the owner caches these per cloud
+        self.count = len(cloud)
+        self.kept = None
+        if self.count * FLOATS * 4 <= CACHE_LIMIT_BYTES:
+            ctx = get_context()
+            self.kept = [(ctx.buffer(pack(cloud, start, min(start + CHUNK, self.count))),
+                          min(start + CHUNK, self.count) - start) for start in range(0, self.count, CHUNK)]
+
+    def chunks(self):
+        """Yield (vbo, count) pairs covering the cloud."""
+        if self.kept is not None:
+            yield from self.kept
+            return
+        ctx = get_context()
+        cloud = self.cloud()
+        for start in range(0, self.count, CHUNK):
+            stop = min(start + CHUNK, self.count)
+            vbo = ctx.buffer(pack(cloud, start, stop))
+            yield vbo, stop - start
             vbo.release()
-    if keep:
-        _cache[cloud] = buffers
+
+    def release(self) -> None:
+        for vbo, _ in self.kept or ():
+            vbo.release()
 
 
 def vertex_array(ctx, program, vbo, *, instanced: bool, extra=()):
@@ -97,14 +104,14 @@ def vertex_array(ctx, program, vbo, *, instanced: bool, extra=()):
                             + [(buffer, "1f" + step, name) for buffer, name in extra])
 
 
-def draw(ctx, cloud, program, mode, *, instanced: bool, count: int | None = None,
+def draw(ctx, buffers: SplatBuffers, program, mode, *, instanced: bool, count: int | None = None,
          extra: dict[str, np.ndarray] | None = None):
-    """Draw the cloud's first `count` points (all by default) with `program`: instanced
-    4-vertex strips, or one vertex a point. `extra` maps attribute names to per-point floats
-    computed per frame (uploaded chunk by chunk beside the cached attributes)."""
-    remaining = len(cloud) if count is None else count
+    """Draw the first `count` points (all by default) of a cloud's buffers with `program`:
+    instanced 4-vertex strips, or one vertex a point. `extra` maps attribute names to per-point
+    floats computed per frame (uploaded chunk by chunk beside the kept attributes)."""
+    remaining = buffers.count if count is None else count
     start = 0
-    for vbo, chunk in chunks(cloud):
+    for vbo, chunk in buffers.chunks():
         count = min(chunk, remaining)
         remaining -= count
         if count > 0:

@@ -47,8 +47,6 @@ k = p / eps and d_parent = 0.
 
 from __future__ import annotations
 
-import weakref
-
 import numba
 import numpy as np
 
@@ -204,35 +202,19 @@ def select_sequential(seq: PointCloud, camera: Camera, epsilon: float) -> np.nda
     return mask
 
 
-_sequential: weakref.WeakKeyDictionary[PointCloud, PointCloud] = weakref.WeakKeyDictionary()
-
-
 def as_sequential(cloud: PointCloud, *, progress: bool | None = None) -> PointCloud:
     """`cloud` itself if it is a sequential point tree (a loaded LOD file), else its tree
-    built and sequentialised once (cached per cloud): how renderers apply --lod-error to
-    any input."""
+    built and sequentialised (once per cloud by `rendering.Renderer`): how renderers apply
+    --lod-error to any input."""
     if is_sequential(cloud):
         return cloud
-    seq = _sequential.get(cloud)
-    if seq is None:
-        seq = to_sequential_cloud(build_lod(cloud, progress=progress))
-        _sequential[cloud] = seq
-    return seq
-
-
-_subsets: weakref.WeakKeyDictionary[PointCloud, tuple] = weakref.WeakKeyDictionary()
+    return to_sequential_cloud(build_lod(cloud, progress=progress))
 
 
 def lod_subset(seq: PointCloud, camera: Camera, epsilon: float) -> PointCloud:
-    """The selected nodes only, as a plain cloud with every attribute but the LOD extras:
-    LOD for backends without vertex shaders.
-
-    The last result per cloud is cached so repeated renders of one view (benchmarks) reuse it.
-    """
-    key = (camera.world_to_eye.tobytes(), camera.pixel_scale(), camera.ortho_height, float(epsilon))
-    cached = _subsets.get(seq)
-    if cached is not None and cached[0] == key:
-        return cached[1]
+    """The selected nodes only, as a plain cloud with every attribute but the LOD extras: LOD
+    for backends without vertex shaders (the Renderer keeps the last one per cloud, so
+    repeated renders of one view reuse it)."""
     mask = select_sequential(seq, camera, epsilon)
     subset = PointCloud(seq.positions[mask], normals=seq.normals[mask],
                         colors=None if seq.colors is None else seq.colors[mask],
@@ -240,5 +222,4 @@ def lod_subset(seq: PointCloud, camera: Camera, epsilon: float) -> PointCloud:
                         source=seq.source, kinds=seq.schema.kinds,
                         attributes={name: values[mask] for name, values in seq.attributes.items()
                                     if name not in EXTRAS})
-    _subsets[seq] = (key, subset)
     return subset

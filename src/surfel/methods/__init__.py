@@ -1,9 +1,12 @@
 """Every rendering method surfel has, by name and backend: the index to find a paper's code.
 
-Each entry maps a backend to "module:function" (plus what the method needs); the function takes
-(cloud: PointCloud, camera: Camera, options: RenderOptions) and returns a RenderResult
-whose `stats` hold at least {"splats": ...}. Modules are imported on first use so that
-`surfel --help` stays fast and the CPU paths work without OpenGL.
+Each entry maps a backend to "module:function" (modules relative to the surfel package) and
+names the method's parameter dataclass the same way. The function takes
+(cloud: PointCloud, camera: Camera, options: RenderOptions, params, renderer) -- params an
+instance of that dataclass, renderer the `rendering.Renderer` that owns the caches the method
+keeps between frames -- and returns a RenderResult whose `stats` hold at least
+{"splats": ...}. Modules are imported on first use so that `surfel --help` stays fast and the
+CPU paths work without OpenGL.
 """
 
 from __future__ import annotations
@@ -12,6 +15,12 @@ import importlib
 from dataclasses import dataclass
 
 from ..errors import SurfelError
+from ..options import METHOD_DEPENDENT, RenderOptions
+
+
+def _resolve(path: str):
+    module, name = path.split(":")
+    return getattr(importlib.import_module(f"{__package__.rpartition('.')[0]}.{module}"), name)
 
 
 @dataclass(frozen=True)
@@ -19,41 +28,78 @@ class Method:
     name: str
     summary: str
     backends: dict[str, str]
+    params: str  # "module:Class" of the method's parameter dataclass
     needs_mesh: bool = False
-    needs_radii: bool = True
+    needs_radii: bool = True  # draws splats: needs radii, and takes --lod-error
     shader_lod: bool = False  # its vertex stage runs the sequential point tree test (gl/lod.glsl)
     elliptical: bool = False  # fitted elliptical splats when the cloud has no axes
     normal_field: bool = False  # shades with Phong splatting's linear normal fields (fitted if missing)
+    dump_passes: tuple[str, ...] = ()  # the backends that can write their intermediate passes
 
     def function(self, backend: str):
         if backend not in self.backends:
             raise SurfelError(f"method {self.name!r} has no {backend!r} backend; it has {', '.join(self.backends)}")
-        module, func = self.backends[backend].split(":")
-        return getattr(importlib.import_module(f"{__name__}.{module}"), func)
+        return _resolve(self.backends[backend])
 
+    def params_class(self):
+        return _resolve(self.params)
+
+    def make_params(self, values=None):
+        """The method's parameters from a mapping of names (defaults for the rest); a name it
+        does not have, a wrong type or a value it cannot honour is a one-line SettingError."""
+        return self.params_class().from_mapping(values or {}, f"method {self.name!r}")
+
+    def uses(self, name: str) -> bool:
+        """Whether the method does something with the RenderOptions field or parameter `name`."""
+        if name in ("lod_error", "point_budget"):
+            return self.needs_radii
+        if name == "dump_passes":
+            return bool(self.dump_passes)
+        if name in RenderOptions.names():
+            return True
+        return name in self.params_class().names()
+
+    def check_options(self, options: RenderOptions, backend: str | None = None) -> None:
+        """Refuse an option the method does not use (set: not None) and parameters of another method."""
+        for name in METHOD_DEPENDENT:
+            if getattr(options, name) is not None and not self.uses(name):
+                raise SurfelError(f"method {self.name!r} does not use {name}")
+        if options.dump_passes is not None and backend is not None and backend not in self.dump_passes:
+            raise SurfelError(f"method {self.name!r} writes no passes on its {backend} backend")
+        cls = self.params_class()
+        if options.params is not None and type(options.params) is not cls:
+            raise SurfelError(f"method {self.name!r} takes {cls.__name__}, not {type(options.params).__name__}")
+
+
+_GL_PASSES = ("gl",)
 
 METHODS: dict[str, Method] = {
     m.name: m
     for m in [
         Method("mesh", "the input mesh's triangles, supersampled: the ground truth",
-               {"gl": "mesh:render_mesh"}, needs_mesh=True, needs_radii=False),
+               {"gl": "methods.mesh:render_mesh"}, "methods.mesh:MeshParams", needs_mesh=True, needs_radii=False),
         Method("points",
                "naive: screen-aligned disks of the projected radius, z-buffer, flat shading (survey Fig. 6 left)",
-               {"gl": "points:render_points"}, shader_lod=True),
+               {"gl": "methods.points:render_points"}, "methods.params:RadiusParams", shader_lod=True),
         Method("gaussian", "Botsch & Kobbelt 2003: three-pass Gaussian splatting, per-splat shading (Fig. 6 middle)",
-               {"gl": "splatting:render_gaussian"}, shader_lod=True),
+               {"gl": "methods.splatting:render_gaussian"}, "methods.splatting:GaussianParams", shader_lod=True,
+               dump_passes=_GL_PASSES),
         Method("deferred", "Botsch et al. 2005: deferred shading with the EWA filter approximation",
-               {"gl": "splatting:render_deferred"}, shader_lod=True),
+               {"gl": "methods.splatting:render_deferred"}, "methods.splatting:DeferredParams", shader_lod=True,
+               dump_passes=_GL_PASSES),
         Method("phong", "Botsch et al. 2004: Phong splatting, elliptical splats with linear normal fields",
-               {"gl": "splatting:render_phong"}, shader_lod=True, elliptical=True, normal_field=True),
+               {"gl": "methods.splatting:render_phong"}, "methods.splatting:PhongParams", shader_lod=True,
+               elliptical=True, normal_field=True, dump_passes=_GL_PASSES),
         Method("object-space", "Ren, Pfister & Zwicker 2002: object-space EWA splatting with textured quads",
-               {"gl": "object_space:render_object_space"}),
+               {"gl": "methods.object_space:render_object_space"}, "methods.object_space:ObjectSpaceParams",
+               dump_passes=_GL_PASSES),
         Method("ewa", "Zwicker et al. 2001: software EWA surface splatting, the full resampling filter",
-               {"cpu": "ewa:render_ewa_cpu", "gl": "ewa_gl:render_ewa_gl"}, normal_field=True),
+               {"cpu": "methods.ewa:render_ewa_cpu", "gl": "methods.ewa_gl:render_ewa_gl"}, "methods.ewa:EwaParams",
+               normal_field=True, dump_passes=_GL_PASSES),
         Method("mls", "Adamson & Alexa 2003: ray tracing the MLS point set surface",
-               {"cpu": "mls:render_mls_cpu"}, needs_radii=False),
+               {"cpu": "mls.raytrace:render_mls_cpu"}, "mls.raytrace:MlsParams", needs_radii=False),
         Method("mls-gpu", "Tejada et al. 2006: multi-pass GPU ray casting of the MLS surface",
-               {"gl": "mls_gpu:render_mls_gl"}, needs_radii=False),
+               {"gl": "mls.gpu:render_mls_gl"}, "mls.gpu:MlsGpuParams", needs_radii=False),
     ]
 }
 

@@ -12,7 +12,7 @@ ellipse's rim). Per splat, at its centre:
                                           constant for an orthographic camera
     M   = J V J^T + L,  L = l^2 I         the resampling kernel's covariance: the warped
                                           reconstruction kernel convolved with the screen
-                                          low-pass of std dev l = options.lowpass_radius / 2.5
+                                          low-pass of std dev l = lowpass_radius / 2.5
                                           (the paper's l = 1 px over-blurs: a one-pixel box
                                           has std 0.29 px; 0.4 px still anti-aliases)
     rho_k(x) = 1/|J^-1| G_M(x - m_k)      the EWA resampling filter (eq. 19 of the paper),
@@ -51,7 +51,8 @@ plane depth extrapolated far off) must not hide the surface behind it.
 The CPU backend `render_ewa_cpu` (numba, parallel over screen tiles, see ewa_kernels.py) ends
 in `resolve_accumulators`, which a GL backend reading back its accumulators is meant to share.
 
-Method parameters (options.params): sigma (reconstruction std dev in semi-axis units, default
+Method parameters (`EwaParams`): those of every splat method (radius_scale, depth_offset,
+backface_culling, lowpass_radius), sigma (reconstruction std dev in semi-axis units, default
 0.5), cutoff_mass (0.9), coverage (fraction of W_full at which alpha reaches 1, default 0.6),
 visibility (0.2 px), depth_clamp (cap of a fragment's plane-depth offset, in radii, default 4).
 """
@@ -59,25 +60,20 @@ visibility (0.2 px), depth_clamp (cap of a fragment's plane-depth offset, in rad
 from __future__ import annotations
 
 import math
-import weakref
 from dataclasses import dataclass
 
 import numpy as np
 
 from ..camera import Camera
 from ..cloud import PointCloud
-from ..options import RenderOptions
+from ..options import RenderOptions, non_negative, open_unit_interval, positive, setting
 from ..preprocess import INACTIVE_CLIP
 from ..result import RenderResult
 from ..shading import shade
+from .params import SplatParams
 
-DEFAULT_SIGMA = 0.5
-DEFAULT_CUTOFF_MASS = 0.9
-DEFAULT_COVERAGE = 0.6
-DEFAULT_DEPTH_OFFSET = 1.0
-DEFAULT_DEPTH_CLAMP = 4.0
-DEFAULT_VISIBILITY = 0.2
-# options.lowpass_radius is the low-pass's radius in pixels, taken as LOWPASS_SIGMAS std devs:
+DEFAULT_SUPERSAMPLE = 1
+# lowpass_radius is the low-pass's radius in pixels, taken as LOWPASS_SIGMAS std devs:
 # std 0.4 px at the default 1 px, close to a one-pixel box (std 0.29 px) and thus little blur,
 # while still band-limiting minified splats (the paper's unit std over-blurs, see ewa.py).
 LOWPASS_SIGMAS = 2.5
@@ -86,31 +82,22 @@ FULL_WEIGHT_PERCENTILE = 75.0
 
 
 @dataclass(frozen=True)
-class EwaParams:
-    """The filter's settings, resolved from RenderOptions (defaults above)."""
+class EwaParams(SplatParams):
+    sigma: float = setting(0.5, positive)  # reconstruction kernel std dev, in semi-axis units
+    cutoff_mass: float = setting(0.9, open_unit_interval)  # mass of the kernel kept inside its cutoff
+    coverage: float = setting(0.6, positive)  # fraction of W_full at which alpha reaches 1
+    visibility: float = setting(0.2, non_negative)  # std dev in pixels added for the visibility footprint
+    depth_clamp: float = setting(4.0, positive)  # cap of a fragment's depth offset from its centre, in radii
 
-    sigma: float
-    cutoff2: float  # R^2, squared Mahalanobis cutoff radius of the resampling kernel
-    lowpass: float  # std dev of the screen low-pass, in render-target pixels
-    visibility: float  # std dev in pixels added to the kernel for the visibility footprint
-    depth_offset: float  # z_t as a fraction of the splat radius
-    coverage: float
-    depth_clamp: float  # cap of a fragment's depth offset from its centre, in splat radii
-    supersample: int
+    @property
+    def cutoff2(self) -> float:
+        """R^2, the squared Mahalanobis cutoff radius of the resampling kernel."""
+        return -2.0 * math.log(1.0 - self.cutoff_mass)
 
-    @classmethod
-    def from_options(cls, options: RenderOptions) -> EwaParams:
-        p = options.params
-        mass = float(p.get("cutoff_mass", DEFAULT_CUTOFF_MASS))
-        if not 0 < mass < 1:
-            raise ValueError(f"ewa cutoff_mass must be in (0, 1), got {mass}")
-        return cls(sigma=float(p.get("sigma", DEFAULT_SIGMA)), cutoff2=-2.0 * math.log(1.0 - mass),
-                   lowpass=float(options.lowpass_radius) / LOWPASS_SIGMAS,
-                   visibility=float(p.get("visibility", DEFAULT_VISIBILITY)),
-                   depth_offset=DEFAULT_DEPTH_OFFSET if options.depth_offset is None else float(options.depth_offset),
-                   coverage=float(p.get("coverage", DEFAULT_COVERAGE)),
-                   depth_clamp=float(p.get("depth_clamp", DEFAULT_DEPTH_CLAMP)),
-                   supersample=int(options.supersample or 1))
+    @property
+    def lowpass(self) -> float:
+        """Std dev of the screen low-pass, in render-target pixels."""
+        return self.lowpass_radius / LOWPASS_SIGMAS
 
 
 def target_camera(camera: Camera, supersample: int) -> Camera:
@@ -165,7 +152,7 @@ def splat_axes(cloud: PointCloud) -> np.ndarray:
 
 
 def resolve_accumulators(acc: np.ndarray, camera: Camera, options: RenderOptions, params: EwaParams,
-                         stats: dict) -> RenderResult:
+                         supersample: int, stats: dict) -> RenderResult:
     """Normalise the accumulated (H, W, 8 or 16) = w*rgb, w, w*normal, w*depth and shade (deferred).
 
     With 16 channels the second 8 are the back layer (the nearest surface behind the front
@@ -187,32 +174,27 @@ def resolve_accumulators(acc: np.ndarray, camera: Camera, options: RenderOptions
                             camera.near, camera.far)
     color, alpha, depth_out, normals_out = composite_layers(shaded, layer_alpha, depth, normals)
     stats = dict(stats, full_weight=full)
-    return RenderResult.from_samples(color, alpha, depth_out, normals_out, supersample=params.supersample,
+    return RenderResult.from_samples(color, alpha, depth_out, normals_out, supersample=supersample,
                                      background=options.background, stats=stats)
 
 
-_spatial: weakref.WeakKeyDictionary[PointCloud, PointCloud] = weakref.WeakKeyDictionary()
-
-
 def spatially_ordered(cloud: PointCloud) -> PointCloud:
-    """The cloud in Morton order, made once per cloud. Both backends draw it in this order:
-    a screen tile's splats then lie close together in memory, and the CPU rasterizer, which
-    otherwise waits on a cache miss per splat, runs about twice as fast."""
-    ordered = _spatial.get(cloud)
-    if ordered is None:
-        from ..lod.build import morton_codes
+    """The cloud in Morton order (made once per cloud by the Renderer). Both backends draw it
+    in this order: a screen tile's splats then lie close together in memory, and the CPU
+    rasterizer, which otherwise waits on a cache miss per splat, runs about twice as fast."""
+    from ..lod.build import morton_codes
 
-        ordered = _spatial[cloud] = cloud.take(np.argsort(morton_codes(cloud.positions)))
-    return ordered
+    return cloud.take(np.argsort(morton_codes(cloud.positions)))
 
 
-def render_ewa_cpu(cloud: PointCloud, camera: Camera, options: RenderOptions) -> RenderResult:
+def render_ewa_cpu(cloud: PointCloud, camera: Camera, options: RenderOptions, params: EwaParams,
+                   renderer) -> RenderResult:
     """EWA splatting on the CPU: numba kernels, parallel over screen tiles."""
     from . import ewa_kernels as k
 
-    cloud = spatially_ordered(cloud)
-    params = EwaParams.from_options(options)
-    target = target_camera(camera, params.supersample)
+    cloud = renderer.cached(cloud, "morton order", lambda: spatially_ordered(cloud))
+    supersample = options.supersample or DEFAULT_SUPERSAMPLE
+    target = target_camera(camera, supersample)
     w, h = target.width, target.height
     intr = np.array([target.fx, target.fy, target.cx, target.cy], np.float64)
     clip_lines = splat_clip_lines(cloud)
@@ -220,17 +202,18 @@ def render_ewa_cpu(cloud: PointCloud, camera: Camera, options: RenderOptions) ->
                                  np.asarray(target.world_to_eye, np.float64), cloud.normals, splat_colors(cloud),
                                  splat_axes(cloud), clip_lines, splat_fields(cloud), intr,
                                  ortho_scale(target), float(target.near),
-                                 np.float32(options.radius_scale), np.float32(params.sigma ** 2),
+                                 np.float32(params.radius_scale), np.float32(params.sigma ** 2),
                                  np.float32(params.lowpass ** 2), np.float32(params.visibility ** 2),
                                  np.float32(params.cutoff2),
                                  np.float32(params.depth_offset), np.float32(params.depth_clamp),
-                                 bool(options.backface_culling), w, h)
+                                 bool(params.backface_culling), w, h)
     tiles_x, tiles_y = -(-w // k.TILE), -(-h // k.TILE)
     offsets, index = k.bin_splats(box, tiles_x, tiles_y)
     acc, fragments = k.rasterize_tiles(splats, extra, box, offsets, index, tile_order(tiles_x, tiles_y), tiles_x,
                                        w, h, np.float32(params.cutoff2), len(clip_lines) > 1, has_normal_field(cloud))
     drawn = int(np.count_nonzero(box[:, 0] <= box[:, 1]))
-    return resolve_accumulators(acc, target, options, params, {"splats": drawn, "fragments": int(fragments)})
+    return resolve_accumulators(acc, target, options, params, supersample,
+                                {"splats": drawn, "fragments": int(fragments)})
 
 
 def tile_order(tiles_x: int, tiles_y: int) -> np.ndarray:

@@ -33,44 +33,45 @@ from ..camera import Camera
 from ..cloud import PointCloud
 from ..gl import splats
 from ..gl.context import get_context
-from ..gl.passes import UNIFORM_UNITS, SplatPasses
-from ..gl.program import build_program
+from ..gl.passes import BACK_LAYER_UNITS, SplatPasses
 from ..gl.uniforms import apply_common
 from ..options import RenderOptions
 from ..result import RenderResult
-from .ewa import EwaParams, resolve_accumulators, spatially_ordered, target_camera
+from .ewa import DEFAULT_SUPERSAMPLE, EwaParams, resolve_accumulators, spatially_ordered, target_camera
 
 SHADER = Path(__file__).with_suffix(".glsl")
 PASSES = ("PASS_VISIBILITY", "PASS_BACK", "PASS_ATTRIBUTE")
 
 
-def render_ewa_gl(cloud: PointCloud, camera: Camera, options: RenderOptions) -> RenderResult:
+def render_ewa_gl(cloud: PointCloud, camera: Camera, options: RenderOptions, params: EwaParams,
+                  renderer) -> RenderResult:
     """EWA splatting with instanced quads on the OpenGL pipeline; see the module docstring."""
-    cloud = spatially_ordered(cloud)  # the CPU backend's drawing order
+    cloud = renderer.cached(cloud, "morton order", lambda: spatially_ordered(cloud))  # the CPU's order
     ctx = get_context()
-    params = EwaParams.from_options(options)
-    target = target_camera(camera, params.supersample)
-    programs = {p: build_program(SHADER, {p: True}) for p in PASSES}
+    supersample = options.supersample or DEFAULT_SUPERSAMPLE
+    target = target_camera(camera, supersample)
+    programs = {p: renderer.program(SHADER, {p: True}) for p in PASSES}
     for program in programs.values():
         # The target camera already carries the supersampling: factor 1 here.
         apply_common(program, target, cloud.local_origin, 1, options.shading,
-                     u_radius_scale=float(options.radius_scale), u_sigma2=params.sigma ** 2,
+                     u_radius_scale=params.radius_scale, u_sigma2=params.sigma ** 2,
                      u_lowpass2=params.lowpass ** 2, u_vis2=params.visibility ** 2, u_cutoff2=params.cutoff2,
                      u_depth_offset=params.depth_offset, u_depth_clamp=params.depth_clamp,
-                     u_backface_culling=int(options.backface_culling), **UNIFORM_UNITS)
+                     u_backface_culling=int(params.backface_culling), **BACK_LAYER_UNITS)
     fragments = ctx.query(samples=True)
+    buffers = renderer.splat_buffers(cloud)
 
     def draw(name: str):
-        return lambda: splats.draw(ctx, cloud, programs[name], ctx.TRIANGLE_STRIP, instanced=True)
+        return lambda: splats.draw(ctx, buffers, programs[name], ctx.TRIANGLE_STRIP, instanced=True)
 
-    with SplatPasses(target.width, target.height, back_layer=True) as passes:
+    with SplatPasses(renderer.splat_targets(target.width, target.height, back_layer=True)) as passes:
         passes.visibility_pass(draw("PASS_VISIBILITY"))
         passes.back_pass(draw("PASS_BACK"))
         with fragments:  # the fragments blended into either layer, as the CPU's count
             passes.attribute_pass(draw("PASS_ATTRIBUTE"))
         acc = passes.accumulators()
         stats = {"splats": len(cloud), "fragments": int(fragments.samples)}
-        result = resolve_accumulators(acc, target, options, params, stats)
-        if options.dump_passes:
+        result = resolve_accumulators(acc, target, options, params, supersample, stats)
+        if options.dump_passes is not None:
             passes.dump(options.dump_passes, result)
     return result

@@ -7,23 +7,29 @@ normals, under the same camera and shading models as the splat methods, supersam
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from ..gl.context import get_context
-from ..gl.program import build_program
 from ..gl.targets import GBuffer, gbuffer_result
 from ..gl.uniforms import apply_common
+from ..options import Settings
 
 SHADER = Path(__file__).with_suffix(".glsl")
 DEFAULT_SUPERSAMPLE = 4
 
 
-def render_mesh(cloud, camera, options):
+@dataclass(frozen=True)
+class MeshParams(Settings):
+    """The ground truth has no parameters: the common options (shading, supersampling) only."""
+
+
+def render_mesh(cloud, camera, options, params: MeshParams, renderer):
     ctx = get_context()
     ss = options.supersample or DEFAULT_SUPERSAMPLE
-    program = build_program(SHADER)
+    program = renderer.program(SHADER)
     apply_common(program, camera, cloud.local_origin, ss, options.shading)
     n = len(cloud)
     colors = cloud.colors if cloud.colors is not None else np.ones((n, 3), np.float32)

@@ -31,7 +31,7 @@ the pixel coverage of the disk inscribed in the square (for anti-aliased silhoue
 textured quads, additively blended (w rgb, w, w n, w z) where no farther than that depth;
 (3) a full-screen pass writing the G-buffer with deferred shading from the accumulated normals.
 
-Normalization (`options.params["normalization"]`): "per-surfel" is the paper's: a
+Normalization (`ObjectSpaceParams.normalization`): "per-surfel" is the paper's: a
 preprocessing pass (on the CPU, cached per cloud) sums the neighbouring object-space kernels
 at each surfel centre, S_k = sum_j G_{V_j}(x_k - x_j) (in j's tangent plane, the same cut-off,
 unnormalised-by-2pi Gaussians the GPU draws) and scales the surfel's weight by 1 / S_k; the
@@ -43,9 +43,9 @@ the accumulated weight per pixel (40 dB interior). `--per-surfel-normalization` 
 
 from __future__ import annotations
 
-import weakref
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -54,21 +54,23 @@ from ..cloud import PointCloud
 from ..gl import splats
 from ..gl.context import get_context
 from ..gl.passes import UNIFORM_UNITS, SplatPasses
-from ..gl.program import build_program
 from ..gl.uniforms import apply_common
+from .params import SplatParams
 
 SHADER = Path(__file__).with_suffix(".glsl")
 KERNEL_STD = 0.5            # reconstruction std / splat semi-axis: the cutoff sits at the radius
 CUTOFF = 2.0                # c, in standard deviations of y
 LOWPASS_STD = 0.5           # screen low-pass std / lowpass_radius (output pixels), as `deferred`
 KERNEL_TEXELS = 32          # side of the discrete Gaussian alpha texture
-DEFAULT_DEPTH_OFFSET = 1.0  # z_t = one splat radius
 DEFAULT_SUPERSAMPLE = 2
-DEFAULT_NORMALIZATION = "per-pixel"  # per-surfel darkens and mottles wherever sums drift from 1
 NEIGHBOURS = 32             # kernels summed per surfel centre in the normalization pass
 QUERY_CHUNK = 500_000       # surfels per neighbour query (bounds memory on big clouds)
 
-_weights: weakref.WeakKeyDictionary[PointCloud, dict[float, np.ndarray]] = weakref.WeakKeyDictionary()
+
+@dataclass(frozen=True)
+class ObjectSpaceParams(SplatParams):
+    # per-surfel darkens and mottles wherever the sums drift from 1: per-pixel by default
+    normalization: Literal["per-pixel", "per-surfel"] = "per-pixel"
 
 
 @dataclass(frozen=True)
@@ -110,10 +112,7 @@ def resampling_matrix(variance: np.ndarray, jacobian: np.ndarray, lowpass_std: f
 
 def surfel_weights(cloud: PointCloud, radius_scale: float = 1.0) -> np.ndarray:
     """Per-surfel normalization 1 / S_k, S_k = sum_j exp(-y.y/2) / (sigma_s sigma_t) of the
-    neighbours' cut-off kernels at x_k (cached per cloud and radius scale)."""
-    per_cloud = _weights.setdefault(cloud, {})
-    if radius_scale in per_cloud:
-        return per_cloud[radius_scale]
+    neighbours' cut-off kernels at x_k."""
     axes = cloud.axes.astype(np.float64) * radius_scale
     sigma = KERNEL_STD * np.linalg.norm(axes, axis=2)                  # (N, 2)
     frame = axes / np.maximum(np.linalg.norm(axes, axis=2, keepdims=True), 1e-30)
@@ -132,9 +131,7 @@ def surfel_weights(cloud: PointCloud, radius_scale: float = 1.0) -> np.ndarray:
         yy = (y**2).sum(axis=-1)
         kernel = np.exp(-0.5 * yy) / np.maximum(sigma[j].prod(axis=-1), 1e-60)
         total[start:stop] = np.where(found & (yy <= CUTOFF**2), kernel, 0.0).sum(axis=1)
-    weights = (1.0 / np.maximum(total, 1e-30)).astype(np.float32)
-    per_cloud[radius_scale] = weights
-    return weights
+    return (1.0 / np.maximum(total, 1e-30)).astype(np.float32)
 
 
 def gaussian_texture(ctx):
@@ -148,31 +145,34 @@ def gaussian_texture(ctx):
     return tex
 
 
-def render_object_space(cloud, camera, options):
+def render_object_space(cloud, camera, options, params: ObjectSpaceParams, renderer):
     ctx = get_context()
     ss = options.supersample or DEFAULT_SUPERSAMPLE
     width, height = camera.width * ss, camera.height * ss
-    per_surfel = options.params.get("normalization", DEFAULT_NORMALIZATION) == "per-surfel"
-    programs = {p: build_program(SHADER, {p: True, "PER_SURFEL_NORMALIZATION": per_surfel,
-                                          "CLIP_LINES": "clip_lines" in cloud.attributes})
+    per_surfel = params.normalization == "per-surfel"
+    programs = {p: renderer.program(SHADER, {p: True, "PER_SURFEL_NORMALIZATION": per_surfel,
+                                             "CLIP_LINES": "clip_lines" in cloud.attributes})
                 for p in ("PASS_VISIBILITY", "PASS_ATTRIBUTE", "PASS_NORMALIZE")}
-    depth_offset = DEFAULT_DEPTH_OFFSET if options.depth_offset is None else options.depth_offset
     for program in programs.values():
         apply_common(program, camera, cloud.local_origin, ss, options.shading,
-                     u_radius_scale=options.radius_scale, u_depth_offset=depth_offset,
+                     u_radius_scale=params.radius_scale, u_depth_offset=params.depth_offset,
                      u_kernel_std=KERNEL_STD, u_cutoff=CUTOFF,
-                     u_lowpass_std=LOWPASS_STD * options.lowpass_radius * ss,
-                     u_backface_culling=int(options.backface_culling), u_kernel=0, **UNIFORM_UNITS)
-    weights = surfel_weights(cloud, options.radius_scale) if per_surfel else None
+                     u_lowpass_std=LOWPASS_STD * params.lowpass_radius * ss,
+                     u_backface_culling=int(params.backface_culling), u_kernel=0, **UNIFORM_UNITS)
+    extra = None
+    if per_surfel:
+        scale = params.radius_scale
+        extra = {"in_weight": renderer.cached(cloud, ("surfel weights", scale),
+                                              lambda: surfel_weights(cloud, scale))}
 
     kernel = gaussian_texture(ctx)
-    extra = {"in_weight": weights} if per_surfel else None
+    buffers = renderer.splat_buffers(cloud)
     try:
-        with SplatPasses(width, height) as passes:
+        with SplatPasses(renderer.splat_targets(width, height)) as passes:
             kernel.use(0)
-            passes.visibility_pass(lambda: splats.draw(ctx, cloud, programs["PASS_VISIBILITY"],
+            passes.visibility_pass(lambda: splats.draw(ctx, buffers, programs["PASS_VISIBILITY"],
                                                        ctx.TRIANGLE_STRIP, instanced=True))
-            passes.attribute_pass(lambda: splats.draw(ctx, cloud, programs["PASS_ATTRIBUTE"],
+            passes.attribute_pass(lambda: splats.draw(ctx, buffers, programs["PASS_ATTRIBUTE"],
                                                       ctx.TRIANGLE_STRIP, instanced=True, extra=extra))
             passes.normalize_pass(programs["PASS_NORMALIZE"])
             stats = {"splats": len(cloud), "vertices": 4 * len(cloud), "supersample": ss,

@@ -3,6 +3,7 @@
 Each point is an OpenGL point sprite of diameter 2 r fy / z_eye pixels (survey eq. 6),
 cut to a disk, depth-tested in an ordinary z-buffer and flat-shaded with the point's own
 normal: no blending, no filtering, one sample per pixel. This is what general viewers do.
+Its one parameter (`params.RadiusParams`) scales the radii.
 """
 
 from __future__ import annotations
@@ -11,19 +12,19 @@ from pathlib import Path
 
 from ..gl import splats
 from ..gl.context import get_context
-from ..gl.program import build_program
 from ..gl.targets import GBuffer, gbuffer_result
 from ..gl.uniforms import apply_common
+from .params import RadiusParams
 
 SHADER = Path(__file__).with_suffix(".glsl")
 
 
-def render_points(cloud, camera, options):
+def render_points(cloud, camera, options, params: RadiusParams, renderer):
     ctx = get_context()
     ss = options.supersample or 1
-    program = build_program(SHADER)
+    program = renderer.program(SHADER)
     lod_k, prefix, drawn = splats.lod_frame(cloud, camera, options.lod_error)
-    apply_common(program, camera, cloud.local_origin, ss, options.shading, u_radius_scale=options.radius_scale,
+    apply_common(program, camera, cloud.local_origin, ss, options.shading, u_radius_scale=params.radius_scale,
                  u_lod_k=lod_k)
     gbuffer = GBuffer(camera.width * ss, camera.height * ss)
     try:
@@ -31,7 +32,7 @@ def render_points(cloud, camera, options):
         gbuffer.clear()
         ctx.disable(ctx.BLEND | ctx.CULL_FACE)
         ctx.enable(ctx.DEPTH_TEST | ctx.PROGRAM_POINT_SIZE)
-        splats.draw(ctx, cloud, program, ctx.POINTS, instanced=False, count=prefix)
+        splats.draw(ctx, renderer.splat_buffers(cloud), program, ctx.POINTS, instanced=False, count=prefix)
         ctx.finish()
         return gbuffer_result(gbuffer, camera, options, ss,
                               {"splats": len(cloud) if drawn is None else int(drawn.sum())})

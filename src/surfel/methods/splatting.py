@@ -33,10 +33,15 @@ splats stick out past the outline of a coarsely sampled curved surface, dark (th
 normals turn edge-on there) over the bright surface behind: the largest error of sparse
 sampling (bunny thinned to every 4th point: +0.7 to +2.5 dB interior PSNR over five views;
 spot, coarsely sampled: +6 dB).
+
+Parameters: those every blended splat method has (`params.SplatParams`: radius_scale, z_t as
+depth_offset, backface_culling, lowpass_radius r_lp) and ewa_filter, whose default is each
+paper's: on for `deferred` (`DeferredParams`), off for `gaussian` and `phong`.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -44,12 +49,11 @@ import numpy as np
 from ..gl import splats
 from ..gl.context import get_context
 from ..gl.passes import UNIFORM_UNITS, SplatPasses
-from ..gl.program import build_program
 from ..gl.uniforms import apply_common
+from .params import SplatParams
 
 SHADER = Path(__file__).with_suffix(".glsl")
 KERNEL_SIZE = 256
-DEFAULT_DEPTH_OFFSET = 1.0   # z_t = one splat radius
 DEFAULT_SUPERSAMPLE = 1      # as in the papers; --supersample 2 smooths silhouettes further
 GAUSSIAN_SHARPNESS = 3.0     # w = exp(-3 d²): the disk rim at 2.4 standard deviations
 GUARD = 128                  # guard band in pixels: half of llvmpipe's (and most GPUs') 255 px point limit
@@ -85,49 +89,62 @@ def gaussian_kernel_texture(ctx):
     return tex
 
 
-def render_gaussian(cloud, camera, options):
-    return _render(cloud, camera, options, per_splat_shading=True,
-                   ewa_filter=bool(options.ewa_filter) if options.ewa_filter is not None else False)
+@dataclass(frozen=True)
+class GaussianParams(SplatParams):
+    ewa_filter: bool = False  # Botsch et al. 2005's screen-space filter approximation
 
 
-def render_deferred(cloud, camera, options):
-    return _render(cloud, camera, options, per_splat_shading=False,
-                   ewa_filter=options.ewa_filter is None or bool(options.ewa_filter))
+@dataclass(frozen=True)
+class DeferredParams(SplatParams):
+    ewa_filter: bool = True  # the paper's: minified textures do not alias (Fig. 10)
 
 
-def render_phong(cloud, camera, options):
-    return _render(cloud, camera, options, per_splat_shading=False, normal_field=True,
-                   ewa_filter=bool(options.ewa_filter) if options.ewa_filter is not None else False)
+@dataclass(frozen=True)
+class PhongParams(SplatParams):
+    ewa_filter: bool = False
 
 
-def _render(cloud, camera, options, *, per_splat_shading: bool, ewa_filter: bool, normal_field: bool = False):
+def render_gaussian(cloud, camera, options, params: GaussianParams, renderer):
+    return _render(cloud, camera, options, params, renderer, per_splat_shading=True)
+
+
+def render_deferred(cloud, camera, options, params: DeferredParams, renderer):
+    return _render(cloud, camera, options, params, renderer, per_splat_shading=False)
+
+
+def render_phong(cloud, camera, options, params: PhongParams, renderer):
+    return _render(cloud, camera, options, params, renderer, per_splat_shading=False, normal_field=True)
+
+
+def _render(cloud, camera, options, params, renderer, *, per_splat_shading: bool, normal_field: bool = False):
     ctx = get_context()
     ss = options.supersample or DEFAULT_SUPERSAMPLE
     width, height = camera.width * ss, camera.height * ss
-    lowpass = options.lowpass_radius * ss if ewa_filter else 0.0
+    ewa_filter = params.ewa_filter
+    lowpass = params.lowpass_radius * ss if ewa_filter else 0.0
     lod_k, prefix, drawn = splats.lod_frame(cloud, camera, options.lod_error)
-    sprites = use_point_sprites(cloud, camera, options.radius_scale, ss, lowpass, drawn)
+    sprites = use_point_sprites(cloud, camera, params.radius_scale, ss, lowpass, drawn)
     guard = GUARD if sprites else 0
     variant = {"PER_SPLAT_SHADING": per_splat_shading, "EWA_FILTER": ewa_filter, "NORMAL_FIELD": normal_field,
                "POINT_SPRITES": sprites, "CLIP_LINES": "clip_lines" in cloud.attributes}
-    programs = {p: build_program(SHADER, {p: True, **variant})
+    programs = {p: renderer.program(SHADER, {p: True, **variant})
                 for p in ("PASS_VISIBILITY", "PASS_ATTRIBUTE", "PASS_NORMALIZE")}
-    depth_offset = DEFAULT_DEPTH_OFFSET if options.depth_offset is None else options.depth_offset
     for program in programs.values():
         apply_common(program, camera, cloud.local_origin, ss, options.shading,
-                     u_radius_scale=options.radius_scale, u_depth_offset=depth_offset,
-                     u_lowpass_radius=options.lowpass_radius * ss, u_guard=float(guard),
-                     u_backface_culling=int(options.backface_culling),
+                     u_radius_scale=params.radius_scale, u_depth_offset=params.depth_offset,
+                     u_lowpass_radius=params.lowpass_radius * ss, u_guard=float(guard),
+                     u_backface_culling=int(params.backface_culling),
                      u_kernel=0, u_lod_k=lod_k, **UNIFORM_UNITS)
 
     kernel = gaussian_kernel_texture(ctx)
     mode = ctx.POINTS if sprites else ctx.TRIANGLE_STRIP
+    buffers = renderer.splat_buffers(cloud)
 
     def draw(program):
-        return lambda: splats.draw(ctx, cloud, program, mode, instanced=not sprites, count=prefix)
+        return lambda: splats.draw(ctx, buffers, program, mode, instanced=not sprites, count=prefix)
 
     try:
-        with SplatPasses(width, height, guard) as passes:
+        with SplatPasses(renderer.splat_targets(width, height, guard)) as passes:
             kernel.use(0)
             passes.visibility_pass(draw(programs["PASS_VISIBILITY"]))
             passes.attribute_pass(draw(programs["PASS_ATTRIBUTE"]))

@@ -32,12 +32,13 @@ Then `iterations` times (default 3), at r = o + t d:
    neighbour colour, eye depth t, into the G-buffer layout; supersampled 2x2 by default and
    box filtered (RenderResult.from_samples) for anti-aliased silhouettes.
 
-Options (RenderOptions.params): h_scale (1.5), domain (2.0) as in `mls`; iterations (3).
+Parameters (`MlsGpuParams`): h_scale (1.5), domain (2.0) as in `mls` (surface.MlsKernel);
+iterations (3). Shadows and reflections are the CPU tracer's only.
 """
 
 from __future__ import annotations
 
-import weakref
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -45,18 +46,21 @@ import numpy as np
 from ..camera import Camera
 from ..cloud import PointCloud
 from ..gl.context import get_context
-from ..gl.program import build_program
+from ..gl.program import set_uniforms
 from ..gl.targets import GBuffer, gbuffer_result, read_texture
 from ..gl.uniforms import apply_common
-from ..options import RenderOptions
+from ..options import RenderOptions, at_least, setting
 from ..result import RenderResult
-from .raytrace import MLSScene, prepare_scene
-from .surface import P_C, P_E1, P_E2, P_N, P_Q, SUPPORT
+from .raytrace import DEFAULT_SUPERSAMPLE, MLSScene, cached_scene
+from .surface import P_C, P_E1, P_E2, P_N, P_Q, SUPPORT, MlsKernel
 
 SHADER = Path(__file__).with_suffix(".glsl")
 FAR = 3.0e38
 
-_buffers: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+@dataclass(frozen=True)
+class MlsGpuParams(MlsKernel):
+    iterations: int = setting(3, at_least(1))  # projection steps after the first intersection
 
 
 def pack_points(scene: MLSScene) -> np.ndarray:
@@ -84,36 +88,41 @@ def pack_polynomials(scene: MLSScene) -> np.ndarray:
     return out
 
 
-def scene_buffers(ctx, scene: MLSScene) -> tuple:
-    """The two storage buffers of a scene, uploaded once (cached weakly per scene)."""
-    if scene not in _buffers:
-        _buffers[scene] = (ctx.buffer(pack_points(scene)), ctx.buffer(pack_polynomials(scene)))
-    return _buffers[scene]
+class SceneBuffers:
+    """The two storage buffers of a scene, uploaded once per cloud and kernel (kept by the Renderer)."""
+
+    def __init__(self, scene: MLSScene):
+        ctx = get_context()
+        self.points, self.polys = ctx.buffer(pack_points(scene)), ctx.buffer(pack_polynomials(scene))
+
+    def release(self) -> None:
+        self.points.release()
+        self.polys.release()
 
 
 def _bind(program, textures: dict) -> None:
     """Bind sampler uniforms to consecutive texture units (those the program uses)."""
     unit = 0
     for name, texture in textures.items():
+        set_uniforms(program, **{name: unit})  # refuses a name the source does not declare
         if name in program:
             texture.use(unit)
-            program[name].value = unit
             unit += 1
 
 
-def render_mls_gl(cloud: PointCloud, camera: Camera, options: RenderOptions) -> RenderResult:
+def render_mls_gl(cloud: PointCloud, camera: Camera, options: RenderOptions, params: MlsGpuParams,
+                  renderer) -> RenderResult:
     ctx = get_context()
-    p = options.params
-    ss = options.supersample or 2
-    iterations = int(p.get("iterations", 3))
-    scene = prepare_scene(cloud, p.get("h_scale", 1.5), p.get("domain", 2.0))
+    ss = options.supersample or DEFAULT_SUPERSAMPLE
+    iterations = params.iterations
+    scene = cached_scene(cloud, params, renderer)
     surface = scene.surface
     n = len(surface.points)
-    points_buffer, polys_buffer = scene_buffers(ctx, scene)
+    buffers = renderer.cached_gl(cloud, ("mls buffers", params.h_scale, params.domain), lambda: SceneBuffers(scene))
     view = camera.view_matrix(surface.origin)
     common = {"u_view_inv": np.linalg.inv(view), "u_scale": surface.scale, "u_domain": surface.domain,
               "u_window": SUPPORT * surface.scale, "u_guard": 0.0}
-    programs = {name: build_program(SHADER, {f"PASS_{name.upper()}": True})
+    programs = {name: renderer.program(SHADER, {f"PASS_{name.upper()}": True})
                 for name in ("intersect", "covariance", "frame", "system", "solve", "shade")}
     for program in programs.values():
         apply_common(program, camera, surface.origin, ss, options.shading, **common)
@@ -139,8 +148,8 @@ def render_mls_gl(cloud: PointCloud, camera: Camera, options: RenderOptions) -> 
     }
     gbuffer = GBuffer(*size)
     vaos = {name: ctx.vertex_array(prog, []) for name, prog in programs.items()}
-    points_buffer.bind_to_storage_buffer(0)
-    polys_buffer.bind_to_storage_buffer(1)
+    buffers.points.bind_to_storage_buffer(0)
+    buffers.polys.bind_to_storage_buffer(1)
 
     def discs(name):
         vaos[name].render(ctx.TRIANGLE_STRIP, vertices=4, instances=n)

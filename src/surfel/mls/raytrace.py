@@ -13,9 +13,9 @@ points sorted in Morton order, 8 spheres a leaf. Per ray (numba, parallel over r
    (typically 2 to 3 fits). A failed fit or a diverging ray moves on to the next sphere.
 
 Colour is the fit's weighted mean of the neighbours' colours, the normal the gradient of
-the last polynomial (n - g_u e1 - g_v e2). Options (RenderOptions.params):
-    h_scale (1.5)       kernel width h_i = h_scale * local spacing s_i
-    domain (2.0)        domain test / sphere radius in units of s_i
+the last polynomial (n - g_u e1 - g_v e2). Parameters (`MlsParams`):
+    h_scale (1.5)       kernel width h_i = h_scale * local spacing s_i (surface.MlsKernel)
+    domain (2.0)        domain test / sphere radius in units of s_i (surface.MlsKernel)
     tolerance (1e-3)    eps, as a fraction of the median kernel width
     max_iterations (8)  fits per candidate sphere before giving up on it
     shadows (False)     a shadow ray to the directional key light of shading.py (eye space
@@ -28,19 +28,21 @@ Supersampling defaults to 2x2 rays per pixel (box filtered like every method).
 from __future__ import annotations
 
 import math
-import weakref
 from dataclasses import dataclass
 
 import numba
 import numpy as np
 
+from ..options import at_least, between, positive, setting
 from ..result import RenderResult
 from ..shading import KEY_LIGHT, shade
 from .surface import (
+    DEFAULT_KERNEL,
     FIT_OK,
     MAX_NEIGHBOURS,
     POLY_SIZE,
     SUPPORT,
+    MlsKernel,
     MLSSurface,
     build_surface,
     fit,
@@ -50,12 +52,22 @@ from .surface import (
     poly_ray,
 )
 
+DEFAULT_SUPERSAMPLE = 2  # rays per pixel side, box filtered like every method
 LEAF = 8
 MAX_CANDIDATES = 4096
 STACK = 64
 DONE = 1e30  # marks a visited candidate (finite: fastmath assumes no infinities)
 SKY = np.array([0.55, 0.7, 0.95])
 GROUND = np.array([0.25, 0.22, 0.2])
+
+
+@dataclass(frozen=True)
+class MlsParams(MlsKernel):
+    tolerance: float = setting(1e-3, positive)  # eps, as a fraction of the median kernel width
+    max_iterations: int = setting(8, at_least(1))  # fits per candidate sphere before giving up on it
+    shadows: bool = False  # a shadow ray to the key light
+    reflect: bool = False  # one mirror bounce
+    reflectivity: float = setting(0.3, between(0, 1))  # weight of the mirror bounce
 
 
 @dataclass(frozen=True, eq=False)
@@ -68,9 +80,6 @@ class MLSScene:
     radius: np.ndarray      # (N,) bounding sphere radius
     leaf_order: np.ndarray  # (L * LEAF,) point indices in Morton order, -1 padding
     boxes: np.ndarray       # (2L - 1, 2, 3) node AABBs of the implicit heap-ordered tree
-
-
-_scenes: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
 def _morton(points: np.ndarray) -> np.ndarray:
@@ -108,17 +117,19 @@ def build_bvh(centers: np.ndarray, radius: np.ndarray) -> tuple[np.ndarray, np.n
     return leaf_order, boxes
 
 
-def prepare_scene(cloud, h_scale: float = 1.5, domain: float = 2.0) -> MLSScene:
-    """The ray tracing scene of `cloud`, cached per cloud and settings."""
-    key = (float(h_scale), float(domain))
-    per_cloud = _scenes.setdefault(cloud, {})
-    if key not in per_cloud:
-        surface = build_surface(cloud, h_scale=h_scale, domain=domain)
-        polys, status = point_polynomials(surface)
-        radius = domain * surface.spacing
-        leaf_order, boxes = build_bvh(surface.points, radius)
-        per_cloud[key] = MLSScene(surface, polys, status == FIT_OK, radius, leaf_order, boxes)
-    return per_cloud[key]
+def prepare_scene(cloud, kernel: MlsKernel = DEFAULT_KERNEL) -> MLSScene:
+    """The ray tracing scene of `cloud`."""
+    surface = build_surface(cloud, kernel)
+    polys, status = point_polynomials(surface)
+    radius = kernel.domain * surface.spacing
+    leaf_order, boxes = build_bvh(surface.points, radius)
+    return MLSScene(surface, polys, status == FIT_OK, radius, leaf_order, boxes)
+
+
+def cached_scene(cloud, kernel: MlsKernel, renderer) -> MLSScene:
+    """The scene, made once per cloud and kernel by the Renderer (both MLS methods share it)."""
+    key = ("mls scene", kernel.h_scale, kernel.domain)
+    return renderer.cached(cloud, key, lambda: prepare_scene(cloud, MlsKernel(kernel.h_scale, kernel.domain)))
 
 
 @numba.njit(cache=True, fastmath=True)
@@ -284,12 +295,10 @@ def environment(directions_eye: np.ndarray) -> np.ndarray:
     return GROUND * (1 - k) + SKY * k
 
 
-def render_mls_cpu(cloud, camera, options) -> RenderResult:
-    p = options.params
-    ss = options.supersample or 2
-    tolerance = float(p.get("tolerance", 1e-3))
-    max_iter = int(p.get("max_iterations", 8))
-    scene = prepare_scene(cloud, p.get("h_scale", 1.5), p.get("domain", 2.0))
+def render_mls_cpu(cloud, camera, options, params: MlsParams, renderer) -> RenderResult:
+    ss = options.supersample or DEFAULT_SUPERSAMPLE
+    tolerance, max_iter = params.tolerance, params.max_iterations
+    scene = cached_scene(cloud, params, renderer)
     surface = scene.surface
     cam = supersampled(camera, ss)
     o_eye, d_eye = cam.rays()
@@ -320,7 +329,7 @@ def render_mls_cpu(cloud, camera, options) -> RenderResult:
     offset = 2.0 * tolerance * surface.scale + 0.25 * surface.scale
     idx = np.flatnonzero(hit)
     n_world = n_eye[idx] @ rot  # flipped towards the viewer
-    if p.get("shadows", False) and idx.size:
+    if params.shadows and idx.size:
         light = KEY_LIGHT @ rot  # eye-space key light to world
         facing = n_world @ light > 0
         start = x_local[idx] + offset * np.where(facing[:, None], n_world, -n_world)
@@ -328,8 +337,8 @@ def render_mls_cpu(cloud, camera, options) -> RenderResult:
         shadowed = idx[blocked | ~facing]
         shaded[shadowed] = 0.2 * albedo[shadowed]
         stats["shadowed"] = int(len(shadowed))
-    if p.get("reflect", False) and idx.size:
-        reflectivity = float(p.get("reflectivity", 0.3))
+    if params.reflect and idx.size:
+        reflectivity = params.reflectivity
         dv = dirs[idx]
         refl = dv - 2 * np.sum(dv * n_world, axis=1)[:, None] * n_world
         bounce = trace(scene, x_local[idx] + offset * n_world, refl, 0.0, t_max, tolerance, max_iter)

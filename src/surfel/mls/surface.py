@@ -34,6 +34,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..cloud import PointCloud
+from ..options import Settings, positive, setting
 
 # Fit statuses.
 FIT_OK = 0
@@ -51,6 +52,17 @@ SPACING_K = 8          # spacing s_i = mean distance to the 8 nearest neighbours
 # Layout of one fitted polynomial row.
 P_Q, P_N, P_E1, P_E2, P_C, P_COLOR, P_SCALE = 0, 3, 6, 9, 12, 18, 21
 POLY_SIZE = 22
+
+
+@dataclass(frozen=True)
+class MlsKernel(Settings):
+    """The surface's definition, shared by the `mls` and `mls-gpu` parameters."""
+
+    h_scale: float = setting(1.5, positive)  # kernel width h_i = h_scale * local spacing s_i
+    domain: float = setting(2.0, positive)  # domain test (and bounding sphere) radius, in units of s_i
+
+
+DEFAULT_KERNEL = MlsKernel()
 
 
 @dataclass(frozen=True, eq=False)
@@ -93,12 +105,12 @@ def local_spacing(points: np.ndarray, k: int = SPACING_K) -> np.ndarray:
     return np.clip(smooth, 0.5 * med, 2.0 * med)
 
 
-def build_surface(cloud: PointCloud, h_scale: float = 1.5, domain: float = 2.0) -> MLSSurface:
+def build_surface(cloud: PointCloud, kernel: MlsKernel = DEFAULT_KERNEL) -> MLSSurface:
     """Spacing, kernel widths and the neighbour grid of `cloud` (h_i = h_scale * s_i)."""
     origin = cloud.local_origin
     points = np.ascontiguousarray(cloud.positions - origin)
     spacing = local_spacing(points)
-    h = h_scale * spacing
+    h = kernel.h_scale * spacing
     colors = np.ones((len(points), 3)) if cloud.colors is None else cloud.colors.astype(np.float64)
     cell = float(SUPPORT * h.max())
     lower = points.min(axis=0) - 1e-9
@@ -111,7 +123,7 @@ def build_surface(cloud: PointCloud, h_scale: float = 1.5, domain: float = 2.0) 
     keys = (ijk[:, 2] * dims[1] + ijk[:, 1]) * dims[0] + ijk[:, 0]
     order = np.argsort(keys, kind="stable").astype(np.int64)
     starts = np.searchsorted(keys[order], np.arange(int(np.prod(dims)) + 1)).astype(np.int64)
-    return MLSSurface(origin, points, spacing, h, np.ascontiguousarray(colors), float(domain), cell,
+    return MLSSurface(origin, points, spacing, h, np.ascontiguousarray(colors), float(kernel.domain), cell,
                       lower, dims, order, starts)
 
 

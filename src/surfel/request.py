@@ -1,0 +1,594 @@
+"""Render requests: what the command line, batch jobs, the viewer and turntables ask of the
+renderer, parsed and checked in one place.
+
+A `RenderRequest` is an input (a file, or the bundled demo), a camera specification
+(`CameraSpec`), the method and its backend, the `RenderOptions` with the method's parameters,
+and the files to write (`Outputs`). Every option is one row of `OPTIONS`: its name (the flag
+is --name with dashes; a batch job's key is the name, with dashes or underscores), how its
+text is parsed, its default, its help, and what it sets: the input, the camera, a common
+option, a method parameter, an output, or the method itself. `cli.py` declares its click
+options from these rows; `batch.py` parses each job with `parse_render`, the parser of
+`surfel render`'s own flags, so that a job means exactly what those flags mean.
+
+Checked here, before anything is loaded, rendered or written, each refused in one line that
+names the flag: text that is not a value of the option's kind; values that cannot be honoured
+(`RenderOptions` and the parameter dataclasses check theirs on construction; the camera's
+are checked here: a field of view outside (0, 180), an orthographic height or a zoom that is
+not positive, an OpenCV K that is not an invertible 3x3 pinhole matrix or an R that is not a
+rotation); an option the chosen method does not use, when the user set it; camera options
+that contradict each other; and every output location (`files.check_output`).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field, fields, replace
+from pathlib import Path
+
+import numpy as np
+
+from .camera import VIEWS, Camera, frame
+from .errors import SurfelError
+from .files import check_folder, check_output
+from .methods import METHODS, get_method
+from .methods.params import SplatParams
+from .options import RenderOptions, SettingError
+from .shading import MODELS
+
+# The defaults of `surfel turntable` (and `surfel batch --turntable`), where they differ from render's.
+TURNTABLE_FRAMES = 36
+TURNTABLE_FPS = 12.0
+TURNTABLE_ELEVATION = 15.0
+TURNTABLE_SIZE = (512, 512)
+VIEW_SIZE = (800, 800)  # `surfel view`'s window
+IMAGE_FORMATS = (".png", "")  # colour images are PNG; a name without extension gets PNG too
+MAX_PIXELS = 16384 * 16384
+
+
+# ---------------------------------------------------------------------------------------------
+# Parsers: the text of one option to its value, or ValueError(the problem)
+
+
+def number(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise ValueError(f"needs a number, got {text!r}") from None
+    if not math.isfinite(value):
+        raise ValueError(f"needs a finite number, got {text!r}")
+    return value
+
+
+def positive_number(text: str) -> float:
+    value = number(text)
+    if value <= 0:
+        raise ValueError(f"must be positive, got {text!r}")
+    return value
+
+
+def integer(text: str) -> int:
+    try:
+        return int(text)
+    except ValueError:
+        raise ValueError(f"needs an integer, got {text!r}") from None
+
+
+def integer_in(low: int, high: int) -> Callable[[str], int]:
+    def parse(text: str) -> int:
+        value = integer(text)
+        if not low <= value <= high:
+            raise ValueError(f"must be in {low}..{high}, got {text!r}")
+        return value
+
+    return parse
+
+
+def numbers(count: int) -> Callable[[str], tuple[float, ...]]:
+    def parse(text: str) -> tuple[float, ...]:
+        try:
+            values = tuple(float(v) for v in text.split(","))
+        except ValueError:
+            raise ValueError(f"needs {count} comma-separated numbers, got {text!r}") from None
+        if len(values) != count or not all(map(math.isfinite, values)):
+            raise ValueError(f"needs {count} comma-separated finite numbers, got {text!r}")
+        return values
+
+    return parse
+
+
+def direction(text: str) -> tuple[float, float, float]:
+    values = numbers(3)(text)
+    if not any(values):
+        raise ValueError("must not be the zero vector")
+    return values
+
+
+def size(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise ValueError(f"must look like 512x512, got {text!r}") from None
+    if w <= 0 or h <= 0 or w * h > MAX_PIXELS:
+        raise ValueError(f"{text!r} is out of range (each side positive, at most {MAX_PIXELS} pixels)")
+    return w, h
+
+
+def choice(*values: str) -> Callable[[str], str]:
+    def parse(text: str) -> str:
+        if text not in values:
+            raise ValueError(f"must be one of {', '.join(values)}, got {text!r}")
+        return text
+
+    return parse
+
+
+def text(value: str) -> str:
+    if not value:
+        raise ValueError("must not be empty")
+    return value
+
+
+def field_of_view(text: str) -> float:
+    value = number(text)
+    if not 0 < value < 180:
+        raise ValueError(f"must be in (0, 180) degrees, got {text!r}")
+    return value
+
+
+@dataclass(frozen=True)
+class OpenCvCamera:
+    """A pinhole camera from an OpenCV JSON file {"K": 3x3, "R": 3x3, "t": 3}, checked."""
+
+    path: str
+    K: np.ndarray
+    R: np.ndarray
+    t: np.ndarray
+
+    @classmethod
+    def read(cls, path: str) -> OpenCvCamera:
+        try:
+            spec = json.loads(Path(path).read_text())
+            K, R, t = (np.array(spec[key], float) for key in ("K", "R", "t"))
+        except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError) as exc:
+            reason = getattr(exc, "strerror", None) or f"{type(exc).__name__}: {exc}"
+            raise SurfelError(f"{path}: not an OpenCV camera JSON with K, R, t ({reason})") from None
+        problem = cls.problem(K, R, t)
+        if problem:
+            raise SurfelError(f"{path}: {problem}")
+        return cls(path, K, R, t.reshape(3))
+
+    @staticmethod
+    def problem(K: np.ndarray, R: np.ndarray, t: np.ndarray) -> str | None:
+        for name, array, shape in (("K", K, (3, 3)), ("R", R, (3, 3)), ("t", t, (3,))):
+            if array.shape != shape and not (name == "t" and array.size == 3):
+                return f"{name} must be {'x'.join(map(str, shape))}, got shape {array.shape}"
+            if not np.isfinite(array).all():
+                return f"{name} holds values that are not finite numbers"
+        if not np.array_equal(K[2], [0.0, 0.0, 1.0]) or K[1, 0] != 0 or K[0, 1] != 0:
+            return "K must be a pinhole matrix [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]"
+        if not (K[0, 0] > 0 and K[1, 1] > 0):
+            return f"K's focal lengths must be positive, got fx={K[0, 0]:g}, fy={K[1, 1]:g}"
+        if not np.allclose(R @ R.T, np.eye(3), atol=1e-4) or np.linalg.det(R) <= 0:
+            return "R must be a rotation (orthonormal, determinant 1)"
+        return None
+
+
+# ---------------------------------------------------------------------------------------------
+# The option table
+
+
+@dataclass(frozen=True)
+class Option:
+    """One option: `parse` turns its text into its value (None: an on/off flag, given as a bool).
+
+    sets: "input", "camera", "options" (a RenderOptions field), "params" (a parameter of the
+    method), "output", "method" (the method and backend) or "turntable". `field`: the
+    RenderOptions field or parameter it sets, when not `name`; `value` maps a flag's bool to it.
+    `default`: text parsed like a given value, for the options whose default is not that of
+    the dataclass they set (CameraSpec, RenderOptions, the method's parameters); else None.
+    """
+
+    name: str
+    parse: Callable[[str], object] | None
+    help: str
+    sets: str
+    default: str | None = None
+    field: str | None = None
+    flag: str | None = None  # a flag's click declaration when not --name ("--a/--no-a")
+    short: str | None = None
+    metavar: str | None = None
+    value: Callable[[bool], object] | None = None
+
+    @property
+    def label(self) -> str:
+        """How messages name it: its flag."""
+        return "--" + self.name.replace("_", "-")
+
+    def label_for(self, value) -> str:
+        """The flag as given: an on/off flag's second name when off."""
+        sides = (self.flag or self.label).split("/")
+        return sides[1] if value is False and len(sides) > 1 else sides[0]
+
+    @property
+    def target(self) -> str:
+        return self.field or self.name
+
+    def shown_default(self) -> str | None:
+        """The default --help shows: the table's, or that of the dataclass field it sets (the
+        splat methods' common parameters for a parameter; other parameters say theirs in help)."""
+        if self.default is not None or self.parse is None:
+            return self.default
+        owner = {"camera": CameraSpec, "options": RenderOptions, "params": SplatParams}.get(self.sets)
+        value = {f.name: f.default for f in fields(owner)}.get(self.target) if owner is not None else None
+        if isinstance(value, tuple):
+            return ("x" if self.name == "size" else ",").join(f"{v:g}" for v in value)
+        return None if value is None else f"{value:g}" if isinstance(value, float) else str(value)
+
+
+def _normalization(per_pixel: bool) -> str:
+    return "per-pixel" if per_pixel else "per-surfel"
+
+
+OPTIONS: dict[str, Option] = {o.name: o for o in [
+    # what to render and where to write it
+    Option("input", text, "The file to render.", "input", metavar="FILE"),
+    Option("demo", None, "Render the bundled demo model (Spot, CC0) instead of INPUT.", "input"),
+    Option("output", text, "PNG to write.", "output", short="-o", metavar="FILE"),
+    Option("depth", text, "Write eye depth (H x W float32 .npy).", "output", metavar="FILE"),
+    Option("normals", text, "Write eye normals (H x W x 3 float32 .npy).", "output", metavar="FILE"),
+    Option("stats", text, "Write render statistics (.json).", "output", metavar="FILE"),
+    Option("method", text, "Rendering method (see `surfel methods`).", "method", default="deferred", short="-m",
+           metavar="NAME"),
+    Option("backend", choice("gl", "cpu"), "Default: gl, else cpu where the method has one.", "method",
+           metavar="[gl|cpu]"),
+    # the camera (CONVENTIONS.md)
+    Option("size", size, "Image size in pixels.", "camera", metavar="WxH"),
+    Option("view", choice(*VIEWS), "Auto-framing direction (default front).", "camera",
+           metavar=f"[{'|'.join(VIEWS)}]"),
+    Option("azimuth", number, "Degrees from the front view towards the right, about the up axis.", "camera",
+           metavar="DEG"),
+    Option("elevation", number, "Degrees above the horizon.", "camera", metavar="DEG"),
+    Option("eye", numbers(3), "Camera position in file coordinates.", "camera", metavar="X,Y,Z"),
+    Option("target", numbers(3), "Look-at point (default: bounding-box centre).", "camera", metavar="X,Y,Z"),
+    Option("up", direction, "Up vector (default 0,0,1 for LAS/LAZ, 0,1,0 otherwise).", "camera", metavar="X,Y,Z"),
+    Option("fov", field_of_view, "Vertical field of view in degrees.", "camera", metavar="DEG"),
+    Option("ortho", positive_number, "Orthographic camera showing HEIGHT world units vertically.", "camera",
+           metavar="HEIGHT"),
+    Option("opencv", text, 'Pinhole camera from a JSON file {"K": 3x3, "R": 3x3, "t": 3} (OpenCV world-to-camera).',
+           "camera", metavar="FILE"),
+    Option("zoom", positive_number, "Move the auto-framed camera this many times farther.", "camera",
+           metavar="FACTOR"),
+    # every method
+    Option("shading", choice(*MODELS), "Shading model.", "options", metavar=f"[{'|'.join(MODELS)}]"),
+    Option("background", numbers(3), "Background colour in [0, 1].", "options", metavar="R,G,B"),
+    Option("supersample", integer, "Samples per pixel side, 1 to 8 (default: the method's).", "options",
+           metavar="N"),
+    Option("lod_error", positive_number, "Level of detail: allowed projected error in pixels (splat methods).",
+           "options", metavar="PX"),
+    Option("point_budget", integer, "Most points drawn from a .lod hierarchy or COPC file (its LOD error is "
+           "raised to fit).", "options", metavar="N"),
+    Option("dump_passes", text, "Write the intermediate passes to this folder as images (gaussian, deferred, "
+           "phong, object-space, ewa on gl).", "options", metavar="FOLDER"),
+    # method parameters (methods/params.py and each method's dataclass)
+    Option("radius_scale", number, "Multiply every splat radius (splat methods).", "params", metavar="FACTOR"),
+    Option("depth_offset", number, "Visibility offset z_t as a fraction of the splat radius (blended splat "
+           "methods).", "params", metavar="FRACTION"),
+    Option("backface_culling", None, "Drop splats facing away (blended splat methods) [default: off].", "params",
+           flag="--backface-culling/--no-backface-culling"),
+    Option("ewa_filter", None, "Screen-space EWA filter approximation (gaussian, deferred, phong) [default: on for "
+           "deferred, off for gaussian and phong].", "params", flag="--ewa-filter/--no-ewa-filter"),
+    Option("lowpass_radius", number, "Screen-space low-pass radius in pixels (blended splat methods).", "params",
+           metavar="PX"),
+    Option("per_pixel_normalization", None, "object-space: divide by the accumulated weight per pixel (Botsch & "
+           "Kobbelt 2003), or Ren et al.'s precomputed per-surfel weights [default: per-pixel].", "params",
+           field="normalization", flag="--per-pixel-normalization/--per-surfel-normalization",
+           value=_normalization),
+    Option("shadows", None, "Ray-traced shadows (mls).", "params", flag="--shadows"),
+    Option("reflect", None, "One mirror bounce (mls).", "params", flag="--reflect"),
+    # `surfel prepare`
+    Option("viewpoint", numbers(3), "Sensor position to orient normals towards.", "prepare", metavar="X,Y,Z"),
+    # turntables
+    Option("frames", integer_in(1, 3600), "Frames in the orbit.", "turntable", default=str(TURNTABLE_FRAMES),
+           metavar="N"),
+    Option("fps", positive_number, "Frames per second of the animation.", "turntable", default=f"{TURNTABLE_FPS:g}",
+           metavar="RATE"),
+]}
+
+CAMERA = tuple(name for name, o in OPTIONS.items() if o.sets == "camera")
+RENDER = tuple(name for name, o in OPTIONS.items() if o.sets in ("options", "params"))
+OUTPUTS = ("output", "depth", "normals", "stats")
+# what `surfel render` takes, and hence a batch job; what `surfel turntable` takes
+RENDER_COMMAND = ("input", "demo", *OUTPUTS, "method", "backend", *CAMERA, *RENDER)
+TURNTABLE_COMMAND = ("input", "output", "frames", "fps", "elevation", "size", "method", "backend", *RENDER)
+
+
+def option_text(option: Option, value, where: str) -> str | bool:
+    """A batch job's value as the text the flag would be given (lists joined by commas, a
+    size by x), or the bool of a flag; anything else is refused."""
+    if option.parse is None:
+        if not isinstance(value, bool):
+            raise SurfelError(f"{where}{option.name} is true or false, got {value!r}")
+        return value
+    if isinstance(value, (list, tuple)):
+        return ("x" if option.name == "size" else ",").join(str(v) for v in value)
+    if isinstance(value, (bool, dict)) or value is None:
+        raise SurfelError(f"{where}{option.name} takes a value, got {value!r}")
+    return str(value)
+
+
+def parse_values(values: Mapping[str, object], names, where: str = "") -> dict:
+    """The given (not None) values of the options `names`, parsed; defaults are not filled in.
+    Text from the command line, or a job's values (see `option_text`); keys with dashes or
+    underscores. An unknown key or a value its option refuses is a one-line SurfelError."""
+    parsed = {}
+    for key, raw in values.items():
+        name = str(key).replace("-", "_")
+        if name not in names:
+            raise SurfelError(f"{where}unknown option {key!r} (it takes the options of `surfel render`)")
+        if raw is None:
+            continue
+        option = OPTIONS[name]
+        given = option_text(option, raw, where)
+        if option.parse is None:
+            parsed[name] = given
+            continue
+        try:
+            parsed[name] = option.parse(given)
+        except ValueError as exc:
+            raise SurfelError(f"{where}{option.label}: {exc}") from None
+    return parsed
+
+
+def default(name: str, parsed: dict):
+    """The parsed value of `name`, else its parsed default (None if it has none)."""
+    if name in parsed:
+        return parsed[name]
+    option = OPTIONS[name]
+    return None if option.default is None else option.parse(option.default)
+
+
+def argv_of(values: Mapping[str, object]) -> tuple[str, ...]:
+    """The command-line arguments meaning these (job) values: flags, then the input."""
+    argv, positional = [], []
+    for key, value in values.items():
+        name = str(key).replace("-", "_")
+        option = OPTIONS[name]
+        if value is None:
+            continue
+        if name == "input":
+            positional = ["--", str(value)]
+        elif option.parse is None:
+            declaration = (option.flag or option.label).split("/")
+            if value or len(declaration) > 1:
+                argv.append(declaration[0] if value else declaration[1])
+        else:
+            argv += [option.label, option_text(option, value, "")]
+    return tuple(argv + positional)
+
+
+# ---------------------------------------------------------------------------------------------
+# Options and parameters of a method
+
+
+def render_options(method: str, values: Mapping[str, object], *, strict: bool = True,
+                   labels: Mapping[str, str] | None = None, where: str = "") -> RenderOptions:
+    """RenderOptions (with the method's parameters) from values keyed by RenderOptions field
+    or parameter name. strict: a value the method does not use is refused (the command line,
+    where the user set it); else it is left out (the viewer applies its keys wherever they
+    mean something). `labels` name the fields in messages (the flags)."""
+    m = get_method(method)
+    labels = labels or {}
+    kept = {}
+    for name, value in values.items():
+        if value is None:
+            continue
+        if not m.uses(name):
+            if strict:
+                users = ", ".join(other.name for other in METHODS.values() if other.uses(name))
+                raise SurfelError(f"{where}{labels.get(name, name)}: method {method!r} does not use it "
+                                  f"(it applies to {users or 'no method'})")
+            continue
+        kept[name] = value
+    common = {k: v for k, v in kept.items() if k in RenderOptions.names()}
+    try:
+        params = m.make_params({k: v for k, v in kept.items() if k not in common})
+        return RenderOptions(**common, params=params)
+    except SettingError as exc:
+        raise SurfelError(f"{where}{labels.get(exc.name, exc.name)}: {exc.problem}") from None
+
+
+# ---------------------------------------------------------------------------------------------
+# Outputs
+
+
+@dataclass(frozen=True)
+class Outputs:
+    """The files a render writes: a PNG, eye depth and normals (.npy), statistics (.json)."""
+
+    png: str | None = None
+    depth: str | None = None
+    normals: str | None = None
+    stats: str | None = None
+
+    def named(self) -> dict[str, str]:
+        return {label: path for label, path in (("--output", self.png), ("--depth", self.depth),
+                                                ("--normals", self.normals), ("--stats", self.stats)) if path}
+
+    def check_names(self, where: str = "") -> None:
+        """What the names alone tell: the PNG's extension, one file named twice."""
+        if self.png is not None and Path(self.png).suffix.lower() not in IMAGE_FORMATS:
+            raise SurfelError(f"{where}{self.png}: --output writes a PNG: name it .png")
+        seen: dict[str, str] = {}
+        for label, path in self.named().items():
+            key = os.path.realpath(path)
+            if key in seen:
+                raise SurfelError(f"{where}{path}: {label} names the same file as {seen[key]}")
+            seen[key] = label
+
+    def check(self) -> None:
+        """Every location, so that a render writes all it was asked for or nothing."""
+        for label, path in self.named().items():
+            check_output(path, label)
+
+    def absolute(self) -> Outputs:
+        return Outputs(*(p and os.path.abspath(p) for p in (self.png, self.depth, self.normals, self.stats)))
+
+
+# ---------------------------------------------------------------------------------------------
+# Camera
+
+
+@dataclass(frozen=True)
+class CameraSpec:
+    """The camera flags of CONVENTIONS.md, checked; `camera(cloud)` makes the camera."""
+
+    size: tuple[int, int] = (1024, 1024)
+    view: str | None = None
+    azimuth: float | None = None
+    elevation: float | None = None
+    eye: tuple[float, float, float] | None = None
+    target: tuple[float, float, float] | None = None
+    up: tuple[float, float, float] | None = None
+    fov: float = 30.0
+    ortho: float | None = None
+    opencv: OpenCvCamera | None = field(default=None, compare=False)
+    zoom: float = 1.0
+
+    @classmethod
+    def from_parsed(cls, parsed: dict, where: str = "") -> CameraSpec:
+        given = {name for name in CAMERA if name in parsed}
+        conflicts = [("opencv", ("view", "azimuth", "elevation", "eye", "target", "up", "fov", "ortho", "zoom"),
+                      "sets the whole camera"),
+                     ("eye", ("view", "azimuth", "elevation", "zoom"), "places the camera"),
+                     ("view", ("azimuth", "elevation"), "chooses the direction")]
+        for name, others, what in conflicts:
+            clash = [OPTIONS[o].label for o in others if o in given]
+            if name in given and clash:
+                raise SurfelError(f"{where}{OPTIONS[name].label} {what}; drop {', '.join(clash)}")
+        values = {name: parsed[name] for name in CAMERA if name in parsed}
+        if "opencv" in values:
+            try:
+                values["opencv"] = OpenCvCamera.read(values["opencv"])
+            except SurfelError as exc:
+                raise SurfelError(f"{where}{exc}") from None
+        return cls(**values)
+
+    def camera(self, cloud) -> Camera:
+        """The camera for `cloud` (a PointCloud or a LodSource: its bounds frame the view)."""
+        if self.opencv is not None:
+            c = self.opencv
+            return Camera.from_opencv(c.K, c.R, c.t, self.size).fit_clip_planes(cloud.center, cloud.bounding_radius)
+        return frame(cloud.center, cloud.bounding_radius, view=self.view, azimuth=self.azimuth,
+                     elevation=self.elevation, up=self.up, geospatial=cloud.geospatial, fov=self.fov,
+                     size=self.size, eye=self.eye, target=self.target, ortho_height=self.ortho, zoom=self.zoom)
+
+
+# ---------------------------------------------------------------------------------------------
+# Requests
+
+
+@dataclass(frozen=True)
+class RenderRequest:
+    """One render: `surfel render`'s command line, a batch job, or the frames of a turntable."""
+
+    input: str | None
+    demo: bool
+    method: str
+    backend: str | None
+    camera: CameraSpec
+    options: RenderOptions
+    outputs: Outputs
+    argv: tuple[str, ...] = ()  # the `surfel render` arguments that make this request
+
+    def open_input(self):
+        """The demo cloud, a lazy LOD source (a .lod directory, a COPC file) or the loaded cloud."""
+        if self.demo:
+            from .data import demo_cloud
+
+            return demo_cloud()
+        return open_input(self.input)
+
+    def render(self, renderer, cloud=None):
+        """Render (the input, or `cloud` when the caller has it loaded) with `renderer`."""
+        from .cloud import PointCloud
+
+        cloud = self.open_input() if cloud is None else cloud
+        if self.options.point_budget is not None and isinstance(cloud, PointCloud):
+            raise SurfelError(f"{self.input or 'demo'}: --point-budget applies to .lod hierarchies and COPC files")
+        return renderer.render(cloud, self.camera.camera(cloud), self.method, backend=self.backend,
+                               options=self.options)
+
+    def check_outputs(self) -> None:
+        self.outputs.check()
+        if self.options.dump_passes is not None:
+            check_folder(self.options.dump_passes, "--dump-passes")
+
+    def write(self, result) -> None:
+        o = self.outputs
+        result.save(o.png, depth=o.depth, normals=o.normals, stats=o.stats)
+
+    def absolute(self) -> RenderRequest:
+        """Paths made absolute (for workers started in another directory)."""
+        options = self.options
+        if options.dump_passes is not None:
+            options = replace(options, dump_passes=os.path.abspath(options.dump_passes))
+        return replace(self, input=None if self.input is None else os.path.abspath(self.input),
+                       outputs=self.outputs.absolute(), options=options)
+
+
+def open_input(path):
+    """A lazy LOD source (a .lod directory, a COPC file) if PATH is one, else the loaded cloud."""
+    from .io import load
+    from .lod.source import open_source
+
+    return open_source(path) or load(path)
+
+
+def method_and_backend(parsed: dict, where: str = "") -> tuple[str, str | None]:
+    method = default("method", parsed)
+    try:
+        m = get_method(method)
+    except SurfelError as exc:
+        raise SurfelError(f"{where}{exc}") from None
+    backend = parsed.get("backend")
+    if backend is not None and backend not in m.backends:
+        raise SurfelError(f"{where}--backend: method {method!r} has no {backend!r} backend; "
+                          f"it has {', '.join(m.backends)}")
+    return method, backend
+
+
+def options_from(parsed: dict, method: str, where: str = "") -> RenderOptions:
+    """The RenderOptions of the parsed values, each checked against the method."""
+    values, labels = {}, {}
+    for name in RENDER:
+        option = OPTIONS[name]
+        labels[option.target] = option.label_for(parsed.get(name))
+        if name in parsed:
+            value = parsed[name]
+            values[option.target] = option.value(value) if option.value else value
+    return render_options(method, values, labels=labels, where=where)
+
+
+def parse_render(values: Mapping[str, object], *, where: str = "", require_output: bool = True) -> RenderRequest:
+    """The request that `surfel render` with these option values makes (None: not given)."""
+    parsed = parse_values(values, RENDER_COMMAND, where)
+    if parsed.get("demo", False) == ("input" in parsed):
+        raise SurfelError(f"{where}give an input file or --demo (not both)")
+    if require_output and "output" not in parsed:
+        raise SurfelError(f"{where}missing --output (the PNG to write)")
+    method, backend = method_and_backend(parsed, where)
+    options = options_from(parsed, method, where)
+    if options.dump_passes is not None and backend is not None and backend not in get_method(method).dump_passes:
+        raise SurfelError(f"{where}--dump-passes: method {method!r} writes no passes on its {backend} backend")
+    outputs = Outputs(*(parsed.get(name) for name in OUTPUTS))
+    outputs.check_names(where)
+    given = {k: v for k, v in values.items() if v is not None}
+    return RenderRequest(parsed.get("input"), parsed.get("demo", False), method, backend,
+                         CameraSpec.from_parsed(parsed, where), options, outputs, argv_of(given))
+
+
+__all__ = ["OPTIONS", "Option", "CameraSpec", "Outputs", "RenderRequest", "default", "method_and_backend",
+           "open_input", "options_from", "parse_render", "parse_values", "render_options"]
