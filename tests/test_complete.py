@@ -1,4 +1,4 @@
-"""Completing a cloud: prepare fills exactly what is missing."""
+"""Completing a cloud: prepare fills exactly what is missing; complete follows a method's needs."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import numpy as np
 
 from samples import sphere
 from surfel.cloud import PointCloud
-from surfel.preprocess import prepare
+from surfel.preprocess import complete, prepare
 
 
 def test_prepare_fills_exactly_what_is_missing():
@@ -48,3 +48,44 @@ def test_tiny_clouds():
         cloud, report = prepare(PointCloud(np.arange(3 * n, dtype=float).reshape(n, 3) ** 1.5))
         assert (cloud.radii > 0).all() and report["ambiguous_normals"] == n
 
+
+def test_complete_gives_each_method_what_its_flags_ask():
+    p = sphere(2_000, seed=3)
+    bare, oriented = PointCloud(p), PointCloud(p, normals=p)
+    # every method needs normals: a cloud without them is prepared whole, whatever the method
+    for needs_radii in (True, False):
+        prepared, report = complete(bare, needs_radii=needs_radii)
+        assert prepared.radii is not None and prepared.axes is not None and "normals" in report
+    # MLS needs normals only
+    same, report = complete(oriented, needs_radii=False)
+    assert same is oriented and report == {}
+    # splats: circular by default, fitted ellipses for an elliptical method, given normals kept
+    circles, report = complete(oriented)
+    assert np.array_equal(circles.normals, oriented.normals) and set(report) == {"radii", "axes", "sharp_features"}
+    assert np.allclose(np.linalg.norm(circles.axes[:, 0], axis=1), circles.radii, rtol=1e-5)
+    ellipses, report = complete(oriented, elliptical=True, normal_field=True)
+    lengths = np.linalg.norm(ellipses.axes.astype(np.float64), axis=2)
+    assert report["axes"].startswith("fitted ellipses") and (lengths[:, 0] > 1.05 * lengths[:, 1]).any()
+    assert {"phong_alpha", "phong_beta"} <= set(ellipses.attributes)
+    # a complete cloud: given splats are kept (circles stay circles); only a missing field is fitted
+    same, report = complete(circles, elliptical=True)
+    assert same is circles and report == {}
+    fields, report = complete(circles, elliptical=True, normal_field=True)
+    assert set(report) == {"normal_field"} and np.array_equal(fields.axes, circles.axes)
+
+
+def test_rendering_remembers_completions_per_cloud():
+    from surfel import rendering
+    from surfel.methods import METHODS
+
+    cloud = PointCloud(sphere(1_500, seed=4))
+    for method in METHODS.values():
+        flags = {"needs_radii": method.needs_radii, "elliptical": method.elliptical,
+                 "normal_field": method.normal_field}
+        first, report = rendering.complete(cloud, **flags)
+        assert rendering.complete(cloud, **flags)[0] is first  # estimated once
+        pure, pure_report = complete(cloud, **flags)
+        assert report == pure_report
+        for name in ("normals", "radii", "axes"):
+            assert np.array_equal(getattr(first, name), getattr(pure, name))
+        assert first.attributes.keys() == pure.attributes.keys()

@@ -15,7 +15,8 @@ import numpy as np
 
 from .cloud import PointCloud
 from .options import RenderOptions
-from .rendering import complete, default_camera, render
+from .preprocess import complete
+from .rendering import default_camera, render
 
 
 def replicate(cloud: PointCloud, points: int, seed: int = 0) -> PointCloud:

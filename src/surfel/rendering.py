@@ -24,23 +24,19 @@ def default_camera(cloud: PointCloud, size=(1024, 1024), **framing) -> Camera:
 _completed: weakref.WeakKeyDictionary[PointCloud, dict] = weakref.WeakKeyDictionary()
 
 
-def complete(cloud: PointCloud, *, need_radii: bool = True, elliptical: bool = False,
+def complete(cloud: PointCloud, *, needs_radii: bool = True, elliptical: bool = False,
              normal_field: bool = False) -> tuple[PointCloud, dict]:
-    """Estimate whatever attributes the method needs and the cloud lacks (reported).
+    """`preprocess.complete` (what a method with these capability flags needs), remembered per
+    cloud, so that repeated renders of one cloud (turntables, benchmarks) estimate once."""
+    from . import preprocess  # numba kernels: loaded when first needed
 
-    Cached per cloud, so repeated renders of one cloud (turntables, benchmarks) estimate once.
-    """
-    missing = cloud.normals is None or (need_radii and (cloud.radii is None or cloud.axes is None))
-    missing = missing or (normal_field and "phong_alpha" not in cloud.attributes)
-    if not missing:
-        return cloud, {}
-    key = (need_radii, elliptical, normal_field)
-    cached = _completed.setdefault(cloud, {})
-    if key not in cached:
-        from .preprocess import prepare
-
-        cached[key] = prepare(cloud, elliptical=elliptical, normal_field=normal_field)
-    return cached[key]
+    key = (needs_radii, elliptical, normal_field)
+    if key in _completed.get(cloud, {}):
+        return _completed[cloud][key]
+    completed = preprocess.complete(cloud, needs_radii=needs_radii, elliptical=elliptical, normal_field=normal_field)
+    if completed[0] is not cloud:  # remember estimates only: the cloud itself would keep its key alive
+        _completed.setdefault(cloud, {})[key] = completed
+    return completed
 
 
 def resolve_backend(method_name: str, backend: str | None) -> str:
@@ -80,7 +76,7 @@ def render(cloud, camera: Camera | None = None, method: str = "deferred", *,
     camera = camera or default_camera(cloud, size)
     input_points = len(cloud)
     backend = resolve_backend(method, backend)
-    cloud, estimated = complete(cloud, need_radii=m.needs_radii,
+    cloud, estimated = complete(cloud, needs_radii=m.needs_radii,
                                 elliptical=m.elliptical, normal_field=m.normal_field)
     if options.lod_error is not None and m.needs_radii:
         from .lod import as_sequential, lod_subset

@@ -14,7 +14,7 @@ three times and never held in memory:
 3. binning: each chunk's points are appended to their partition's file.
 
 Each partition is then loaded, completed (radii and tangent axes estimated as for any cloud,
-`preprocess.prepare`; normals from the input when it has them), built (`build_lod`),
+`preprocess.complete`; normals from the input when it has them), built (`build_lod`),
 sequentialised (`to_sequential_cloud`) and written as raw .npy arrays in sequential order.
 No halo is used: points at a partition border miss their neighbours across it, which only
 widens their covering radii (the Voronoi cell is unbounded on that side) and so cannot
@@ -508,14 +508,14 @@ def _bin_input(inputs: list[_Input], partial: Path, cap: int, signature: dict,
 
 def _build_partition(partial: Path, name: str, dtype: np.dtype, geospatial: bool) -> None:
     """Complete, build, sequentialise and write one partition; its root summary last."""
-    from ..preprocess import prepare
+    from ..preprocess import complete
 
     records = np.fromfile(partial / "bins" / f"{name}.bin", dtype)
     cloud = PointCloud(records["p"], normals=records["n"] if "n" in dtype.names else None,
                        colors=records["c"] if "c" in dtype.names else None, geospatial=geospatial,
                        source=name)
     del records
-    cloud, _ = prepare(cloud, progress=False)
+    cloud, _ = complete(cloud, progress=False)
     points = len(cloud)
     lo, hi = cloud.bounds
     tree = build_lod(cloud, progress=False)

@@ -1,4 +1,4 @@
-"""Completing a cloud: what gets estimated, and in which order.
+"""Completing a cloud: the one place that decides what gets estimated, and in which order.
 
 `prepare(cloud, ...)` fills in what a cloud lacks with explicit choices (the `surfel prepare`
 command): one k-nearest-neighbour search, k = max(k_normals, RADIUS_NEIGHBOURS,
@@ -13,6 +13,10 @@ FIELD_NEIGHBOURS), serves every estimation, in this order, each using the ones b
   6. Phong splatting's normal fields (`normal_field.py`).
 
 Given attributes are kept as they are.
+
+`complete(cloud, needs_radii=..., elliptical=..., normal_field=...)` is the policy every consumer
+of a cloud follows (rendering, benchmarks, the LOD builders, COPC): it takes a method's capability
+flags and prepares the cloud with the defaults when it lacks what the method needs.
 """
 
 from __future__ import annotations
@@ -26,6 +30,23 @@ from .neighbourhood import Neighbourhood
 from .normal_field import FIELD_NEIGHBOURS, field_slopes
 from .normals import NORMAL_NEIGHBOURS, oriented_normals
 from .sharp_features import SHARP_ANGLE, find_sharp_features
+
+
+def complete(cloud: PointCloud, *, needs_radii: bool = True, elliptical: bool = False,
+             normal_field: bool = False, progress: bool | None = None) -> tuple[PointCloud, dict]:
+    """The cloud with what a method needs, and the report of what was estimated ({} if nothing).
+
+    The method's capability flags say what it needs: every method needs normals;
+    `needs_radii`: splats (radii and axes); `elliptical`: fitted ellipses rather than circles
+    when the axes are estimated; `normal_field`: Phong splatting's normal fields. A cloud that
+    lacks any of them is prepared (`prepare`, its defaults), which estimates normals, radii and
+    axes alike whichever was missing, so that one completed cloud serves every method.
+    """
+    missing = cloud.normals is None or (needs_radii and (cloud.radii is None or cloud.axes is None))
+    missing = missing or (normal_field and "phong_alpha" not in cloud.attributes)
+    if not missing:
+        return cloud, {}
+    return prepare(cloud, elliptical=elliptical, normal_field=normal_field, progress=progress)
 
 
 def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, viewpoint: np.ndarray | None = None,
