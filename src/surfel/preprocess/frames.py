@@ -37,5 +37,4 @@ def tangent_frames(normals: np.ndarray, radii: np.ndarray) -> np.ndarray:
     """Circular splat axes (N, 2, 3) float32: orthonormal tangents of the (unit) normals, scaled
     by the radii; (u, v, n) is right-handed."""
     tangents = orthonormal_basis(unit(np.asarray(normals, np.float64)))
-    r = np.asarray(radii, np.float64)[:, None]
-    return np.stack([tangents[:, 0] * r, tangents[:, 1] * r], axis=1).astype(np.float32)
+    return (tangents * np.asarray(radii, np.float64)[:, None, None]).astype(np.float32)
