@@ -33,18 +33,6 @@ def default_camera(cloud: PointCloud, size=(1024, 1024), **framing) -> Camera:
     return frame(cloud.center, cloud.bounding_radius, geospatial=cloud.geospatial, size=size, **framing)
 
 
-def complete(cloud: PointCloud, *, need_radii: bool = True, elliptical: bool = False,
-             normal_field: bool = False) -> tuple[PointCloud, dict]:
-    """Estimate whatever attributes the method needs and the cloud lacks (reported)."""
-    missing = cloud.normals is None or (need_radii and (cloud.radii is None or cloud.axes is None))
-    missing = missing or (normal_field and "phong_alpha" not in cloud.attributes)
-    if not missing:
-        return cloud, {}
-    from .preprocess import prepare
-
-    return prepare(cloud, elliptical=elliptical, normal_field=normal_field)
-
-
 def resolve_backend(method_name: str, backend: str | None) -> str:
     """The backend to use: as asked, else OpenGL, else the CPU with a one-line notice."""
     method = get_method(method_name)
@@ -148,12 +136,15 @@ class Renderer:
             self._targets = (key, SplatTargets.allocate(width, height, guard, back_layer))
         return self._targets[1]
 
-    def complete(self, cloud: PointCloud, *, need_radii: bool = True, elliptical: bool = False,
+    def complete(self, cloud: PointCloud, *, needs_radii: bool = True, elliptical: bool = False,
                  normal_field: bool = False) -> tuple[PointCloud, dict]:
-        """`complete()`, once per cloud and setting (turntables and benchmarks estimate once)."""
-        return self.cached(cloud, ("completed", need_radii, elliptical, normal_field),
-                           lambda: complete(cloud, need_radii=need_radii, elliptical=elliptical,
-                                            normal_field=normal_field))
+        """`preprocess.complete` (what a method with these capability flags needs), once per
+        cloud and setting (turntables and benchmarks estimate once)."""
+        from . import preprocess  # numba kernels: loaded when first needed
+
+        return self.cached(cloud, ("completed", needs_radii, elliptical, normal_field),
+                           lambda: preprocess.complete(cloud, needs_radii=needs_radii, elliptical=elliptical,
+                                                       normal_field=normal_field))
 
     def close(self) -> None:
         """Release every GL object this Renderer holds; it can render again afterwards."""
@@ -200,7 +191,7 @@ class Renderer:
         camera = camera or default_camera(cloud, size)
         input_points = len(cloud)
         backend = resolve_backend(method, backend)
-        cloud, estimated = self.complete(cloud, need_radii=m.needs_radii, elliptical=m.elliptical,
+        cloud, estimated = self.complete(cloud, needs_radii=m.needs_radii, elliptical=m.elliptical,
                                          normal_field=m.normal_field)
         if options.lod_error is not None:
             from .lod import as_sequential, lod_subset
@@ -263,5 +254,4 @@ def render(cloud, camera: Camera | None = None, method: str = "deferred", **kwar
     return default_renderer.render(cloud, camera, method, **kwargs)
 
 
-__all__ = ["render", "Renderer", "default_renderer", "default_camera", "complete", "resolve_backend",
-           "split_options"]
+__all__ = ["render", "Renderer", "default_renderer", "default_camera", "resolve_backend", "split_options"]
