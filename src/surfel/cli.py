@@ -236,7 +236,7 @@ def prepare(input, output, neighbors, viewpoint, elliptical, normal_field, sharp
     check_output(output, "--output")
     cloud = load(input)
     prepared, report = do_prepare(cloud.with_(radii=None, axes=None) if elliptical else cloud, k_normals=neighbors,
-                                  viewpoint=None if view is None else np.array(view),
+                                  sensor=None if view is None else np.array(view),
                                   elliptical=elliptical, normal_field=normal_field, sharp_features=sharp_features)
     write_ply(prepared, output)
     click.echo(f"{output}: {len(prepared)} points; " + ", ".join(f"{k}: {v}" for k, v in report.items()), err=True)

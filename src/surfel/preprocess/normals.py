@@ -79,16 +79,18 @@ def _cumulative_sign(order, parent, relative):  # pragma: no cover - compiled
     return sign
 
 
-def pca_normals(nbh: Neighbourhood, k: int, progress: bool | None) -> tuple[np.ndarray, np.ndarray]:
-    """Unoriented unit normals (N, 3) float64 and the degenerate-neighbourhood mask."""
+def pca_normals(nbh: Neighbourhood, k: int, progress: bool | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Unoriented unit normals (N, 3) float64, the degenerate-neighbourhood mask, and the
+    covariance eigenvalues (N, 3) float64, ascending (what `structure.py` reads the shape of a
+    neighbourhood from)."""
     index = nbh.first(k)
 
-    def pca(start: int, stop: int) -> tuple[np.ndarray, np.ndarray]:
+    def pca(start: int, stop: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         values, vectors = np.linalg.eigh(_covariances(nbh.points, index[start:stop], start))
         # No tangent plane: the two smallest spreads alike (line with noise, blob, crossing
         # surfaces), or the neighbourhood is a line or a point (both nearly zero).
         degenerate = (values[:, 0] > DEGENERATE_RATIO * values[:, 1]) | (values[:, 1] <= 1e-12 * values[:, 2])
-        return vectors[:, :, 0], degenerate  # eigenvalues ascending: the normal direction first
+        return vectors[:, :, 0], degenerate, values  # eigenvalues ascending: the normal direction first
 
     return map_chunks(pca, len(nbh.points), progress, "normals")
 
@@ -159,15 +161,15 @@ def orient_by_propagation(nbh: Neighbourhood, normals: np.ndarray) -> np.ndarray
 
 
 def oriented_normals(nbh: Neighbourhood, k: int, towards: np.ndarray | None,
-                     progress: bool | None) -> tuple[np.ndarray, np.ndarray]:
+                     progress: bool | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Unit normals (N, 3) float64 facing `towards` ((3,) or (N, 3), in the sorted order), or
-    propagated and outward if None; and the ambiguous mask."""
-    normals, ambiguous = pca_normals(nbh, k, progress)
+    propagated and outward if None; the ambiguous mask; the covariance eigenvalues (N, 3)."""
+    normals, ambiguous, eigenvalues = pca_normals(nbh, k, progress)
     if towards is not None:
         ambiguous |= orient_towards(normals, towards)
     else:
         ambiguous |= orient_by_propagation(nbh, normals)
-    return normals, ambiguous
+    return normals, ambiguous, eigenvalues
 
 
 def estimate_normals(positions: np.ndarray, k: int = NORMAL_NEIGHBOURS, viewpoint: np.ndarray | None = None,
@@ -183,5 +185,5 @@ def estimate_normals(positions: np.ndarray, k: int = NORMAL_NEIGHBOURS, viewpoin
     pts = as_points(positions)
     nbh = Neighbourhood.build(pts, k, workers, progress)
     towards = None if viewpoint is None else nbh.sort(np.asarray(viewpoint, np.float64) - pts)
-    normals, ambiguous = oriented_normals(nbh, k, towards, progress)
+    normals, ambiguous, _ = oriented_normals(nbh, k, towards, progress)
     return nbh.unsort(normals.astype(np.float32)), int(ambiguous.sum())
