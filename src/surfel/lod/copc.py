@@ -30,9 +30,18 @@ within sqrt(3) s_D of one (within sqrt(2) s_D on a horizontal surface). The spla
 
     r = max(r_own, COVER * s_D)    (s_D = 0 where the file holds no finer points there),
 
-r_own the stored radius (extra-bytes dimension "radius") or, for files without one, the
-covering radius `surfel.preprocess` estimates on the selected points. Normals come from the
-extra-bytes dimensions normal_x/y/z when present, else PCA on the selection, facing up (+Z).
+r_own the stored radius (extra-bytes dimension "radius"). Normals come from the extra-bytes
+dimensions normal_x/y/z when present.
+
+Files without them are estimated (`surfel.preprocess.complete`: PCA normals facing up (+Z), or
+the sensor given by `sensors`; screen-facing points; covering radii bounded by the sampling,
+with s_d, the spacing of each point's node, as the reference spacing), node by node, and what a
+view estimated is kept in the source: later views (an orbit, a batch) estimate only the nodes
+they load for the first time, on those nodes' points together with the loaded points within
+CONTEXT_SPACINGS node spacings of them. An estimated radius is r_own only where the file holds
+no finer points (there the node's points are the full sample, and any view's estimate serves);
+elsewhere the sample of the cut is what the splats must cover, r = COVER * s_D, whatever
+context the node was first estimated in.
 Colours: RGB (16-bit fields; divided by 255 when no value exceeds 255), else intensity as grey.
 Every other dimension of the loaded nodes is decoded and becomes an attribute, as
 `surfel.io.las` reads a LAS file (the surfel VLR's schema when the file has one); kinds that
@@ -52,6 +61,7 @@ from dataclasses import dataclass
 import laspy
 import lazrs
 import numpy as np
+from scipy.spatial import cKDTree
 
 from ..camera import Camera
 from ..cloud import PointCloud, framing_sphere
@@ -63,6 +73,8 @@ EVLR_HEADER = struct.Struct("<H16sHQ32s")
 INFO = struct.Struct("<3dddQQdd88x")         # centre, halfsize, spacing, root page offset/size, gps
 ENTRY = struct.Struct("<4iQii")              # key d, x, y, z; offset; byte size; point count
 COVER = math.sqrt(3)                         # splat radius / spacing that covers a cell's diagonal
+CONTEXT_SPACINGS = 4.0                       # node spacings around new nodes whose loaded points join
+                                             # their estimation (a 16-neighbourhood reaches about 2.3)
 INACTIVE_CLIP = (0.0, 0.0, 1.0)              # a u + b v <= 1 cuts nothing (surfel.preprocess)
 # every field is an attribute of the cut, so every layer of LAZ 1.4 is decoded
 _DECODE = lazrs.DecompressionSelection(lazrs.SELECTIVE_DECOMPRESS_ALL)
@@ -73,6 +85,14 @@ def key_code(d: np.ndarray | int, x, y, z) -> np.ndarray:
     """Pack octree keys into int64 codes (depth in the top bits) for set lookups."""
     d, x, y, z = (np.asarray(v, np.int64) for v in (d, x, y, z))
     return (d << (3 * _KEY_BITS)) | (x << (2 * _KEY_BITS)) | (y << _KEY_BITS) | z
+
+
+@dataclass(frozen=True)
+class NodeEstimate:
+    """What `surfel.preprocess.complete` estimated for one node's points, in their file order."""
+    normals: np.ndarray      # (n, 3) float32
+    radii: np.ndarray        # (n,) float32, bounded by the sampling
+    derived: dict[str, np.ndarray]  # the derived attributes estimated with them (screen_facing, clip_lines)
 
 
 @dataclass(frozen=True)
@@ -128,6 +148,8 @@ class CopcSource:
         self._rgb_scale: float | None = None      # 255 or 65535, fixed by the first cut
         self._intensity_scale: float | None = None
         self._kinds: dict[str, str] | None = None  # the attributes' kinds, fixed by the first cut
+        self._estimates: dict[int, NodeEstimate] = {}  # by key code: what earlier views estimated
+        self.sensors: np.ndarray | None = None     # (S, 3) scanner positions, for the estimation
 
     # ---- opening --------------------------------------------------------------------------
     def _read_header(self, file: _CountingFile) -> None:
@@ -202,8 +224,7 @@ class CopcSource:
         stats = {"nodes_loaded": len(nodes), "bytes_read": bytes_read, "file_bytes": self.size,
                  "points_selected": len(cloud), "epsilon_used": epsilon_used,
                  "depth_loaded": int(keys[:, 0].max())}
-        if estimated:
-            stats["estimated"] = estimated
+        stats.update(estimated)
         return cloud, stats
 
     def _cut(self, file: _CountingFile, camera: Camera, epsilon: float, budget: int | None
@@ -326,26 +347,56 @@ class CopcSource:
             raise InputError(self.path, "COPC radii (extra bytes) are not positive numbers")
         cloud = PointCloud(positions, normals=normals, colors=colors, radii=radii, attributes=attributes,
                            kinds=self.layout.kinds if self._kinds is None else self._kinds,
-                           geospatial=self.geospatial, source=self.path)
+                           geospatial=self.geospatial, source=self.path, sensors=self.sensors)
         self._kinds = self._kinds or cloud.schema.kinds
+        grown = (COVER * region).astype(np.float32)
         estimated: dict = {}
         if normals is None or radii is None:  # with both, the axes follow the grown radii below
-            from ..preprocess import complete  # numba kernels: loaded only when needed
-
-            cloud, estimated = complete(cloud, progress=False)
+            cloud, estimated = self._estimated(cloud, keys, counts)
         own = cloud.radii
-        radii = np.maximum(own, (COVER * region).astype(np.float32))
+        radii = np.maximum(own, grown) if radii is not None else np.where(region > 0, grown, own)
         extras = dict(cloud.attributes)
         if "clip_lines" in extras:
-            # Clip lines cut a full-detail splat at a crease; a splat grown to cover the gaps
+            # Clip lines cut a full-detail splat at a crease; a splat resized to cover the gaps
             # of a coarse sample must not be cut by them.
-            extras["clip_lines"] = np.where((radii > own)[:, None, None], np.float32(INACTIVE_CLIP),
+            extras["clip_lines"] = np.where((radii != own)[:, None, None], np.float32(INACTIVE_CLIP),
                                             extras["clip_lines"])
         from ..preprocess import (
             tangent_frames,  # (numba module: imported when first needed)
         )
 
         return cloud.with_(radii=radii, axes=tangent_frames(cloud.normals, radii), attributes=extras), estimated
+
+    def _estimated(self, cloud: PointCloud, keys: np.ndarray, counts: np.ndarray) -> tuple[PointCloud, dict]:
+        """The cut with normals, radii and their derived attributes, estimated for the nodes no
+        earlier view loaded and taken from the earlier estimates for the others (module
+        docstring); and the stats of this view's estimation."""
+        from ..preprocess import complete  # numba kernels: loaded only when needed
+
+        codes = key_code(*keys.T).tolist()
+        starts = np.concatenate([[0], np.cumsum(counts)])
+        new = [i for i, code in enumerate(codes) if code not in self._estimates]
+        stats: dict = {"estimated_points": int(counts[new].sum()), "reused_points": int(len(cloud) - counts[new].sum())}
+        if new:
+            fresh = np.concatenate([np.arange(starts[i], starts[i + 1]) for i in new])
+            node_spacing = np.repeat(self.spacing / 2.0 ** keys[:, 0], counts)
+            context = np.concatenate([fresh, _nearby(cloud.positions, fresh, node_spacing)])
+            completed, stats["estimated"] = complete(cloud.take(context), progress=False,
+                                                     reference_spacing=node_spacing[context])
+            derived = [name for name in completed.schema if completed.schema[name].derived]
+            row = 0
+            for i in new:
+                rows = slice(row, row + int(counts[i]))
+                self._estimates[codes[i]] = NodeEstimate(completed.normals[rows], completed.radii[rows],
+                                                         {name: completed.attributes[name][rows] for name in derived})
+                row = rows.stop
+        estimates = [self._estimates[code] for code in codes]
+        attributes = dict(cloud.attributes)
+        for name in estimates[0].derived:
+            attributes[name] = np.concatenate([estimate.derived[name] for estimate in estimates])
+        return cloud.with_(normals=np.concatenate([estimate.normals for estimate in estimates]),
+                           radii=np.concatenate([estimate.radii for estimate in estimates]),
+                           attributes=attributes), stats
 
     def _region_spacing(self, positions: np.ndarray, keys: np.ndarray, counts: np.ndarray) -> np.ndarray:
         """s_D of each point's deepest loaded node D, 0 where the file has nothing finer there.
@@ -411,6 +462,22 @@ def _frustum(camera: Camera, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray
     # a box around the eye (or straddling its plane) has nearest depth 0: always refined
     z_min = np.where((depth > 0).all(axis=1), depth.min(axis=1), 0.0)
     return ahead & ~outside, z_min
+
+
+def _nearby(positions: np.ndarray, fresh: np.ndarray, node_spacing: np.ndarray) -> np.ndarray:
+    """The points other than `fresh` within CONTEXT_SPACINGS node spacings of a fresh point of
+    that spacing: the neighbours the fresh points' estimation needs."""
+    others = np.setdiff1d(np.arange(len(positions)), fresh, assume_unique=True)
+    near = np.zeros(len(others), bool)
+    for spacing in np.unique(node_spacing[fresh]):
+        group = positions[fresh[node_spacing[fresh] == spacing]]
+        reach = CONTEXT_SPACINGS * spacing
+        inside = np.flatnonzero(((positions[others] >= group.min(axis=0) - reach)
+                                 & (positions[others] <= group.max(axis=0) + reach)).all(axis=1))
+        if len(inside):
+            distance, _ = cKDTree(group).query(positions[others[inside]], distance_upper_bound=reach, workers=-1)
+            near[inside[np.isfinite(distance)]] = True
+    return others[near]
 
 
 def _decode(code: int) -> tuple[int, int, int, int]:

@@ -40,7 +40,8 @@ from .structure import round_radii, screen_facing
 
 
 def complete(cloud: PointCloud, *, needs_radii: bool = True, elliptical: bool = False,
-             normal_field: bool = False, progress: bool | None = None) -> tuple[PointCloud, dict]:
+             normal_field: bool = False, progress: bool | None = None,
+             reference_spacing: np.ndarray | None = None) -> tuple[PointCloud, dict]:
     """The cloud with what a method needs, and the report of what was estimated ({} if nothing).
 
     The method's capability flags say what it needs: every method needs normals;
@@ -48,17 +49,19 @@ def complete(cloud: PointCloud, *, needs_radii: bool = True, elliptical: bool = 
     when the axes are estimated; `normal_field`: Phong splatting's normal fields. A cloud that
     lacks any of them is prepared (`prepare`, its defaults), which estimates normals, radii and
     axes alike whichever was missing, so that one completed cloud serves every method.
+    `reference_spacing`: as `prepare`'s.
     """
     missing = cloud.normals is None or (needs_radii and (cloud.radii is None or cloud.axes is None))
     missing = missing or (normal_field and "phong_alpha" not in cloud.attributes)
     if not missing:
         return cloud, {}
-    return prepare(cloud, elliptical=elliptical, normal_field=normal_field, progress=progress)
+    return prepare(cloud, elliptical=elliptical, normal_field=normal_field, progress=progress,
+                   reference_spacing=reference_spacing)
 
 
 def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np.ndarray | None = None,
             elliptical: bool = False, normal_field: bool = False, sharp_features: bool = True,
-            progress: bool | None = None) -> tuple[PointCloud, dict]:
+            progress: bool | None = None, reference_spacing: np.ndarray | None = None) -> tuple[PointCloud, dict]:
     """Fill in what `cloud` lacks for splatting; returns (cloud, report).
 
     normals: estimated if None: towards the sensor (`sensor` (3,), else the cloud's own
@@ -68,7 +71,8 @@ def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np
     drawn as round splats facing the camera (`structure.py`).
     radii: estimated if None (covering radii of the tangent-plane Voronoi cells).
     axes: if None, fitted ellipses when `elliptical`, else circular frames of the radii.
-    Estimated radii and axes are bounded by the sampling (`spacing.py`).
+    Estimated radii and axes are bounded by the sampling (`spacing.py`), whose reference spacing
+    is `reference_spacing` (N,) when the caller knows it (a COPC node's), else its model's.
     normal_field: also fit attributes["phong_alpha"], attributes["phong_beta"] if missing.
     sharp_features: when radii and axes are estimated, cells end at creases and
     attributes["clip_lines"] (N, CLIP_LINES, 3) cut the splats there (`cells.py`).
@@ -115,8 +119,9 @@ def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np
     spacing = None
     if bound_radii or bound_axes:
         ranges = None if towards_sensor is None else np.linalg.norm(towards_sensor, axis=1)
-        spacing, spacing_report = sampling_spacing(nbh, geospatial=cloud.geospatial, ranges=ranges,
-                                                   framing_radius=cloud.bounding_radius, progress=progress)
+        spacing, spacing_report = sampling_spacing(
+            nbh, geospatial=cloud.geospatial, ranges=ranges, framing_radius=cloud.bounding_radius,
+            reference=None if reference_spacing is None else nbh.sort(reference_spacing), progress=progress)
     features = None
     if sharp_features and radii is None and axes is None:
         features = find_sharp_features(nbh, normals, RADIUS_NEIGHBOURS)

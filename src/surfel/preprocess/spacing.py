@@ -11,6 +11,7 @@ estimated semi-axis is capped at
            distinct neighbours (coincident returns, common in quantised LAS files, do not
            count);
   s_ref    the reference spacing of the acquisition, where it has one:
+           * given by the caller: a COPC file's octree spacing at each point's level (lod/copc.py);
            * a known sensor position (terrestrial scans: E57 poses, --sensor): the spacing of
              a scan grows with the range r from its sensor, s_ref = alpha r, with alpha the
              scan's angular step, the median of s_local / r over the scan;
@@ -102,16 +103,19 @@ def horizontal_spacing(points: np.ndarray) -> float | None:
 
 
 def sampling_spacing(nbh: Neighbourhood, *, geospatial: bool, ranges: np.ndarray | None,
-                     framing_radius: float, progress: bool | None = None) -> tuple[np.ndarray, dict]:
+                     framing_radius: float, reference: np.ndarray | None = None,
+                     progress: bool | None = None) -> tuple[np.ndarray, dict]:
     """s = min(s_local, s_ref) (N,) float64 in the neighbourhood's order (module docstring),
     and its report: the reference model and its value.
 
     ranges: each point's distance to its sensor (sorted order), or None when no sensor is known.
+    reference: s_ref (N,) (sorted order) when the caller knows it (a COPC node's spacing).
     """
     local = local_spacing(nbh, progress)
     report: dict = {"local": f"median distance to {LOCAL_NEIGHBOURS} nearest distinct neighbours"}
-    reference = None
-    if ranges is not None:
+    if reference is not None:
+        report["reference"] = "given (the spacing of each point's level of detail)"
+    elif ranges is not None:
         usable = np.isfinite(local) & (ranges > 0)
         if usable.any():
             step = float(np.median(local[usable] / ranges[usable]))
