@@ -47,7 +47,7 @@ from .neighbourhood import Neighbourhood
 BOUND_FACTOR = 2.5          # semi-axes at most this x the spacing: past the 1.2 covering radius
                             # of scan-line sampling up to about 4 times as sparse across the lines
 LOCAL_NEIGHBOURS = 4        # distinct neighbours whose median distance is the local spacing
-REFERENCE_SAMPLE = 100_000  # points whose horizontal nearest neighbour gives the tile's spacing
+REFERENCE_SAMPLE = 20_000   # points whose horizontal nearest neighbour gives the tile's spacing
 REFERENCE_NEIGHBOURS = 8    # neighbours searched for the nearest distinct one (duplicates)
 LONE_POINT_FRACTION = 0.2   # spacing of a cloud without two distinct points / its framing radius
 
