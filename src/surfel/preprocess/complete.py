@@ -162,8 +162,9 @@ def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np
                                     f"{int(features.crease.sum())} crease points dropped")
     if need_field:
         alpha, beta = field_slopes(nbh, normals, axes, progress)
-        if facing is not None:
-            alpha[facing] = beta[facing] = 0.0  # facing the camera: flat, lit head-on
+        flat = facing if "screen_facing" not in cloud.attributes else nbh.sort(cloud.attributes["screen_facing"] > 0.5)
+        if flat is not None:
+            alpha[flat] = beta[flat] = 0.0  # facing the camera: flat, lit head-on
         attributes.update(phong_alpha=nbh.unsort(alpha), phong_beta=nbh.unsort(beta))
         report["normal_field"] = f"fitted (least squares, k={FIELD_NEIGHBOURS})"
     if attributes.keys() != cloud.attributes.keys():
