@@ -34,14 +34,18 @@ r_own the stored radius (extra-bytes dimension "radius"). Normals come from the 
 dimensions normal_x/y/z when present.
 
 Files without them are estimated (`surfel.preprocess.complete`: PCA normals facing up (+Z), or
-the sensor given by `sensors`; screen-facing points; covering radii bounded by the sampling,
-with s_d, the spacing of each point's node, as the reference spacing), node by node, and what a
-view estimated is kept in the source: later views (an orbit, a batch) estimate only the nodes
-they load for the first time, on those nodes' points together with the loaded points within
-CONTEXT_SPACINGS node spacings of them. An estimated radius is r_own only where the file holds
-no finer points (there the node's points are the full sample, and any view's estimate serves);
-elsewhere the sample of the cut is what the splats must cover, r = COVER * s_D, whatever
-context the node was first estimated in.
+the sensor given by `sensors`; screen-facing points; covering radii bounded by the sampling),
+node by node, and what a view estimated is kept in the source: later views (an orbit, a batch)
+estimate only the nodes they load for the first time, on those nodes' points together with the
+loaded points within CONTEXT_SPACINGS node spacings of them. An estimated radius is r_own only
+where the file holds no finer points: there the loaded nodes are the full sample, and any
+view's estimate serves; elsewhere the sample of the cut is what the splats must cover,
+r = COVER * s_D, whatever context a node was first estimated in. So r_own is bounded by the
+spacing of the full sample, the survey's (`survey_spacing`), whichever view estimates it: the
+median horizontal nearest-neighbour distance among the points of the deepest nodes the
+hierarchy lists (SURVEY_NODES of them, with their ancestors' points in their cubes), read once
+per source. The coarse nodes' nominal s_d would not do: a node that holds all the points left
+in its cube is as dense as the survey, and one over water sparser.
 Colours: RGB (16-bit fields; divided by 255 when no value exceeds 255), else intensity as grey.
 Every other dimension of the loaded nodes is decoded and becomes an attribute, as
 `surfel.io.las` reads a LAS file (the surfel VLR's schema when the file has one); kinds that
@@ -75,6 +79,7 @@ ENTRY = struct.Struct("<4iQii")              # key d, x, y, z; offset; byte size
 COVER = math.sqrt(3)                         # splat radius / spacing that covers a cell's diagonal
 CONTEXT_SPACINGS = 4.0                       # node spacings around new nodes whose loaded points join
                                              # their estimation (a 16-neighbourhood reaches about 2.3)
+SURVEY_NODES = 3                             # deepest nodes whose points give the survey's spacing
 INACTIVE_CLIP = (0.0, 0.0, 1.0)              # a u + b v <= 1 cuts nothing (surfel.preprocess)
 # every field is an attribute of the cut, so every layer of LAZ 1.4 is decoded
 _DECODE = lazrs.DecompressionSelection(lazrs.SELECTIVE_DECOMPRESS_ALL)
@@ -149,6 +154,7 @@ class CopcSource:
         self._intensity_scale: float | None = None
         self._kinds: dict[str, str] | None = None  # the attributes' kinds, fixed by the first cut
         self._estimates: dict[int, NodeEstimate] = {}  # by key code: what earlier views estimated
+        self._survey_spacing: float | None = None  # read once, when first estimating
         self.sensors: np.ndarray | None = None     # (S, 3) scanner positions, for the estimation
 
     # ---- opening --------------------------------------------------------------------------
@@ -381,8 +387,10 @@ class CopcSource:
             fresh = np.concatenate([np.arange(starts[i], starts[i + 1]) for i in new])
             node_spacing = np.repeat(self.spacing / 2.0 ** keys[:, 0], counts)
             context = np.concatenate([fresh, _nearby(cloud.positions, fresh, node_spacing)])
-            completed, stats["estimated"] = complete(cloud.take(context), progress=False,
-                                                     reference_spacing=node_spacing[context])
+            survey = self.survey_spacing() if self.geospatial else None
+            completed, stats["estimated"] = complete(
+                cloud.take(context), progress=False,
+                reference_spacing=None if survey is None else np.full(len(context), survey))
             derived = [name for name in completed.schema if completed.schema[name].derived]
             row = 0
             for i in new:
@@ -397,6 +405,36 @@ class CopcSource:
         return cloud.with_(normals=np.concatenate([estimate.normals for estimate in estimates]),
                            radii=np.concatenate([estimate.radii for estimate in estimates]),
                            attributes=attributes), stats
+
+    def survey_spacing(self) -> float | None:
+        """The horizontal point spacing of the full sample (module docstring), read once; None
+        if those points have no distinct horizontal neighbours."""
+        if self._survey_spacing is None:
+            from ..preprocess.spacing import horizontal_spacing
+
+            with _CountingFile(self.path) as file:
+                listed = [(code, entry) for code, entry in self._entries.items() if entry.point_count > 0]
+                deepest = max(code >> (3 * _KEY_BITS) for code, _ in listed)
+                chosen = sorted((entry.point_count, code) for code, entry in listed
+                                if code >> (3 * _KEY_BITS) == deepest)[-SURVEY_NODES:]
+                spacings = []
+                for _, code in chosen:
+                    key = np.array(_decode(code))
+                    chain = [(tuple(int(v) for v in ancestor), self._entry(file, ancestor))
+                             for ancestor in (np.r_[d, key[1:] >> (key[0] - d)] for d in range(key[0] + 1))]
+                    chain = [(k, e) for k, e in chain if e.point_count > 0]
+                    _, _, record = self._read_points(file, chain)
+                    scales, offsets = self.header.scales, self.header.offsets
+                    xyz = np.column_stack([record[axis] * scales[a] + offsets[a] for a, axis in enumerate("XYZ")])
+                    side = 2 * self.halfsize / 2.0 ** key[0]
+                    lo = self.octree_center - self.halfsize + key[1:] * side
+                    inside = ((xyz >= lo) & (xyz <= lo + side)).all(axis=1)
+                    spacing = horizontal_spacing(xyz[inside]) if inside.sum() > 1 else None
+                    if spacing is not None:
+                        spacings.append(spacing)
+            self.bytes_read += file.bytes_read
+            self._survey_spacing = float(np.median(spacings)) if spacings else math.nan
+        return None if math.isnan(self._survey_spacing) else self._survey_spacing
 
     def _region_spacing(self, positions: np.ndarray, keys: np.ndarray, counts: np.ndarray) -> np.ndarray:
         """s_D of each point's deepest loaded node D, 0 where the file has nothing finer there.
