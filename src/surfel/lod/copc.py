@@ -30,22 +30,26 @@ within sqrt(3) s_D of one (within sqrt(2) s_D on a horizontal surface). The spla
 
     r = max(r_own, COVER * s_D)    (s_D = 0 where the file holds no finer points there),
 
-r_own the stored radius (extra-bytes dimension "radius"). Normals come from the extra-bytes
-dimensions normal_x/y/z when present.
+r_own the stored radius (extra-bytes dimension "radius"), for files that have one. Normals
+come from the extra-bytes dimensions normal_x/y/z when present.
 
 Files without them are estimated (`surfel.preprocess.complete`: PCA normals facing up (+Z), or
 the sensor given by `sensors`; screen-facing points; covering radii bounded by the sampling),
-node by node, and what a view estimated is kept in the source: later views (an orbit, a batch)
-estimate only the nodes they load for the first time, on those nodes' points together with the
-loaded points within CONTEXT_SPACINGS node spacings of them. An estimated radius is r_own only
-where the file holds no finer points: there the loaded nodes are the full sample, and any
-view's estimate serves; elsewhere the sample of the cut is what the splats must cover,
-r = COVER * s_D, whatever context a node was first estimated in. So r_own is bounded by the
-spacing of the full sample, the survey's (`survey_spacing`), whichever view estimates it: the
+node by node, and what a view estimated is kept in the source, so that later views (an orbit, a
+batch) estimate only the nodes they load for the first time. A node of depth d is estimated on
+the sample of its level: its points with the loaded points of depth <= d within
+CONTEXT_SPACINGS node spacings s_d of them, never the deeper ones. That sample is the cut
+wherever the node is the finest loaded, in any view, so there its points keep their own
+radius; a point whose location holds a finer loaded node Y takes Y's typical radius (the median
+of its points', estimated on Y's level, which includes that point), the size of the sample it
+is drawn in. The sampling bound's reference spacing (spacing.py) is, for a node the hierarchy
+lists no children of (its level's sample is the full one), the survey's (`survey_spacing`: the
 median horizontal nearest-neighbour distance among the points of the deepest nodes the
-hierarchy lists (SURVEY_NODES of them, with their ancestors' points in their cubes), read once
-per source. The coarse nodes' nominal s_d would not do: a node that holds all the points left
-in its cube is as dense as the survey, and one over water sparser.
+hierarchy lists, SURVEY_NODES of them with their ancestors' points in their cubes, read once per
+source); for a node with children, whose level is a subsample, the median horizontal
+nearest-neighbour distance of its level's sample. A node's nominal s_d would not do: one that
+holds all the points left in its cube is as dense as the survey, one over water sparser, and
+some writers state spacings far finer than their points.
 Colours: RGB (16-bit fields; divided by 255 when no value exceeds 255), else intensity as grey.
 Every other dimension of the loaded nodes is decoded and becomes an attribute, as
 `surfel.io.las` reads a LAS file (the surfel VLR's schema when the file has one); kinds that
@@ -84,6 +88,8 @@ INACTIVE_CLIP = (0.0, 0.0, 1.0)              # a u + b v <= 1 cuts nothing (surf
 # every field is an attribute of the cut, so every layer of LAZ 1.4 is decoded
 _DECODE = lazrs.DecompressionSelection(lazrs.SELECTIVE_DECOMPRESS_ALL)
 _KEY_BITS = 20                               # per coordinate in the packed key codes: depth <= 20
+_CHILD_BITS = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0],   # a child's offsets in its parent
+                        [0, 0, 1], [1, 0, 1], [0, 1, 1], [1, 1, 1]], np.int64)
 
 
 def key_code(d: np.ndarray | int, x, y, z) -> np.ndarray:
@@ -98,6 +104,11 @@ class NodeEstimate:
     normals: np.ndarray      # (n, 3) float32
     radii: np.ndarray        # (n,) float32, bounded by the sampling
     derived: dict[str, np.ndarray]  # the derived attributes estimated with them (screen_facing, clip_lines)
+
+    @property
+    def typical_radius(self) -> float:
+        """The median radius: the size of the node's level's sample, for shallower points there."""
+        return float(np.median(self.radii))
 
 
 @dataclass(frozen=True)
@@ -287,13 +298,17 @@ class CopcSource:
                                             f"does not describe that node")
         return entry
 
+    def _leaves(self, keys: np.ndarray) -> np.ndarray:
+        """(M,) bool: the nodes of `keys` (M, 4) the hierarchy lists no children of."""
+        child = (keys[:, None, 1:] * 2 + _CHILD_BITS[None]).reshape(-1, 3)
+        codes = key_code(np.repeat(keys[:, 0] + 1, 8), *child.T)
+        return ~self._exists(codes).reshape(len(keys), 8).any(axis=1)
+
     def _existing_children(self, parents: np.ndarray) -> np.ndarray:
         """The children (M, 4) of `parents` that the hierarchy lists."""
         if not len(parents):
             return parents
-        bits = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0],
-                         [0, 0, 1], [1, 0, 1], [0, 1, 1], [1, 1, 1]], np.int64)
-        xyz = (parents[:, None, 1:] * 2 + bits[None]).reshape(-1, 3)
+        xyz = (parents[:, None, 1:] * 2 + _CHILD_BITS[None]).reshape(-1, 3)
         children = np.column_stack([np.full(len(xyz), parents[0, 0] + 1), xyz])
         return children[self._exists(key_code(*children.T))]
 
@@ -345,7 +360,6 @@ class CopcSource:
         if not np.isfinite(positions).all():
             raise InputError(self.path, "COPC points have non-finite coordinates")
         colors = self._colors(record)
-        region = self._region_spacing(positions, keys, counts)
         normals, radii, attributes = layout_values(record, self.layout)
         if normals is not None and (not np.isfinite(normals).all() or (np.linalg.norm(normals, axis=1) < 1e-6).any()):
             raise InputError(self.path, "COPC normals (extra bytes) are zero or not finite")
@@ -355,12 +369,15 @@ class CopcSource:
                            kinds=self.layout.kinds if self._kinds is None else self._kinds,
                            geospatial=self.geospatial, source=self.path, sensors=self.sensors)
         self._kinds = self._kinds or cloud.schema.kinds
-        grown = (COVER * region).astype(np.float32)
         estimated: dict = {}
-        if normals is None or radii is None:  # with both, the axes follow the grown radii below
+        if radii is None:
             cloud, estimated = self._estimated(cloud, keys, counts)
+            radii = self._level_radii(cloud, keys, counts)
+        else:  # the file's radii are for its full detail: grown to cover a coarser cut
+            if normals is None:
+                cloud, estimated = self._estimated(cloud, keys, counts)
+            radii = np.maximum(cloud.radii, (COVER * self._region_spacing(positions, keys, counts)).astype(np.float32))
         own = cloud.radii
-        radii = np.maximum(own, grown) if radii is not None else np.where(region > 0, grown, own)
         extras = dict(cloud.attributes)
         if "clip_lines" in extras:
             # Clip lines cut a full-detail splat at a crease; a splat resized to cover the gaps
@@ -375,25 +392,33 @@ class CopcSource:
 
     def _estimated(self, cloud: PointCloud, keys: np.ndarray, counts: np.ndarray) -> tuple[PointCloud, dict]:
         """The cut with normals, radii and their derived attributes, estimated for the nodes no
-        earlier view loaded and taken from the earlier estimates for the others (module
-        docstring); and the stats of this view's estimation."""
+        earlier view loaded, each on its level's sample, and taken from the earlier estimates for
+        the others (module docstring); and the stats of this view's estimation."""
         from ..preprocess import complete  # numba kernels: loaded only when needed
+        from ..preprocess.spacing import horizontal_spacing
 
         codes = key_code(*keys.T).tolist()
         starts = np.concatenate([[0], np.cumsum(counts)])
-        new = [i for i, code in enumerate(codes) if code not in self._estimates]
+        new = np.array([i for i, code in enumerate(codes) if code not in self._estimates], np.int64)
         stats: dict = {"estimated_points": int(counts[new].sum()), "reused_points": int(len(cloud) - counts[new].sum())}
-        if new:
-            fresh = np.concatenate([np.arange(starts[i], starts[i + 1]) for i in new])
-            node_spacing = np.repeat(self.spacing / 2.0 ** keys[:, 0], counts)
-            context = np.concatenate([fresh, _nearby(cloud.positions, fresh, node_spacing)])
-            survey = self.survey_spacing() if self.geospatial else None
-            completed, stats["estimated"] = complete(
-                cloud.take(context), progress=False,
-                reference_spacing=None if survey is None else np.full(len(context), survey))
+        depth = np.repeat(keys[:, 0], counts)
+        survey = self.survey_spacing() if self.geospatial and len(new) else None
+        leaves = np.repeat(self._leaves(keys), counts)
+        for level in np.unique(keys[new, 0]):
+            nodes = new[keys[new, 0] == level]
+            fresh = np.concatenate([np.arange(starts[i], starts[i + 1]) for i in nodes])
+            sample = np.flatnonzero(depth <= level)
+            reach = CONTEXT_SPACINGS * self.spacing / 2.0 ** level
+            context = np.concatenate([fresh, _nearby(cloud.positions, fresh, np.setdiff1d(sample, fresh), reach)])
+            reference = None
+            if survey is not None:  # the full sample's spacing for leaves, the level's for the others
+                level_spacing = horizontal_spacing(cloud.positions[context]) or survey
+                reference = np.where(leaves[context], survey, max(level_spacing, survey))
+            completed, stats["estimated"] = complete(cloud.take(context), progress=False,
+                                                     reference_spacing=reference)
             derived = [name for name in completed.schema if completed.schema[name].derived]
             row = 0
-            for i in new:
+            for i in nodes:
                 rows = slice(row, row + int(counts[i]))
                 self._estimates[codes[i]] = NodeEstimate(completed.normals[rows], completed.radii[rows],
                                                          {name: completed.attributes[name][rows] for name in derived})
@@ -405,6 +430,22 @@ class CopcSource:
         return cloud.with_(normals=np.concatenate([estimate.normals for estimate in estimates]),
                            radii=np.concatenate([estimate.radii for estimate in estimates]),
                            attributes=attributes), stats
+
+    def _level_radii(self, cloud: PointCloud, keys: np.ndarray, counts: np.ndarray) -> np.ndarray:
+        """Each point's own estimated radius where its node is the finest loaded at its
+        location, else the typical radius of the finest loaded node there (module docstring)."""
+        deepest = self._deepest_loaded(cloud.positions, keys, counts)
+        own_depth = np.repeat(keys[:, 0], counts)
+        radii = cloud.radii.copy()
+        shallower = np.flatnonzero(deepest > own_depth)
+        if len(shallower):
+            unit = (cloud.positions[shallower] - (self.octree_center - self.halfsize)) / (2 * self.halfsize)
+            level = deepest[shallower]
+            cell = np.clip(np.floor(unit * (2.0 ** level)[:, None]), 0, (2 ** level - 1)[:, None]).astype(np.int64)
+            finest = key_code(level, *cell.T)
+            typical = {code: self._estimates[code].typical_radius for code in np.unique(finest).tolist()}
+            radii[shallower] = np.array([typical[code] for code in finest.tolist()], np.float32)
+        return radii
 
     def survey_spacing(self) -> float | None:
         """The horizontal point spacing of the full sample (module docstring), read once; None
@@ -441,6 +482,15 @@ class CopcSource:
 
         keys (M, 4), counts (M,): the loaded nodes, whose points follow each other in that order.
         """
+        deepest = self._deepest_loaded(positions, keys, counts)
+        unit = (positions - (self.octree_center - self.halfsize)) / (2 * self.halfsize)
+        child = np.clip(np.floor(unit * (2.0 ** (deepest + 1))[:, None]), 0,
+                        (2 ** (deepest + 1) - 1)[:, None]).astype(np.int64)
+        finer = self._exists(key_code(deepest + 1, *child.T))
+        return np.where(finer, self.spacing / 2.0 ** deepest, 0.0)
+
+    def _deepest_loaded(self, positions: np.ndarray, keys: np.ndarray, counts: np.ndarray) -> np.ndarray:
+        """The depth (N,) of the deepest loaded node at each point's location (as _region_spacing)."""
         loaded = np.sort(key_code(*keys.T))
         top = int(keys[:, 0].max())
         # only points of nodes with a loaded descendant can lie in a deeper loaded node
@@ -455,10 +505,7 @@ class CopcSource:
             todo = walk[deepest[walk] < depth]
             cell = np.clip(np.floor(unit[todo] * 2 ** depth), 0, 2 ** depth - 1).astype(np.int64)
             deepest[todo[_member(key_code(depth, *cell.T), loaded)]] = depth
-        child = np.clip(np.floor(unit * (2.0 ** (deepest + 1))[:, None]), 0,
-                        (2 ** (deepest + 1) - 1)[:, None]).astype(np.int64)
-        finer = self._exists(key_code(deepest + 1, *child.T))
-        return np.where(finer, self.spacing / 2.0 ** deepest, 0.0)
+        return deepest
 
     def _colors(self, record: laspy.PackedPointRecord) -> np.ndarray | None:
         names = set(self.point_format.dimension_names)
@@ -502,20 +549,15 @@ def _frustum(camera: Camera, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray
     return ahead & ~outside, z_min
 
 
-def _nearby(positions: np.ndarray, fresh: np.ndarray, node_spacing: np.ndarray) -> np.ndarray:
-    """The points other than `fresh` within CONTEXT_SPACINGS node spacings of a fresh point of
-    that spacing: the neighbours the fresh points' estimation needs."""
-    others = np.setdiff1d(np.arange(len(positions)), fresh, assume_unique=True)
-    near = np.zeros(len(others), bool)
-    for spacing in np.unique(node_spacing[fresh]):
-        group = positions[fresh[node_spacing[fresh] == spacing]]
-        reach = CONTEXT_SPACINGS * spacing
-        inside = np.flatnonzero(((positions[others] >= group.min(axis=0) - reach)
-                                 & (positions[others] <= group.max(axis=0) + reach)).all(axis=1))
-        if len(inside):
-            distance, _ = cKDTree(group).query(positions[others[inside]], distance_upper_bound=reach, workers=-1)
-            near[inside[np.isfinite(distance)]] = True
-    return others[near]
+def _nearby(positions: np.ndarray, fresh: np.ndarray, candidates: np.ndarray, reach: float) -> np.ndarray:
+    """The `candidates` within `reach` of a `fresh` point: the neighbours their estimation needs."""
+    group = positions[fresh]
+    inside = candidates[((positions[candidates] >= group.min(axis=0) - reach)
+                         & (positions[candidates] <= group.max(axis=0) + reach)).all(axis=1)]
+    if not len(inside):
+        return inside
+    distance, _ = cKDTree(group).query(positions[inside], distance_upper_bound=reach, workers=-1)
+    return inside[np.isfinite(distance)]
 
 
 def _decode(code: int) -> tuple[int, int, int, int]:
