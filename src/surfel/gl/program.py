@@ -18,14 +18,17 @@ _INCLUDE = re.compile(r'^\s*#include\s+"([^"]+)"\s*$', re.M)
 
 
 @cache
-def _expand(path: Path) -> str:
+def expand_includes(path: Path, first: tuple[Path, ...] = ()) -> str:
+    """The source of `path` with its includes resolved, recursively: in the folders `first`
+    (the browser page puts its own versions of shared files there), then beside the
+    including file, then in the package's gl folder."""
     text = path.read_text()
 
     def include(match):
         name = match.group(1)
-        for folder in (path.parent, _GL_DIR):
+        for folder in (*first, path.parent, _GL_DIR):
             if (folder / name).exists():
-                return _expand(folder / name)
+                return expand_includes(folder / name, first)
         raise FileNotFoundError(f"{path.name}: cannot include {name}")
 
     return _INCLUDE.sub(include, text)
@@ -46,7 +49,7 @@ def build_program(path: str | Path, defines: dict | None = None, *, geometry: bo
     defines = dict(defines or {})
     key = (id(ctx), str(path), tuple(sorted(defines.items())), geometry)
     if key not in _programs:
-        source = _expand(Path(path))
+        source = expand_includes(Path(path))
         stages = {"vertex_shader": _stage(source, "VERTEX_SHADER", defines),
                   "fragment_shader": _stage(source, "FRAGMENT_SHADER", defines)}
         if geometry:
