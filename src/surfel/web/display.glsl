@@ -27,8 +27,9 @@ uniform vec2 u_depth_range;
 uniform int u_categorical;
 uniform int u_edl;
 uniform float u_edl_strength;
-uniform float u_edl_radius;    // pixels of the output image
-uniform int u_supersample;
+uniform float u_edl_radius;    // pixels of the G-buffer
+uniform int u_supersample;     // G-buffer samples per pixel side
+uniform int u_downsample;      // or pixels per G-buffer sample (a coarse frame while the camera moves)
 uniform int u_guard;
 uniform vec3 u_background;
 layout(location = 0) out vec4 out_color;
@@ -42,7 +43,7 @@ float log_depth(ivec2 texel) {
 
 float edl(ivec2 texel) {
     float here = log2(max(texelFetch(u_gdepth, texel, 0).r, 1e-30));
-    float r = u_edl_radius * float(u_supersample), sum = 0.0;
+    float r = u_edl_radius, sum = 0.0;
     for (int i = 0; i < 8; ++i) {
         float a = 0.7853981633974483 * float(i);
         ivec2 offset = ivec2(floor(r * vec2(cos(a), sin(a)) + 0.5));
@@ -57,7 +58,7 @@ void main() {
     float alpha = 0.0;
     for (int sy = 0; sy < u_supersample; ++sy) {
         for (int sx = 0; sx < u_supersample; ++sx) {
-            ivec2 texel = pixel * u_supersample + ivec2(sx, sy);
+            ivec2 texel = pixel / u_downsample * u_supersample + ivec2(sx, sy);
             vec4 shaded = texelFetch(u_shaded, texel, 0);
             float coverage = clamp(shaded.a, 0.0, 1.0);
             if (coverage <= 0.0) continue;

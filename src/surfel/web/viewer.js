@@ -13,7 +13,7 @@
   const SHADERS = JSON.parse(document.getElementById("surfel-shaders").textContent);
   const GUARD = 128, MAX_SPRITE = 255, FAR = 3.0e38;
   const KERNEL_SIZE = 256, GAUSSIAN_SHARPNESS = 3.0;
-  const MOVING_LOD_FACTOR = 4, SETTLE_MS = 200;
+  const MOVING_LOD_FACTOR = 4, MOVING_DOWNSAMPLE = 2, SETTLE_MS = 250;
   const SHADING = { lambert: 0, phong: 1, none: 2, normals: 3, depth: 4 };
   const COLOR = { rgb: 0, value: 1, elevation: 2, white: 3, code: 4 };
   const ATTRIBUTES = ["a_position", "a_normal", "a_radii", "a_angle", "a_color", "a_value", "a_lod", "a_clip0", "a_clip1"];
@@ -65,7 +65,7 @@
     return [near, far, d];
   }
 
-  function projectionMatrix(near, far, ss) {  // Camera.projection_matrix
+  function projectionMatrix(near, far) {  // Camera.projection_matrix
     const p = new Array(16).fill(0), w = W, h = H;
     if (cam.ortho) {
       const oh = cam.ortho, ow = oh * w / h;
@@ -205,6 +205,7 @@
     const stream = new Blob([bytes]).stream().pipeThrough(new DecompressionStream("gzip"));
     const blob = await new Response(stream).arrayBuffer();
     columns = META.data.columns;
+    if (columns.lod) nodes = decodeNodes(blob);
     for (const [name, c] of Object.entries(columns)) {
       const b = gl.createBuffer();
       gl.bindBuffer(gl.ARRAY_BUFFER, b);
@@ -243,9 +244,46 @@
   gl.vertexAttrib3f(LOC.a_color, 1, 1, 1);  // no colours: white (CONVENTIONS.md)
 
   // ---- the level of detail: surfel.lod.sequential's prefix and k ---------------------------
+  // The CPU twin of the vertex test (lod.select_sequential) runs over the prefix, as the GL
+  // path does, for the count of splats drawn and the largest of them (sprites or quads).
   const search = META.data.lod_search;
+  let nodes = null;
+  const HALF = new Float32Array(65536);
+  for (let h = 0; h < 65536; h++) {
+    const e = (h >> 10) & 31, m = h & 1023, sign = h & 0x8000 ? -1 : 1;
+    HALF[h] = sign * (e === 0 ? m * 2 ** -24 : e === 31 ? (m ? NaN : Infinity) : (1 + m / 1024) * 2 ** (e - 15));
+  }
+  function decodeNodes(blob) {
+    const c = columns, n = META.data.count;
+    const lod = new Uint16Array(blob, c.lod.offset, 3 * n), radii = new Uint16Array(blob, c.radii.offset, 2 * n);
+    const out = { position: new Uint16Array(blob, c.position.offset, 3 * n), emin: new Float32Array(n),
+                  emax: new Float32Array(n), dparent: new Float32Array(n), radius: new Float32Array(n) };
+    for (let i = 0; i < n; i++) {
+      out.emin[i] = HALF[lod[3 * i]]; out.emax[i] = HALF[lod[3 * i + 1]]; out.dparent[i] = HALF[lod[3 * i + 2]];
+      out.radius[i] = Math.max(HALF[radii[2 * i]], HALF[radii[2 * i + 1]]);
+    }
+    return out;
+  }
+  function selectedRadius(prefix, k) {  // (largest radius, count) of the nodes the vertex test passes
+    const lo = META.data.box_lo, size = META.data.box_size, p = nodes.position, eye = cam.eye;
+    const sx = size[0] / 65535, sy = size[1] / 65535, sz = size[2] / 65535;
+    let largest = 0, count = 0;
+    for (let i = 0; i < prefix; i++) {
+      let r = 1, d = 0;
+      if (!cam.ortho) {
+        const x = lo[0] + p[3 * i] * sx - eye[0], y = lo[1] + p[3 * i + 1] * sy - eye[1], z = lo[2] + p[3 * i + 2] * sz - eye[2];
+        r = Math.sqrt(x * x + y * y + z * z); d = nodes.dparent[i];
+      }
+      if (nodes.emin[i] * k <= r && r - d < nodes.emax[i] * k) {
+        count++;
+        if (nodes.radius[i] > largest) largest = nodes.radius[i];
+      }
+    }
+    return [largest, count];
+  }
   function lodFrame(eps) {
-    if (!search || !(eps > 0)) return { k: 0, prefix: META.data.count, maxRadius: META.data.max_radius };
+    if (!search || !(eps > 0)) return { k: 0, prefix: META.data.count, drawn: META.data.count,
+                                        maxRadius: META.data.max_radius };
     const k = pixelScale() / eps;
     const rNear = cam.ortho ? 1 : Math.max(norm(sub(cam.eye, META.sphere.center)) - META.sphere.lod_radius, 0);
     let lo = 0, hi = search.bound.length;
@@ -255,9 +293,8 @@
       if (f <= rNear) hi = mid; else lo = mid + 1;
     }
     const prefix = Math.min(lo * search.stride, META.data.count);
-    const last = Math.min(Math.ceil(Math.max(prefix - 1, 0) / search.stride), search.max_radius.length - 1);
-    const maxRadius = lo * search.stride >= META.data.count ? META.data.max_radius : search.max_radius[last];
-    return { k, prefix, maxRadius };
+    const [maxRadius, drawn] = selectedRadius(prefix, k);
+    return { k, prefix, drawn, maxRadius };
   }
 
   function useSprites(view, near, maxRadius, ss, lowpass) {  // splatting.use_point_sprites
@@ -278,7 +315,9 @@
   let moving = false, settleTimer = null;
   function render() {
     const t0 = performance.now();
-    const ss = S.supersample, w = W * ss, h = H * ss;
+    // samples per pixel side: the supersampling, or half a sample while the camera moves
+    const ss = moving ? 1 : S.supersample, down = moving ? MOVING_DOWNSAMPLE : 1, factor = ss / down;
+    const w = Math.ceil(W * factor), h = Math.ceil(H * factor);
     const method = S.method;
     const ewa = S.ewa_filter;
     const mode = META.modes.find((m) => m.name === S.color);
@@ -289,8 +328,8 @@
     const eps = S.lod_error > 0 ? S.lod_error * (moving ? MOVING_LOD_FACTOR : 1) : (search ? 1 : 0);
     const lod = lodFrame(eps);
     const [near, far] = clipPlanes(view, META.sphere.radius + META.data.max_radius * S.radius_scale);
-    const lowpass = ewa ? S.lowpass_radius * ss : 0;
-    const sprites = useSprites(view, near, lod.maxRadius, ss, lowpass);
+    const lowpassRadius = S.lowpass_radius * Math.max(factor, 1);
+    const sprites = useSprites(view, near, lod.maxRadius, factor, ewa ? lowpassRadius : 0);
     const guard = sprites ? GUARD : 0;
     const t = allocate(w, h, guard);
     const variant = { PER_SPLAT_SHADING: method === "gaussian", EWA_FILTER: ewa, POINT_SPRITES: sprites,
@@ -304,10 +343,10 @@
                                         : [(S.range[0] - qlo) / span, (S.range[1] - qlo) / span];
     } else if (categorical) colorMode = COLOR.white;
     const common = {
-      u_view: view, u_projection: projectionMatrix(near, far, ss), u_viewport: [w, h], u_guard: guard,
-      u_intrinsics: [start.fx * ss, start.fy * ss, start.cx * ss, start.cy * ss],
-      u_ortho: cam.ortho ? H * ss / cam.ortho : 0, u_shading: shading, u_depth_range: [near, far],
-      u_radius_scale: S.radius_scale, u_depth_offset: S.depth_offset, u_lowpass_radius: S.lowpass_radius * ss,
+      u_view: view, u_projection: projectionMatrix(near, far), u_viewport: [w, h], u_guard: guard,
+      u_intrinsics: [start.fx * factor, start.fy * factor, start.cx * factor, start.cy * factor],
+      u_ortho: cam.ortho ? H * factor / cam.ortho : 0, u_shading: shading, u_depth_range: [near, far],
+      u_radius_scale: S.radius_scale, u_depth_offset: S.depth_offset, u_lowpass_radius: lowpassRadius,
       u_backface_culling: S.backface_culling ? 1 : 0, u_kernel: UNIT.kernel, u_lod_k: lod.k,
       u_visibility: UNIT.visibility, u_accum_color: UNIT.accumColor, u_accum_normal: UNIT.accumNormal,
       u_box_lo: META.data.box_lo, u_box_size: META.data.box_size, u_color_mode: colorMode,
@@ -363,7 +402,8 @@
     setUniforms(program("display", {}), {
       u_shaded: UNIT.shaded, u_gnormal: UNIT.gnormal, u_gdepth: UNIT.gdepth, u_category: UNIT.category,
       u_palette: UNIT.palette, u_shading: shading, u_depth_range: [near, far], u_categorical: categorical ? 1 : 0,
-      u_edl: edl ? 1 : 0, u_edl_strength: S.edl_strength, u_edl_radius: S.edl_radius, u_supersample: ss,
+      u_edl: edl ? 1 : 0, u_edl_strength: S.edl_strength, u_edl_radius: S.edl_radius * factor, u_supersample: ss,
+      u_downsample: down,
       u_guard: guard, u_background: S.background,
     });
     gl.drawArrays(gl.TRIANGLES, 0, 3);
@@ -375,11 +415,11 @@
     if (stats.history.length > 20) stats.history.shift();
     const sorted = stats.history.slice().sort((a, b) => a - b);
     stats.medianMs = sorted[sorted.length >> 1];
-    Object.assign(stats, { drawn: lod.prefix, lodError: lod.k > 0 ? eps : null, primitive: sprites ? "point sprites" : "quads",
+    Object.assign(stats, { drawn: lod.drawn, prefix: lod.prefix, lodError: lod.k > 0 ? eps : null, primitive: sprites ? "point sprites" : "quads",
                            method, color: S.color, shading: S.shading, width: W, height: H, moving });
     const rangeText = mode.kind === "continuous" ? ` [${S.range.map((v) => +v.toPrecision(4)).join(", ")}]` : "";
     status.textContent = `${ms.toFixed(1)} ms/frame (median ${stats.medianMs.toFixed(1)}) · ` +
-      `${lod.prefix.toLocaleString()} of ${META.data.count.toLocaleString()} splats` +
+      `${lod.drawn.toLocaleString()} of ${META.data.count.toLocaleString()} splats` +
       (lod.k > 0 ? ` · LOD ${eps} px` : "") + ` · ${method} · ${S.color}${rangeText} · ${S.shading}`;
     stats.ready = !moving;
   }
@@ -390,11 +430,14 @@
     pending = true;
     requestAnimationFrame(() => { pending = false; render(); });
   }
-  function touch() {  // the camera moved: coarse frames now, a full one when it settles
-    moving = true;
-    stats.ready = false;
+  function settleLater() {  // a full frame once the camera has rested a while
     clearTimeout(settleTimer);
     settleTimer = setTimeout(() => { moving = false; requestRender(); }, SETTLE_MS);
+  }
+  function touch() {  // the camera moved: coarse frames while it moves
+    moving = true;
+    stats.ready = false;
+    if (drag) clearTimeout(settleTimer); else settleLater();
     requestRender();
   }
 
@@ -430,7 +473,7 @@
     if (drag.pan) pan(dx, dy); else orbit(dx, dy);
     touch();
   });
-  canvas.addEventListener("pointerup", () => { drag = null; });
+  canvas.addEventListener("pointerup", () => { drag = null; if (moving) settleLater(); });
   canvas.addEventListener("wheel", (e) => { e.preventDefault(); zoom(Math.exp(e.deltaY * 0.001)); touch(); },
                           { passive: false });
 
