@@ -19,7 +19,7 @@
   const ATTRIBUTES = ["a_position", "a_normal", "a_radii", "a_angle", "a_color", "a_value", "a_lod", "a_clip0", "a_clip1"];
   const LOC = Object.fromEntries(ATTRIBUTES.map((name, i) => [name, i]));
   const UNIT = { kernel: 0, visibility: 1, accumColor: 2, accumNormal: 3, shaded: 4, gnormal: 5, gdepth: 6,
-                 category: 7, palette: 8, colormap: 9 };
+                 category: 7, palette: 8, colormap: 9, scratch: 10 };  // scratch: where new textures are made
 
   const stats = window.surfelStats = { ready: false, frames: 0, frameMs: null, medianMs: null, history: [],
                                        drawn: 0, points: META.data.count, error: null };
@@ -144,6 +144,7 @@
 
   function texture(w, h, internal, format, type, data = null, filter = gl.NEAREST) {
     const t = gl.createTexture();
+    gl.activeTexture(gl.TEXTURE0 + UNIT.scratch);
     gl.bindTexture(gl.TEXTURE_2D, t);
     gl.texImage2D(gl.TEXTURE_2D, 0, internal, w, h, 0, format, type, data);
     for (const [k, v] of [[gl.TEXTURE_MIN_FILTER, filter], [gl.TEXTURE_MAG_FILTER, filter],
