@@ -15,6 +15,7 @@ line reports each frame's time and splat count.
 from __future__ import annotations
 
 import asyncio
+import threading
 import time
 
 import numpy as np
@@ -72,6 +73,13 @@ def make_view(cloud, *, method: str = "deferred", shading: str = "phong", size=(
 
         def __init__(self):
             super().__init__(css_width=f"{size[0]}px", css_height=f"{size[1]}px", resizable=True)
+            # OpenGL contexts are current in one thread: frames are rendered in the thread that
+            # made the widget (the kernel's main thread), whichever thread asks for them
+            self.render_thread = threading.get_ident()
+            try:
+                self.render_loop = asyncio.get_running_loop()
+            except RuntimeError:
+                self.render_loop = None
             self.size = tuple(size)
             self.moving = False
             self.drag = None
@@ -117,6 +125,17 @@ def make_view(cloud, *, method: str = "deferred", shading: str = "phong", size=(
             self.request_draw()
 
         def get_frame(self):
+            if self.render_loop is None or threading.get_ident() == self.render_thread:
+                return self.render_frame()
+            self.render_loop.call_soon_threadsafe(self.render_and_send)
+            return None
+
+        def render_and_send(self):
+            frame = self.render_frame()
+            if frame is not None:
+                self.send_frame(frame)
+
+        def render_frame(self):
             scale = MOVING_DOWNSAMPLE if self.moving else 1
             frame_size = (max(self.size[0] // scale, 8), max(self.size[1] // scale, 8))
             if self.moving and coarse:
@@ -185,7 +204,9 @@ def make_view(cloud, *, method: str = "deferred", shading: str = "phong", size=(
     if colors.mode_name(color) not in modes:
         raise SurfelError(f"color: no mode {color!r}; choose one of {', '.join(modes)}")
     changed()
-    widget = ipywidgets.VBox([ipywidgets.HBox([method_box, color_box, map_box, shading_box, lod_box]), frames, status])
+    controls = ipywidgets.HBox([method_box, color_box, map_box, shading_box, lod_box],
+                               layout=ipywidgets.Layout(flex_flow="row wrap"))
+    widget = ipywidgets.VBox([controls, frames, status])
     widget.frames = frames
     widget.state = state
     return widget
