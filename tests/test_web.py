@@ -6,7 +6,7 @@ import sys
 import numpy as np
 import pytest
 
-from browser import browser, png_rgb, psnr  # noqa: F401  (browser is a fixture)
+from browser import png_rgb, psnr
 from conftest import requires_gl
 from surfel import PointCloud
 from surfel.camera import Camera
@@ -21,7 +21,7 @@ def run(*args, cwd=None):
                           text=True, cwd=cwd, timeout=600)
 
 
-def open_page(browser, path, size, capture=True):  # noqa: F811
+def open_page(browser, path, size, capture=True):
     """The page at `size`, after its first full frame; every request it made is local."""
     page = browser.new_page()
     page.set_viewport_size({"width": size[0], "height": size[1]})
@@ -55,7 +55,7 @@ CAMERAS = {
 
 @requires_gl
 @pytest.mark.parametrize("name", CAMERAS)
-def test_page_matches_surfel_render(browser, tmp_path, name):  # noqa: F811
+def test_page_matches_surfel_render(browser, tmp_path, name):
     """The #capture screenshot against surfel render with the same flags (judged at 30 dB)."""
     flags = CAMERAS[name]
     method = flags[flags.index("--method") + 1] if "--method" in flags else "deferred"
@@ -76,7 +76,7 @@ def test_page_matches_surfel_render(browser, tmp_path, name):  # noqa: F811
 
 
 @requires_gl
-def test_dragging_zooming_and_switching_change_the_view(browser, tmp_path):  # noqa: F811
+def test_dragging_zooming_and_switching_change_the_view(browser, tmp_path):
     proc = run("export-html", "--demo", "-o", tmp_path / "view.html", "--size", "400x320")
     assert proc.returncode == 0, proc.stderr
     page = open_page(browser, tmp_path / "view.html", (400, 360), capture=False)
@@ -127,7 +127,7 @@ def top_camera(cloud, size=(240, 240), height=None):
 
 
 @requires_gl
-def test_categories_are_never_blended(browser, tmp_path):  # noqa: F811
+def test_categories_are_never_blended(browser, tmp_path):
     """Classification with --shading none: each pixel inside the plane shows one class's colour,
     along the borders between classes too."""
     cloud = plane(classes=lambda x, y: np.where(x < 0.6, 2, np.where(y < 0.6, 6, 9)))
@@ -142,7 +142,7 @@ def test_categories_are_never_blended(browser, tmp_path):  # noqa: F811
 
 
 @requires_gl
-def test_elevation_colours_follow_height(browser, tmp_path):  # noqa: F811
+def test_elevation_colours_follow_height(browser, tmp_path):
     cloud = plane(height=lambda x, y: 0.5 * x + 0.1 * y)
     export_html(cloud, top_camera(cloud), tmp_path / "e.html", color="elevation", colormap="viridis",
                 color_range=(0.0, 0.6), options=RenderOptions(shading="none"))
@@ -154,7 +154,7 @@ def test_elevation_colours_follow_height(browser, tmp_path):  # noqa: F811
 
 
 @requires_gl
-def test_eye_dome_lighting_darkens_beside_a_step(browser, tmp_path):  # noqa: F811
+def test_eye_dome_lighting_darkens_beside_a_step(browser, tmp_path):
     """A plane with a raised box, seen from above with --shading edl: the plane in a ring just
     outside the box darkens, far from it keeps its albedo (white)."""
     def box(x, y):
@@ -173,7 +173,7 @@ def test_eye_dome_lighting_darkens_beside_a_step(browser, tmp_path):  # noqa: F8
 
 
 @requires_gl
-def test_a_million_point_page_draws_its_point_tree_and_reports_frame_time(browser, tmp_path):  # noqa: F811
+def test_a_million_point_page_draws_its_point_tree_and_reports_frame_time(browser, tmp_path):
     from surfel.bench import replicate
     from surfel.data import demo_cloud
     from surfel.rendering import default_camera
@@ -246,3 +246,18 @@ def test_bad_options_end_in_one_line_and_write_nothing(tmp_path):
         assert proc.returncode == 2, (args, proc.stderr)
         assert word in proc.stderr.strip().splitlines()[-1], proc.stderr
         assert "Traceback" not in proc.stderr and not out.exists()
+
+
+@requires_gl
+def test_a_copc_file_becomes_a_page_of_its_uniform_cut(browser, tmp_path):
+    from pathlib import Path
+
+    copc = Path(__file__).parent / "data" / "simple_with_page.copc.laz"
+    proc = run("export-html", copc, "-o", tmp_path / "c.html", "--size", "320x240", "--view", "top",
+               "--color", "elevation", "--shading", "edl")
+    assert proc.returncode == 0, proc.stderr
+    page = open_page(browser, tmp_path / "c.html", (320, 240))
+    assert page.evaluate("surfelStats.drawn") > 0 and page.evaluate("surfelStats.color") == "elevation"
+    shot = png_rgb(page.screenshot())
+    assert (shot.max(axis=2) > 0).mean() > 0.05
+    page.close()

@@ -12,7 +12,7 @@ import urllib.request
 import numpy as np
 import pytest
 
-from browser import browser, png_rgb  # noqa: F401  (browser is a fixture)
+from browser import png_rgb
 from conftest import requires_gl
 
 pytest.importorskip("jupyter_rfb", reason="the notebook extra (jupyter_rfb) is not installed")
@@ -93,7 +93,7 @@ def jupyter_lab(tmp_path):
 
 
 @requires_gl
-def test_surfel_show_in_jupyterlab_is_an_interactive_view(browser, jupyter_lab):  # noqa: F811
+def test_surfel_show_in_jupyterlab_is_an_interactive_view(browser, jupyter_lab):
     """A notebook calls surfel.show; dragging on the view it displays changes its frames."""
     page = browser.new_page()
     page.set_viewport_size({"width": 1000, "height": 800})
@@ -126,3 +126,22 @@ def test_surfel_show_in_jupyterlab_is_an_interactive_view(browser, jupyter_lab):
     assert mean_change(after, before) > 2
     assert "splats" in page.locator(".widget-label").last.inner_text()
     page.close()
+
+
+@requires_gl
+def test_widget_streams_a_copc_file_coarser_while_moving():
+    from pathlib import Path
+
+    from surfel.lod import open_source
+    from surfel.widget import make_view
+
+    source = open_source(Path(__file__).parent / "data" / "simple_with_page.copc.laz")
+    widget = make_view(source, size=(200, 160))
+    frames = widget.frames
+    still = frames.get_frame()
+    assert still.shape == (160, 200, 3) and still.max() > 0
+    splats = frames.last_stats["splats"]
+    frames.handle_event({"type": "wheel", "x": 100, "y": 80, "dx": 0, "dy": 0, "modifiers": ()})
+    frames.get_frame()
+    assert frames.last_stats["moving"] and frames.last_stats["splats"] < splats
+    assert frames.last_stats["lod"] > 1.0  # the coarser error of moving frames

@@ -42,7 +42,7 @@ class ViewState:
 
     def __init__(self, cloud, method: str, shading: str):
         self.cloud = cloud
-        self.methods = [m.name for m in METHODS.values() if m.name != "mesh" or cloud.is_mesh]
+        self.methods = [m.name for m in METHODS.values() if m.name != "mesh" or getattr(cloud, "is_mesh", False)]
         self.method = method
         self.shading = shading
         self.ewa_filter = True

@@ -46,6 +46,8 @@ def _require():
 def recolor(cloud: PointCloud, mode: str, colormap: str) -> PointCloud:
     """`cloud` with its colours replaced by colour mode `mode` (web.colors' tables): the
     albedo every method then splats. Categorical codes take their palette's colours."""
+    if not isinstance(cloud, PointCloud):
+        raise SurfelError(f"color {mode!r}: a level-of-detail source shows its own colours (rgb)")
     up = np.array([0.0, 0.0, 1.0]) if cloud.geospatial else np.array([0.0, 1.0, 0.0])
     modes, values = colors.attribute_modes(cloud, up, None, mode)
     spec = next(m for m in modes if m["name"] == mode)

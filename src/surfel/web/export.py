@@ -62,7 +62,7 @@ def cloud_for_page(cloud, camera: Camera, point_budget: int, lod_error: float | 
     render would), as a sequential point tree when it holds more than `point_budget` points
     or a LOD error is asked for; from a LodSource, its uniform cut of at most
     SOURCE_MAX_POINTS nodes first. Returns (cloud, report)."""
-    from ..lod import as_sequential
+    from ..lod import as_sequential, is_sequential
     from ..lod.source import is_source
 
     report: dict = {}
@@ -76,7 +76,7 @@ def cloud_for_page(cloud, camera: Camera, point_budget: int, lod_error: float | 
                                 normal_field=method.normal_field)
     if estimated:
         report["estimated"] = estimated
-    if len(cloud) > point_budget or lod_error is not None:
+    if is_sequential(cloud) or len(cloud) > point_budget or lod_error is not None:  # a loaded tree: its cut
         cloud = as_sequential(cloud)
         report["point_tree"] = len(cloud)
     return cloud, report
@@ -104,6 +104,7 @@ def export_html(cloud, camera: Camera, output, *, method: str = "deferred", opti
     `color`: rgb, elevation or an attribute's name (default: rgb); `up`: the elevation and
     orbit axis (default +Z for geospatial data, else +Y). Returns a report (points, bytes)."""
     options = options or RenderOptions()
+    title = title or f"surfel: {getattr(cloud, 'source', None) or getattr(cloud, 'path', None) or 'point cloud'}"
     if method not in METHODS:
         raise SurfelError(f"--method: the page draws {' or '.join(METHODS)}, not {method!r}")
     if options.shading not in SHADINGS:
@@ -135,8 +136,8 @@ def export_html(cloud, camera: Camera, output, *, method: str = "deferred", opti
             "colormaps": {name: colors.colormap_table(name).tolist() for name in maps},
             "up": up.tolist(), "data": layout,
             "sphere": {"center": (page_cloud.center - origin).tolist(),
-                       "radius": page_cloud.bounding_radius, "lod_radius": page_cloud.bounding_radius}}
-    parts = {"TITLE": html.escape(title or f"surfel: {page_cloud.source or 'point cloud'}"),
+                       "radius": page_cloud.bounding_radius}}
+    parts = {"TITLE": html.escape(title),
              "META": _script_json(meta), "SHADERS": _script_json(shader_sources()),
              "DATA": base64.b64encode(gzip.compress(blob, 6, mtime=0)).decode("ascii"),
              "SCRIPT": (HERE / "viewer.js").read_text()}

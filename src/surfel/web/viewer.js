@@ -286,7 +286,7 @@
     if (!search || !(eps > 0)) return { k: 0, prefix: META.data.count, drawn: META.data.count,
                                         maxRadius: META.data.max_radius };
     const k = pixelScale() / eps;
-    const rNear = cam.ortho ? 1 : Math.max(norm(sub(cam.eye, META.sphere.center)) - META.sphere.lod_radius, 0);
+    const rNear = cam.ortho ? 1 : Math.max(norm(sub(cam.eye, META.sphere.center)) - META.sphere.radius, 0);
     let lo = 0, hi = search.bound.length;
     while (lo < hi) {  // first sample whose bound f(j) <= r_near (f is non-increasing)
       const mid = (lo + hi) >> 1;
@@ -305,7 +305,7 @@
     else {
       const c = META.sphere.center;
       const distance = -(view[8] * c[0] + view[9] * c[1] + view[10] * c[2] + view[11]);
-      const nearest = distance - META.sphere.lod_radius - r;
+      const nearest = distance - META.sphere.radius - r;
       if (nearest <= near) return false;
       pixels = r * start.fy * ss / nearest * 1.5;
     }
@@ -326,7 +326,8 @@
     const edl = S.shading === "edl";
     const shading = SHADING[edl ? "none" : S.shading];
     const view = viewMatrix();
-    const eps = S.lod_error > 0 ? S.lod_error * (moving ? MOVING_LOD_FACTOR : 1) : (search ? 1 : 0);
+    // a point tree is never drawn whole: LOD error 0 means one pixel there
+    const eps = (S.lod_error > 0 ? S.lod_error : search ? 1 : 0) * (moving ? MOVING_LOD_FACTOR : 1);
     const lod = lodFrame(eps);
     const [near, far] = clipPlanes(view, META.sphere.radius + META.data.max_radius * S.radius_scale);
     const lowpassRadius = S.lowpass_radius * Math.max(factor, 1);
