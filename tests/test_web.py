@@ -240,8 +240,10 @@ def test_quantized_splats_decode_to_the_cloud_they_came_from():
 
 def test_bad_options_end_in_one_line_and_write_nothing(tmp_path):
     out = tmp_path / "view.html"
-    for args, word in [(["--color", "nosuch"], "--color"), (["--colormap", "nosuch"], "--colormap"),
-                       (["--color-range", "1"], "--color-range"), (["--method", "phong"], "--method")]:
+    bad = [(["--color", "nosuch"], "--color"), (["--colormap", "nosuch"], "--colormap"),
+           (["--color-range", "1"], "--color-range"), (["--color-range", "3,1"], "--color-range"),
+           (["--method", "phong"], "--method")]
+    for args, word in bad:
         proc = run("export-html", "--demo", "-o", out, *args)
         assert proc.returncode == 2, (args, proc.stderr)
         assert word in proc.stderr.strip().splitlines()[-1], proc.stderr

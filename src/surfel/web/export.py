@@ -111,6 +111,8 @@ def export_html(cloud, camera: Camera, output, *, method: str = "deferred", opti
         raise SurfelError(f"--shading: unknown model {options.shading!r}; choose one of {', '.join(SHADINGS)}")
     if options.lod_error is not None and not options.lod_error > 0:
         raise SurfelError(f"--lod-error must be positive, got {options.lod_error}")
+    if color_range is not None and not color_range[0] < color_range[1]:
+        raise SurfelError(f"--color-range: LO must be below HI, got {color_range[0]:g},{color_range[1]:g}")
     if colormap not in colors.COLORMAPS:
         colors.colormap_table(colormap)  # a bad name fails here, with the reason
     page_cloud, report = cloud_for_page(cloud, camera, point_budget, options.lod_error)
