@@ -314,10 +314,10 @@
 
   // ---- one frame ------------------------------------------------------------------------
   let moving = false, settleTimer = null;
-  function render() {
+  function render(coarse = moving) {  // coarse: a frame of a moving camera
     const t0 = performance.now();
     // samples per pixel side: the supersampling, or half a sample while the camera moves
-    const ss = moving ? 1 : S.supersample, down = moving ? MOVING_DOWNSAMPLE : 1, factor = ss / down;
+    const ss = coarse ? 1 : S.supersample, down = coarse ? MOVING_DOWNSAMPLE : 1, factor = ss / down;
     const w = Math.ceil(W * factor), h = Math.ceil(H * factor);
     const method = S.method;
     const ewa = S.ewa_filter;
@@ -327,7 +327,7 @@
     const shading = SHADING[edl ? "none" : S.shading];
     const view = viewMatrix();
     // a point tree is never drawn whole: LOD error 0 means one pixel there
-    const eps = (S.lod_error > 0 ? S.lod_error : search ? 1 : 0) * (moving ? MOVING_LOD_FACTOR : 1);
+    const eps = (S.lod_error > 0 ? S.lod_error : search ? 1 : 0) * (coarse ? MOVING_LOD_FACTOR : 1);
     const lod = lodFrame(eps);
     const [near, far] = clipPlanes(view, META.sphere.radius + META.data.max_radius * S.radius_scale);
     const lowpassRadius = S.lowpass_radius * Math.max(factor, 1);
@@ -418,19 +418,19 @@
     const sorted = stats.history.slice().sort((a, b) => a - b);
     stats.medianMs = sorted[sorted.length >> 1];
     Object.assign(stats, { drawn: lod.drawn, prefix: lod.prefix, lodError: lod.k > 0 ? eps : null, primitive: sprites ? "point sprites" : "quads",
-                           method, color: S.color, shading: S.shading, width: W, height: H, moving });
+                           method, color: S.color, shading: S.shading, width: W, height: H, moving: coarse });
     const rangeText = mode.kind === "continuous" ? ` [${S.range.map((v) => +v.toPrecision(4)).join(", ")}]` : "";
     status.textContent = `${ms.toFixed(1)} ms/frame (median ${stats.medianMs.toFixed(1)}) · ` +
       `${lod.drawn.toLocaleString()} of ${META.data.count.toLocaleString()} splats` +
       (lod.k > 0 ? ` · LOD ${eps} px` : "") + ` · ${method} · ${S.color}${rangeText} · ${S.shading}`;
-    stats.ready = !moving;
+    stats.ready = !moving && !coarse;
   }
 
   let pending = false;
   function requestRender() {
     if (pending) return;
     pending = true;
-    requestAnimationFrame(() => { pending = false; render(); });
+    requestAnimationFrame(() => { pending = false; render(moving); });
   }
   function settleLater() {  // a full frame once the camera has rested a while
     clearTimeout(settleTimer);
@@ -509,5 +509,5 @@
                         zoom: (f) => { zoom(f); touch(); }, settings: S, camera: cam };
 
   if (location.hash === "#capture") document.body.classList.add("capture");
-  loadData().then(() => { render(); }).catch((e) => { if (!stats.error) fail(String(e)); });
+  loadData().then(() => { render(false); }).catch((e) => { if (!stats.error) fail(String(e)); });
 })();
