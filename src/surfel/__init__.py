@@ -15,7 +15,7 @@ __all__ = ["PointCloud", "InputError", "SurfelError", "load", "write_ply", "rend
 __version__ = "0.1.0"
 
 
-def show(cloud, method: str = "deferred", size=(640, 480), *, color: str = "rgb", interactive: bool | None = None,
+def show(cloud, method: str = "deferred", size=(512, 512), *, color: str = "rgb", interactive: bool | None = None,
          **options):
     """Show `cloud` (a PointCloud, or a .lod hierarchy / COPC source from surfel.lod.open_source).
 

@@ -63,7 +63,7 @@ def recolor(cloud: PointCloud, mode: str, colormap: str) -> PointCloud:
     return cloud.with_(colors=table[np.round(t * (colors.LUT_SIZE - 1)).astype(np.int64)])
 
 
-def make_view(cloud, *, method: str = "deferred", shading: str = "phong", size=(640, 480),
+def make_view(cloud, *, method: str = "deferred", shading: str = "phong", size=(512, 512),
               color: str = "rgb", colormap: str = colors.DEFAULT_COLORMAP, lod_error: float | None = None):
     """The widget: controls above a SurfelFrames view (`widget.frames`) and a status line."""
     ipywidgets, jupyter_rfb = _require()
@@ -170,6 +170,8 @@ def make_view(cloud, *, method: str = "deferred", shading: str = "phong", size=(
                           f"choose one of {', '.join(state.methods)}")
     modes = ["rgb"] if is_source else [m["name"] for m in colors.attribute_modes(
         cloud, np.array([0.0, 0.0, 1.0]) if cloud.geospatial else np.array([0.0, 1.0, 0.0]), None, "rgb")[0]]
+    if colors.mode_name(color) not in modes:
+        raise SurfelError(f"color: no mode {color!r}; choose one of {', '.join(modes)}")
     recolored: dict = {}
     frames = SurfelFrames()
     status = ipywidgets.Label("")
@@ -203,8 +205,6 @@ def make_view(cloud, *, method: str = "deferred", shading: str = "phong", size=(
     for box in (method_box, color_box, map_box, shading_box, lod_box):
         box.observe(changed, names="value")
         box.layout = ipywidgets.Layout(width="auto")
-    if colors.mode_name(color) not in modes:
-        raise SurfelError(f"color: no mode {color!r}; choose one of {', '.join(modes)}")
     changed()
     controls = ipywidgets.HBox([method_box, color_box, map_box, shading_box, lod_box],
                                layout=ipywidgets.Layout(flex_flow="row wrap"))
