@@ -224,7 +224,7 @@ def test_quantized_splats_decode_to_the_cloud_they_came_from():
     assert np.degrees(np.arccos(np.clip((decoded * normals).sum(axis=1), -1, 1))).max() < 0.01
     d1, d2 = tangent_frame(decoded)
     phi = 2 * np.pi * column("angle", "<u2", 1) / 65535
-    radii = column("radii", "<f2", 2).astype(np.float64)
+    radii = column("radii", "<f2", 2).astype(np.float64) * layout["length_unit"]
     u = radii[:, :1] * (np.cos(phi) * d1 + np.sin(phi) * d2)
     v = radii[:, 1:] * (np.cos(phi) * d2 - np.sin(phi) * d1)
     assert np.abs(u - axes[:, 0]).max() < 1e-4 and np.abs(np.abs((v * axes[:, 1]).sum(axis=1))

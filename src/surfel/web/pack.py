@@ -5,7 +5,8 @@ a position is off by at most half a step, extent / 131070. Normals: octahedral (
 2010, "On floating-point normal vectors"; Cigolle et al. 2014, "A survey of efficient
 representations for independent unit vectors"), n -> (x, y) / (|x| + |y| + |z|) with the
 lower hemisphere folded over the diagonals, 16 bits per component. Ellipses (axis_u, axis_v):
-the semi-axis lengths as half floats and axis_u's angle phi in the tangent frame (t1, t2) of
+the semi-axis lengths as half floats in units of the bounding box's longest side (11 bits of
+precision whatever the data's units), and axis_u's angle phi in the tangent frame (t1, t2) of
 the decoded normal (Duff et al. 2017, "Building an orthonormal basis, revisited"):
 
     s = sign(n_z), a = -1 / (s + n_z), b = n_x n_y a
@@ -15,8 +16,9 @@ the decoded normal (Duff et al. 2017, "Building an orthonormal basis, revisited"
 (web/splat_attributes.glsl decodes the same way). Where the cloud's axis_v points the other
 way, the clip lines' v coefficients change sign instead, so that splats still end where they
 did. Sequential point tree errors (e_g, the parent's e_g, the distance to the parent) are
-half floats rounded outwards (e_g down, the others up), so the page's vertex test passes a
-superset of surfel.lod's selection: overlaps, never holes. Attributes: 16-bit codes
+half floats in the same unit, rounded outwards (e_g down, the others up), so the page's
+vertex test passes a superset of surfel.lod's selection: overlaps, never holes. Attributes:
+16-bit codes
 (categorical) or 16-bit steps over their range (continuous).
 """
 
@@ -94,7 +96,9 @@ def pack_cloud(cloud: PointCloud, values: dict[str, np.ndarray]) -> tuple[dict, 
     v = cloud.axes[:, 1].astype(np.float64)
     phi = np.arctan2(np.einsum("ij,ij->i", u, t2), np.einsum("ij,ij->i", u, t1))
     columns["angle"] = np.round(np.mod(phi / (2 * np.pi), 1.0) * 65535).astype(np.uint16)
-    columns["radii"] = np.stack([np.linalg.norm(u, axis=1), np.linalg.norm(v, axis=1)], axis=1).astype(np.float16)
+    unit = float(size.max())
+    lengths = np.stack([np.linalg.norm(u, axis=1), np.linalg.norm(v, axis=1)], axis=1)
+    columns["radii"] = (lengths / unit).astype(np.float16)
     if cloud.colors is not None:
         columns["color"] = np.round(cloud.colors * 255).astype(np.uint8)
     if "clip_lines" in cloud.attributes:
@@ -104,11 +108,11 @@ def pack_cloud(cloud: PointCloud, values: dict[str, np.ndarray]) -> tuple[dict, 
         lines[flip, :, 1] *= -1
         columns["clip"] = lines.reshape(len(cloud), 6).astype(np.float16)
     layout: dict = {"count": len(cloud), "box_lo": lo.tolist(), "box_size": size.tolist(), "origin": origin.tolist(),
-                    "max_radius": cloud.max_splat_radius}
+                    "max_radius": cloud.max_splat_radius, "length_unit": unit}
     if "lod_emax" in cloud.attributes:
         a = cloud.attributes
-        columns["lod"] = np.stack([half_outwards(a["lod_emin"], -1), half_outwards(a["lod_emax"], 1),
-                                   half_outwards(a["lod_dparent"], 1)], axis=1)
+        columns["lod"] = np.stack([half_outwards(a["lod_emin"] / unit, -1), half_outwards(a["lod_emax"] / unit, 1),
+                                   half_outwards(a["lod_dparent"] / unit, 1)], axis=1)
         sample = np.arange(0, len(cloud), LOD_SEARCH_STRIDE)
         ceiling = bucket_ceilings(a["lod_emax"][sample])
         layout["lod_search"] = {"stride": LOD_SEARCH_STRIDE,

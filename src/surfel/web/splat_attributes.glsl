@@ -7,16 +7,17 @@
 // computes from the same decoded normal.
 in vec3 a_position;  // [0, 1] over the bounding box
 in vec2 a_normal;    // octahedral, [0, 1]
-in vec2 a_radii;     // |axis_u|, |axis_v|
+in vec2 a_radii;     // |axis_u|, |axis_v| in length units
 in float a_angle;    // angle of axis_u in tangent_frame(normal), [0, 1) of a turn
 in vec3 a_color;     // rgb albedo
 in float a_value;    // the attribute the colour mode shows, [0, 1] over its stored range
-in vec3 a_lod;       // e_g, the parent's e_g, the distance to the parent
+in vec3 a_lod;       // e_g, the parent's e_g, the distance to the parent, in length units
 in vec3 a_clip0;     // clip lines in the local coordinates of axis_u, axis_v
 in vec3 a_clip1;
 
 uniform vec3 u_box_lo;         // bounding box, relative to the cloud's local origin
 uniform vec3 u_box_size;
+uniform float u_length_unit;   // the box's longest side: radii and LOD lengths are stored in it
 uniform int u_color_mode;      // COLOR_* below
 uniform vec2 u_value_range;    // colour-map range of the value (a_value units, or elevation)
 uniform vec3 u_up;             // elevation axis
@@ -50,7 +51,8 @@ vec3 splat_axis(bool second) {
     tangent_frame(oct_decode(a_normal), t1, t2);
     float phi = 6.283185307179586 * a_angle;
     vec3 u = cos(phi) * t1 + sin(phi) * t2;
-    return second ? a_radii.y * (cos(phi) * t2 - sin(phi) * t1) : a_radii.x * u;
+    vec2 radii = a_radii * u_length_unit;
+    return second ? radii.y * (cos(phi) * t2 - sin(phi) * t1) : radii.x * u;
 }
 
 vec3 splat_albedo() {
@@ -68,6 +70,6 @@ vec3 splat_albedo() {
 #define in_axis_u splat_axis(false)
 #define in_axis_v splat_axis(true)
 #define in_field vec2(0.0)
-#define in_lod a_lod
+#define in_lod (a_lod * u_length_unit)
 #define in_clip0 a_clip0
 #define in_clip1 a_clip1

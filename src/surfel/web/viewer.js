@@ -255,13 +255,14 @@
     HALF[h] = sign * (e === 0 ? m * 2 ** -24 : e === 31 ? (m ? NaN : Infinity) : (1 + m / 1024) * 2 ** (e - 15));
   }
   function decodeNodes(blob) {
-    const c = columns, n = META.data.count;
+    const c = columns, n = META.data.count, unit = META.data.length_unit;
     const lod = new Uint16Array(blob, c.lod.offset, 3 * n), radii = new Uint16Array(blob, c.radii.offset, 2 * n);
     const out = { position: new Uint16Array(blob, c.position.offset, 3 * n), emin: new Float32Array(n),
                   emax: new Float32Array(n), dparent: new Float32Array(n), radius: new Float32Array(n) };
     for (let i = 0; i < n; i++) {
-      out.emin[i] = HALF[lod[3 * i]]; out.emax[i] = HALF[lod[3 * i + 1]]; out.dparent[i] = HALF[lod[3 * i + 2]];
-      out.radius[i] = Math.max(HALF[radii[2 * i]], HALF[radii[2 * i + 1]]);
+      out.emin[i] = HALF[lod[3 * i]] * unit; out.emax[i] = HALF[lod[3 * i + 1]] * unit;
+      out.dparent[i] = HALF[lod[3 * i + 2]] * unit;
+      out.radius[i] = Math.max(HALF[radii[2 * i]], HALF[radii[2 * i + 1]]) * unit;
     }
     return out;
   }
@@ -351,7 +352,8 @@
       u_radius_scale: S.radius_scale, u_depth_offset: S.depth_offset, u_lowpass_radius: lowpassRadius,
       u_backface_culling: S.backface_culling ? 1 : 0, u_kernel: UNIT.kernel, u_lod_k: lod.k,
       u_visibility: UNIT.visibility, u_accum_color: UNIT.accumColor, u_accum_normal: UNIT.accumNormal,
-      u_box_lo: META.data.box_lo, u_box_size: META.data.box_size, u_color_mode: colorMode,
+      u_box_lo: META.data.box_lo, u_box_size: META.data.box_size, u_length_unit: META.data.length_unit,
+      u_color_mode: colorMode,
       u_value_range: range, u_up: META.up, u_colormap: UNIT.colormap,
     };
     const bindTexture = (unit, tex) => { gl.activeTexture(gl.TEXTURE0 + unit); gl.bindTexture(gl.TEXTURE_2D, tex); };
