@@ -18,8 +18,7 @@ way, the clip lines' v coefficients change sign instead, so that splats still en
 did. Sequential point tree errors (e_g, the parent's e_g, the distance to the parent) are
 half floats in the same unit, rounded outwards (e_g down, the others up), so the page's
 vertex test passes a superset of surfel.lod's selection: overlaps, never holes. Attributes:
-16-bit codes
-(categorical) or 16-bit steps over their range (continuous).
+16-bit codes (categorical) or 16-bit steps over their range (continuous).
 """
 
 from __future__ import annotations
