@@ -49,7 +49,7 @@ class ViewState:
 
     def __init__(self, cloud, method: str, shading: str, renderer: Renderer | None = None):
         self.cloud = cloud
-        self.methods = [m.name for m in METHODS.values() if m.name != "mesh" or cloud.is_mesh]
+        self.methods = [m.name for m in METHODS.values() if m.name != "mesh" or getattr(cloud, "is_mesh", False)]
         self.method = method
         self.shading = shading
         self.renderer = renderer or Renderer()
