@@ -10,9 +10,9 @@ from browser import png_rgb, psnr
 from conftest import requires_gl
 from surfel import PointCloud
 from surfel.camera import Camera
+from surfel.colors import ASPRS_COLORS, colormap_table
 from surfel.options import RenderOptions
 from surfel.web import export_html
-from surfel.web.colors import ASPRS_COLORS, colormap_table
 from surfel.web.pack import oct_decode, pack_cloud, tangent_frame
 
 
@@ -131,8 +131,8 @@ def test_categories_are_never_blended(browser, tmp_path):
     """Classification with --shading none: each pixel inside the plane shows one class's colour,
     along the borders between classes too."""
     cloud = plane(classes=lambda x, y: np.where(x < 0.6, 2, np.where(y < 0.6, 6, 9)))
-    export_html(cloud, top_camera(cloud), tmp_path / "c.html", color="classification",
-                options=RenderOptions(shading="none"))
+    export_html(cloud, top_camera(cloud), tmp_path / "c.html", options=RenderOptions(shading="none",
+                                                                                   color="classification"))
     shot = open_page(browser, tmp_path / "c.html", (240, 240)).screenshot()
     inside = png_rgb(shot)[30:210, 30:210].reshape(-1, 3).astype(int)
     palette = np.round(np.array([ASPRS_COLORS[c] for c in (2, 6, 9)]) * 255)
@@ -144,10 +144,10 @@ def test_categories_are_never_blended(browser, tmp_path):
 @requires_gl
 def test_elevation_colours_follow_height(browser, tmp_path):
     cloud = plane(height=lambda x, y: 0.5 * x + 0.1 * y)
-    export_html(cloud, top_camera(cloud), tmp_path / "e.html", color="elevation", colormap="viridis",
-                color_range=(0.0, 0.6), options=RenderOptions(shading="none"))
+    export_html(cloud, top_camera(cloud), tmp_path / "e.html",
+                options=RenderOptions(shading="none", color="elevation", colormap="viridis", color_range=(0.0, 0.6)))
     image = png_rgb(open_page(browser, tmp_path / "e.html", (240, 240)).screenshot())[40:200, 40:200]
-    lut = colormap_table("viridis").astype(int)
+    lut = np.round(colormap_table("viridis") * 255).astype(int)
     index = np.abs(image.reshape(-1, 1, 3).astype(int) - lut[None]).sum(axis=2).argmin(axis=1).reshape(160, 160)
     column = index.mean(axis=0)
     assert (np.diff(column) >= 0).all() and column[-1] - column[0] > 100  # rises with x, across most of the map
@@ -162,7 +162,7 @@ def test_eye_dome_lighting_darkens_beside_a_step(browser, tmp_path):
 
     cloud = plane(height=box)
     camera = Camera.look_at(cloud.center + [0, 0, 3], cloud.center, (0, 1, 0), size=(240, 240), fov=30)
-    export_html(cloud, camera, tmp_path / "edl.html", options=RenderOptions(shading="edl"))
+    export_html(cloud, camera, tmp_path / "edl.html", options=RenderOptions(shading="edl", color="rgb"))
     gray = png_rgb(open_page(browser, tmp_path / "edl.html", (240, 240)).screenshot()).mean(axis=2)
     project, _ = camera.project(np.array([[0.6, 0.6, 0.15], [0.8, 0.6, 0.0], [0.1, 0.1, 0.0]]))
     (cx, cy), (edge_x, _), (far_x, far_y) = project

@@ -16,6 +16,7 @@ from .errors import SurfelError
 from .request import (
     CAMERA,
     OPTIONS,
+    PAGE_COMMAND,
     RENDER,
     RENDER_COMMAND,
     TURNTABLE_COMMAND,
@@ -117,64 +118,34 @@ def render(**values):
 
 
 @main.command("export-html", context_settings=CONTEXT)
-@click.argument("input", required=False, type=click.Path())
-@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False), help="HTML page to write.")
-@click.option("--method", "-m", type=click.Choice(["deferred", "gaussian"]), default="deferred", show_default=True)
-@click.option("--demo", is_flag=True, help="Export the bundled demo model instead of INPUT.")
-@click.option("--shading", type=click.Choice(["lambert", "phong", "none", "normals", "depth", "edl"]), default="phong",
-              show_default=True)
-@click.option("--color", default=None, help="rgb, elevation or an attribute's name (default rgb).")
-@click.option("--colormap", default="viridis", show_default=True, help="Colour map (matplotlib's names).")
-@click.option("--color-range", default=None, metavar="LO,HI", help="Colour-map range (default: 2nd-98th percentile).")
-@click.option("--edl-strength", type=click.FloatRange(0), default=1.0, show_default=True)
-@click.option("--edl-radius", type=click.FloatRange(0.5, 32), default=1.4, show_default=True, help="Pixels.")
-@click.option("--background", default="0,0,0", show_default=True, help="Background R,G,B in [0, 1].")
-@click.option("--supersample", type=click.IntRange(1, 4), default=None, help="Samples per pixel side (default 1).")
-@click.option("--radius-scale", type=click.FloatRange(min=0, min_open=True), default=1.0, show_default=True)
-@click.option("--depth-offset", type=float, default=None, help="Visibility offset z_t as a fraction of the radius.")
-@click.option("--backface-culling/--no-backface-culling", default=False, show_default=True)
-@click.option("--ewa-filter/--no-ewa-filter", default=None, help="Screen-space EWA filter (default on for deferred).")
-@click.option("--lowpass-radius", type=click.FloatRange(min=0, min_open=True), default=1.0, show_default=True)
-@click.option("--lod-error", type=click.FloatRange(min=0, min_open=True), default=None, metavar="PX",
-              help="Start at this LOD error (builds a point tree whatever the size).")
-@click.option("--point-budget", type=click.IntRange(1), default=300_000, show_default=True, metavar="N",
-              help="Above N points the page draws a sequential point tree.")
-@camera_options
-def export_html(input, output, method, demo, shading, color, colormap, color_range, edl_strength, edl_radius,
-                background, point_budget, **kw):
+@table_options(*PAGE_COMMAND, required=("output",), defaults={"point_budget": "300000"},
+               helps={"output": "HTML page to write.", "method": "deferred or gaussian.",
+                      "point_budget": "Above N points the page draws a sequential point tree.",
+                      "supersample": "Samples per pixel side, 1 to 4 (default 1)."})
+def export_html(**values):
     """Write one self-contained HTML page that splats INPUT in the browser (WebGL2, offline).
 
     It opens at the camera of these flags (as `surfel render`), orbits, pans and zooms with
-    the mouse, switches method, colour and shading; INPUT#capture shows the canvas alone.
+    the mouse, switches method, colour mode and shading; PAGE.html#capture shows the canvas
+    alone. A .lod hierarchy or a COPC file gives the page its uniform cut.
 
     \b
     Example:
       surfel export-html bunny.obj -o bunny.html --method deferred --size 800x600
       surfel export-html scan.laz -o scan.html --color elevation --shading edl --view iso
     """
-    from .options import RenderOptions
+    from .files import check_output
+    from .rendering import Renderer
+    from .request import parse_page
     from .web import export_html as do_export
+    from .web.export import METHODS as PAGE_METHODS
 
-    if demo == (input is not None):
-        raise click.UsageError("give an INPUT file or --demo (not both)")
-    if demo:
-        from .data import demo_cloud
-
-        cloud = demo_cloud()
-    else:
-        cloud = open_input(input)
-    rgb = _floats(background, 3, "--background")
-    if min(rgb) < 0 or max(rgb) > 1:
-        raise click.BadParameter("--background values must lie in [0, 1]")
-    options = RenderOptions(shading=shading, background=tuple(rgb), supersample=kw["supersample"],
-                            radius_scale=kw["radius_scale"], depth_offset=kw["depth_offset"],
-                            backface_culling=kw["backface_culling"], ewa_filter=kw["ewa_filter"],
-                            lowpass_radius=kw["lowpass_radius"], lod_error=kw["lod_error"])
-    report = do_export(cloud, make_camera(cloud, kw), output, method=method, options=options, color=color,
-                       colormap=colormap, color_range=_floats(color_range, 2, "--color-range"),
-                       edl_strength=edl_strength, edl_radius=edl_radius, point_budget=point_budget,
-                       up=_floats(kw["up"], 3, "--up"))
-    click.echo(f"{output}: {report['points']} points, {report['bytes'] / 1e6:.1f} MB", err=True)
+    request = parse_page(values, PAGE_METHODS)
+    check_output(request.outputs.png, "--output")
+    cloud = request.open_input()
+    report = do_export(cloud, request.camera.camera(cloud), request.outputs.png, method=request.method,
+                       options=request.options, renderer=Renderer())
+    click.echo(f"{request.outputs.png}: {report['points']} points, {report['bytes'] / 1e6:.1f} MB", err=True)
 
 
 @main.command(context_settings=CONTEXT)
@@ -306,13 +277,15 @@ def prepare(input, output, neighbors, viewpoint, elliptical, normal_field, sharp
 @main.command(context_settings=CONTEXT)
 @click.option("--screenshot", type=click.Path(dir_okay=False), default=None,
               help="Draw one frame in the window, save it as PNG and exit (for scripts and tests).")
-@table_options("input", "demo", "method", "shading", "size", defaults={"size": "x".join(map(str, VIEW_SIZE))})
+@table_options("input", "demo", "method", "shading", "color", "colormap", "size",
+               defaults={"size": "x".join(map(str, VIEW_SIZE))})
 def view(screenshot, **values):
     """Open INPUT in an interactive window (needs the view extra: pip install 'surfel[view]').
 
     \b
     Mouse: left drag orbits, right drag pans, wheel zooms. Keys: 1-9 method, e EWA filter,
-    + - LOD error, s shading, b back-face culling, r reset, h help, q quit.
+    + - LOD error, s shading, c colour mode, l eye-dome lighting, b back-face culling,
+    r reset, h help, q quit.
     Example:
       surfel view bunny.obj --method phong
       xvfb-run surfel view bunny.obj --screenshot shot.png

@@ -31,11 +31,13 @@ from pathlib import Path
 import numpy as np
 
 from .camera import VIEWS, Camera, frame
+from .colors import NAMED, RETURN_WORDS, check_colormap
 from .errors import SurfelError
 from .files import check_folder, check_output
 from .methods import METHODS, get_method
 from .methods.params import SplatParams
 from .options import RenderOptions, SettingError
+from .shading import DEFAULT_HELP as DEFAULT_SHADING_HELP
 from .shading import MODELS
 
 # The defaults of `surfel turntable` (and `surfel batch --turntable`), where they differ from render's.
@@ -131,6 +133,40 @@ def text(value: str) -> str:
     return value
 
 
+def integers(text: str) -> tuple[int, ...]:
+    try:
+        return tuple(int(v) for v in text.split(","))
+    except ValueError:
+        raise ValueError(f"needs comma-separated integers, got {text!r}") from None
+
+
+def color_range(text: str) -> tuple[float, float]:
+    lo, hi = numbers(2)(text)
+    if not lo < hi:
+        raise ValueError(f"LO must be below HI, got {text!r}")
+    return lo, hi
+
+
+def colormap(text: str) -> str:
+    problem = check_colormap(text)
+    if problem:
+        raise ValueError(problem)
+    return text
+
+
+def returns(text: str) -> tuple[str, ...]:
+    values = tuple(v.strip().lower() for v in text.split(","))
+    for v in values:
+        if v not in RETURN_WORDS and not (v.isdigit() and 1 <= int(v) <= 15):
+            raise ValueError(f"takes return numbers 1..15, first or last, got {v!r}")
+    return values
+
+
+def ortho_height(text: str) -> float | str:
+    """--ortho: a view height in world units, or `auto` (the auto-framing's extent)."""
+    return "auto" if text == "auto" else positive_number(text)
+
+
 def field_of_view(text: str) -> float:
     value = number(text)
     if not 0 < value < 180:
@@ -201,6 +237,7 @@ class Option:
     short: str | None = None
     metavar: str | None = None
     value: Callable[[bool], object] | None = None
+    shown: str | None = None  # the default --help shows where the data decides it
 
     @property
     def label(self) -> str:
@@ -219,8 +256,8 @@ class Option:
     def shown_default(self) -> str | None:
         """The default --help shows: the table's, or that of the dataclass field it sets (the
         splat methods' common parameters for a parameter; other parameters say theirs in help)."""
-        if self.default is not None or self.parse is None:
-            return self.default
+        if self.shown is not None or self.default is not None or self.parse is None:
+            return self.shown or self.default
         owner = {"camera": CameraSpec, "options": RenderOptions, "params": SplatParams}.get(self.sets)
         value = {f.name: f.default for f in fields(owner)}.get(self.target) if owner is not None else None
         if isinstance(value, tuple):
@@ -255,14 +292,29 @@ OPTIONS: dict[str, Option] = {o.name: o for o in [
     Option("target", numbers(3), "Look-at point (default: bounding-box centre).", "camera", metavar="X,Y,Z"),
     Option("up", direction, "Up vector (default 0,0,1 for LAS/LAZ, 0,1,0 otherwise).", "camera", metavar="X,Y,Z"),
     Option("fov", field_of_view, "Vertical field of view in degrees.", "camera", metavar="DEG"),
-    Option("ortho", positive_number, "Orthographic camera showing HEIGHT world units vertically.", "camera",
-           metavar="HEIGHT"),
+    Option("ortho", ortho_height, "Orthographic camera showing HEIGHT world units vertically; auto: the height "
+           "that frames the data as auto-framing does.", "camera", metavar="HEIGHT|auto"),
     Option("opencv", text, 'Pinhole camera from a JSON file {"K": 3x3, "R": 3x3, "t": 3} (OpenCV world-to-camera).',
            "camera", metavar="FILE"),
     Option("zoom", positive_number, "Move the auto-framed camera this many times farther.", "camera",
            metavar="FACTOR"),
     # every method
-    Option("shading", choice(*MODELS), "Shading model.", "options", metavar=f"[{'|'.join(MODELS)}]"),
+    Option("shading", choice(*MODELS), "Shading model (edl: eye-dome lighting).", "options",
+           metavar=f"[{'|'.join(MODELS)}]", shown=DEFAULT_SHADING_HELP),
+    Option("color", text, f"What the colour shows: {', '.join(NAMED)} or any attribute's name (see `surfel "
+           "info`).", "options", metavar="MODE",
+           shown="rgb where the cloud has colours, else elevation for geospatial clouds, else white"),
+    Option("colormap", colormap, "Colour map of continuous attributes (matplotlib's names).", "options",
+           metavar="NAME"),
+    Option("color_range", color_range, "Values the colour map spans [default: the 2nd to 98th percentile].",
+           "options", metavar="LO,HI"),
+    Option("classes", integers, "Draw only the points of these classification codes (e.g. 2,9).", "options",
+           metavar="CODES"),
+    Option("returns", returns, "Draw only these returns: numbers, first, last (e.g. first or 1,2).", "options",
+           metavar="LIST"),
+    Option("edl_strength", number, "Eye-dome lighting strength.", "options", metavar="S"),
+    Option("edl_radius", positive_number, "Eye-dome lighting radius in pixels (shades at 1, 2 and 4 times it).",
+           "options", metavar="PX"),
     Option("background", numbers(3), "Background colour in [0, 1].", "options", metavar="R,G,B"),
     Option("supersample", integer, "Samples per pixel side, 1 to 8 (default: the method's).", "options",
            metavar="N"),
@@ -302,6 +354,11 @@ RENDER = tuple(name for name, o in OPTIONS.items() if o.sets in ("options", "par
 OUTPUTS = ("output", "depth", "normals", "stats")
 # what `surfel render` takes, and hence a batch job; what `surfel turntable` takes
 RENDER_COMMAND = ("input", "demo", *OUTPUTS, "method", "backend", *CAMERA, *RENDER)
+# what `surfel export-html` takes: render's options that the page honours
+PAGE_COMMAND = ("input", "demo", "output", "method", *CAMERA, "shading", "color", "colormap", "color_range",
+                "classes", "returns", "edl_strength", "edl_radius", "background", "supersample", "lod_error",
+                "point_budget", "radius_scale", "depth_offset", "backface_culling", "ewa_filter", "lowpass_radius")
+PAGE_MAX_SUPERSAMPLE = 4
 TURNTABLE_COMMAND = ("input", "output", "frames", "fps", "elevation", "size", "method", "backend", *RENDER)
 
 
@@ -453,7 +510,7 @@ class CameraSpec:
     target: tuple[float, float, float] | None = None
     up: tuple[float, float, float] | None = None
     fov: float = 30.0
-    ortho: float | None = None
+    ortho: float | str | None = None  # a height, or "auto"
     opencv: OpenCvCamera | None = field(default=None, compare=False)
     zoom: float = 1.0
 
@@ -483,7 +540,8 @@ class CameraSpec:
             return Camera.from_opencv(c.K, c.R, c.t, self.size).fit_clip_planes(cloud.center, cloud.bounding_radius)
         return frame(cloud.center, cloud.bounding_radius, view=self.view, azimuth=self.azimuth,
                      elevation=self.elevation, up=self.up, geospatial=cloud.geospatial, fov=self.fov,
-                     size=self.size, eye=self.eye, target=self.target, ortho_height=self.ortho, zoom=self.zoom)
+                     size=self.size, eye=self.eye, target=self.target, ortho_height=self.ortho, zoom=self.zoom,
+                     bounds=cloud.bounds)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -590,5 +648,21 @@ def parse_render(values: Mapping[str, object], *, where: str = "", require_outpu
                          CameraSpec.from_parsed(parsed, where), options, outputs, argv_of(given))
 
 
+def parse_page(values: Mapping[str, object], methods: tuple[str, ...]) -> RenderRequest:
+    """The request `surfel export-html` makes: its page is `outputs.png`, `methods` those it draws;
+    the options' point_budget is the size above which the page draws a sequential point tree."""
+    parsed = parse_values(values, PAGE_COMMAND)
+    if parsed.get("demo", False) == ("input" in parsed):
+        raise SurfelError("give an input file or --demo (not both)")
+    method, _ = method_and_backend(parsed)
+    if method not in methods:
+        raise SurfelError(f"--method: the page draws {' or '.join(methods)}, not {method!r}")
+    options = options_from(parsed, method)
+    if (options.supersample or 1) > PAGE_MAX_SUPERSAMPLE:
+        raise SurfelError(f"--supersample: the page takes at most {PAGE_MAX_SUPERSAMPLE}, got {options.supersample}")
+    return RenderRequest(parsed.get("input"), parsed.get("demo", False), method, None,
+                         CameraSpec.from_parsed(parsed), options, Outputs(png=parsed["output"]))
+
+
 __all__ = ["OPTIONS", "Option", "CameraSpec", "Outputs", "RenderRequest", "default", "method_and_backend",
-           "open_input", "options_from", "parse_render", "parse_values", "render_options"]
+           "open_input", "options_from", "parse_page", "parse_render", "parse_values", "render_options"]

@@ -8,8 +8,10 @@ orbits, right drag pans, the wheel zooms (surfel.viewer.ViewState, the desktop v
 camera). While the camera moves, frames are rendered at half resolution and, for large
 clouds and hierarchies, at MOVING_LOD_FACTOR times the LOD error, so they come at
 interactive rates; SETTLE_S after the last event a full frame replaces them. ipywidgets
-controls pick the method, colour mode, colour map, shading model and LOD error; the status
-line reports each frame's time and splat count.
+controls pick the method, colour mode (surfel.colors: every method colours by attribute
+itself, categories never blended), colour map, shading model (eye-dome lighting included)
+and LOD error; the status line reports each frame's time, splat count, colour mode and range.
+The view state (camera, keys' settings, Renderer) is the desktop viewer's (viewer.ViewState).
 """
 
 from __future__ import annotations
@@ -18,20 +20,18 @@ import asyncio
 import threading
 import time
 
-import numpy as np
-
+from . import colors
 from .cloud import PointCloud
 from .errors import SurfelError
-from .methods import METHODS, get_method
-from .rendering import complete
+from .methods import METHODS
 from .shading import MODELS
-from .viewer import ViewState
-from .web import colors
+from .viewer import ViewState, color_status
 
 MOVING_LOD_FACTOR = 4
 MOVING_DOWNSAMPLE = 2
 SETTLE_S = 0.3
 LARGE_CLOUD = 300_000  # above this many points, moving frames use a coarser LOD too
+WIDGET_COLORMAPS = ("viridis", "turbo", "inferno", "cividis", "terrain", "gray")  # the map menu
 
 
 def _require():
@@ -43,29 +43,10 @@ def _require():
     return ipywidgets, jupyter_rfb
 
 
-def recolor(cloud: PointCloud, mode: str, colormap: str) -> PointCloud:
-    """`cloud` with its colours replaced by colour mode `mode` (web.colors' tables): the
-    albedo every method then splats. Categorical codes take their palette's colours."""
-    if not isinstance(cloud, PointCloud):
-        raise SurfelError(f"color {mode!r}: a level-of-detail source shows its own colours (rgb)")
-    up = np.array([0.0, 0.0, 1.0]) if cloud.geospatial else np.array([0.0, 1.0, 0.0])
-    modes, values = colors.attribute_modes(cloud, up, None, mode)
-    spec = next(m for m in modes if m["name"] == mode)
-    if spec["kind"] == "rgb":
-        return cloud
-    if spec["kind"] == "categorical":
-        table = np.asarray(spec["palette"], np.float32) / 255
-        return cloud.with_(colors=table[values[mode] % colors.LUT_SIZE])
-    data = cloud.positions @ up if mode == "elevation" else cloud.attributes[mode]
-    lo, hi = spec["range"]
-    t = np.clip((data - lo) / max(hi - lo, 1e-30), 0, 1)
-    table = colors.colormap_table(colormap).astype(np.float32) / 255
-    return cloud.with_(colors=table[np.round(t * (colors.LUT_SIZE - 1)).astype(np.int64)])
-
-
-def make_view(cloud, *, method: str = "deferred", shading: str = "phong", size=(512, 512),
-              color: str = "rgb", colormap: str = colors.DEFAULT_COLORMAP, lod_error: float | None = None):
-    """The widget: controls above a SurfelFrames view (`widget.frames`) and a status line."""
+def make_view(cloud, *, method: str = "deferred", shading: str | None = None, size=(512, 512),
+              color: str | None = None, colormap: str = colors.DEFAULT_COLORMAP, lod_error: float | None = None):
+    """The widget: controls above a SurfelFrames view (`widget.frames`) and a status line.
+    shading and color None: the data's defaults (as `surfel render`)."""
     ipywidgets, jupyter_rfb = _require()
 
     class SurfelFrames(jupyter_rfb.RemoteFrameBuffer):
@@ -154,25 +135,20 @@ def make_view(cloud, *, method: str = "deferred", shading: str = "phong", size=(
             self.last_stats = {**result.stats, "frame_ms": ms, "moving": self.moving}
             status.value = (f"{ms:.0f} ms · {result.stats['splats']:,} of {result.stats['points']:,} splats · "
                             f"{frame_size[0]}x{frame_size[1]}{' (moving)' if self.moving else ''} · "
-                            f"{state.method}@{result.stats['backend']}")
+                            f"{state.method}@{result.stats['backend']} · {result.stats['shading']} · "
+                            f"{color_status(result.stats)}")
             return result.rgba8()[..., :3]
 
     is_source = not isinstance(cloud, PointCloud)
-    if not is_source:
-        cloud, _ = complete(cloud)
     coarse = is_source or len(cloud) > LARGE_CLOUD
-    base = cloud
-    state = ViewState(cloud, method, shading)
+    if color is not None and not is_source:
+        colors.resolve(cloud, color)  # an attribute the cloud lacks fails before the widget is built
+    state = ViewState(cloud, method, shading, color=color, colormap=colormap)
     state.methods = [m.name for m in METHODS.values()
-                     if get_method(m.name).needs_radii or (m.name == "mesh" and not is_source and cloud.is_mesh)]
+                     if m.needs_radii or (m.name == "mesh" and not is_source and cloud.is_mesh)]
     if method not in state.methods:
         raise SurfelError(f"method {method!r} cannot show {'this source' if is_source else 'this cloud'}; "
                           f"choose one of {', '.join(state.methods)}")
-    modes = ["rgb"] if is_source else [m["name"] for m in colors.attribute_modes(
-        cloud, np.array([0.0, 0.0, 1.0]) if cloud.geospatial else np.array([0.0, 1.0, 0.0]), None, "rgb")[0]]
-    if colors.mode_name(color) not in modes:
-        raise SurfelError(f"color: no mode {color!r}; choose one of {', '.join(modes)}")
-    recolored: dict = {}
     frames = SurfelFrames()
     status = ipywidgets.Label("")
 
@@ -186,20 +162,17 @@ def make_view(cloud, *, method: str = "deferred", shading: str = "phong", size=(
             state.elevation = max(-89.0, min(89.0, state.elevation + 0.4 * dy))
 
     method_box = ipywidgets.Dropdown(options=state.methods, value=method, description="method")
-    color_box = ipywidgets.Dropdown(options=modes, value=colors.mode_name(color), description="colour")
-    map_box = ipywidgets.Dropdown(options=list(dict.fromkeys((colormap, *colors.COLORMAPS))), value=colormap,
+    color_box = ipywidgets.Dropdown(options=[("data default", None)] + [(m, m) for m in state.colors],
+                                    value=state.color, description="colour")
+    map_box = ipywidgets.Dropdown(options=list(dict.fromkeys((colormap, *WIDGET_COLORMAPS))), value=colormap,
                                   description="map")
-    shading_box = ipywidgets.Dropdown(options=list(MODELS), value=shading, description="shading")
+    shading_box = ipywidgets.Dropdown(options=list(MODELS), value=state.shading, description="shading")
     lod_box = ipywidgets.BoundedFloatText(value=lod_error or (1.0 if is_source else 0.0), min=0.0, max=64.0,
                                           step=0.5, description="LOD px")
 
     def changed(_change=None):
         state.method, state.shading = method_box.value, shading_box.value
-        if not is_source:
-            key = (color_box.value, map_box.value)
-            if key not in recolored:
-                recolored[key] = recolor(base, *key)
-            state.cloud = recolored[key]
+        state.color, state.colormap = color_box.value, map_box.value
         frames.request_draw()
 
     for box in (method_box, color_box, map_box, shading_box, lod_box):

@@ -6,7 +6,9 @@
 // splat could outgrow it (methods/splatting.py, use_point_sprites). Above the exporter's
 // point budget the points are a sequential point tree (Dachsbacher et al. 2003, survey
 // section 2.2.2): the CPU draws a prefix of the list and gl/lod.glsl's vertex test picks
-// the cut, at a coarser error while the camera moves. The camera is surfel.camera's.
+// the cut, at a coarser error while the camera moves. The camera is surfel.camera's. Colour
+// modes are surfel.colors' (gl/colors.glsl in the splat passes; categories through the
+// category pass), eye-dome lighting and the box filter are display.glsl's.
 "use strict";
 (() => {
   const META = JSON.parse(document.getElementById("surfel-meta").textContent);
@@ -15,11 +17,12 @@
   const KERNEL_SIZE = 256, GAUSSIAN_SHARPNESS = 3.0;
   const MOVING_LOD_FACTOR = 4, MOVING_DOWNSAMPLE = 2, SETTLE_MS = 250;
   const SHADING = { lambert: 0, phong: 1, none: 2, normals: 3, depth: 4 };
-  const COLOR = { rgb: 0, value: 1, elevation: 2, white: 3, code: 4 };
+  const COLOR_MODE = { rgb: 0, continuous: 1, categorical: 2 };  // gl/colors.glsl
+  const PAGE_MODE = { rgb: 0, value: 1, elevation: 2, code: 3 };  // web/splat_attributes.glsl
   const ATTRIBUTES = ["a_position", "a_normal", "a_radii", "a_angle", "a_color", "a_value", "a_lod", "a_clip0", "a_clip1"];
   const LOC = Object.fromEntries(ATTRIBUTES.map((name, i) => [name, i]));
   const UNIT = { kernel: 0, visibility: 1, accumColor: 2, accumNormal: 3, shaded: 4, gnormal: 5, gdepth: 6,
-                 category: 7, palette: 8, colormap: 9, scratch: 10 };  // scratch: where new textures are made
+                 category: 7, table: 8, scratch: 10 };  // scratch: where new textures are made
 
   const stats = window.surfelStats = { ready: false, frames: 0, frameMs: null, medianMs: null, history: [],
                                        drawn: 0, points: META.data.count, error: null };
@@ -160,18 +163,18 @@
     if (gl.checkFramebufferStatus(gl.FRAMEBUFFER) !== gl.FRAMEBUFFER_COMPLETE) fail("float render targets are incomplete");
     return fbo;
   }
-  function rgbaTable(rows) {  // 256 x 1 RGBA8 from [[r, g, b] 0..255]
-    const data = new Uint8Array(256 * 4);
+  function tableTexture(rows) {  // RGBA8, 256 entries a row (gl/colors.glsl table_entry), from [[r, g, b] 0..255]
+    const height = Math.max(1, Math.ceil(rows.length / 256)), width = height > 1 ? 256 : rows.length;
+    const data = new Uint8Array(width * height * 4);
     rows.forEach((c, i) => data.set([c[0], c[1], c[2], 255], 4 * i));
-    return data;
+    return texture(width, height, gl.RGBA8, gl.RGBA, gl.UNSIGNED_BYTE, data);
   }
 
   // The Gaussian kernel table of splatting.py, indexed by squared distance (R16F filters linearly).
   const kernelData = new Float32Array(KERNEL_SIZE);
   for (let i = 0; i < KERNEL_SIZE; i++) kernelData[i] = Math.exp(-GAUSSIAN_SHARPNESS * (i + 0.5) / KERNEL_SIZE);
   const kernel = texture(KERNEL_SIZE, 1, gl.R16F, gl.RED, gl.FLOAT, kernelData, gl.LINEAR);
-  const colormaps = Object.fromEntries(Object.entries(META.colormaps).map(([name, rows]) =>
-    [name, texture(256, 1, gl.RGBA8, gl.RGBA, gl.UNSIGNED_BYTE, rgbaTable(rows), gl.LINEAR)]));
+  const colormaps = Object.fromEntries(Object.entries(META.colormaps).map(([name, rows]) => [name, tableTexture(rows)]));
 
   let targets = null;
   function allocate(w, h, guard) {
@@ -337,14 +340,15 @@
     const t = allocate(w, h, guard);
     const variant = { PER_SPLAT_SHADING: method === "gaussian", EWA_FILTER: ewa, POINT_SPRITES: sprites,
                       CLIP_LINES: !!columns.clip };
-    let colorMode = COLOR.rgb, range = [0, 1];
+    let pageMode = PAGE_MODE.rgb, range = [0, 1];
     if (mode.kind === "continuous") {
-      colorMode = mode.name === "elevation" ? COLOR.elevation : COLOR.value;
+      pageMode = mode.name === "elevation" ? PAGE_MODE.elevation : PAGE_MODE.value;
       const [qlo, qhi] = mode.name === "elevation" ? [0, 1] : mode.quantized;
       const span = Math.max(qhi - qlo, 1e-30);
       range = mode.name === "elevation" ? S.range.map((v) => v - mode.offset)
                                         : [(S.range[0] - qlo) / span, (S.range[1] - qlo) / span];
-    } else if (categorical) colorMode = COLOR.white;
+    } else if (categorical) pageMode = PAGE_MODE.code;
+    if (categorical && !mode.texture) mode.texture = tableTexture(mode.palette);
     const common = {
       u_view: view, u_projection: projectionMatrix(near, far), u_viewport: [w, h], u_guard: guard,
       u_intrinsics: [start.fx * factor, start.fy * factor, start.cx * factor, start.cy * factor],
@@ -353,12 +357,13 @@
       u_backface_culling: S.backface_culling ? 1 : 0, u_kernel: UNIT.kernel, u_lod_k: lod.k,
       u_visibility: UNIT.visibility, u_accum_color: UNIT.accumColor, u_accum_normal: UNIT.accumNormal,
       u_box_lo: META.data.box_lo, u_box_size: META.data.box_size, u_length_unit: META.data.length_unit,
-      u_color_mode: colorMode,
-      u_value_range: range, u_up: META.up, u_colormap: UNIT.colormap,
+      u_page_mode: pageMode, u_value_range: range, u_up: META.up, u_color_mode: COLOR_MODE[mode.kind],
+      u_color_table: UNIT.table, u_neutral: META.neutral, u_code_levels: mode.code_levels || 2,
+      u_category: UNIT.category,
     };
     const bindTexture = (unit, tex) => { gl.activeTexture(gl.TEXTURE0 + unit); gl.bindTexture(gl.TEXTURE_2D, tex); };
     bindTexture(UNIT.kernel, kernel);
-    bindTexture(UNIT.colormap, colormaps[S.colormap]);
+    bindTexture(UNIT.table, categorical ? mode.texture : colormaps[S.colormap]);
     const vao = vertexArray(!sprites);
     const draw = (entry, values) => {
       setUniforms(entry, { ...common, ...values });
@@ -379,13 +384,14 @@
     gl.clearBufferfv(gl.COLOR, 0, [0, 0, 0, 0]); gl.clearBufferfv(gl.COLOR, 1, [0, 0, 0, 0]);
     gl.blendEquation(gl.FUNC_ADD); gl.blendFunc(gl.ONE, gl.ONE);
     draw(program("splat", { ...variant, PASS_ATTRIBUTE: true }), {});
-    // categorical colours: the heaviest splat's code, MIN-blended (web/category.glsl)
+    // categorical colours: the heaviest splat's packed category, MAX-blended (gl/colors.glsl)
     if (categorical) {
       gl.bindFramebuffer(gl.FRAMEBUFFER, t.catFbo);
-      gl.clearBufferfv(gl.COLOR, 0, [FAR, 0, 0, 0]);
-      gl.blendEquation(gl.MIN);
-      draw(program("category", { ...variant, PASS_CATEGORY: true }), { u_color_mode: COLOR.code });
+      gl.clearBufferfv(gl.COLOR, 0, [-1, 0, 0, 0]);
+      gl.blendEquation(gl.MAX);
+      draw(program("splat", { ...variant, PASS_CATEGORY: true }), {});
     }
+    bindTexture(UNIT.category, t.cat);
     // 3. normalization and deferred shading into the G-buffer
     gl.disable(gl.BLEND);
     gl.bindVertexArray(null);
@@ -398,17 +404,10 @@
     gl.bindFramebuffer(gl.FRAMEBUFFER, null);
     gl.viewport(0, 0, W, H);
     bindTexture(UNIT.shaded, t.gbuf[0]); bindTexture(UNIT.gnormal, t.gbuf[1]); bindTexture(UNIT.gdepth, t.gbuf[2]);
-    bindTexture(UNIT.category, t.cat);
-    if (categorical) {
-      if (!mode.texture) mode.texture = texture(256, 1, gl.RGBA8, gl.RGBA, gl.UNSIGNED_BYTE, rgbaTable(mode.palette));
-      bindTexture(UNIT.palette, mode.texture);
-    }
     setUniforms(program("display", {}), {
-      u_shaded: UNIT.shaded, u_gnormal: UNIT.gnormal, u_gdepth: UNIT.gdepth, u_category: UNIT.category,
-      u_palette: UNIT.palette, u_shading: shading, u_depth_range: [near, far], u_categorical: categorical ? 1 : 0,
+      u_shaded: UNIT.shaded, u_gnormal: UNIT.gnormal, u_gdepth: UNIT.gdepth, u_categorical: categorical ? 1 : 0,
       u_edl: edl ? 1 : 0, u_edl_strength: S.edl_strength, u_edl_radius: S.edl_radius * factor, u_supersample: ss,
-      u_downsample: down,
-      u_guard: guard, u_background: S.background,
+      u_downsample: down, u_background: S.background,
     });
     gl.drawArrays(gl.TRIANGLES, 0, 3);
     gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, new Uint8Array(4));  // waits for the frame
