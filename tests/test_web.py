@@ -263,3 +263,26 @@ def test_a_copc_file_becomes_a_page_of_its_uniform_cut(browser, tmp_path):
     shot = png_rgb(page.screenshot())
     assert (shot.max(axis=2) > 0).mean() > 0.05
     page.close()
+
+
+@requires_gl
+@pytest.mark.parametrize("mode,shading", [("elevation", "edl"), ("classification", "none"), ("intensity", "lambert"),
+                                          ("return-number", "none")])
+def test_the_page_s_colour_modes_match_surfel_render(browser, tmp_path, mode, shading):
+    """A real tile's colour modes in the page against surfel render --method deferred, same camera."""
+    from pathlib import Path
+
+    import surfel
+    from surfel.request import CameraSpec
+
+    tile = surfel.load(Path(__file__).parent / "data" / "autzen_trim.laz")
+    lo = tile.bounds[0]
+    tile = tile.take((tile.positions[:, 0] < lo[0] + 300) & (tile.positions[:, 1] > lo[1] + 150))
+    camera = CameraSpec(size=(320, 240), view="iso").camera(tile)
+    options = RenderOptions(color=mode, shading=shading)
+    report = export_html(tile, camera, tmp_path / "m.html", options=options)
+    assert report["color"] == mode.replace("-", "_") and report["shading"] == shading
+    shot = png_rgb(open_page(browser, tmp_path / "m.html", (320, 240)).screenshot())
+    reference = surfel.render(tile, camera, "deferred", options=options).rgba8()[..., :3]
+    assert (reference.max(axis=2) > 0).mean() > 0.1
+    assert psnr(shot, reference) >= 40.0

@@ -16,7 +16,8 @@ continuous  a value v is mapped through a colour map (matplotlib's names, served
             (t, valid, 0), valid = 1 for a finite v and 0 for NaN, and after normalization
             (weighted means t', valid') shows
                 albedo = mix(NEUTRAL, LUT[round(255 t' / valid')], valid')
-            so that a pixel of finite values has an exact colour of the map and points whose
+            (the LUT entry itself where valid' = 1), so that a pixel of finite values has
+            an exact colour of the map and points whose
             value is not a number show NEUTRAL. Methods that shade each splat before
             blending map each splat instead (gl/colors.glsl `splat_albedo`).
 categorical codes (classification, return numbers, point source ids, any integer field with
@@ -32,7 +33,7 @@ categorical codes (classification, return numbers, point source ids, any integer
             2^24 / code_levels, so that packed is an exact float32 integer and the heaviest
             splat wins (ties: the larger index). The CPU rasterizer keeps the same packed
             maximum. Methods with no splats (mls, mls-gpu, mesh) take the code of the sample
-            nearest to the surface point (`nearest_indices`).
+            nearest to the surface point (`surface_albedo`).
 
 Filters: `--classes 2,9` keeps the points of these classification codes, `--returns` those
 of these return numbers and/or `first` (return 1) and `last` (return_number ==
@@ -226,7 +227,8 @@ class Coloring:
             t = np.clip(blended[..., 0] / np.maximum(valid, 1e-30), 0.0, 1.0)
         mapped = self.table[np.floor(t * (LUT_SIZE - 1) + 0.5).astype(np.int64)]
         neutral = np.asarray(NEUTRAL, np.float32)
-        out = neutral + (mapped - neutral) * np.maximum(valid, 0.0)[..., None]
+        mixed = neutral + (mapped - neutral) * np.maximum(valid, 0.0)[..., None]
+        out = np.where((valid >= 1)[..., None], mapped, mixed)  # all numbers: the map's own entry
         return np.where((valid > 0)[..., None], out, neutral).astype(np.float32)
 
     def indices(self, encoded: np.ndarray) -> np.ndarray:
@@ -330,43 +332,53 @@ def selection(cloud, classes: tuple[int, ...] | None, returns: tuple[str, ...] |
     return keep
 
 
-def recolor_samples(shaded, normals, depth, indices, coloring: Coloring, model: str, near: float, far: float):
-    """Shaded colours (H, W, 3) with every sample of palette index >= 0 recoloured with its
-    category's colour under shading `model` (for methods that pick categories on the CPU)."""
+def shade_samples(shaded, normals, depth, albedo, model: str, near: float, far: float) -> np.ndarray:
+    """Shaded colours (H, W, 3) with every covered sample (finite depth) shaded again from
+    `albedo` (H, W, 3) under `model` (for methods whose colour modes are resolved on the CPU)."""
     from .shading import shade
 
-    covered = indices >= 0
+    covered = np.isfinite(depth)
     out = np.array(shaded, np.float32, copy=True)
     if covered.any():
-        albedo = coloring.table[indices[covered]]
-        out[covered] = shade(model, albedo, normals[covered], depth[covered], near, far)
+        out[covered] = shade(model, albedo[covered], normals[covered], depth[covered], near, far)
     return out
 
 
-def nearest_indices(cloud, camera, depth: np.ndarray, coloring: Coloring, tree=None) -> np.ndarray:
-    """Palette indices (H, W) int32 of the points nearest to the surface seen at each pixel
-    of `depth` (eye distance along the viewing axis, inf where empty), -1 where empty: the
-    categories of methods with no splats. `cloud` holds the encoded colours (`encode`);
-    `tree`: a cKDTree of cloud.local_positions()."""
-    from scipy.spatial import cKDTree
-
+def surface_albedo(cloud, camera, depth: np.ndarray, coloring: Coloring, tree=None):
+    """For methods without splats (mls, mls-gpu, mesh): (albedo (H, W, 3), palette indices
+    (H, W) or None) of the surface seen at each sample of `depth` (eye distance along the
+    viewing axis, inf where empty), or (None, None) where the method's own blend of the
+    encoded colours stands. Elevation is that of the surface point itself (these methods
+    define the surface, not splats of it); a category is that of the point nearest to it.
+    `cloud` holds the encoded colours (`encode`); `tree`: a cKDTree of cloud.local_positions()."""
+    if not (coloring.categorical or coloring.name == ELEVATION):
+        return None, None
     h, w = depth.shape
-    out = np.full((h, w), -1, np.int32)
+    albedo = np.ones((h, w, 3), np.float32)
     hit = np.isfinite(depth)
+    indices = np.full((h, w), -1, np.int32) if coloring.categorical else None
     if not hit.any():
-        return out
+        return albedo, indices
     origins, directions = camera.rays()
     o, d = origins[hit], directions[hit]
     eye = o + d * (depth[hit] / -d[:, 2])[:, None]
     view = camera.view_matrix(cloud.local_origin)
-    rotation, translation = view[:3, :3], view[:3, 3]
-    local = (eye - translation) @ rotation  # R^T (eye - t)
-    tree = tree if tree is not None else cKDTree(cloud.local_positions())
-    _, nearest = tree.query(local, workers=-1)
-    out[hit] = coloring.indices(cloud.colors[nearest])
-    return out
+    local = (eye - view[:3, 3]) @ view[:3, :3]  # R^T (eye - t)
+    if coloring.categorical:
+        from scipy.spatial import cKDTree
+
+        tree = tree if tree is not None else cKDTree(cloud.local_positions())
+        _, nearest = tree.query(local, workers=-1)
+        indices[hit] = coloring.indices(cloud.colors[nearest])
+        albedo[hit] = coloring.table[indices[hit]]
+    else:
+        elevation = (local + cloud.local_origin) @ up_axis(cloud)
+        lo, hi = coloring.range
+        t = np.clip((elevation - lo) / (hi - lo), 0.0, 1.0)
+        albedo[hit] = coloring.decode(np.stack([t, np.ones_like(t), np.zeros_like(t)], axis=1))
+    return albedo, indices
 
 
 __all__ = ["Coloring", "resolve", "offered", "selection", "default_color", "colormap_table", "palette", "NAMED",
-           "DEFAULT_COLORMAP", "NEUTRAL", "CODE_SCALE", "category_pack", "category_unpack", "recolor_samples",
-           "nearest_indices", "up_axis"]
+           "DEFAULT_COLORMAP", "NEUTRAL", "CODE_SCALE", "category_pack", "category_unpack", "shade_samples",
+           "surface_albedo", "up_axis"]

@@ -2,26 +2,30 @@
 
 Boucheny 2009, "Interactive scientific visualization of large datasets: towards a
 perceptive-based approach" (PhD thesis, Université Joseph Fourier), chapter 4, in the form
-Potree and CloudCompare use. Each covered sample p compares its depth with N_DIRECTIONS
-neighbours q_i(R) on a circle of R pixels around it, in log depth, so that the term depends
-on neither the scene's scale nor its distance:
+Potree and CloudCompare use: each covered sample p compares its log depth with neighbours
+q_i(R) at N_DIRECTIONS angles on a circle of R pixels around it, so that the term depends on
+neither the scene's scale nor its distance, and darkens where neighbours are nearer. Potree
+sums max(0, log2 z(p) - log2 z(q_i)) over the neighbours; a plane seen obliquely, whose log
+depth rises steadily across the image, then darkens too (by a fifth at a typical oblique
+view of a tile, more at the larger radii below). Here each pair of opposite neighbours is
+compared with its mean, which that steady trend cancels, with twice the weight, so that a
+step (one neighbour nearer by d, its opposite level with p) reads as in Potree, d:
 
-    response(p, R) = 1/N sum_i max(0, log2 z(p) - log2 z(q_i(R)))    (neighbours nearer than p)
+    response(p, R) = 1/N sum_{i < N/2} max(0, 2 log2 z(p) - log2 z(q_i) - log2 z(q_{i+N/2}))
 
-z is the eye-space distance along the viewing axis, read bilinearly over covered samples
-(empty ones are skipped, so a silhouette against the background is not darkened).
+A pair with an empty end (nothing drawn there) falls back to Potree's one-sided term, and
+empty neighbours count for nothing, so a silhouette against the background is not darkened.
+z is the eye-space distance along the viewing axis, read bilinearly over covered samples.
 CloudCompare shades at three scales, R = r, 2r, 4r, so that the shadow a raised edge casts
-is a few pixels wide, not one; here the scales' responses are summed with weights 1/2^k,
-which keeps a plane's own depth gradient (its response grows with R) from darkening it more
-at the larger scales:
+is a few pixels wide, not one; their responses are summed with weights 1/2^k:
 
     edl(p) = exp(-RESPONSE_SCALE * strength * sum_k response(p, 2^k r) / 2^k),  k = 0..SCALES-1
 
-Flat, unoccluded areas keep edl = 1; a surface just behind a nearer one (the ground beside a
-building, a crown's underside) darkens. The `edl` shading model shows the unlit colour times
-edl(p) (result.RenderResult.from_samples applies it to the samples of every method, r in
-pixels of the output image times the supersampling). gl/edl.glsl is the GLSL twin the
-browser page runs; this is the reference.
+Flat areas keep edl = 1, oblique or not; a surface just behind a nearer one (the ground
+beside a building, a crown's underside) darkens, and a concave crease a little. The `edl`
+shading model shows the unlit colour times edl(p) (result.RenderResult.from_samples applies
+it to the samples of every method, r in pixels of the output image times the
+supersampling). gl/edl.glsl is the GLSL twin the browser page runs; this is the reference.
 """
 
 from __future__ import annotations
@@ -38,7 +42,7 @@ DEFAULT_STRENGTH = 1.0
 DEFAULT_RADIUS = 1.4    # pixels of the output image (Potree's)
 
 
-@numba.njit(cache=True, fastmath=True)
+@numba.njit(cache=True)  # no fastmath: it would assume away the NaNs that mark empty texels
 def _log_depth_at(log_depth, fx, fy):  # pragma: no cover - compiled
     """Bilinear log depth at continuous texel position (fx, fy) (texel centres on integers),
     over the covered texels only; nan where none is."""
@@ -81,11 +85,17 @@ def _edl(depth, radius, strength):  # pragma: no cover - compiled
             for k in range(SCALES):
                 r = radius * 2.0 ** k
                 response = 0.0
-                for i in range(N_DIRECTIONS):
+                for i in range(N_DIRECTIONS // 2):
                     angle = 2.0 * math.pi * i / N_DIRECTIONS
-                    there = _log_depth_at(log_depth, x + r * math.cos(angle), y + r * math.sin(angle))
-                    if there == there:
-                        response += max(0.0, here - there)
+                    dx, dy = r * math.cos(angle), r * math.sin(angle)
+                    one = _log_depth_at(log_depth, x + dx, y + dy)
+                    other = _log_depth_at(log_depth, x - dx, y - dy)
+                    if one == one and other == other:
+                        response += max(0.0, 2.0 * here - one - other)
+                    elif one == one:
+                        response += max(0.0, here - one)
+                    elif other == other:
+                        response += max(0.0, here - other)
                 total += response / N_DIRECTIONS / 2.0 ** k
             out[y, x] = math.exp(-RESPONSE_SCALE * strength * total)
     return out

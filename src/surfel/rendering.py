@@ -185,17 +185,19 @@ class Renderer:
             self._color_table = (coloring, texture)
         self._color_table[1].use(COLOR_TABLE_UNIT)
 
-    def nearest_categories(self, cloud: PointCloud, camera: Camera, options: RenderOptions):
+    def surface_colors(self, cloud: PointCloud, camera: Camera, options: RenderOptions):
         """For methods without splats: a function of a sample depth buffer (seen by `camera`)
-        giving each sample's palette index, that of the nearest point (colors.nearest_indices);
-        None outside categorical colour modes."""
+        giving (albedo, palette indices) per sample (colors.surface_albedo), or None where
+        the colour mode is the method's own blend."""
         coloring = options.coloring
-        if coloring is None or not coloring.categorical:
+        if coloring is None or not (coloring.categorical or coloring.name == colors.ELEVATION):
             return None
-        from scipy.spatial import cKDTree
+        tree = None
+        if coloring.categorical:
+            from scipy.spatial import cKDTree
 
-        tree = self.cached(cloud, "neighbour tree", lambda: cKDTree(cloud.local_positions()))
-        return lambda depth: colors.nearest_indices(cloud, camera, depth, coloring, tree)
+            tree = self.cached(cloud, "neighbour tree", lambda: cKDTree(cloud.local_positions()))
+        return lambda depth: colors.surface_albedo(cloud, camera, depth, coloring, tree)
 
     def appearance(self, cloud: PointCloud, options: RenderOptions) -> tuple[PointCloud, RenderOptions]:
         """The cloud --classes and --returns keep, and the options with the data's defaults

@@ -29,7 +29,8 @@ vec3 continuous_albedo(vec3 encoded) {
     float valid = min(encoded.g, 1.0);
     if (valid <= 0.0) return u_neutral;
     float t = clamp(encoded.r / valid, 0.0, 1.0);
-    return mix(u_neutral, table_entry(int(floor(t * float(LUT_SIZE - 1) + 0.5))), valid);
+    vec3 entry = table_entry(int(floor(t * float(LUT_SIZE - 1) + 0.5)));
+    return valid >= 1.0 ? entry : mix(u_neutral, entry, valid);
 }
 
 float category_index(vec3 encoded) {
@@ -56,8 +57,9 @@ float category_pack(float weight, float index) {
     return clamp(level, 0.0, weight_levels - 1.0) * u_code_levels + index;
 }
 
-// The palette index of a packed category, -1 where no splat packed one.
+// The palette index of a packed category, -1 where no splat packed one. In integers: packed
+// values are exact integers up to 2^24, where adding 0.5 would round them to even.
 int category_unpack(float value) {
     if (value < 0.0) return -1;
-    return int(value - u_code_levels * floor(value / u_code_levels) + 0.5);
+    return int(value) % int(u_code_levels);
 }

@@ -1,6 +1,7 @@
 // Eye-dome lighting, the GLSL twin of surfel/edl.py (the reference, where the equations are
 // stated): the term of one texel of a depth texture (eye distance along the viewing axis in
-// .r, <= 0 where nothing is drawn), radius in texels, summed over SCALES radii r, 2r, 4r.
+// .r, <= 0 where nothing is drawn), radius in texels, summed over SCALES radii r, 2r, 4r,
+// opposite neighbours compared in pairs with their mean.
 // Valid GLSL 4.30 and GLSL ES 3.00: the page and the tests compile it.
 #define EDL_DIRECTIONS 8
 #define EDL_SCALES 3
@@ -35,11 +36,15 @@ float edl_term(sampler2D depth, ivec2 texel, float radius, float strength) {
     float total = 0.0;
     for (int k = 0; k < EDL_SCALES; ++k) {
         float r = radius * exp2(float(k)), response = 0.0;
-        for (int i = 0; i < EDL_DIRECTIONS; ++i) {
+        for (int i = 0; i < EDL_DIRECTIONS / 2; ++i) {  // opposite neighbours in pairs
             float angle = 6.283185307179586 * float(i) / float(EDL_DIRECTIONS);
-            float there;
-            if (edl_sample(depth, vec2(texel) + r * vec2(cos(angle), sin(angle)), there))
-                response += max(0.0, here - there);
+            vec2 offset = r * vec2(cos(angle), sin(angle));
+            float one, other;
+            bool has_one = edl_sample(depth, vec2(texel) + offset, one);
+            bool has_other = edl_sample(depth, vec2(texel) - offset, other);
+            if (has_one && has_other) response += max(0.0, 2.0 * here - one - other);
+            else if (has_one) response += max(0.0, here - one);
+            else if (has_other) response += max(0.0, here - other);
         }
         total += response / float(EDL_DIRECTIONS) / exp2(float(k));
     }

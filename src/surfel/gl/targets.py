@@ -48,13 +48,13 @@ class GBuffer:
             obj.release()
 
 
-def gbuffer_result(gbuffer: GBuffer, camera, options, supersample: int, stats: dict, *, categories=None):
+def gbuffer_result(gbuffer: GBuffer, camera, options, supersample: int, stats: dict, *, surface=None):
     """The RenderResult of a G-buffer laid out as every method writes it: target 0 = shaded
     RGB and coverage, target 1 = eye normal and, in a categorical colour mode, the palette
-    index of the category the shaders picked, target 2 = eye depth. `categories`: for
-    methods whose shaders pick none, a function of the sample depths (H, W) giving the
-    palette indices (colors.nearest_indices); the samples are recoloured with them."""
-    from ..colors import recolor_samples
+    index of the category the shaders picked, target 2 = eye depth. `surface`: for methods
+    without splats, a function of the sample depths (H, W) giving each sample's albedo and
+    palette index (colors.surface_albedo), or None; the samples are shaded again with them."""
+    from ..colors import shade_samples
     from ..result import RenderResult
 
     shaded = gbuffer.read(0)
@@ -63,13 +63,12 @@ def gbuffer_result(gbuffer: GBuffer, camera, options, supersample: int, stats: d
     coverage = np.clip(shaded[..., 3], 0, 1)
     depth = np.where(coverage > 0, depth, np.inf)
     indices, rgb = None, shaded[..., :3]
-    coloring = options.coloring
-    if coloring is not None and coloring.categorical:
-        if categories is not None:
-            indices = categories(depth)
-            rgb = recolor_samples(rgb, normals[..., :3], depth, indices, coloring, options.surface_shading,
-                                  camera.near, camera.far)
-        else:
-            indices = np.where(coverage > 0, np.round(normals[..., 3]), -1).astype(np.int32)
+    albedo = None
+    if surface is not None:
+        albedo, indices = surface(depth)
+    if albedo is not None:
+        rgb = shade_samples(rgb, normals[..., :3], depth, albedo, options.surface_shading, camera.near, camera.far)
+    elif options.coloring is not None and options.coloring.categorical:
+        indices = np.where(coverage > 0, np.round(normals[..., 3]), -1).astype(np.int32)
     return RenderResult.from_samples(rgb, coverage, depth, np.ascontiguousarray(normals[..., :3]),
                                      supersample=supersample, options=options, stats=stats, indices=indices)

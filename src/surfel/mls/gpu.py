@@ -218,7 +218,7 @@ def render_mls_gl(cloud: PointCloud, camera: Camera, options: RenderOptions, par
                  "point_fit_failures": int((~scene.valid).sum()), "supersample": ss,
                  "kernel_width": surface.scale, "polynomial_prepass": "cpu"}
         return gbuffer_result(gbuffer, camera, options, ss, stats,
-                              categories=renderer.nearest_categories(cloud, camera.scaled(ss), options))
+                              surface=renderer.surface_colors(cloud, camera.scaled(ss), options))
     finally:
         ctx.blend_equation = ctx.FUNC_ADD
         ctx.depth_func = "<"

@@ -322,9 +322,10 @@ def render_mls_cpu(cloud, camera, options, params: MlsParams, renderer) -> Rende
     albedo = np.where(hit[:, None], hits.colors, 1.0)
     indices = None
     coloring = options.coloring
-    if coloring is not None and coloring.categorical:  # the nearest sample's category, never a blend
-        indices = renderer.nearest_categories(cloud, cam, options)(depth.reshape(h, w))
-        albedo = np.where(hit[:, None], coloring.table[np.maximum(indices.ravel(), 0)], 1.0)
+    colors_of = renderer.surface_colors(cloud, cam, options)
+    if colors_of is not None:  # the surface's own elevation, the nearest sample's category (never a blend)
+        surface_albedo, indices = colors_of(depth.reshape(h, w))
+        albedo = np.where(hit[:, None], surface_albedo.reshape(-1, 3), 1.0)
     elif coloring is not None:
         albedo = np.where(hit[:, None], coloring.decode(hits.colors), 1.0)
     shaded = shade(options.surface_shading, albedo, n_eye, depth, camera.near, camera.far).astype(np.float64)
@@ -355,8 +356,7 @@ def render_mls_cpu(cloud, camera, options, params: MlsParams, renderer) -> Rende
             bn = bounce.normals[b] @ rot.T
             bd = refl[b] @ rot.T
             bn *= np.where(np.sum(bn * bd, axis=1) > 0, -1.0, 1.0)[:, None]
-            bounce_albedo = bounce.colors[b] if coloring is None or coloring.categorical else coloring.decode(
-                bounce.colors[b])
+            bounce_albedo = bounce.colors[b] if coloring is None else coloring.decode(bounce.colors[b])
             seen[b] = shade(options.surface_shading, bounce_albedo, bn, depth[idx][b], camera.near, camera.far)
         shaded[idx] = (1 - reflectivity) * shaded[idx] + reflectivity * seen
         stats["reflected_hits"] = int(bounce.hit.sum())
