@@ -77,9 +77,12 @@ LOG2_WEIGHT_SPAN = 128.0  # level(w) spans log2 w in [-64, 64)
 RETURN_WORDS = ("first", "last")
 
 
-def attribute_name(color: str) -> str:
-    """The attribute a --color value names: `return-number` is return_number."""
-    return color.replace("-", "_") if color == "return-number" else color
+def attribute_name(color: str, cloud=None) -> str:
+    """The attribute a --color value names: dashes stand for underscores (`return-number`
+    is return_number) unless `cloud` has an attribute spelt with the dashes."""
+    if cloud is not None and color in getattr(cloud, "attributes", {}):
+        return color
+    return color.replace("-", "_")
 
 
 @cache
@@ -267,7 +270,7 @@ def resolve(cloud, color: str | None, colormap: str = DEFAULT_COLORMAP,
     color = default_color(cloud) if color is None else color
     if color == RGB:
         return Coloring(RGB, RGB)
-    name = attribute_name(color)
+    name = attribute_name(color, cloud)
     where = cloud.source or "the cloud"
     if name == ELEVATION:
         kind = CONTINUOUS

@@ -107,10 +107,10 @@ def color_modes(cloud: PointCloud, options: RenderOptions) -> tuple[list, dict]:
     modes, values = [], {}
     up = colors.up_axis(cloud)
     names = colors.offered(cloud)
-    if options.coloring.name not in map(colors.attribute_name, names):
+    if options.coloring.name not in (colors.attribute_name(name, cloud) for name in names):
         names.append(options.coloring.name)
     for name in names:
-        chosen = colors.attribute_name(name) == options.coloring.name
+        chosen = colors.attribute_name(name, cloud) == options.coloring.name
         coloring = options.coloring if chosen else colors.resolve(cloud, name, options.colormap)
         mode: dict = {"name": name, "kind": coloring.kind}
         if coloring.categorical:
@@ -164,7 +164,7 @@ def export_html(cloud, camera: Camera, output, *, method: str = "deferred", opti
     modes, values = color_modes(page_cloud, page_options)
     layout, blob = pack_cloud(page_cloud, values)
     origin = page_cloud.local_origin
-    initial = next(m for m in modes if colors.attribute_name(m["name"]) == page_options.coloring.name)
+    initial = next(m for m in modes if colors.attribute_name(m["name"], page_cloud) == page_options.coloring.name)
     settings = {"method": method, "ewa_filter": bool(params.ewa_filter),
                 "ewa_given": options.params is not None and params.ewa_filter != m.make_params().ewa_filter,
                 "shading": options.shading, "background": list(options.background),
