@@ -46,7 +46,7 @@ float edl_term(sampler2D depth, ivec2 texel, float radius, float strength) {
             else if (has_one) response += max(0.0, here - one);
             else if (has_other) response += max(0.0, here - other);
         }
-        total += response / float(EDL_DIRECTIONS) / exp2(float(k));
+        total += response / float(EDL_DIRECTIONS) / exp2(0.5 * float(k));
     }
     return exp(-EDL_RESPONSE_SCALE * strength * total);
 }
