@@ -1,6 +1,6 @@
 """Cameras: OpenGL look-at with a vertical field of view, OpenCV pinhole (K, R, t), orthographic.
 
-One representation serves all of them (CONVENTIONS.md, "Coordinates and camera"):
+One representation serves all of them (docs/conventions.md, "Coordinates and camera"):
 
 * `world_to_eye`: 4x4 float64 rigid transform into OpenGL eye space (x right, y up,
   looking down -z).
@@ -224,7 +224,7 @@ def view_direction(view: str | None, up, azimuth: float | None = None, elevation
 def frame(center, radius: float, *, view: str | None = "front", azimuth=None, elevation=None,
           up=None, geospatial: bool = False, fov: float = 30.0, size=(1024, 1024),
           eye=None, target=None, ortho_height: float | None = None, zoom: float = 1.0) -> Camera:
-    """The camera of CONVENTIONS.md: explicit eye/target, or auto framing of a bounding sphere.
+    """The camera of docs/conventions.md: explicit eye/target, or auto framing of a bounding sphere.
 
     Auto framing looks at `center` from 1.1x the distance at which the sphere just fills the
     vertical field of view (times `zoom`, used by benchmarks to move the camera away).

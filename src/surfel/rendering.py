@@ -29,7 +29,7 @@ from .result import RenderResult
 
 
 def default_camera(cloud: PointCloud, size=(1024, 1024), **framing) -> Camera:
-    """The auto-framing camera of CONVENTIONS.md for this cloud."""
+    """The auto-framing camera of docs/conventions.md for this cloud."""
     return frame(cloud.center, cloud.bounding_radius, geospatial=cloud.geospatial, size=size, **framing)
 
 
