@@ -26,6 +26,6 @@ def data_file(name: str) -> Path:
 @pytest.fixture(scope="session")
 def bunny():
     from surfel.io import load
-    from surfel.rendering import complete
+    from surfel.preprocess import complete
 
     return complete(load(data_file("stanford-bunny.obj")))[0]

@@ -93,7 +93,8 @@ def test_against_mesh(model, view):
         pytest.skip("the mesh reference needs OpenGL")
     from surfel.io import load
     from surfel.metrics import compare_results
-    from surfel.rendering import complete, default_camera, render
+    from surfel.preprocess import complete
+    from surfel.rendering import default_camera, render
 
     if not (BUNNY.parent / model).exists():
         pytest.skip(f"{model} not available")

@@ -40,7 +40,7 @@ def test_clip_lines_and_normal_fields_match_cpu():
     """fandisk: splats cut at its creases, shaded with Phong normal fields, on both backends."""
     from conftest import data_file
     from surfel.io import load
-    from surfel.rendering import complete
+    from surfel.preprocess import complete
 
     cloud = complete(load(data_file("fandisk.obj")), normal_field=True)[0]
     assert (cloud.attributes["clip_lines"][:, 0, 2] < 1).mean() > 0.1

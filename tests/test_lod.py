@@ -361,8 +361,8 @@ def test_clip_lines_of_sharp_features_survive_the_hierarchy(tmp_path):
     from conftest import data_file, gl_ok
     from surfel.io import load
     from surfel.metrics import compare_results
-    from surfel.preprocess import clipped_away
-    from surfel.rendering import complete, render
+    from surfel.preprocess import clipped_away, complete
+    from surfel.rendering import render
 
     mesh = load(data_file("fandisk.obj"))
     cloud = complete(mesh)[0]

@@ -24,7 +24,8 @@ from surfel.lod.outofcore import (
 )
 from surfel.lod.source import is_source, open_source
 from surfel.metrics import compare_results
-from surfel.rendering import complete, render
+from surfel.preprocess import complete
+from surfel.rendering import render
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 POINTS = 60_000

@@ -1,6 +1,6 @@
 """Cameras: OpenGL look-at with a vertical field of view, OpenCV pinhole (K, R, t), orthographic.
 
-One representation serves all of them (CONVENTIONS.md, "Coordinates and camera"):
+One representation serves all of them (docs/conventions.md, "Coordinates and camera"):
 
 * `world_to_eye`: 4x4 float64 rigid transform into OpenGL eye space (x right, y up,
   looking down -z).
@@ -268,7 +268,7 @@ def frame(center, radius: float, *, view: str | None = "front", azimuth=None, el
           up=None, geospatial: bool = False, fov: float = 30.0, size=(1024, 1024),
           eye=None, target=None, ortho_height: float | str | None = None, zoom: float = 1.0,
           bounds=None) -> Camera:
-    """The camera of CONVENTIONS.md: explicit eye/target, or auto framing.
+    """The camera of docs/conventions.md: explicit eye/target, or auto framing.
 
     Auto framing looks at the target (default `center`) along the view direction from 1.1x
     the distance at which the bounding sphere just fills the vertical field of view; for

@@ -33,7 +33,7 @@ def _contiguous(value, dtype) -> np.ndarray:
 
 
 def framing_sphere(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, float]:
-    """Centre and radius of the sphere auto framing fits (CONVENTIONS.md): the bounding box's
+    """Centre and radius of the sphere auto framing fits (docs/conventions.md): the bounding box's
     centre and half its diagonal (never 0, so a single point can still be framed)."""
     return (lo + hi) / 2, max(float(np.linalg.norm(hi - lo)) / 2, 1e-9)
 

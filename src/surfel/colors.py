@@ -1,4 +1,4 @@
-"""Colour by attribute (CONVENTIONS.md "Colour"): what `--color`, `--colormap`,
+"""Colour by attribute (docs/conventions.md "Colour"): what `--color`, `--colormap`,
 `--color-range`, `--classes` and `--returns` mean, for every method and backend.
 
 A colour mode names what the albedo shows: `rgb` (the points' colours, white without them),
@@ -152,7 +152,7 @@ def category_unpack(packed: np.ndarray, levels: int) -> np.ndarray:
 
 
 def up_axis(cloud) -> np.ndarray:
-    """The cloud's up axis: +Z for geospatial data, +Y otherwise (CONVENTIONS.md)."""
+    """The cloud's up axis: +Z for geospatial data, +Y otherwise (docs/conventions.md)."""
     return np.array([0.0, 0.0, 1.0]) if cloud.geospatial else np.array([0.0, 1.0, 0.0])
 
 

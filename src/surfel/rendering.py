@@ -43,21 +43,9 @@ from .shading import default_for
 
 
 def default_camera(cloud: PointCloud, size=(1024, 1024), **framing) -> Camera:
-    """The auto-framing camera of CONVENTIONS.md for this cloud."""
+    """The auto-framing camera of docs/conventions.md for this cloud."""
     return frame(cloud.center, cloud.bounding_radius, geospatial=cloud.geospatial, size=size, bounds=cloud.bounds,
                  **framing)
-
-
-def complete(cloud: PointCloud, *, need_radii: bool = True, elliptical: bool = False,
-             normal_field: bool = False) -> tuple[PointCloud, dict]:
-    """Estimate whatever attributes the method needs and the cloud lacks (reported)."""
-    missing = cloud.normals is None or (need_radii and (cloud.radii is None or cloud.axes is None))
-    missing = missing or (normal_field and "phong_alpha" not in cloud.attributes)
-    if not missing:
-        return cloud, {}
-    from .preprocess import prepare
-
-    return prepare(cloud, elliptical=elliptical, normal_field=normal_field)
 
 
 def resolve_backend(method_name: str, backend: str | None) -> str:
@@ -217,12 +205,15 @@ class Renderer:
             return cloud
         return self.cached(cloud, "colored", lambda: cloud.with_(colors=coloring.encode(cloud)), version=coloring)
 
-    def complete(self, cloud: PointCloud, *, need_radii: bool = True, elliptical: bool = False,
+    def complete(self, cloud: PointCloud, *, needs_radii: bool = True, elliptical: bool = False,
                  normal_field: bool = False) -> tuple[PointCloud, dict]:
-        """`complete()`, once per cloud and setting (turntables and benchmarks estimate once)."""
-        return self.cached(cloud, ("completed", need_radii, elliptical, normal_field),
-                           lambda: complete(cloud, need_radii=need_radii, elliptical=elliptical,
-                                            normal_field=normal_field))
+        """`preprocess.complete` (what a method with these capability flags needs), once per
+        cloud and setting (turntables and benchmarks estimate once)."""
+        from . import preprocess  # numba kernels: loaded when first needed
+
+        return self.cached(cloud, ("completed", needs_radii, elliptical, normal_field),
+                           lambda: preprocess.complete(cloud, needs_radii=needs_radii, elliptical=elliptical,
+                                                       normal_field=normal_field))
 
     def close(self) -> None:
         """Release every GL object this Renderer holds; it can render again afterwards."""
@@ -274,7 +265,7 @@ class Renderer:
         backend = resolve_backend(method, backend)
         cloud, options = self.appearance(cloud, options)
         selected = len(cloud)
-        cloud, estimated = self.complete(cloud, need_radii=m.needs_radii, elliptical=m.elliptical,
+        cloud, estimated = self.complete(cloud, needs_radii=m.needs_radii, elliptical=m.elliptical,
                                          normal_field=m.normal_field)
         if options.lod_error is not None:
             from .lod import as_sequential, lod_subset
@@ -342,5 +333,4 @@ def render(cloud, camera: Camera | None = None, method: str = "deferred", **kwar
     return default_renderer.render(cloud, camera, method, **kwargs)
 
 
-__all__ = ["render", "Renderer", "default_renderer", "default_camera", "complete", "resolve_backend",
-           "split_options"]
+__all__ = ["render", "Renderer", "default_renderer", "default_camera", "resolve_backend", "split_options"]

@@ -281,7 +281,7 @@ OPTIONS: dict[str, Option] = {o.name: o for o in [
            metavar="NAME"),
     Option("backend", choice("gl", "cpu"), "Default: gl, else cpu where the method has one.", "method",
            metavar="[gl|cpu]"),
-    # the camera (CONVENTIONS.md)
+    # the camera (docs/conventions.md)
     Option("size", size, "Image size in pixels.", "camera", metavar="WxH"),
     Option("view", choice(*VIEWS), "Auto-framing direction (default front).", "camera",
            metavar=f"[{'|'.join(VIEWS)}]"),
@@ -500,7 +500,7 @@ class Outputs:
 
 @dataclass(frozen=True)
 class CameraSpec:
-    """The camera flags of CONVENTIONS.md, checked; `camera(cloud)` makes the camera."""
+    """The camera flags of docs/conventions.md, checked; `camera(cloud)` makes the camera."""
 
     size: tuple[int, int] = (1024, 1024)
     view: str | None = None

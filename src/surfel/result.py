@@ -1,4 +1,4 @@
-"""Render results: the buffers of CONVENTIONS.md "Outputs" and how they are written."""
+"""Render results: the buffers of docs/conventions.md "Outputs" and how they are written."""
 
 from __future__ import annotations
 
@@ -79,7 +79,7 @@ def _box_filter_categories(shaded, coverage, indices, s):  # pragma: no cover - 
 class RenderResult:
     """color (H, W, 3) composited over the background; alpha (H, W) coverage in [0, 1];
     depth (H, W) eye-space distance along the viewing axis, inf where empty; normals
-    (H, W, 3) unit eye-space normals, 0 where empty; stats per CONVENTIONS.md."""
+    (H, W, 3) unit eye-space normals, 0 where empty; stats per docs/conventions.md."""
 
     color: np.ndarray
     alpha: np.ndarray

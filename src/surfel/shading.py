@@ -1,4 +1,4 @@
-"""Shading models (CONVENTIONS.md "Shading"), numpy side; gl/shading.glsl is the GPU twin.
+"""Shading models (docs/conventions.md "Shading"), numpy side; gl/shading.glsl is the GPU twin.
 
 lambert : albedo * (0.2 + 0.8 |n . v|), v the camera's viewing axis (a head-light). The
           comparable one: tests and `compare` use it.

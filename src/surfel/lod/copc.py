@@ -329,10 +329,10 @@ class CopcSource:
                            geospatial=self.geospatial, source=self.path)
         self._kinds = self._kinds or cloud.schema.kinds
         estimated: dict = {}
-        if normals is None or radii is None:
-            from ..preprocess import prepare  # numba kernels: loaded only when needed
+        if normals is None or radii is None:  # with both, the axes follow the grown radii below
+            from ..preprocess import complete  # numba kernels: loaded only when needed
 
-            cloud, estimated = prepare(cloud, progress=False)
+            cloud, estimated = complete(cloud, progress=False)
         own = cloud.radii
         radii = np.maximum(own, (COVER * region).astype(np.float32))
         extras = dict(cloud.attributes)

@@ -168,7 +168,7 @@ def build_command(in_path: str | os.PathLike, out_path: str | os.PathLike,
     not reading the input or estimating its attributes), and what was estimated.
     """
     from ..io import load
-    from ..rendering import complete
+    from ..preprocess import complete
 
     cloud, estimated = complete(load(in_path))
     start = time.perf_counter()

@@ -17,7 +17,7 @@ streaming.py) is read three times and never held in memory:
    partition's file.
 
 Each partition is then loaded, completed (radii and tangent axes estimated as for any cloud,
-`preprocess.prepare`; normals from the input when it has them), built (`build_lod`),
+`preprocess.complete`; normals from the input when it has them), built (`build_lod`),
 sequentialised (`to_sequential_cloud`) and written as raw .npy arrays in sequential order.
 No halo is used: points at a partition border miss their neighbours across it, which only
 widens their covering radii (the Voronoi cell is unbounded on that side) and so cannot
@@ -352,7 +352,7 @@ def _bin_input(inputs: list[StreamInput], partial: Path, cap: int, signature: di
 
 def _build_partition(partial: Path, name: str, dtype: np.dtype, schema: Schema, geospatial: bool) -> None:
     """Complete, build, sequentialise and write one partition; its root summary last."""
-    from ..preprocess import prepare
+    from ..preprocess import complete
 
     records = np.fromfile(partial / "bins" / f"{name}.bin", dtype)
     cloud = PointCloud(records["p"], normals=records["n"] if "n" in dtype.names else None,
@@ -360,7 +360,7 @@ def _build_partition(partial: Path, name: str, dtype: np.dtype, schema: Schema, 
                        attributes={spec.name: records[f"a{i}"] for i, spec in enumerate(schema.values())},
                        kinds=schema.kinds, source=name)
     del records
-    cloud, _ = prepare(cloud, progress=False)
+    cloud, _ = complete(cloud, progress=False)
     points = len(cloud)
     lo, hi = cloud.bounds
     tree = build_lod(cloud, progress=False)

@@ -15,7 +15,7 @@ void main() {  // full-screen triangle
 #endif
 
 #ifdef FRAGMENT_SHADER
-#define MAX_SAMPLES 16         // the page supersamples at most 4 x 4
+#define MAX_SAMPLES 16         // the page supersamples at most 4 x 4 (request.PAGE_MAX_SUPERSAMPLE)
 uniform sampler2D u_shaded;    // shaded rgb, coverage
 uniform sampler2D u_gnormal;   // eye normal, palette index
 uniform sampler2D u_gdepth;    // eye depth (0: empty)

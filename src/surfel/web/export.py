@@ -34,6 +34,7 @@ from ..files import write_atomically
 from ..gl.program import expand_includes
 from ..methods import get_method
 from ..options import RenderOptions
+from ..request import PAGE_MAX_SUPERSAMPLE
 from .pack import pack_cloud
 
 HERE = Path(__file__).parent
@@ -72,7 +73,7 @@ def cloud_for_page(cloud: PointCloud, point_budget: int, lod_error: float | None
 
     report: dict = {}
     method = get_method("deferred")
-    cloud, estimated = renderer.complete(cloud, need_radii=method.needs_radii, elliptical=method.elliptical,
+    cloud, estimated = renderer.complete(cloud, needs_radii=method.needs_radii, elliptical=method.elliptical,
                                          normal_field=method.normal_field)
     if estimated:
         report["estimated"] = estimated
@@ -148,6 +149,8 @@ def export_html(cloud, camera: Camera, output, *, method: str = "deferred", opti
     title = title or f"surfel: {getattr(cloud, 'source', None) or getattr(cloud, 'path', None) or 'point cloud'}"
     if method not in METHODS:
         raise SurfelError(f"--method: the page draws {' or '.join(METHODS)}, not {method!r}")
+    if (options.supersample or 1) > PAGE_MAX_SUPERSAMPLE:
+        raise SurfelError(f"--supersample: the page takes at most {PAGE_MAX_SUPERSAMPLE}, got {options.supersample}")
     m = get_method(method)
     m.check_options(options)
     params = options.params if options.params is not None else m.make_params()

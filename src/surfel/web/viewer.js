@@ -245,7 +245,7 @@
     vaos[key] = vao;
     return vao;
   }
-  gl.vertexAttrib3f(LOC.a_color, 1, 1, 1);  // no colours: white (CONVENTIONS.md)
+  gl.vertexAttrib3f(LOC.a_color, 1, 1, 1);  // no colours: white (docs/conventions.md)
 
   // ---- the level of detail: surfel.lod.sequential's prefix and k ---------------------------
   // The CPU twin of the vertex test (lod.select_sequential) runs over the prefix, as the GL
