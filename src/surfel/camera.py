@@ -15,8 +15,10 @@ A point at eye coordinates (X, Y, Z), Z < 0, lands on image position
 
 from __future__ import annotations
 
+import json
 import math
 from dataclasses import dataclass, replace
+from pathlib import Path
 
 import numpy as np
 
@@ -194,6 +196,44 @@ class Camera:
         if self.ortho_height is not None:
             near = d - radius * 1.05  # may be negative: orthographic needs no positive near
         return replace(self, near=near, far=far)
+
+
+@dataclass(frozen=True)
+class OpenCvCamera:
+    """A pinhole camera from an OpenCV JSON file {"K": 3x3, "R": 3x3, "t": 3}, checked."""
+
+    path: str
+    K: np.ndarray
+    R: np.ndarray
+    t: np.ndarray
+
+    @classmethod
+    def read(cls, path: str) -> OpenCvCamera:
+        try:
+            spec = json.loads(Path(path).read_text())
+            K, R, t = (np.array(spec[key], float) for key in ("K", "R", "t"))
+        except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError) as exc:
+            reason = getattr(exc, "strerror", None) or f"{type(exc).__name__}: {exc}"
+            raise SurfelError(f"{path}: not an OpenCV camera JSON with K, R, t ({reason})") from None
+        problem = cls.problem(K, R, t)
+        if problem:
+            raise SurfelError(f"{path}: {problem}")
+        return cls(path, K, R, t.reshape(3))
+
+    @staticmethod
+    def problem(K: np.ndarray, R: np.ndarray, t: np.ndarray) -> str | None:
+        for name, array, shape in (("K", K, (3, 3)), ("R", R, (3, 3)), ("t", t, (3,))):
+            if array.shape != shape and not (name == "t" and array.size == 3):
+                return f"{name} must be {'x'.join(map(str, shape))}, got shape {array.shape}"
+            if not np.isfinite(array).all():
+                return f"{name} holds values that are not finite numbers"
+        if not np.array_equal(K[2], [0.0, 0.0, 1.0]) or K[1, 0] != 0 or K[0, 1] != 0:
+            return "K must be a pinhole matrix [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]"
+        if not (K[0, 0] > 0 and K[1, 1] > 0):
+            return f"K's focal lengths must be positive, got fx={K[0, 0]:g}, fy={K[1, 1]:g}"
+        if not np.allclose(R @ R.T, np.eye(3), atol=1e-4) or np.linalg.det(R) <= 0:
+            return "R must be a rotation (orthonormal, determinant 1)"
+        return None
 
 
 def default_up(geospatial: bool) -> np.ndarray:

@@ -136,11 +136,10 @@ def export_html(**values):
     """
     from .files import check_output
     from .rendering import Renderer
-    from .request import parse_page
     from .web import export_html as do_export
-    from .web.export import METHODS as PAGE_METHODS
+    from .web.export import page_request
 
-    request = parse_page(values, PAGE_METHODS)
+    request = page_request(values)
     check_output(request.outputs.png, "--output")
     cloud = request.open_input()
     report = do_export(cloud, request.camera.camera(cloud), request.outputs.png, method=request.method,

@@ -21,17 +21,14 @@ that contradict each other; and every output location (`files.check_output`).
 
 from __future__ import annotations
 
-import json
 import math
 import os
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
-import numpy as np
-
-from .camera import VIEWS, Camera, frame
-from .colors import NAMED, RETURN_WORDS, check_colormap
+from .camera import VIEWS, Camera, OpenCvCamera, frame
+from .colors import NAMED
 from .errors import SurfelError
 from .files import check_folder, check_output
 from .methods import METHODS, get_method
@@ -140,26 +137,8 @@ def integers(text: str) -> tuple[int, ...]:
         raise ValueError(f"needs comma-separated integers, got {text!r}") from None
 
 
-def color_range(text: str) -> tuple[float, float]:
-    lo, hi = numbers(2)(text)
-    if not lo < hi:
-        raise ValueError(f"LO must be below HI, got {text!r}")
-    return lo, hi
-
-
-def colormap(text: str) -> str:
-    problem = check_colormap(text)
-    if problem:
-        raise ValueError(problem)
-    return text
-
-
-def returns(text: str) -> tuple[str, ...]:
-    values = tuple(v.strip().lower() for v in text.split(","))
-    for v in values:
-        if v not in RETURN_WORDS and not (v.isdigit() and 1 <= int(v) <= 15):
-            raise ValueError(f"takes return numbers 1..15, first or last, got {v!r}")
-    return values
+def words(text: str) -> tuple[str, ...]:
+    return tuple(v.strip().lower() for v in text.split(","))
 
 
 def ortho_height(text: str) -> float | str:
@@ -172,44 +151,6 @@ def field_of_view(text: str) -> float:
     if not 0 < value < 180:
         raise ValueError(f"must be in (0, 180) degrees, got {text!r}")
     return value
-
-
-@dataclass(frozen=True)
-class OpenCvCamera:
-    """A pinhole camera from an OpenCV JSON file {"K": 3x3, "R": 3x3, "t": 3}, checked."""
-
-    path: str
-    K: np.ndarray
-    R: np.ndarray
-    t: np.ndarray
-
-    @classmethod
-    def read(cls, path: str) -> OpenCvCamera:
-        try:
-            spec = json.loads(Path(path).read_text())
-            K, R, t = (np.array(spec[key], float) for key in ("K", "R", "t"))
-        except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError) as exc:
-            reason = getattr(exc, "strerror", None) or f"{type(exc).__name__}: {exc}"
-            raise SurfelError(f"{path}: not an OpenCV camera JSON with K, R, t ({reason})") from None
-        problem = cls.problem(K, R, t)
-        if problem:
-            raise SurfelError(f"{path}: {problem}")
-        return cls(path, K, R, t.reshape(3))
-
-    @staticmethod
-    def problem(K: np.ndarray, R: np.ndarray, t: np.ndarray) -> str | None:
-        for name, array, shape in (("K", K, (3, 3)), ("R", R, (3, 3)), ("t", t, (3,))):
-            if array.shape != shape and not (name == "t" and array.size == 3):
-                return f"{name} must be {'x'.join(map(str, shape))}, got shape {array.shape}"
-            if not np.isfinite(array).all():
-                return f"{name} holds values that are not finite numbers"
-        if not np.array_equal(K[2], [0.0, 0.0, 1.0]) or K[1, 0] != 0 or K[0, 1] != 0:
-            return "K must be a pinhole matrix [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]"
-        if not (K[0, 0] > 0 and K[1, 1] > 0):
-            return f"K's focal lengths must be positive, got fx={K[0, 0]:g}, fy={K[1, 1]:g}"
-        if not np.allclose(R @ R.T, np.eye(3), atol=1e-4) or np.linalg.det(R) <= 0:
-            return "R must be a rotation (orthonormal, determinant 1)"
-        return None
 
 
 # ---------------------------------------------------------------------------------------------
@@ -304,13 +245,13 @@ OPTIONS: dict[str, Option] = {o.name: o for o in [
     Option("color", text, f"What the colour shows: {', '.join(NAMED)} or any attribute's name (see `surfel "
            "info`).", "options", metavar="MODE",
            shown="rgb where the cloud has colours, else elevation for geospatial clouds, else white"),
-    Option("colormap", colormap, "Colour map of continuous attributes (matplotlib's names).", "options",
+    Option("colormap", text, "Colour map of continuous attributes (matplotlib's names).", "options",
            metavar="NAME"),
-    Option("color_range", color_range, "Values the colour map spans [default: the 2nd to 98th percentile].",
+    Option("color_range", numbers(2), "Values the colour map spans [default: the 2nd to 98th percentile].",
            "options", metavar="LO,HI"),
     Option("classes", integers, "Draw only the points of these classification codes (e.g. 2,9).", "options",
            metavar="CODES"),
-    Option("returns", returns, "Draw only these returns: numbers, first, last (e.g. first or 1,2).", "options",
+    Option("returns", words, "Draw only these returns: numbers, first, last (e.g. first or 1,2).", "options",
            metavar="LIST"),
     Option("edl_strength", number, "Eye-dome lighting strength.", "options", metavar="S"),
     Option("edl_radius", positive_number, "Eye-dome lighting radius in pixels (shades at 1, 2 and 4 times it).",
@@ -648,21 +589,5 @@ def parse_render(values: Mapping[str, object], *, where: str = "", require_outpu
                          CameraSpec.from_parsed(parsed, where), options, outputs, argv_of(given))
 
 
-def parse_page(values: Mapping[str, object], methods: tuple[str, ...]) -> RenderRequest:
-    """The request `surfel export-html` makes: its page is `outputs.png`, `methods` those it draws;
-    the options' point_budget is the size above which the page draws a sequential point tree."""
-    parsed = parse_values(values, PAGE_COMMAND)
-    if parsed.get("demo", False) == ("input" in parsed):
-        raise SurfelError("give an input file or --demo (not both)")
-    method, _ = method_and_backend(parsed)
-    if method not in methods:
-        raise SurfelError(f"--method: the page draws {' or '.join(methods)}, not {method!r}")
-    options = options_from(parsed, method)
-    if (options.supersample or 1) > PAGE_MAX_SUPERSAMPLE:
-        raise SurfelError(f"--supersample: the page takes at most {PAGE_MAX_SUPERSAMPLE}, got {options.supersample}")
-    return RenderRequest(parsed.get("input"), parsed.get("demo", False), method, None,
-                         CameraSpec.from_parsed(parsed), options, Outputs(png=parsed["output"]))
-
-
 __all__ = ["OPTIONS", "Option", "CameraSpec", "Outputs", "RenderRequest", "default", "method_and_backend",
-           "open_input", "options_from", "parse_page", "parse_render", "parse_values", "render_options"]
+           "open_input", "options_from", "parse_render", "parse_values", "render_options"]

@@ -21,6 +21,7 @@ import gzip
 import html
 import json
 import re
+from collections.abc import Mapping
 from dataclasses import replace
 from pathlib import Path
 
@@ -34,7 +35,16 @@ from ..files import write_atomically
 from ..gl.program import expand_includes
 from ..methods import get_method
 from ..options import RenderOptions
-from ..request import PAGE_MAX_SUPERSAMPLE
+from ..request import (
+    PAGE_COMMAND,
+    PAGE_MAX_SUPERSAMPLE,
+    CameraSpec,
+    Outputs,
+    RenderRequest,
+    method_and_backend,
+    options_from,
+    parse_values,
+)
 from .pack import pack_cloud
 
 HERE = Path(__file__).parent
@@ -192,6 +202,23 @@ def export_html(cloud, camera: Camera, output, *, method: str = "deferred", opti
     write_atomically(output, page.encode("utf-8"))
     return {"output": str(output), "points": len(page_cloud), "bytes": len(page), "data_bytes": len(blob),
             "shading": options.shading, **page_options.coloring.describe(), **report}
+
+
+def page_request(values: Mapping[str, object]) -> RenderRequest:
+    """The request `surfel export-html` makes with these option values (request.PAGE_COMMAND):
+    its page is `outputs.png`; the options' point_budget is the size above which the page
+    draws a sequential point tree. Checked before anything is loaded, like `surfel render`'s."""
+    parsed = parse_values(values, PAGE_COMMAND)
+    if parsed.get("demo", False) == ("input" in parsed):
+        raise SurfelError("give an input file or --demo (not both)")
+    method, _ = method_and_backend(parsed)
+    if method not in METHODS:
+        raise SurfelError(f"--method: the page draws {' or '.join(METHODS)}, not {method!r}")
+    options = options_from(parsed, method)
+    if (options.supersample or 1) > PAGE_MAX_SUPERSAMPLE:
+        raise SurfelError(f"--supersample: the page takes at most {PAGE_MAX_SUPERSAMPLE}, got {options.supersample}")
+    return RenderRequest(parsed.get("input"), parsed.get("demo", False), method, None,
+                         CameraSpec.from_parsed(parsed), options, Outputs(png=parsed["output"]))
 
 
 def _script_json(value) -> str:
