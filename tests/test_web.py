@@ -127,12 +127,13 @@ def top_camera(cloud, size=(240, 240), height=None):
 
 
 @requires_gl
-def test_categories_are_never_blended(browser, tmp_path):
+@pytest.mark.parametrize("supersample", [1, 3])
+def test_categories_are_never_blended(browser, tmp_path, supersample):
     """Classification with --shading none: each pixel inside the plane shows one class's colour,
-    along the borders between classes too."""
+    along the borders between classes too, supersampled or not."""
     cloud = plane(classes=lambda x, y: np.where(x < 0.6, 2, np.where(y < 0.6, 6, 9)))
-    export_html(cloud, top_camera(cloud), tmp_path / "c.html", options=RenderOptions(shading="none",
-                                                                                   color="classification"))
+    export_html(cloud, top_camera(cloud), tmp_path / "c.html",
+                options=RenderOptions(shading="none", color="classification", supersample=supersample))
     shot = open_page(browser, tmp_path / "c.html", (240, 240)).screenshot()
     inside = png_rgb(shot)[30:210, 30:210].reshape(-1, 3).astype(int)
     palette = np.round(np.array([ASPRS_COLORS[c] for c in (2, 6, 9)]) * 255)
