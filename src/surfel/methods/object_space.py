@@ -113,11 +113,13 @@ def render_object_space(cloud, camera, options, params: ObjectSpaceParams, rende
     ss = options.supersample or DEFAULT_SUPERSAMPLE
     width, height = camera.width * ss, camera.height * ss
     per_surfel = params.normalization == "per-surfel"
+    categorical = options.coloring is not None and options.coloring.categorical
+    passes = ("PASS_VISIBILITY", "PASS_ATTRIBUTE", *(("PASS_CATEGORY",) if categorical else ()), "PASS_NORMALIZE")
     programs = {p: renderer.program(SHADER, {p: True, "PER_SURFEL_NORMALIZATION": per_surfel,
                                              "CLIP_LINES": "clip_lines" in cloud.attributes})
-                for p in ("PASS_VISIBILITY", "PASS_ATTRIBUTE", "PASS_NORMALIZE")}
+                for p in passes}
     for program in programs.values():
-        apply_common(program, camera, cloud.local_origin, ss, options.shading,
+        apply_common(program, camera, cloud.local_origin, ss, options,
                      u_radius_scale=params.radius_scale, u_depth_offset=params.depth_offset,
                      u_kernel_std=KERNEL_STD, u_cutoff=CUTOFF,
                      u_lowpass_std=LOWPASS_STD * params.lowpass_radius * ss,
@@ -128,6 +130,7 @@ def render_object_space(cloud, camera, options, params: ObjectSpaceParams, rende
         extra = {"in_weight": renderer.cached(cloud, ("surfel weights", scale),
                                               lambda: surfel_weights(cloud, scale))}
 
+    renderer.use_color_table(options)
     kernel = gaussian_texture(ctx)
     buffers = renderer.splat_buffers(cloud)
     try:
@@ -137,6 +140,9 @@ def render_object_space(cloud, camera, options, params: ObjectSpaceParams, rende
                                                        ctx.TRIANGLE_STRIP, instanced=True))
             passes.attribute_pass(lambda: splats.draw(ctx, buffers, programs["PASS_ATTRIBUTE"],
                                                       ctx.TRIANGLE_STRIP, instanced=True, extra=extra))
+            if categorical:
+                passes.category_pass(lambda: splats.draw(ctx, buffers, programs["PASS_CATEGORY"],
+                                                         ctx.TRIANGLE_STRIP, instanced=True, extra=extra))
             passes.normalize_pass(programs["PASS_NORMALIZE"])
             stats = {"splats": len(cloud), "vertices": 4 * len(cloud), "supersample": ss,
                      "normalization": "per-surfel" if per_surfel else "per-pixel"}
