@@ -2,6 +2,8 @@ from pathlib import Path
 
 import pytest
 
+from browser import browser  # noqa: F401  (headless Chromium, one per session, for the page and widget tests)
+
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 
 

@@ -254,12 +254,13 @@ def test_glsl_matches_numpy():
     """lod.glsl's lod_selected(), run by transform feedback, agrees with the numpy twin."""
     try:
         from surfel.gl.context import get_context
+        from surfel.gl.program import expand_includes
 
         ctx = get_context()
     except Exception as error:  # no OpenGL here
         pytest.skip(f"no OpenGL: {error}")
     gl = Path(lod.__file__).resolve().parents[1] / "gl"
-    shared = [(gl / name).read_text() for name in ("common.glsl", "lod.glsl")]
+    shared = [expand_includes(gl / name) for name in ("common.glsl", "lod.glsl")]
     source = "\n".join(["#version 430 core", *shared, """
 in vec4 in_lod;  // r, emin, emax, dparent
 out float v_selected;

@@ -1,36 +1,11 @@
-"""Object-space EWA splatting (Ren et al. 2002): the resampling filter and the rendered surface."""
+"""Object-space EWA splatting (Ren et al. 2002): the rendered surface against the mesh."""
 
-import numpy as np
 import pytest
 
 from conftest import requires_gl
 from surfel.camera import frame
-from surfel.methods.object_space import ResamplingFilter, decompose, resampling_matrix
 from surfel.metrics import compare_results
 from surfel.rendering import render
-
-
-def test_eigen_decomposition_reproduces_the_filter():
-    rng = np.random.default_rng(0)
-    for _ in range(50):
-        a = rng.normal(size=(2, 2))
-        m = a @ a.T + 0.1 * np.eye(2)
-        assert np.allclose(decompose(m).matrix(), m, atol=1e-9)
-
-
-def test_quad_corners_circumscribe_the_cutoff_ellipse():
-    f = ResamplingFilter(theta=0.4, r0=2.0, r1=0.5)
-    corners = f.quad_corners(cutoff=2.0)
-    # in the filter's own frame the corners sit at (±c r0, ±c r1): edge midpoints on the ellipse
-    local = (f.rotation.T @ corners.T).T / [f.r0, f.r1]
-    assert np.allclose(np.abs(local), 2.0)
-
-
-def test_resampling_matrix_adds_the_lowpass_mapped_to_object_space():
-    v = np.diag([1.0, 4.0])
-    j = np.diag([10.0, 5.0])  # pixels per object unit
-    m = resampling_matrix(v, j, lowpass_std=1.0)
-    assert np.allclose(m, v + np.diag([0.01, 0.04]))
 
 
 @requires_gl

@@ -10,7 +10,7 @@ from surfel.camera import frame
 from surfel.cloud import PointCloud
 from surfel.metrics import compare_results
 from surfel.rendering import render
-from surfel.shading import MODELS, shade
+from surfel.shading import MODEL_IDS, shade
 
 pytestmark = requires_gl
 SIZE = (512, 512)
@@ -123,7 +123,7 @@ def test_dense_clouds_of_sub_pixel_splats_cover_whole_pixels(bunny, views):
 def test_mesh_shading_models_match_numpy(bunny):
     """The GLSL shading models and their numpy twins give the same colours."""
     cam = frame(bunny.center, bunny.bounding_radius, size=(128, 128))
-    for model in MODELS:
+    for model in MODEL_IDS:  # the per-pixel models (edl's screen-space term: test_colors.py)
         result = render(bunny, cam, "mesh", shading=model, supersample=1)
         covered = result.alpha == 1
         near, far = result.stats["near"], result.stats["far"]  # the renderer's clip planes

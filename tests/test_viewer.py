@@ -44,3 +44,27 @@ def test_screenshot_from_a_real_window_under_xvfb(tmp_path):
     middle = image[60:180, 80:240]
     assert (middle > 100).mean() > 0.2  # the lit bunny fills the middle of the window
     assert (image[0:16] > 128).any()     # the status line is drawn across the top
+
+
+@requires_gl
+@pytest.mark.skipif(shutil.which("xvfb-run") is None, reason="Xvfb is not installed")
+def test_a_tile_opens_obliquely_across_the_window(tmp_path):
+    """A geospatial tile: the whole tile seen from above the horizon, filling the window's
+    width (not a sliver at ground level), in elevation colours."""
+    pytest.importorskip("glfw")
+    from pathlib import Path
+
+    from PIL import Image
+
+    tile = Path(__file__).parent / "data" / "autzen_trim.laz"
+    out = tmp_path / "shot.png"
+    proc = subprocess.run(["xvfb-run", "-a", "-s", "-screen 0 800x600x24", sys.executable, "-m", "surfel.cli",
+                           "view", str(tile), "--screenshot", str(out), "--size", "400x300", "--color", "elevation"],
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    image = np.asarray(Image.open(out).convert("RGB")).astype(int)
+    drawn = image[20:165].max(axis=2) > 30  # between the status line and the help
+    columns = np.flatnonzero(drawn.any(axis=0))
+    rows = np.flatnonzero(drawn.any(axis=1))
+    assert (columns[-1] - columns[0] + 1) / 400 > 0.7 and len(rows) > 30  # across the window, seen from above
+    assert len(np.unique(image[20:165][drawn] // 32, axis=0)) > 8  # a colour ramp, not one colour

@@ -235,8 +235,9 @@ class Schema(Mapping):
 
 def summarize(attributes: Mapping[str, np.ndarray], schema: Schema, max_values: int = 12) -> dict[str, dict]:
     """What `surfel info` shows of each attribute: dtype, shape, kind, whether derived, and
-    min and max (continuous) or the most frequent values with their counts (categorical,
-    at most `max_values` of them; `more` counts the others)."""
+    min and max of the finite values and the count of the others (continuous) or the most
+    frequent values with their counts (categorical, at most `max_values` of them; `more`
+    counts the others)."""
     out = {}
     for name, spec in schema.items():
         values = attributes[name]
@@ -250,7 +251,11 @@ def summarize(attributes: Mapping[str, np.ndarray], schema: Schema, max_values: 
             if len(codes) > max_values:
                 entry["more"] = int(len(codes) - max_values)
         elif values.size:
-            entry["min"], entry["max"] = values.min().item(), values.max().item()
+            finite = values[np.isfinite(values)] if values.dtype.kind == "f" else values
+            if finite.size:
+                entry["min"], entry["max"] = finite.min().item(), finite.max().item()
+            if finite.size < values.size:
+                entry["not_finite"] = int(values.size - finite.size)
         out[name] = entry
     return out
 
@@ -266,7 +271,8 @@ def summary_lines(summary: Mapping[str, dict]) -> list[str]:
             what = ", ".join(f"{code}: {count}" for code, count in entry["values"].items())
             what += f", ... {entry['more']} more" if entry.get("more") else ""
         else:
-            what = f"{entry['min']:.10g} .. {entry['max']:.10g}" if "min" in entry else "empty"
+            what = f"{entry['min']:.10g} .. {entry['max']:.10g}" if "min" in entry else "no finite value"
+            what += f", {entry['not_finite']} not finite" if entry.get("not_finite") else ""
         rows.append((name, dtype, kind, what))
     widths = [max((len(row[column]) for row in rows), default=0) for column in range(3)]
     return [f"{name:{widths[0]}s}  {dtype:{widths[1]}s}  {kind:{widths[2]}s}  {what}"

@@ -33,7 +33,7 @@ def _contiguous(value, dtype) -> np.ndarray:
 
 
 def framing_sphere(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, float]:
-    """Centre and radius of the sphere auto framing fits (CONVENTIONS.md): the bounding box's
+    """Centre and radius of the sphere auto framing fits (docs/conventions.md): the bounding box's
     centre and half its diagonal (never 0, so a single point can still be framed)."""
     return (lo + hi) / 2, max(float(np.linalg.norm(hi - lo)) / 2, 1e-9)
 
@@ -50,8 +50,9 @@ class PointCloud:
                 its ellipse semi-axis length (a circular splat has |u| = |v| = radius), or None
     faces     : (F, 3) int64 triangle indices when the input was a mesh, or None
     attributes: every other per-point array, (N, ...) keyed by name, in its own numeric dtype
-                (scanner fields such as intensity or classification; surfel's derived arrays,
-                float32, under the reserved names of surfel.attributes.DERIVED)
+                (scanner fields such as intensity or classification, which may hold NaN where a
+                value is missing; surfel's derived arrays, float32 and finite, under the
+                reserved names of surfel.attributes.DERIVED)
     kinds     : the kind ("categorical" or "continuous") of attributes whose reader knows
                 it; the others' are resolved by surfel.attributes.resolve_kind. Kinds of
                 names the cloud does not hold are dropped.
@@ -89,13 +90,13 @@ class PointCloud:
             what = "NaN" if nan == int(bad.sum()) else "NaN or infinite"
             raise InputError(src, f"{int(bad.sum())} points have {what} coordinates")
 
-        def per_point(name, value, tail, dtype=np.float32):
+        def per_point(name, value, tail, dtype=np.float32, finite=True):
             if value is None:
                 return None
             arr = _contiguous(value, dtype)
             if arr.shape != (n, *tail):
                 raise InputError(src, f"{name} must have shape {(n, *tail)}, got {arr.shape}")
-            if arr.dtype.kind == "f" and not np.isfinite(arr).all():
+            if finite and arr.dtype.kind == "f" and not np.isfinite(arr).all():
                 count = int((~np.isfinite(arr.reshape(n, -1))).any(axis=1).sum())
                 raise InputError(src, f"{count} points have NaN or infinite {name}")
             return arr
@@ -110,7 +111,9 @@ class PointCloud:
                 dtype = value.dtype if value.dtype.isnative else value.dtype.newbyteorder("=")
             else:
                 raise InputError(src, f"attribute '{name}' is not numeric ({value.dtype})")
-            return per_point(name, value, value.shape[1:], dtype)
+            # a scanner's measurement may be missing (a LAS extra-bytes field holding NaN): kept,
+            # and shown in a neutral colour (surfel.colors); surfel's own estimates are finite
+            return per_point(name, value, value.shape[1:], dtype, finite=name in DERIVED)
 
         normals = per_point("normals", self.normals, (3,))
         if normals is not None:

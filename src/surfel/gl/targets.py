@@ -48,15 +48,27 @@ class GBuffer:
             obj.release()
 
 
-def gbuffer_result(gbuffer: GBuffer, camera, options, supersample: int, stats: dict):
-    """The RenderResult of a G-buffer laid out as every method writes it:
-    target 0 = shaded RGB and coverage, target 1 = eye normal, target 2 = eye depth."""
+def gbuffer_result(gbuffer: GBuffer, camera, options, supersample: int, stats: dict, *, surface=None):
+    """The RenderResult of a G-buffer laid out as every method writes it: target 0 = shaded
+    RGB and coverage, target 1 = eye normal and, in a categorical colour mode, the palette
+    index of the category the shaders picked, target 2 = eye depth. `surface`: for methods
+    without splats, a function of the sample depths (H, W) giving each sample's albedo and
+    palette index (colors.surface_albedo), or None; the samples are shaded again with them."""
+    from ..colors import shade_samples
     from ..result import RenderResult
 
     shaded = gbuffer.read(0)
-    normals = gbuffer.read(1, 3)
+    normals = gbuffer.read(1)
     depth = gbuffer.read(2, 1)[..., 0]
     coverage = np.clip(shaded[..., 3], 0, 1)
     depth = np.where(coverage > 0, depth, np.inf)
-    return RenderResult.from_samples(shaded[..., :3], coverage, depth, normals, supersample=supersample,
-                                     background=options.background, stats=stats)
+    indices, rgb = None, shaded[..., :3]
+    albedo = None
+    if surface is not None:
+        albedo, indices = surface(depth)
+    if albedo is not None:
+        rgb = shade_samples(rgb, normals[..., :3], depth, albedo, options.surface_shading, camera.near, camera.far)
+    elif options.coloring is not None and options.coloring.categorical:
+        indices = np.where(coverage > 0, np.round(normals[..., 3]), -1).astype(np.int32)
+    return RenderResult.from_samples(rgb, coverage, depth, np.ascontiguousarray(normals[..., :3]),
+                                     supersample=supersample, options=options, stats=stats, indices=indices)

@@ -24,7 +24,7 @@ class LodSource(Protocol):
     geospatial: bool          # up axis +Z (LAS/LAZ/COPC)
     total_points: int         # leaf (input) points in the whole hierarchy
     bounds: tuple[np.ndarray, np.ndarray]   # world AABB lo, hi (float64 (3,))
-    center: np.ndarray        # bbox centre, for auto framing (CONVENTIONS.md)
+    center: np.ndarray        # bbox centre, for auto framing (docs/conventions.md)
     bounding_radius: float    # half the bbox diagonal, like PointCloud
 
     def select(self, camera: Camera, epsilon: float, point_budget: int | None = None
@@ -53,3 +53,17 @@ def open_source(path: str | os.PathLike) -> LodSource | None:
 
         return CopcSource(name)
     return None
+
+
+def with_sensor(cloud: PointCloud | LodSource, sensor: tuple[float, float, float] | None):
+    """The cloud, or LOD source, with `sensor` as the position of the scanner of all its points
+    (None: as it is). A source passes it to the clouds it selects when it estimates them (COPC);
+    a .lod hierarchy was estimated when it was built."""
+    if sensor is None:
+        return cloud
+    sensors = np.array([sensor], np.float64)
+    if isinstance(cloud, PointCloud):
+        return cloud.with_(sensors=sensors)
+    if hasattr(cloud, "sensors"):
+        cloud.sensors = sensors
+    return cloud

@@ -407,9 +407,9 @@ void main() {
     pixel_ray(gl_FragCoord.xy, oe, de);
     vec3 n = normalize(mat3(u_view) * texelFetch(u_normal, pix, 0).xyz);
     if (dot(n, -de) < 0.0) n = -n;  // two-sided: face the viewer
-    vec3 albedo = texelFetch(u_albedo, pix, 0).rgb;
+    vec3 albedo = blended_albedo(texelFetch(u_albedo, pix, 0).rgb);  // colour modes: colors.glsl
     out_shaded = vec4(shade(u_shading, albedo, n, t, u_depth_range.x, u_depth_range.y), 1.0);
-    out_eye_normal = vec4(n, 0.0);
+    out_eye_normal = vec4(n, -1.0);  // categories: picked on the CPU (gpu.py)
     out_depth = vec4(t, 0.0, 0.0, 0.0);
 }
 #endif

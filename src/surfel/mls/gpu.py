@@ -125,7 +125,8 @@ def render_mls_gl(cloud: PointCloud, camera: Camera, options: RenderOptions, par
     programs = {name: renderer.program(SHADER, {f"PASS_{name.upper()}": True})
                 for name in ("intersect", "covariance", "frame", "system", "solve", "shade")}
     for program in programs.values():
-        apply_common(program, camera, surface.origin, ss, options.shading, **common)
+        apply_common(program, camera, surface.origin, ss, options, **common)
+    renderer.use_color_table(options)
     size = (camera.width * ss, camera.height * ss)
 
     def texture():
@@ -216,7 +217,8 @@ def render_mls_gl(cloud: PointCloud, camera: Camera, options: RenderOptions, par
                  "last_step_median": float(np.median(steps)) if steps.size else 0.0,
                  "point_fit_failures": int((~scene.valid).sum()), "supersample": ss,
                  "kernel_width": surface.scale, "polynomial_prepass": "cpu"}
-        return gbuffer_result(gbuffer, camera, options, ss, stats)
+        return gbuffer_result(gbuffer, camera, options, ss, stats,
+                              surface=renderer.surface_colors(cloud, camera.scaled(ss), options))
     finally:
         ctx.blend_equation = ctx.FUNC_ADD
         ctx.depth_func = "<"

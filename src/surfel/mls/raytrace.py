@@ -320,7 +320,15 @@ def render_mls_cpu(cloud, camera, options, params: MlsParams, renderer) -> Rende
     n_eye[flip] *= -1
     n_eye[~hit] = 0
     albedo = np.where(hit[:, None], hits.colors, 1.0)
-    shaded = shade(options.shading, albedo, n_eye, depth, camera.near, camera.far).astype(np.float64)
+    indices = None
+    coloring = options.coloring
+    colors_of = renderer.surface_colors(cloud, cam, options)
+    if colors_of is not None:  # the surface's own elevation, the nearest sample's category (never a blend)
+        surface_albedo, indices = colors_of(depth.reshape(h, w))
+        albedo = np.where(hit[:, None], surface_albedo.reshape(-1, 3), 1.0)
+    elif coloring is not None:
+        albedo = np.where(hit[:, None], coloring.decode(hits.colors), 1.0)
+    shaded = shade(options.surface_shading, albedo, n_eye, depth, camera.near, camera.far).astype(np.float64)
     stats = {"splats": len(cloud), "rays": int(h * w), "hits": int(hit.sum()),
              "iterations_mean": round(float(hits.fits[hit].mean()), 3) if hit.any() else 0.0,
              "iterations_max": int(hits.fits[hit].max()) if hit.any() else 0,
@@ -348,10 +356,11 @@ def render_mls_cpu(cloud, camera, options, params: MlsParams, renderer) -> Rende
             bn = bounce.normals[b] @ rot.T
             bd = refl[b] @ rot.T
             bn *= np.where(np.sum(bn * bd, axis=1) > 0, -1.0, 1.0)[:, None]
-            seen[b] = shade(options.shading, bounce.colors[b], bn, depth[idx][b], camera.near, camera.far)
+            bounce_albedo = bounce.colors[b] if coloring is None else coloring.decode(bounce.colors[b])
+            seen[b] = shade(options.surface_shading, bounce_albedo, bn, depth[idx][b], camera.near, camera.far)
         shaded[idx] = (1 - reflectivity) * shaded[idx] + reflectivity * seen
         stats["reflected_hits"] = int(bounce.hit.sum())
     coverage = hit.astype(np.float32)
     return RenderResult.from_samples(shaded.reshape(h, w, 3).astype(np.float32), coverage.reshape(h, w),
                                      depth.reshape(h, w), n_eye.reshape(h, w, 3), supersample=ss,
-                                     background=options.background, stats=stats)
+                                     options=options, stats=stats, indices=indices)
