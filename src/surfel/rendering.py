@@ -317,9 +317,12 @@ class Renderer:
         start = time.perf_counter()
         cut, selection = source.select(camera, epsilon, options.point_budget)
         select_ms = (time.perf_counter() - start) * 1000
-        # the cut is already at the requested detail: no second selection on it
+        # the cut is already at the requested detail: no second selection on it; its shading is
+        # the source's default (a COPC file without normals is shaded as such, though its cut's
+        # normals were estimated)
         result = self.render(cut, camera, method, backend=backend,
-                             options=replace(options, lod_error=None, point_budget=None))
+                             options=replace(options, lod_error=None, point_budget=None,
+                                             shading=options.shading or default_for(source)))
         result.stats.update({"points": source.total_points, "lod": epsilon, "select_ms": round(select_ms, 3),
                              **selection})
         return result
