@@ -191,6 +191,7 @@ def info(input, as_json):
             "bounds_min": lo.tolist(), "bounds_max": hi.tolist(), "local_origin": cloud.local_origin.tolist(),
             "attributes": cloud.attribute_names(), "schema": summarize(cloud.attributes, cloud.schema),
             "would_estimate": estimate, "geospatial": cloud.geospatial,
+            "sensors": None if cloud.sensors is None else cloud.sensors.tolist(),
             "opengl": renderer_string() if gl_available() else None,
         }
     if as_json:
