@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import SurfelError
+from ..files import write_atomically
 from .context import get_context
 from .targets import GBuffer, gbuffer_result, read_texture
 
@@ -162,7 +163,8 @@ class SplatPasses:
         weight = color[..., 3] / max(float(color[..., 3].max()), 1e-12)
 
         def save(name, image):
-            Image.fromarray(np.round(np.clip(image, 0, 1) * 255).astype(np.uint8)).save(folder / name)
+            picture = Image.fromarray(np.round(np.clip(image, 0, 1) * 255).astype(np.uint8))
+            write_atomically(folder / name, lambda file: picture.save(file, format="PNG"))
 
         save("1-visibility-depth.png", gray)
         save("2-accumulated-weight.png", weight)

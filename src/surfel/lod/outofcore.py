@@ -75,7 +75,7 @@ from tqdm import tqdm
 from ..attributes import Schema
 from ..cloud import PointCloud
 from ..errors import SurfelError
-from ..files import write_json
+from ..files import write_atomically, write_json
 from ..preprocess import INACTIVE_CLIP
 from .build import ROOT_PARENT_ERROR, _merge_cells, _next_level, aggregate_attributes, build_lod, morton_codes
 from .sequential import EXTRAS, r_max_bucket, to_sequential_cloud
@@ -211,6 +211,8 @@ def build_outofcore(in_path: str | os.PathLike, out_path: str | os.PathLike, *, 
     start = time.perf_counter()
     out = Path(out_path)
     partial = out.with_name(out.name + ".partial")
+    if out.is_symlink():  # replacing the hierarchy would replace the link, not what it names
+        raise SurfelError(f"{out}: is a symbolic link; not replacing it (name the directory itself)")
     if out.exists() and not (out / MANIFEST).is_file():
         raise SurfelError(f"{out}: exists and is not a surfel LOD directory; not replacing it")
     inputs = open_inputs(in_path)
@@ -377,15 +379,19 @@ def _build_partition(partial: Path, name: str, dtype: np.dtype, schema: Schema, 
               **{attribute_key(i): seq.attributes[name] for i, name in enumerate(stored)}}
     for key, value in arrays.items():
         if value is not None:
-            np.save(work / f"{key}.npy", value)
+            _save_array(work / f"{key}.npy", value)
     summary = {"name": name, "points": points, "nodes": len(seq), "bounds": [lo.tolist(), hi.tolist()],
                "radius": float(seq.radii[0]), "attributes": stored.to_list(), **root}
-    (work / "root.json").write_text(json.dumps(summary))
+    write_json(work / "root.json", summary)
     del seq, arrays
     final = partial / name
     shutil.rmtree(final, ignore_errors=True)
     os.replace(work, final)
     (partial / "bins" / f"{name}.bin").unlink(missing_ok=True)
+
+
+def _save_array(path: Path, value: np.ndarray) -> None:
+    write_atomically(path, lambda file: np.save(file, value, allow_pickle=False))
 
 
 def _root_summary(tree) -> dict:
@@ -481,7 +487,7 @@ def _top_tree(partial: Path, parts: list[dict], has_colors: bool, stored: Schema
     arrays.update({attribute_key(i): attributes[name][order] for i, name in enumerate(stored)})
     top_dir.mkdir()
     for key, value in arrays.items():
-        np.save(top_dir / f"{key}.npy", value)
+        _save_array(top_dir / f"{key}.npy", value)
     return len(inner)
 
 
