@@ -10,6 +10,7 @@ import stat
 import pytest
 from click.testing import CliRunner
 
+from conftest import requires_gl
 from surfel.cli import main
 from surfel.errors import SurfelError
 from surfel.files import write_atomically
@@ -81,3 +82,36 @@ def test_the_command_line_refuses_special_outputs_before_rendering(tmp_path):
     source.write_text("0 0 0\n1 0 0\n0 1 0\n1 1 0\n")
     assert_refused(invoke("lod", "build", source, "-o", tmp_path / "link.lod"), "link.lod", "symbolic link")
     assert (tmp_path / "link.lod").is_symlink()
+
+
+# ---- 15.2: image sizes beyond what the backend can hold -------------------------------------
+
+@requires_gl
+@pytest.mark.parametrize("args", [["--size", "1x268435456"], ["--size", "16384x64"],
+                                  ["--size", "4096x4096", "--supersample", "4"],
+                                  ["--size", "2048x2048", "--supersample", "8"],
+                                  ["--size", "4096x64", "--method", "mesh", "--supersample", "8"]])
+def test_render_targets_beyond_the_contexts_limits_are_refused(tmp_path, args):
+    out = tmp_path / "x.png"
+    assert_refused(invoke("render", "--demo", "-o", out, *args), "--size/--supersample")
+    assert not out.exists()
+
+
+@requires_gl
+def test_each_side_is_checked_against_the_context():
+    from surfel.gl.targets import check_target_size, max_target_side
+
+    side = max_target_side()
+    check_target_size(side, 1)
+    for size in ((side + 1, 1), (1, side + 1)):
+        with pytest.raises(SurfelError, match=f"limit of {side} pixels a side"):
+            check_target_size(*size)
+
+
+def test_cpu_renders_have_their_own_bound(tmp_path):
+    out = tmp_path / "x.png"
+    assert_refused(invoke("render", "--demo", "-o", out, "--method", "ewa", "--backend", "cpu",
+                          "--size", "8192x8192", "--supersample", "2"), "--size/--supersample", "CPU")
+    assert_refused(invoke("render", "--demo", "-o", out, "--method", "mls", "--size", "4096x4096",
+                          "--supersample", "3"), "--size/--supersample", "CPU")
+    assert not out.exists()

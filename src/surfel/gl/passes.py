@@ -30,7 +30,7 @@ import numpy as np
 from ..errors import SurfelError
 from ..files import write_atomically
 from .context import get_context
-from .targets import GBuffer, gbuffer_result, read_texture
+from .targets import GBuffer, allocating, gbuffer_result, read_texture
 
 UNIFORM_UNITS = {"u_visibility": 1, "u_accum_color": 2, "u_accum_normal": 3}
 BACK_LAYER_UNITS = {"u_visibility": 1, "u_back": 4}  # the back layer's programs (ewa_gl.glsl)
@@ -56,15 +56,16 @@ class SplatTargets:
     def allocate(cls, width: int, height: int, guard: int = 0, back_layer: bool = False) -> SplatTargets:
         ctx = get_context()
         target = (width + 2 * guard, height + 2 * guard)
-        visibility = ctx.texture(target, 2, dtype="f4")
-        accum = [ctx.texture(target, 4, dtype="f4") for _ in range(2)]
-        back = ctx.texture(target, 1, dtype="f4") if back_layer else None
-        back_accum = [ctx.texture(target, 4, dtype="f4") for _ in range(2)] if back_layer else []
-        for tex in (visibility, *accum, *back_accum, *([back] if back else [])):
-            tex.filter = (ctx.NEAREST, ctx.NEAREST)
-        return cls(guard, visibility, ctx.framebuffer(color_attachments=[visibility]), accum,
-                   ctx.framebuffer(color_attachments=accum + back_accum), GBuffer(width, height),
-                   back, ctx.framebuffer(color_attachments=[back]) if back else None, back_accum)
+        with allocating(*target):
+            visibility = ctx.texture(target, 2, dtype="f4")
+            accum = [ctx.texture(target, 4, dtype="f4") for _ in range(2)]
+            back = ctx.texture(target, 1, dtype="f4") if back_layer else None
+            back_accum = [ctx.texture(target, 4, dtype="f4") for _ in range(2)] if back_layer else []
+            for tex in (visibility, *accum, *back_accum, *([back] if back else [])):
+                tex.filter = (ctx.NEAREST, ctx.NEAREST)
+            return cls(guard, visibility, ctx.framebuffer(color_attachments=[visibility]), accum,
+                       ctx.framebuffer(color_attachments=accum + back_accum), GBuffer(width, height),
+                       back, ctx.framebuffer(color_attachments=[back]) if back else None, back_accum)
 
     def release(self) -> None:
         for obj in (self.visibility, self.visibility_fbo, *self.accum, self.accum_fbo, self.out,

@@ -47,7 +47,7 @@ from ..camera import Camera
 from ..cloud import PointCloud
 from ..gl.context import get_context
 from ..gl.program import set_uniforms
-from ..gl.targets import GBuffer, gbuffer_result, read_texture
+from ..gl.targets import GBuffer, check_target_size, gbuffer_result, read_texture
 from ..gl.uniforms import apply_common
 from ..options import RenderOptions, at_least, setting
 from ..result import RenderResult
@@ -127,6 +127,7 @@ def render_mls_gl(cloud: PointCloud, camera: Camera, options: RenderOptions, par
     for program in programs.values():
         apply_common(program, camera, surface.origin, ss, options.shading, **common)
     size = (camera.width * ss, camera.height * ss)
+    check_target_size(*size)
 
     def texture():
         tex = ctx.texture(size, 4, dtype="f4")
