@@ -6,14 +6,21 @@ exit status 2, nothing written."""
 import os
 import socket
 import stat
+import struct
+import tracemalloc
+from pathlib import Path
 
+import numpy as np
 import pytest
 from click.testing import CliRunner
 
 from conftest import requires_gl
 from surfel.cli import main
-from surfel.errors import SurfelError
+from surfel.errors import InputError, SurfelError
 from surfel.files import write_atomically
+from surfel.io import load
+
+DATA = Path(__file__).parent / "data"
 
 
 def invoke(*args):
@@ -115,3 +122,127 @@ def test_cpu_renders_have_their_own_bound(tmp_path):
     assert_refused(invoke("render", "--demo", "-o", out, "--method", "mls", "--size", "4096x4096",
                           "--supersample", "3"), "--size/--supersample", "CPU")
     assert not out.exists()
+
+
+# ---- 15.3: allocations bounded by what the file can really hold ------------------------------
+
+def patched(source, target, offset, fmt, value):
+    data = bytearray(source.read_bytes())
+    struct.pack_into(fmt, data, offset, value)
+    target.write_bytes(bytes(data))
+    return target
+
+
+def laszip_payload(data: bytes) -> int:
+    """Where the LASzip VLR's payload starts."""
+    offset, = struct.unpack_from("<H", data, 94)
+    for _ in range(struct.unpack_from("<I", data, 100)[0]):
+        if data[offset + 2:offset + 18].rstrip(b"\0") == b"laszip encoded":
+            return offset + 54
+        offset += 54 + struct.unpack_from("<H", data, offset + 20)[0]
+    raise AssertionError("no LASzip VLR")
+
+
+def test_a_laz_point_count_must_fit_its_chunk_table(tmp_path):
+    source = DATA / "autzen_trim.laz"  # 110,000 points in three chunks of 50,000
+    # 50 points a byte: what the old bound on LAZ allowed, 30 million points for this file
+    lying = patched(source, tmp_path / "count.laz", 107, "<I", 50 * source.stat().st_size)
+    with pytest.raises(InputError, match="claims 30167650 points, but its chunk table holds at most 150000"):
+        load(lying)
+    # a count the table allows but the chunks do not hold
+    with pytest.raises(InputError, match="the point data ends before the 149999 points"):
+        load(patched(source, tmp_path / "within.laz", 107, "<I", 149_999))
+    # a chunk size that lies: decoding in pieces stops where the data does
+    data = source.read_bytes()
+    chunk_size = patched(source, tmp_path / "chunk.laz", laszip_payload(data) + 12, "<I", 1 << 31)
+    patched(chunk_size, chunk_size, 107, "<I", 30_000_000)
+    with pytest.raises(InputError, match="the point data ends before the 30000000 points"):
+        load(chunk_size)
+
+
+def test_a_laz_of_identical_points_packs_more_than_50_a_byte(tmp_path):
+    laspy = pytest.importorskip("laspy")
+    n = 500_000
+    las = laspy.LasData(laspy.LasHeader(point_format=0, version="1.2"))
+    las.x = las.y = las.z = np.zeros(n)
+    las.write(tmp_path / "same.laz")
+    assert n / (tmp_path / "same.laz").stat().st_size > 100  # LASzip's arithmetic coder on repeated points
+    assert len(load(tmp_path / "same.laz")) == n
+
+
+def ply_with_lists(path, rng, n, big_endian=False):
+    """A binary PLY mesh: vertices with two list properties of varying lengths (skipped by the
+    reader) and faces that are triangles and quads, with a per-face scalar and a second list."""
+    order = ">" if big_endian else "<"
+    positions = rng.normal(size=(n, 3)).astype(np.float32)
+    sides = rng.integers(3, 5, size=n // 2)
+    polygons = [rng.choice(n, size=k, replace=False) for k in sides]
+    header = (f"ply\nformat binary_{'big' if big_endian else 'little'}_endian 1.0\nelement vertex {n}\n"
+              "property float x\nproperty list uchar short tags\nproperty float y\nproperty float z\n"
+              "property list ushort uint more\n"
+              f"element face {len(polygons)}\nproperty uchar flag\nproperty list uchar int vertex_indices\n"
+              "property list uchar float texcoord\nend_header\n").encode()
+    body = bytearray()
+    for i, (x, y, z) in enumerate(positions):
+        tags, more = i % 3, (i * 7) % 4
+        body += struct.pack(f"{order}fB{tags}hff", x, tags, *range(tags), y, z)
+        body += struct.pack(f"{order}H{more}I", more, *range(more))
+    for k, polygon in enumerate(polygons):
+        body += struct.pack(f"{order}BB{len(polygon)}iB2f", k % 2, len(polygon), *polygon, 2, 0.5, 0.5)
+    path.write_bytes(header + bytes(body))
+    return positions, polygons
+
+
+@pytest.mark.parametrize("big_endian", [False, True])
+def test_ply_lists_of_varying_lengths_are_read_exactly(tmp_path, big_endian):
+    from surfel.io.mesh import triangles_from_polygons
+
+    rng = np.random.default_rng(5)
+    positions, polygons = ply_with_lists(tmp_path / "m.ply", rng, 40, big_endian)
+    cloud = load(tmp_path / "m.ply")
+    lengths = np.array([len(p) for p in polygons])
+    triangles = triangles_from_polygons(lengths, np.concatenate(polygons), 40, "m.ply")
+    used = np.unique(triangles)
+    np.testing.assert_array_equal(cloud.positions, positions[used])
+    np.testing.assert_array_equal(used[cloud.faces], triangles)
+
+
+def test_ply_lists_of_varying_lengths_use_memory_like_the_file(tmp_path):
+    """A vertex element of small records, each with ten list properties, one of varying
+    length: record by record in Python this took 60 times the file (issue 15.3)."""
+    n = 300_000
+    header = (f"ply\nformat binary_little_endian 1.0\nelement vertex {n}\nproperty uchar x\nproperty uchar y\n"
+              "property uchar z\n" + "".join(f"property list uchar int l{k}\n" for k in range(10))
+              + "end_header\n").encode()
+    records = np.zeros((n, 13), np.uint8)
+    records[:, :3] = np.random.default_rng(0).integers(0, 255, (n, 3))
+    body = records.tobytes()
+    body = body[:3] + b"\x01\x00\x00\x00\x00" + body[4:]  # the first record's first list holds one item
+    (tmp_path / "lists.ply").write_bytes(header + body)
+    load(tmp_path / "lists.ply")  # compile the walks first: numba's own allocations are not the file's
+    tracemalloc.start()
+    try:
+        cloud = load(tmp_path / "lists.ply")
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert len(cloud) == n
+    assert peak < 6 * len(body)  # the packed scalars, then float64 positions (24 bytes a point)
+
+
+def test_an_npz_decompression_bomb_is_refused_before_it_is_inflated(tmp_path):
+    bomb = tmp_path / "bomb.npz"
+    np.savez_compressed(bomb, positions=np.zeros((2_000_000, 3)))  # 48 MB of zeros in some 50 kB
+    tracemalloc.start()
+    try:
+        with pytest.raises(InputError, match="bomb.npz: NPZ arrays would expand .* a decompression bomb"):
+            load(bomb)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 1 << 20
+    # an ignored member is never inflated: a grid with a bomb beside it loads
+    g = np.stack(np.meshgrid(np.arange(300.0), np.arange(300.0)), -1).reshape(-1, 2)
+    grid = np.column_stack([g, np.zeros(len(g))])  # the most compressible real layout, about 13 times
+    np.savez_compressed(tmp_path / "grid.npz", positions=grid, notes=np.zeros((3000, 3000)))
+    np.testing.assert_array_equal(load(tmp_path / "grid.npz").positions, grid)

@@ -49,10 +49,10 @@ from __future__ import annotations
 import mmap
 import os
 import re
-import struct
 from dataclasses import dataclass, field
 from typing import BinaryIO, NamedTuple
 
+import numba
 import numpy as np
 
 from ..attributes import KINDS, AttributeSpec, canonical_names
@@ -75,7 +75,6 @@ _TYPE_NAMES = {"i1": "char", "u1": "uchar", "i2": "short", "u2": "ushort", "i4":
 _WRITTEN_AS = {"b1": "u1", "i1": "i1", "u1": "u1", "i2": "i2", "u2": "u2", "i4": "i4", "u4": "u4",
                "i8": "f8", "u8": "f8", "f2": "f4", "f4": "f4", "f8": "f8"}
 _EXACT_IN_DOUBLE = 2 ** 53
-_STRUCT_CODES = {"i1": "b", "u1": "B", "i2": "h", "u2": "H", "i4": "i", "u4": "I"}
 _FORMATS = {"ascii": "ascii", "binary_little_endian": "<", "binary_big_endian": ">"}
 _FACE_LISTS = ("vertex_indices", "vertex_index")
 _ATTRIBUTE_COMMENT = "surfel_attribute"
@@ -244,27 +243,31 @@ def _read_binary(data: mmap.mmap, header: Header, wanted: set[str], path: str) -
     for element in header.elements:
         if wanted <= found.keys():
             break
-        columns, offset = _binary_element(data, offset, element, header.format, path)
+        kept = next((name for name in _FACE_LISTS if name in element.properties), None) \
+            if element.name == "face" else None
+        columns, offset = _binary_element(data, offset, element, header.format, kept, path)
         if element.name in wanted:
             found[element.name] = columns
     return found
 
 
-def _binary_element(data: mmap.mmap, offset: int, element: Element, order: str,
+def _binary_element(data: mmap.mmap, offset: int, element: Element, order: str, kept: str | None,
                     path: str) -> tuple[_Columns, int]:
-    """The element's columns (views into `data` where possible) and the offset after it."""
+    """The element's scalar columns and its list `kept` (views into `data` where possible), and
+    the offset after it. Other list properties are skipped (nothing reads them)."""
     props = list(element.properties.values())
     n = element.count
     if not props:
         return {}, offset
     smallest = sum(np.dtype(p.length_type or p.type).itemsize for p in props)  # empty lists
     _check_fits(element, n * smallest, len(data) - offset, path)
+    codes = np.frombuffer(data, dtype=np.uint8)
+    layout = _RecordLayout.of(props, order, kept)
     lists = [p for p in props if p.is_list]
     if n and lists:
         # Guess that every record's lists are as long as the first record's (all faces
         # triangles, say): then the element is one fixed-size record array.
-        _, first_lengths, _ = _walk_records(data, offset, props, 1, order, element.name, path)
-        lengths = {p.name: int(first_lengths[p.name][0]) for p in lists}
+        lengths = _first_lengths(codes, offset, props, order, element.name, path)
     else:
         lengths = {p.name: 0 for p in lists}
     dtype = np.dtype([field for p in props for field in record_fields(p, order, lengths)])
@@ -272,24 +275,47 @@ def _binary_element(data: mmap.mmap, offset: int, element: Element, order: str,
     if size <= len(data) - offset:
         records = np.frombuffer(data, dtype=dtype, count=n, offset=offset)
         if all((records[_length_field(p)] == lengths[p.name]).all() for p in lists):
-            columns: _Columns = {
-                p.name: _List(np.full(n, lengths[p.name], dtype=np.int64), records[p.name].reshape(-1))
-                if p.is_list else records[p.name] for p in props}
+            columns: _Columns = {p.name: records[p.name] for p in props if not p.is_list}
+            if kept is not None:
+                columns[kept] = _List(np.full(n, lengths[kept], dtype=np.int64), records[kept].reshape(-1))
             return columns, offset + size
-    starts, list_lengths, end = _walk_records(data, offset, props, n, order, element.name, path)
-    codes = np.frombuffer(data, dtype=np.uint8)
+    # Lists of varying lengths: two compiled walks over the records, the first for the kept
+    # list's lengths and the end, the second copying the scalars and the kept list's items
+    # into packed arrays, so that memory stays within the size of the element's bytes.
+    walk = _walk_records(codes, offset, n, layout)
+    if walk.end < 0:
+        raise _walk_error(walk.end, element.name, path)
+    packed = np.empty((n, layout.scalar_bytes), np.uint8)
+    items = np.empty(int(walk.lengths.sum()) * layout.kept_size, np.uint8)
+    _copy_records(codes, offset, n, layout.sizes, layout.length_sizes, layout.scalar_offsets, layout.kept,
+                  layout.big_endian, packed, items)
     columns = {}
+    if layout.scalar_bytes:
+        scalars = packed.view(layout.scalar_dtype).reshape(n)
+        columns = {p.name: scalars[p.name] for p in props if not p.is_list}
+    if kept is not None:
+        item = np.dtype(order + element.properties[kept].type)
+        columns[kept] = _List(walk.lengths.astype(np.int64), items.view(item))
+    return columns, walk.end
+
+
+def _first_lengths(codes: np.ndarray, offset: int, props: list[Property], order: str, element: str,
+                   path: str) -> dict[str, int]:
+    """The list lengths of the record at `offset`."""
+    lengths = {}
     for p in props:
-        item = np.dtype(order + p.type)
-        begin = np.array(starts[p.name], dtype=np.int64)
-        if p.length_type is not None:
-            counts = np.array(list_lengths[p.name], dtype=np.int64)
-            first_item = begin + np.dtype(p.length_type).itemsize
-            positions = np.repeat(first_item, counts) + ragged_arange(counts) * item.itemsize
-            columns[p.name] = _List(counts, _gather(codes, positions, item))
-        else:
-            columns[p.name] = _gather(codes, begin, item)
-    return columns, end
+        if not p.is_list:
+            offset += np.dtype(p.type).itemsize
+            continue
+        length_type = np.dtype(order + p.length_type)
+        if offset + length_type.itemsize > len(codes):
+            raise _truncated(element, path)
+        length = int(codes[offset:offset + length_type.itemsize].view(length_type)[0])
+        if length < 0:
+            raise _walk_error(_NEGATIVE, element, path)
+        lengths[p.name] = length
+        offset += length_type.itemsize + length * np.dtype(p.type).itemsize
+    return lengths
 
 
 def record_fields(prop: Property, order: str, lengths: dict[str, int]) -> list[tuple]:
@@ -305,36 +331,107 @@ def _length_field(prop: Property) -> str:
     return f"{prop.name} length"  # PLY names have no spaces, so this never collides
 
 
-def _walk_records(data: mmap.mmap, offset: int, props: list[Property], count: int, order: str,
-                  element: str, path: str) -> tuple[dict[str, list[int]], dict[str, list[int]], int]:
-    """Record by record: where each property starts, each list's length, and the end offset."""
-    end = len(data)
-    starts: dict[str, list[int]] = {p.name: [] for p in props}
-    lengths: dict[str, list[int]] = {p.name: [] for p in props}  # stays empty for scalars
-    steps = [(starts[p.name], np.dtype(p.type).itemsize,
-              None if p.length_type is None else struct.Struct(order + _STRUCT_CODES[p.length_type]),
-              lengths[p.name]) for p in props]
-    for _ in range(count):
-        for begin, item_size, length_reader, record_lengths in steps:
-            begin.append(offset)
-            if length_reader is None:
-                offset += item_size
+@dataclass(frozen=True)
+class _RecordLayout:
+    """A binary record's properties as the compiled walks read them: item sizes, list length
+    sizes (0 for scalars) and signedness, each scalar's offset in the packed scalar record,
+    and the index of the one list kept (-1: none)."""
+
+    big_endian: bool
+    sizes: np.ndarray
+    length_sizes: np.ndarray
+    length_signed: np.ndarray
+    scalar_offsets: np.ndarray
+    kept: int
+    kept_size: int
+    scalar_dtype: np.dtype
+
+    @property
+    def scalar_bytes(self) -> int:
+        return self.scalar_dtype.itemsize
+
+    @classmethod
+    def of(cls, props: list[Property], order: str, kept: str | None) -> _RecordLayout:
+        scalars = [p for p in props if not p.is_list]
+        scalar_dtype = np.dtype([(p.name, order + p.type) for p in scalars])
+        offsets = [scalar_dtype.fields[p.name][1] if not p.is_list else -1 for p in props]
+        index = next((k for k, p in enumerate(props) if p.name == kept), -1)
+        return cls(order == ">", np.array([np.dtype(p.type).itemsize for p in props], np.int64),
+                   np.array([np.dtype(p.length_type).itemsize if p.is_list else 0 for p in props], np.int64),
+                   np.array([p.is_list and p.length_type[0] == "i" for p in props], np.bool_),
+                   np.array(offsets, np.int64), index,
+                   np.dtype(props[index].type).itemsize if index >= 0 else 0, scalar_dtype)
+
+
+class _Walk(NamedTuple):
+    lengths: np.ndarray  # the kept list's length in each record (empty without one)
+    end: int  # offset after the records; _TRUNCATED or _NEGATIVE when they cannot be read
+
+
+_TRUNCATED, _NEGATIVE = -1, -2
+
+
+def _walk_records(codes: np.ndarray, offset: int, count: int, layout: _RecordLayout) -> _Walk:
+    lengths, end = _walk(codes, offset, count, layout.sizes, layout.length_sizes, layout.length_signed,
+                         layout.kept, layout.big_endian)
+    return _Walk(lengths, int(end))
+
+
+def _walk_error(code: int, element: str, path: str) -> InputError:
+    if code == _NEGATIVE:
+        return InputError(path, f"PLY element '{element}' has a list of negative length")
+    return _truncated(element, path)
+
+
+@numba.njit(cache=True)
+def _read_length(codes, at, size, signed, big_endian):  # pragma: no cover - compiled
+    value = 0
+    for b in range(size):
+        byte = codes[at + (size - 1 - b if big_endian else b)]
+        value |= np.int64(byte) << (8 * b)
+    if signed and value >= np.int64(1) << (8 * size - 1):
+        value -= np.int64(1) << (8 * size)
+    return value
+
+
+@numba.njit(cache=True)
+def _walk(codes, offset, count, sizes, length_sizes, length_signed, kept, big_endian):  # pragma: no cover
+    lengths = np.zeros(count if kept >= 0 else 0, np.uint32)
+    end = len(codes)
+    for r in range(count):
+        for p in range(len(sizes)):
+            if length_sizes[p] == 0:
+                offset += sizes[p]
                 continue
-            if offset + length_reader.size > end:
-                raise _truncated(element, path)
-            (length,) = length_reader.unpack_from(data, offset)
+            if offset + length_sizes[p] > end:
+                return lengths, _TRUNCATED
+            length = _read_length(codes, offset, length_sizes[p], length_signed[p], big_endian)
             if length < 0:
-                raise InputError(path, f"PLY element '{element}' has a list of negative length")
-            record_lengths.append(length)
-            offset += length_reader.size + length * item_size
+                return lengths, _NEGATIVE
+            if p == kept:
+                lengths[r] = length
+            offset += length_sizes[p] + length * sizes[p]
         if offset > end:
-            raise _truncated(element, path)
-    return starts, lengths, offset
+            return lengths, _TRUNCATED
+    return lengths, offset
 
 
-def _gather(codes: np.ndarray, starts: np.ndarray, dtype: np.dtype) -> np.ndarray:
-    """The values of `dtype` stored at the byte offsets `starts` of `codes`."""
-    return codes[starts[:, None] + np.arange(dtype.itemsize)].view(dtype).reshape(-1)
+@numba.njit(cache=True)
+def _copy_records(codes, offset, count, sizes, length_sizes, scalar_offsets, kept, big_endian, packed,
+                  items):  # pragma: no cover - compiled
+    at = 0
+    for r in range(count):
+        for p in range(len(sizes)):
+            if length_sizes[p] == 0:
+                packed[r, scalar_offsets[p]:scalar_offsets[p] + sizes[p]] = codes[offset:offset + sizes[p]]
+                offset += sizes[p]
+                continue
+            length = _read_length(codes, offset, length_sizes[p], False, big_endian)
+            offset += length_sizes[p]
+            if p == kept:
+                items[at:at + length * sizes[p]] = codes[offset:offset + length * sizes[p]]
+                at += length * sizes[p]
+            offset += length * sizes[p]
 
 
 def _check_fits(element: Element, need: int, have: int, path: str) -> None:
@@ -406,9 +503,9 @@ def _cloud(header: Header, found: dict[str, _Columns], path: str) -> PointCloud:
     columns = found["vertex"]
 
     def stacked(names: tuple[str, ...], dtype: type = np.float32) -> np.ndarray | None:
-        present = [columns.get(name) for name in names]
-        if any(isinstance(column, _List) for column in present):
+        if any(name in vertex.properties and vertex.properties[name].is_list for name in names):
             raise InputError(path, f"PLY vertex properties {' '.join(names)} must not be lists")
+        present = [columns.get(name) for name in names]
         arrays = [column for column in present if isinstance(column, np.ndarray)]
         return np.column_stack(arrays).astype(dtype) if len(arrays) == len(names) else None
 
