@@ -3,6 +3,7 @@ OpenGL allows, files whose sizes lie, corrupt LOD containers, degenerate meshes 
 coordinates at the edges of float range. Each refusal is one line naming the file or option,
 exit status 2, nothing written."""
 
+import json
 import os
 import socket
 import stat
@@ -246,3 +247,108 @@ def test_an_npz_decompression_bomb_is_refused_before_it_is_inflated(tmp_path):
     grid = np.column_stack([g, np.zeros(len(g))])  # the most compressible real layout, about 13 times
     np.savez_compressed(tmp_path / "grid.npz", positions=grid, notes=np.zeros((3000, 3000)))
     np.testing.assert_array_equal(load(tmp_path / "grid.npz").positions, grid)
+
+
+# ---- 15.5: corrupt LOD containers ----------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def hierarchies(tmp_path_factory):
+    """A .lod directory and a .lod.npz file of 3,000 points on a sphere."""
+    from surfel.lod import build_lod, save_lod
+    from surfel.lod.outofcore import build_outofcore
+    from surfel.rendering import complete
+
+    folder = tmp_path_factory.mktemp("lod")
+    rng = np.random.default_rng(0)
+    p = rng.normal(size=(3000, 3))
+    p /= np.linalg.norm(p, axis=1, keepdims=True)
+    np.savetxt(folder / "sphere.xyz", p)
+    build_outofcore(folder / "sphere.xyz", folder / "sphere.lod", progress=False)
+    save_lod(build_lod(complete(load(folder / "sphere.xyz"))[0], progress=False), folder / "sphere.lod.npz")
+    return folder
+
+
+def _without(key):
+    return lambda m, root: {k: v for k, v in m.items() if k != key}
+
+
+def _partition(**changes):
+    return lambda m, root: {**m, "partitions": [{**m["partitions"][0], **changes}]}
+
+
+def _shorten(name, rows):
+    def edit(m, root):
+        array = np.load(root / "part-00000" / name)
+        np.save(root / "part-00000" / name, array[:rows])
+        return m
+    return edit
+
+
+def _move_outside(m, root):
+    os.rename(root / "part-00000", root.parent / f"{root.name}-x")
+    return {**m, "partitions": [{**m["partitions"][0], "name": f"../{root.name}-x"}]}
+
+
+@pytest.mark.parametrize("case, edit, words", [
+    ("list", lambda m, root: [m], "the LOD manifest is a JSON list, not an object"),
+    ("no-partitions", _without("partitions"), "the LOD manifest lacks 'partitions'"),
+    ("no-bounds", _without("bounds"), "the LOD manifest lacks 'bounds'"),
+    ("no-colors", _without("colors"), "the LOD manifest lacks 'colors'"),
+    ("empty", lambda m, root: {**m, "partitions": []}, "lists no partitions"),
+    ("bounds", lambda m, root: {**m, "bounds": [[0, 0], [1, 1, "a"]]}, "'bounds' is not two corners"),
+    ("count", lambda m, root: {**m, "top_nodes": "3"}, "'top_nodes' is not a whole number"),
+    ("name", _partition(name=7), "partition 'name' is not a name: 7"),
+    ("radius", _partition(max_radius="x"), "'max_radius' is not a number"),
+    ("nodes", _partition(nodes=10 ** 9), "lod_emax.npy holds float32 (4738,); the manifest calls for float"),
+    ("short", _shorten("positions.npy", 10), "positions.npy holds float64 (10, 3)"),
+    ("outside", _move_outside, "names partition '../outside.lod-x', which is no directory of it"),
+])
+def test_a_corrupt_lod_directory_is_one_line(hierarchies, tmp_path, case, edit, words):
+    import shutil
+
+    root = tmp_path / f"{case}.lod"
+    shutil.copytree(hierarchies / "sphere.lod", root)
+    manifest = edit(json.loads((root / "manifest.json").read_text()), root)
+    (root / "manifest.json").write_text(json.dumps(manifest))
+    out = tmp_path / "x.png"
+    assert_refused(invoke("render", root, "-o", out, "--size", "32x32"), f"{case}.lod", words)
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("key, value, words", [
+    ("lod_emin", lambda z: np.stack([z["lod_emin"]] * 2, 1), "lod_emin must have shape (4738,), got (4738, 2)"),
+    ("lod_emax", lambda z: z["lod_emax"][:-1], "lod_emax must have shape (4738,), got (4737,)"),
+    ("clip_lines", lambda z: np.zeros((len(z["positions"]), 3, 3), np.float32), "clip_lines must have shape"),
+    ("lod_dsuffix", lambda z: np.array(["a"] * len(z["positions"])), "'lod_dsuffix' is not numeric"),
+])
+def test_wrongly_shaped_lod_arrays_are_one_line(hierarchies, tmp_path, key, value, words):
+    with np.load(hierarchies / "sphere.lod.npz") as archive:
+        arrays = dict(archive)
+    arrays[key] = value(arrays)
+    np.savez(tmp_path / "bad.lod.npz", **arrays)
+    assert_refused(invoke("render", tmp_path / "bad.lod.npz", "-o", tmp_path / "x.png", "--lod-error", "1"),
+                   "bad.lod.npz", words)
+
+
+def copc_variant(path, entry_count):
+    """The test COPC file with every node's point count replaced (hierarchy pages in its EVLR)."""
+    data = bytearray((DATA / "simple_with_page.copc.laz").read_bytes())
+    offset, count = struct.unpack_from("<QI", data, 235)
+    for _ in range(count):
+        user, record, length = data[offset + 2:offset + 18].rstrip(b"\0"), *struct.unpack_from("<HQ", data, offset + 18)
+        if (user, record) == (b"copc", 1000):
+            for entry in range(offset + 60, offset + 60 + length, 32):
+                if struct.unpack_from("<i", data, entry + 28)[0] > 0:
+                    struct.pack_into("<i", data, entry + 28, entry_count)
+        offset += 60 + length
+    path.write_bytes(bytes(data))
+    return path
+
+
+def test_corrupt_copc_hierarchies_are_one_line(tmp_path):
+    out = tmp_path / "x.png"
+    assert_refused(invoke("render", copc_variant(tmp_path / "empty.copc.laz", 0), "-o", out),
+                   "empty.copc.laz", "no node holding points")
+    assert_refused(invoke("render", copc_variant(tmp_path / "huge.copc.laz", 2 ** 31 - 1), "-o", out),
+                   "huge.copc.laz", "claims 2147483647 points")
+    assert not out.exists()

@@ -65,6 +65,10 @@ _ALIASES = {"scananglerank": "scan_angle"}
 DERIVED = frozenset({"phong_alpha", "phong_beta", "clip_lines", "lod_emin", "lod_emax", "lod_dparent",
                      "lod_dsuffix"})
 DERIVED_DTYPE = np.dtype(np.float32)
+# Each derived array's per-point shape (scalars but the clip lines: two lines a u + b v <= c,
+# as surfel.preprocess estimates them); a file holding another is refused, since every
+# renderer indexes them so.
+DERIVED_SHAPES = {name: () for name in DERIVED} | {"clip_lines": (2, 3)}
 # The geometry fields of a PointCloud: never attribute names.
 GEOMETRY = frozenset({"positions", "normals", "colors", "radii", "axes", "faces"})
 _NUMERIC = "biuf"

@@ -17,7 +17,7 @@ from functools import cached_property
 
 import numpy as np
 
-from .attributes import CONTINUOUS, DERIVED, DERIVED_DTYPE, GEOMETRY, KINDS, Schema
+from .attributes import CONTINUOUS, DERIVED, DERIVED_DTYPE, DERIVED_SHAPES, GEOMETRY, KINDS, Schema
 from .errors import InputError
 
 
@@ -99,12 +99,11 @@ class PointCloud:
             if not isinstance(name, str) or not name or name in GEOMETRY:
                 raise InputError(src, f"{name!r} cannot name an attribute (a geometry field, or not a name)")
             value = np.asarray(value)
-            if name in DERIVED:
-                dtype = DERIVED_DTYPE
-            elif value.dtype.kind in "biuf" and value.dtype.fields is None:
-                dtype = value.dtype if value.dtype.isnative else value.dtype.newbyteorder("=")
-            else:
+            if value.dtype.kind not in "biuf" or value.dtype.fields is not None:
                 raise InputError(src, f"attribute '{name}' is not numeric ({value.dtype})")
+            if name in DERIVED:
+                return per_point(name, value, DERIVED_SHAPES[name], DERIVED_DTYPE)
+            dtype = value.dtype if value.dtype.isnative else value.dtype.newbyteorder("=")
             return per_point(name, value, value.shape[1:], dtype)
 
         normals = per_point("normals", self.normals, (3,))

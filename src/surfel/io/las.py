@@ -30,13 +30,13 @@ file size: header size, offset to the point data, the VLRs and EVLRs it lists, a
 count times the record length. A LAZ file's records are compressed, and a run of identical
 points packs about 150 into a byte, so its size bounds nothing useful; its chunk table
 (LASzip: an int64 offset at the start of the point data, then version, number of chunks and
-each chunk's point and byte counts) does. The count must fit the chunks (their number times
-the LASzip VLR's chunk size, or the sum of their counts for variable-size chunks), whose
-bytes must fit between the point data's start and the table. A header that lies is
-rejected at once, without allocating what it claims. What is left to a lie (a chunk size
-or chunk counts larger than the chunks really hold) ends when the decoder runs out of
-data: points are decoded in pieces of PIECE_POINTS, so memory grows only with the points
-the file really holds.
+each chunk's point and byte counts) does. The count must fit the chunks, each holding the
+LASzip VLR's chunk size (or its own count, for variable-size chunks) but at most
+LAZ_MAX_POINTS_PER_BYTE points a byte; their bytes must fit between the point data's start
+and the table. A header that lies is rejected at once, without allocating what it claims.
+What is left to a lie (chunks that hold fewer points than they claim) ends when the decoder
+runs out of data: points are decoded in pieces of PIECE_POINTS, so memory grows only with
+the points the file really holds.
 """
 
 from __future__ import annotations
@@ -60,9 +60,11 @@ _EVLR_HEADER = 60
 _HEADER_SIZE = {0: 227, 1: 227, 2: 227, 3: 235, 4: 375}
 _RECORD_SIZE = {0: 20, 1: 28, 2: 26, 3: 34, 4: 57, 5: 63, 6: 30, 7: 36, 8: 38, 9: 59, 10: 67}
 _LASZIP_VLR = ("laszip encoded", 22204)  # user id and record id of the LASzip VLR
-_LASZIP_CHUNK_SIZE = struct.Struct("<I")  # at byte 12 of its payload; all ones: variable-size chunks
-_VARIABLE_CHUNKS = 0xFFFFFFFF
+_LASZIP_CHUNK_SIZE = struct.Struct("<I")  # at byte 12 of its payload (0: no chunks)
 _CHUNK_TABLE_HEADER = struct.Struct("<II")  # version, number of chunks
+# LASzip's adaptive arithmetic coder saturates on repeated points: 4 million identical ones
+# take 148 points a byte (point format 0), 100 (format 6); no chunk holds more than this.
+LAZ_MAX_POINTS_PER_BYTE = 256
 PIECE_POINTS = 1_000_000  # points decoded at a time
 NORMAL_NAMES = (("normal_x", "normal_y", "normal_z"), ("NormalX", "NormalY", "NormalZ"))
 RADIUS_NAMES = ("radius", "Radius")
@@ -302,21 +304,19 @@ def _chunk_capacity(file: BinaryIO, laszip: tuple[int, int], point_offset: int, 
     room = table_offset - point_offset - 8
     if chunks * record_length > room:
         raise InputError(path, f"LAZ chunk table lists {chunks} chunks, more than {room} bytes of points can hold")
-    if chunk_size != _VARIABLE_CHUNKS:
-        return chunks * chunk_size
     import lazrs
 
     try:
         file.seek(offset)
         vlr = lazrs.LazVlr(file.read(length))
         file.seek(point_offset)
-        table = lazrs.read_chunk_table(file, vlr)
+        table = lazrs.read_chunk_table(file, vlr)  # fixed-size chunks: (chunk size, bytes) each
     except Exception as error:  # lazrs reports a damaged table in several types
         message = (str(error).splitlines() or [type(error).__name__])[0][:120]
         raise InputError(path, f"LAZ chunk table is damaged: {message}") from None
     if sum(chunk_bytes for _, chunk_bytes in table) > room:
         raise InputError(path, "LAZ chunk table lists chunks larger than the point data")
-    return sum(points for points, _ in table)
+    return sum(min(points, chunk_bytes * LAZ_MAX_POINTS_PER_BYTE) for points, chunk_bytes in table)
 
 
 def _check_records(file: BinaryIO, offset: int, count: int, header_size: int, length_format: str,

@@ -11,7 +11,9 @@ Arrays, by key:
 - ``geospatial``: an optional boolean scalar (as LOD files store it) marking the cloud
   geospatial (up axis +Z);
 - any other numeric array whose first dimension is N becomes ``attributes[key]``, in its own
-  dtype; anything else (other scalars, metadata) is ignored;
+  dtype; anything else (other scalars, metadata) is ignored, except under the names of
+  surfel's own arrays (`surfel.attributes.DERIVED`: LOD errors, clip lines, normal fields),
+  which must have their own shape;
 - ``surfel_schema``: an optional string scalar, the JSON of the attributes' schema
   (`surfel.attributes.Schema.to_json`), giving the kinds of the attributes it names.
 
@@ -39,7 +41,7 @@ import zipfile
 
 import numpy as np
 
-from ..attributes import Schema
+from ..attributes import DERIVED, Schema
 from ..cloud import PointCloud
 from ..errors import InputError, SurfelError
 
@@ -84,7 +86,7 @@ def read_npz(path: str) -> PointCloud:
     geospatial = flag is not None and flag.shape == () and flag.dtype.kind in "biu" and bool(flag)
     attributes = {key: value for key, value in arrays.items()
                   if key not in _ATTRIBUTE_KEYS and key not in _POSITION_KEYS
-                  and value.dtype.kind in "biuf" and value.ndim >= 1 and len(value) == n}
+                  and (key in DERIVED or value.dtype.kind in "biuf" and value.ndim >= 1 and len(value) == n)}
     kinds = {}
     stated = arrays.get(SCHEMA_KEY)
     if stated is not None:
@@ -164,6 +166,6 @@ def _used_members(members: dict[str, tuple]) -> dict[str, tuple]:
         _, shape, dtype = member
         scalar = shape == () and key in (GEOSPATIAL_KEY, SCHEMA_KEY)
         attribute = key not in _POSITION_KEYS and len(shape) >= 1 and shape[0] == n and dtype.kind in "biuf"
-        if key == position_key or key in _ATTRIBUTE_KEYS or scalar or attribute:
-            used[key] = member  # geometry is read whatever its shape: PointCloud reports a wrong one
+        if key == position_key or key in _ATTRIBUTE_KEYS or key in DERIVED or scalar or attribute:
+            used[key] = member  # geometry and surfel's own arrays whatever their shape: PointCloud reports it
     return used
