@@ -352,3 +352,88 @@ def test_corrupt_copc_hierarchies_are_one_line(tmp_path):
     assert_refused(invoke("render", copc_variant(tmp_path / "huge.copc.laz", 2 ** 31 - 1), "-o", out),
                    "huge.copc.laz", "claims 2147483647 points")
     assert not out.exists()
+
+
+# ---- 15.8: one degenerate face does not reject a valid mesh ----------------------------------
+
+def cube_mesh():
+    """A unit cube as 12 counter-clockwise triangles (outward normals)."""
+    v = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], float)
+    quads = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
+    return v, np.array([t for a, b, c, d in quads for t in ((a, b, c), (a, c, d))])
+
+
+def write_obj(path, vertices, faces):
+    lines = [f"v {x:.17g} {y:.17g} {z:.17g}" for x, y, z in vertices]
+    lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in faces]
+    path.write_text("\n".join(lines) + "\n")
+
+
+def write_ply_mesh(path, vertices, faces):
+    header = (f"ply\nformat ascii 1.0\nelement vertex {len(vertices)}\nproperty double x\nproperty double y\n"
+              f"property double z\nelement face {len(faces)}\nproperty list uchar int vertex_indices\nend_header\n")
+    body = [f"{x:.17g} {y:.17g} {z:.17g}" for x, y, z in vertices] + [f"3 {a} {b} {c}" for a, b, c in faces]
+    path.write_text(header + "\n".join(body) + "\n")
+
+
+@pytest.mark.parametrize("writer, suffix", [(write_obj, "obj"), (write_ply_mesh, "ply")])
+@pytest.mark.parametrize("extra", [[[0.9, 0.9, 1.01]] * 3, [[0.2, 0.5, 1.01], [0.5, 0.5, 1.01], [0.8, 0.5, 1.01]]],
+                         ids=["coincident", "collinear"])
+def test_a_degenerate_face_apart_from_the_mesh_takes_its_neighbours_normals(tmp_path, writer, suffix, extra):
+    vertices, faces = cube_mesh()
+    writer(tmp_path / f"cube.{suffix}", vertices, faces)
+    writer(tmp_path / f"odd.{suffix}", np.vstack([vertices, extra]), np.vstack([faces, [[8, 9, 10]]]))
+    cube, odd = load(tmp_path / f"cube.{suffix}"), load(tmp_path / f"odd.{suffix}")
+    np.testing.assert_array_equal(odd.normals[:8], cube.normals)  # the mesh's own normals are untouched
+    # the extra vertices lie just above the top face; its nearest vertices' normals point up and out
+    nearest = np.argmin(np.linalg.norm(vertices[None] - np.array(extra)[:, None], axis=2), axis=1)
+    np.testing.assert_array_equal(odd.normals[8:], cube.normals[nearest])
+    assert odd.is_mesh and len(odd.faces) == 13
+
+
+def test_the_command_line_renders_and_compares_a_mesh_with_a_degenerate_face(tmp_path):
+    vertices, faces = cube_mesh()
+    write_obj(tmp_path / "odd.obj", np.vstack([vertices, [[0.5, 0.5, 0.5]] * 3]), np.vstack([faces, [[8, 9, 10]]]))
+    for command in ("render", "compare"):
+        result = invoke(command, tmp_path / "odd.obj", "-o", tmp_path / f"{command}.png", "--size", "32x32")
+        assert result.exit_code == 0, result.output
+        assert (tmp_path / f"{command}.png").exists()
+
+
+# ---- 15.9: one policy for zero-length placeholder normals ------------------------------------
+
+def test_render_and_every_lod_build_agree_on_placeholder_normals(tmp_path):
+    from surfel.lod import load_lod
+
+    rng = np.random.default_rng(0)
+    p = rng.normal(size=(3000, 3))
+    p /= np.linalg.norm(p, axis=1, keepdims=True)
+    records = np.zeros(len(p), [(k, "<f8") for k in "xyz"] + [(f"n{k}", "<f4") for k in "xyz"])
+    for i, k in enumerate("xyz"):
+        records[k], records[f"n{k}"] = p[:, i], p[:, i]
+    placeholders = np.arange(0, len(p), 100)
+    for k in "xyz":
+        records[f"n{k}"][placeholders] = 0
+    header = (f"ply\nformat binary_little_endian 1.0\nelement vertex {len(p)}\n"
+              + "".join(f"property double {k}\n" for k in "xyz") + "".join(f"property float n{k}\n" for k in "xyz")
+              + "end_header\n")
+    (tmp_path / "in.ply").write_bytes(header.encode() + records.tobytes())
+    assert load(tmp_path / "in.ply").normals is None  # a file with placeholders has no normals: estimated
+    for name in ("out.lod", "out.lod.npz", "out.copc.laz"):
+        result = invoke("lod", "build", tmp_path / "in.ply", "-o", tmp_path / name)
+        assert result.exit_code == 0, (name, result.output)
+    leaves = {}
+    seq = load_lod(tmp_path / "out.lod.npz")
+    leaf = seq.attributes["lod_emin"] == 0
+    leaves["lod.npz"] = (seq.positions[leaf], seq.normals[leaf])
+    part = tmp_path / "out.lod" / "part-00000"
+    positions, normals = np.load(part / "positions.npy"), np.load(part / "normals.npy")
+    leaf = np.load(part / "lod_emin.npy") == 0
+    leaves["lod"] = (positions[leaf], normals[leaf])
+    for name, (positions, normals) in leaves.items():
+        order = np.lexsort(positions.T)
+        positions, normals = positions[order], normals[order]
+        expected = p[np.lexsort(p.T)]
+        np.testing.assert_array_equal(positions, expected)
+        # estimated from the neighbours, every one (the placeholders too) along the sphere's normal
+        assert np.abs(np.einsum("ij,ij->i", normals, expected)).min() > 0.99, name

@@ -32,6 +32,18 @@ def _contiguous(value, dtype) -> np.ndarray:
     return array if array.flags.c_contiguous else np.ascontiguousarray(array)
 
 
+def file_normals(normals) -> np.ndarray | None:
+    """Normals as a file gives them, under the one policy of every reader (so that `render`
+    and `lod build`, in memory or out of core, agree on a file): a zero vector is the "no
+    normal" placeholder some exporters write, and a file holding any counts as having no
+    normals; they are then estimated, as for a file without any. Other values (NaN) are left
+    for PointCloud to refuse."""
+    if normals is None:
+        return None
+    normals = np.asarray(normals)
+    return normals if normals.any(axis=1).all() else None
+
+
 def framing_sphere(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, float]:
     """Centre and radius of the sphere auto framing fits (CONVENTIONS.md): the bounding box's
     centre and half its diagonal (never 0, so a single point can still be framed)."""

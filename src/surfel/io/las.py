@@ -17,7 +17,7 @@ formats 0-5 store whole degrees as scan_angle_rank, formats 6-10 units of 0.006 
 Extra-bytes dimensions keep their type and element count (an array type gives an (N, k)
 attribute) and their name, spelled as `surfel.attributes.canonical_names` makes it. Extra
 bytes named normal_x/y/z (or NormalX/Y/Z) and radius (or Radius), as surfel's COPC writer
-stores them, are normals and splat radii instead.
+stores them, are normals and splat radii instead (zero normals: see `cloud.file_normals`).
 
 A ``surfel`` VLR (written by surfel.lod.copc_write) holds JSON: ``geospatial`` (the up axis of
 the cloud that was written) and ``attributes``, the schema of the written attributes (see
@@ -51,7 +51,7 @@ import laspy
 import numpy as np
 
 from ..attributes import AttributeSpec, canonical_names
-from ..cloud import PointCloud
+from ..cloud import PointCloud, file_normals
 from ..errors import InputError
 
 _VLR_HEADER = 54  # bytes of a VLR header (its payload follows)
@@ -107,8 +107,8 @@ def read_las(path: str) -> PointCloud:
     colors = None
     if rgb is not None and len(rgb) and rgb.max() > 0:
         colors = rgb / (255.0 if rgb.max() <= 255 else 65535.0)
-    return PointCloud(positions=positions, normals=normals, colors=colors, radii=radii, attributes=attributes,
-                      kinds=layout.kinds, geospatial=layout.geospatial, source=path)
+    return PointCloud(positions=positions, normals=file_normals(normals), colors=colors, radii=radii,
+                      attributes=attributes, kinds=layout.kinds, geospatial=layout.geospatial, source=path)
 
 
 def _joined(pieces: list[np.ndarray]) -> np.ndarray | None:

@@ -3,7 +3,8 @@
 Arrays, by key:
 
 - ``positions`` (or ``points``, or ``xyz``): (N, 3), required;
-- ``normals`` (N, 3); ``radii`` (N,); ``axes`` (N, 2, 3);
+- ``normals`` (N, 3) (with zero vectors among them: none, `cloud.file_normals`); ``radii``
+  (N,); ``axes`` (N, 2, 3);
 - ``colors`` (N, 3): floats in [0, 1], or integers: 0..65535 for 16-bit types, 0..255 for
   the others (uint8 above all);
 - ``faces`` (F, 3) integer vertex indices. An NPZ is a container for a cloud, not a mesh
@@ -42,7 +43,7 @@ import zipfile
 import numpy as np
 
 from ..attributes import DERIVED, Schema
-from ..cloud import PointCloud
+from ..cloud import PointCloud, file_normals
 from ..errors import InputError, SurfelError
 
 _POSITION_KEYS = ("positions", "points", "xyz")
@@ -96,7 +97,10 @@ def read_npz(path: str) -> PointCloud:
             kinds = {name: kind for name, kind in Schema.from_json(str(stated)).kinds.items() if name in attributes}
         except ValueError as error:
             raise InputError(path, f"NPZ '{SCHEMA_KEY}' is not an attribute schema: {error}") from None
-    return PointCloud(positions=positions, normals=arrays.get("normals"), colors=colors,
+    normals = arrays.get("normals")
+    if normals is not None and normals.ndim == 2:
+        normals = file_normals(normals)
+    return PointCloud(positions=positions, normals=normals, colors=colors,
                       radii=arrays.get("radii"), axes=arrays.get("axes"), faces=faces,
                       attributes=attributes, kinds=kinds, geospatial=geospatial, source=path)
 

@@ -7,7 +7,7 @@ the points; its properties, by name:
 
 - ``x y z`` (required, any numeric type; kept as float64);
 - ``nx ny nz``: normals. Files whose normals include zero vectors (the "no normal"
-  placeholder some exporters write) count as having no normals;
+  placeholder some exporters write) count as having no normals (`cloud.file_normals`);
 - ``red green blue``: colours. 8-bit integer types are divided by 255, 16-bit ones by
   65535, wider integers are read as 0..255 values, floats are taken as they are; all are
   clipped to [0, 1]. ``alpha`` is ignored;
@@ -56,11 +56,11 @@ import numba
 import numpy as np
 
 from ..attributes import KINDS, AttributeSpec, canonical_names
-from ..cloud import PointCloud
+from ..cloud import PointCloud, file_normals
 from ..errors import InputError, SurfelError
 from ..files import write_atomically
 from ._parse import numbers_by_line, ragged_arange
-from .mesh import area_weighted_vertex_normals, referenced_vertices, triangles_from_polygons
+from .mesh import mesh_normals, referenced_vertices, triangles_from_polygons
 
 _TYPES = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
@@ -513,9 +513,7 @@ def _cloud(header: Header, found: dict[str, _Columns], path: str) -> PointCloud:
     if positions is None:
         raise InputError(path, "PLY vertex element lacks x, y or z")
     n = len(positions)
-    normals = stacked(_NORMAL)
-    if normals is not None and not normals.any(axis=1).all():
-        normals = None
+    normals = file_normals(stacked(_NORMAL))
     colors = stacked(_COLOR)
     if colors is not None:
         scale = [color_scale(vertex.properties[name].type) for name in _COLOR]
@@ -542,7 +540,7 @@ def _cloud(header: Header, found: dict[str, _Columns], path: str) -> PointCloud:
                 None if a is None else a[keep] for a in (normals, colors, radii, axes))
             attributes = {name: value[keep] for name, value in attributes.items()}
         if normals is None:
-            normals = area_weighted_vertex_normals(positions, faces)
+            normals = mesh_normals(positions, faces)
     return PointCloud(positions=positions, normals=normals, colors=colors, radii=radii, axes=axes,
                       faces=faces, attributes=attributes,
                       kinds={a.spec.name: a.spec.kind for a in layout if a.stated},

@@ -5,8 +5,9 @@ The input (binary PLY read in chunks at file offsets, LAS/LAZ through laspy's ch
 iterator, a directory of such tiles as one cloud; other formats are loaded whole: see
 streaming.py) is read three times and never held in memory:
 
-1. scan: bounds, for LAS the colour range (8-bit values in 16-bit fields), and the kinds of
-   the attributes (streaming.KindVote);
+1. scan: bounds, for LAS the colour range (8-bit values in 16-bit fields), the kinds of
+   the attributes (streaming.KindVote), and whether the normals hold zero placeholders (the
+   input then counts as having none, as every reader has it: `cloud.file_normals`);
 2. histogram: point counts of the 2^7 x 2^7 x 2^7 cells of the bounding cube; the cube is
    split octree-wise, a cell being split while it holds more than `cap` points, into
    partitions (the non-empty leaves of that octree), where
@@ -73,7 +74,7 @@ import numpy as np
 from tqdm import tqdm
 
 from ..attributes import Schema
-from ..cloud import PointCloud
+from ..cloud import PointCloud, file_normals
 from ..errors import SurfelError
 from ..files import write_atomically, write_json
 from ..preprocess import INACTIVE_CLIP
@@ -298,6 +299,7 @@ def _bin_input(inputs: list[StreamInput], partial: Path, cap: int, signature: di
     lo = np.full(3, np.inf)
     hi = np.full(3, -np.inf)
     vote = KindVote(inputs)
+    placeholders = False  # zero normals: the input counts as having none (cloud.file_normals)
     for source in inputs:  # colour ranges of LAS files are needed before the colours are scaled
         color_max = 0.0
         with _bar(source.count, f"scan {os.path.basename(source.path)}", progress) as bar:
@@ -305,6 +307,7 @@ def _bin_input(inputs: list[StreamInput], partial: Path, cap: int, signature: di
                 lo = np.minimum(lo, chunk.positions.min(axis=0))
                 hi = np.maximum(hi, chunk.positions.max(axis=0))
                 vote.add(chunk)
+                placeholders = placeholders or (chunk.normals is not None and file_normals(chunk.normals) is None)
                 if chunk.colors is not None and source.kind == "las":
                     color_max = max(color_max, float(chunk.colors.max()))
                 bar.update(len(chunk.positions))
@@ -323,7 +326,7 @@ def _bin_input(inputs: list[StreamInput], partial: Path, cap: int, signature: di
     plan = _plan(histogram.reshape(res, res, res), lo, size, cap)
     del histogram
     lookup = plan.lookup()
-    has_normals, has_colors = inputs[0].has_normals, any(i.has_colors for i in inputs)
+    has_normals, has_colors = inputs[0].has_normals and not placeholders, any(i.has_colors for i in inputs)
     kinds = vote.kinds
     schema = Schema(replace(spec, kind=kinds[spec.name]) for spec in vote.specs)
     dtype = _record_dtype(has_normals, has_colors, schema)
