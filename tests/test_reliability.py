@@ -9,6 +9,7 @@ import socket
 import stat
 import struct
 import tracemalloc
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -437,3 +438,67 @@ def test_render_and_every_lod_build_agree_on_placeholder_normals(tmp_path):
         np.testing.assert_array_equal(positions, expected)
         # estimated from the neighbours, every one (the placeholders too) along the sphere's normal
         assert np.abs(np.einsum("ij,ij->i", normals, expected)).min() > 0.99, name
+
+
+# ---- 15.10: coordinates and scales at the edges of float range --------------------------------
+
+def spot_at(scale: float, offset: float = 0.0, *, mesh: bool = False):
+    from surfel.cloud import PointCloud
+    from surfel.data import demo_cloud
+
+    spot = demo_cloud()
+    positions = spot.positions - spot.positions.mean(axis=0)
+    return PointCloud(positions * scale + offset, normals=spot.normals, faces=spot.faces if mesh else None,
+                      source=f"spot x{scale:g} + {offset:g}")
+
+
+@requires_gl
+@pytest.mark.parametrize("method", ["deferred", "object-space", "ewa", "mesh"])
+def test_clouds_far_from_unit_scale_render_as_at_unit_scale(method):
+    """Spot 1e-25 and 1e25 units across: every method's float32 arithmetic and tolerances
+    (object-space EWA held only from 1e-7 to 1e9) work at unit scale, so the images match and
+    depths scale with the cloud."""
+    from surfel.rendering import Renderer, default_camera
+
+    reference = None
+    for scale in (1.0, 2.0 ** -80, 1e-25, 1e25):
+        cloud = spot_at(scale, mesh=method == "mesh")
+        result = Renderer().render(cloud, default_camera(cloud, (64, 64)), method)
+        if reference is None:
+            reference = result
+            continue
+        np.testing.assert_allclose(result.color, reference.color, atol=2e-3, err_msg=f"{scale:g}")
+        covered = np.isfinite(reference.depth)
+        np.testing.assert_array_equal(np.isfinite(result.depth), covered)
+        np.testing.assert_allclose(result.depth[covered], reference.depth[covered] * np.float32(scale), rtol=1e-5)
+
+
+def test_clouds_beyond_float_range_are_refused_naming_the_file(tmp_path):
+    from surfel.data import demo_cloud
+
+    positions = demo_cloud().positions.astype(np.float64)
+    out = tmp_path / "x.png"
+    for name, coordinates, words in [
+        ("huge.npz", positions * 1e50, "units across; surfel renders clouds"),
+        ("tiny.npz", positions * 1e-40, "units across; surfel renders clouds"),
+        ("far.npz", positions + 1e15, "are resolved only to 0.125 in float64"),
+        ("point.npz", np.full((4, 3), 1e50), "its points coincide at coordinates as large as 1e+50"),
+    ]:
+        np.savez(tmp_path / name, positions=coordinates)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")  # nothing leaks from numpy either
+            result = invoke("render", tmp_path / name, "-o", out, "--size", "32x32")
+        assert_refused(result, name, words)
+    assert not out.exists()
+
+
+def test_a_cloud_1e_minus_30_across_is_framed_and_drawn(tmp_path):
+    """The fixed 1e-9 floor of the framing radius left such clouds blank."""
+    np.savez(tmp_path / "small.npz", positions=spot_at(1e-30).positions)
+    result = invoke("render", tmp_path / "small.npz", "-o", tmp_path / "small.png", "--size", "64x64",
+                    "--method", "ewa", "--backend", "cpu")
+    assert result.exit_code == 0, result.output
+    from PIL import Image
+
+    alpha = np.asarray(Image.open(tmp_path / "small.png"))[..., 3]
+    assert 0.1 < (alpha > 127).mean() < 0.5

@@ -74,7 +74,7 @@ import numpy as np
 from tqdm import tqdm
 
 from ..attributes import Schema
-from ..cloud import PointCloud, file_normals
+from ..cloud import PointCloud, file_normals, framing_sphere
 from ..errors import SurfelError
 from ..files import write_atomically, write_json
 from ..preprocess import INACTIVE_CLIP
@@ -315,7 +315,7 @@ def _bin_input(inputs: list[StreamInput], partial: Path, cap: int, signature: di
             # chunks were scaled by 1: 8-bit values in 16-bit fields, or real 16-bit ones
             source.color_scale = 255.0 if color_max <= 255 else 65535.0
             source.has_colors = color_max > 0
-    size = max(float((hi - lo).max()), 1e-9) * (1 + 1e-9)
+    size = (float((hi - lo).max()) or 2 * framing_sphere(lo, hi)[1]) * (1 + 1e-9)  # one point: its framing
     res = 1 << HISTOGRAM_BITS
     plan = Plan(lo, size, [], [])
     histogram = np.zeros(res ** 3, np.int64)
