@@ -2,16 +2,12 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
 from surfel.cloud import PointCloud
 from surfel.preprocess import estimate_normals, estimate_radii, fit_ellipses, fit_normal_field, prepare, tangent_frames
-
-BUNNY = Path(__file__).resolve().parents[2] / "shared" / "data" / "stanford-bunny.obj"
 
 
 def unit(v: np.ndarray) -> np.ndarray:
@@ -31,21 +27,17 @@ def angles(a: np.ndarray, b: np.ndarray, oriented: bool = True) -> np.ndarray:
     return np.degrees(np.arccos(np.clip(dot if oriented else np.abs(dot), -1, 1)))
 
 
-# --- the bunny, parsed here: its vertices as the cloud, its faces as the true surface -------------
+# --- a dense organic mesh: its vertices as the cloud, its faces as the true surface -------------
 
 
 @pytest.fixture(scope="module")
-def bunny():
-    if not BUNNY.exists():
-        pytest.skip(f"{BUNNY} not available")
-    v, f = [], []
-    for line in BUNNY.read_text().splitlines():
-        if line.startswith("v "):
-            v.append(line.split()[1:4])
-        elif line.startswith("f "):
-            f.append([int(t.split("/")[0]) - 1 for t in line.split()[1:4]])
-    vertices, faces = np.array(v, np.float64), np.array(f, np.int64)
-    used = np.unique(faces)  # the scan has a few unreferenced vertices
+def dense():
+    """Spot refined to 46,850 vertices (tests/models.py); normals and surface samples here."""
+    from models import dense_spot
+
+    mesh = dense_spot()
+    vertices, faces = mesh.positions, mesh.faces
+    used = np.unique(faces)
     cross = np.cross(vertices[faces[:, 1]] - vertices[faces[:, 0]], vertices[faces[:, 2]] - vertices[faces[:, 0]])
     normals = np.zeros_like(vertices)
     for corner in range(3):  # area-weighted vertex normals: |cross| is twice the area
@@ -109,8 +101,8 @@ def test_orientation_each_component_outward():
     assert (np.einsum("ij,ij->i", normals, p - centre) > 0).all()
 
 
-def test_orientation_bunny_matches_mesh(bunny):
-    vertices, mesh_normals, _ = bunny
+def test_orientation_matches_mesh(dense):
+    vertices, mesh_normals, _ = dense
     normals, ambiguous = estimate_normals(vertices)
     agree = np.einsum("ij,ij->i", normals, mesh_normals) > 0
     assert agree.mean() >= 0.99
@@ -156,8 +148,8 @@ def test_georeferenced_coordinates_keep_precision():
 
 
 @pytest.mark.parametrize("step", [1, 4])
-def test_radii_and_ellipses_cover_bunny(bunny, step):
-    vertices, _, surface = bunny
+def test_radii_and_ellipses_cover_a_dense_mesh(dense, step):
+    vertices, _, surface = dense
     points = vertices[::step]
     normals, _ = estimate_normals(points)
     radii = estimate_radii(points, normals=normals)
