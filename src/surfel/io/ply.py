@@ -31,8 +31,9 @@ Elements are decoded whole, with no per-point Python loop: binary ones through n
 structured dtypes over a memory map of the file, ascii ones through one vectorised
 tokenisation of the body. The one exception is a binary element with list properties whose
 lengths differ between records (e.g. mixed triangles and quads): its record boundaries can
-only be found record by record. Every size a header claims is checked against what the
-file holds before anything is decoded, so a lying header cannot cause a large allocation.
+only be found record by record, by the compiled walks of `ply_records`. Every size a header
+claims is checked against what the file holds before anything is decoded, so a lying header
+cannot cause a large allocation.
 
 Writing
 -------
@@ -52,7 +53,6 @@ import re
 from dataclasses import dataclass, field
 from typing import BinaryIO, NamedTuple
 
-import numba
 import numpy as np
 
 from ..attributes import KINDS, AttributeSpec, canonical_names
@@ -61,6 +61,7 @@ from ..errors import InputError, SurfelError
 from ..files import write_atomically
 from ._parse import numbers_by_line, ragged_arange
 from .mesh import mesh_normals, referenced_vertices, triangles_from_polygons
+from .ply_records import NEGATIVE, RecordLayout, gather_records, walk_records
 
 _TYPES = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
@@ -262,7 +263,7 @@ def _binary_element(data: mmap.mmap, offset: int, element: Element, order: str, 
     smallest = sum(np.dtype(p.length_type or p.type).itemsize for p in props)  # empty lists
     _check_fits(element, n * smallest, len(data) - offset, path)
     codes = np.frombuffer(data, dtype=np.uint8)
-    layout = _RecordLayout.of(props, order, kept)
+    layout = RecordLayout.of(props, order, kept)
     lists = [p for p in props if p.is_list]
     if n and lists:
         # Guess that every record's lists are as long as the first record's (all faces
@@ -279,20 +280,12 @@ def _binary_element(data: mmap.mmap, offset: int, element: Element, order: str, 
             if kept is not None:
                 columns[kept] = _List(np.full(n, lengths[kept], dtype=np.int64), records[kept].reshape(-1))
             return columns, offset + size
-    # Lists of varying lengths: two compiled walks over the records, the first for the kept
-    # list's lengths and the end, the second copying the scalars and the kept list's items
-    # into packed arrays, so that memory stays within the size of the element's bytes.
-    walk = _walk_records(codes, offset, n, layout)
+    # Lists of varying lengths: walked record by record by compiled kernels (ply_records).
+    walk = walk_records(codes, offset, n, layout)
     if walk.end < 0:
         raise _walk_error(walk.end, element.name, path)
-    packed = np.empty((n, layout.scalar_bytes), np.uint8)
-    items = np.empty(int(walk.lengths.sum()) * layout.kept_size, np.uint8)
-    _copy_records(codes, offset, n, layout.sizes, layout.length_sizes, layout.scalar_offsets, layout.kept,
-                  layout.big_endian, packed, items)
-    columns = {}
-    if layout.scalar_bytes:
-        scalars = packed.view(layout.scalar_dtype).reshape(n)
-        columns = {p.name: scalars[p.name] for p in props if not p.is_list}
+    scalars, items = gather_records(codes, offset, n, layout, walk)
+    columns = {} if scalars is None else {p.name: scalars[p.name] for p in props if not p.is_list}
     if kept is not None:
         item = np.dtype(order + element.properties[kept].type)
         columns[kept] = _List(walk.lengths.astype(np.int64), items.view(item))
@@ -312,7 +305,7 @@ def _first_lengths(codes: np.ndarray, offset: int, props: list[Property], order:
             raise _truncated(element, path)
         length = int(codes[offset:offset + length_type.itemsize].view(length_type)[0])
         if length < 0:
-            raise _walk_error(_NEGATIVE, element, path)
+            raise _walk_error(NEGATIVE, element, path)
         lengths[p.name] = length
         offset += length_type.itemsize + length * np.dtype(p.type).itemsize
     return lengths
@@ -331,107 +324,10 @@ def _length_field(prop: Property) -> str:
     return f"{prop.name} length"  # PLY names have no spaces, so this never collides
 
 
-@dataclass(frozen=True)
-class _RecordLayout:
-    """A binary record's properties as the compiled walks read them: item sizes, list length
-    sizes (0 for scalars) and signedness, each scalar's offset in the packed scalar record,
-    and the index of the one list kept (-1: none)."""
-
-    big_endian: bool
-    sizes: np.ndarray
-    length_sizes: np.ndarray
-    length_signed: np.ndarray
-    scalar_offsets: np.ndarray
-    kept: int
-    kept_size: int
-    scalar_dtype: np.dtype
-
-    @property
-    def scalar_bytes(self) -> int:
-        return self.scalar_dtype.itemsize
-
-    @classmethod
-    def of(cls, props: list[Property], order: str, kept: str | None) -> _RecordLayout:
-        scalars = [p for p in props if not p.is_list]
-        scalar_dtype = np.dtype([(p.name, order + p.type) for p in scalars])
-        offsets = [scalar_dtype.fields[p.name][1] if not p.is_list else -1 for p in props]
-        index = next((k for k, p in enumerate(props) if p.name == kept), -1)
-        return cls(order == ">", np.array([np.dtype(p.type).itemsize for p in props], np.int64),
-                   np.array([np.dtype(p.length_type).itemsize if p.is_list else 0 for p in props], np.int64),
-                   np.array([p.is_list and p.length_type[0] == "i" for p in props], np.bool_),
-                   np.array(offsets, np.int64), index,
-                   np.dtype(props[index].type).itemsize if index >= 0 else 0, scalar_dtype)
-
-
-class _Walk(NamedTuple):
-    lengths: np.ndarray  # the kept list's length in each record (empty without one)
-    end: int  # offset after the records; _TRUNCATED or _NEGATIVE when they cannot be read
-
-
-_TRUNCATED, _NEGATIVE = -1, -2
-
-
-def _walk_records(codes: np.ndarray, offset: int, count: int, layout: _RecordLayout) -> _Walk:
-    lengths, end = _walk(codes, offset, count, layout.sizes, layout.length_sizes, layout.length_signed,
-                         layout.kept, layout.big_endian)
-    return _Walk(lengths, int(end))
-
-
 def _walk_error(code: int, element: str, path: str) -> InputError:
-    if code == _NEGATIVE:
+    if code == NEGATIVE:
         return InputError(path, f"PLY element '{element}' has a list of negative length")
     return _truncated(element, path)
-
-
-@numba.njit(cache=True)
-def _read_length(codes, at, size, signed, big_endian):  # pragma: no cover - compiled
-    value = 0
-    for b in range(size):
-        byte = codes[at + (size - 1 - b if big_endian else b)]
-        value |= np.int64(byte) << (8 * b)
-    if signed and value >= np.int64(1) << (8 * size - 1):
-        value -= np.int64(1) << (8 * size)
-    return value
-
-
-@numba.njit(cache=True)
-def _walk(codes, offset, count, sizes, length_sizes, length_signed, kept, big_endian):  # pragma: no cover
-    lengths = np.zeros(count if kept >= 0 else 0, np.uint32)
-    end = len(codes)
-    for r in range(count):
-        for p in range(len(sizes)):
-            if length_sizes[p] == 0:
-                offset += sizes[p]
-                continue
-            if offset + length_sizes[p] > end:
-                return lengths, _TRUNCATED
-            length = _read_length(codes, offset, length_sizes[p], length_signed[p], big_endian)
-            if length < 0:
-                return lengths, _NEGATIVE
-            if p == kept:
-                lengths[r] = length
-            offset += length_sizes[p] + length * sizes[p]
-        if offset > end:
-            return lengths, _TRUNCATED
-    return lengths, offset
-
-
-@numba.njit(cache=True)
-def _copy_records(codes, offset, count, sizes, length_sizes, scalar_offsets, kept, big_endian, packed,
-                  items):  # pragma: no cover - compiled
-    at = 0
-    for r in range(count):
-        for p in range(len(sizes)):
-            if length_sizes[p] == 0:
-                packed[r, scalar_offsets[p]:scalar_offsets[p] + sizes[p]] = codes[offset:offset + sizes[p]]
-                offset += sizes[p]
-                continue
-            length = _read_length(codes, offset, length_sizes[p], False, big_endian)
-            offset += length_sizes[p]
-            if p == kept:
-                items[at:at + length * sizes[p]] = codes[offset:offset + length * sizes[p]]
-                at += length * sizes[p]
-            offset += length * sizes[p]
 
 
 def _check_fits(element: Element, need: int, have: int, path: str) -> None:

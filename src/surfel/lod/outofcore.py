@@ -347,6 +347,8 @@ def _bin_input(inputs: list[StreamInput], partial: Path, cap: int, signature: di
             sorted_part = part[order]
             bounds = np.flatnonzero(np.diff(sorted_part)) + 1
             for run in np.split(np.arange(len(order)), bounds):
+                # appended chunk by chunk, so not through write_atomically: scratch files in
+                # the build's own NAME.partial/, which is published only by its final rename
                 with open(bins / f"part-{sorted_part[run[0]]:05d}.bin", "ab") as file:
                     records[run[0]:run[-1] + 1].tofile(file)
             bar.update(len(order))
