@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from samples import angles, bunny_samples, sphere
+from samples import angles, dense_samples, sphere
 from surfel.preprocess import estimate_normals, estimate_radii
 
 
@@ -37,7 +37,7 @@ def test_orientation_each_component_outward():
 
 
 def test_orientation_bunny_matches_mesh():
-    vertices, mesh_normals, _ = bunny_samples()
+    vertices, mesh_normals, _ = dense_samples()
     normals, ambiguous = estimate_normals(vertices)
     agree = np.einsum("ij,ij->i", normals, mesh_normals) > 0
     assert agree.mean() >= 0.99
