@@ -36,7 +36,7 @@ def test_orientation_each_component_outward():
     assert (np.einsum("ij,ij->i", normals, p - centre) > 0).all()
 
 
-def test_orientation_bunny_matches_mesh():
+def test_orientation_matches_mesh():
     vertices, mesh_normals, _ = dense_samples()
     normals, ambiguous = estimate_normals(vertices)
     agree = np.einsum("ij,ij->i", normals, mesh_normals) > 0

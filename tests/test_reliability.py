@@ -257,7 +257,7 @@ def hierarchies(tmp_path_factory):
     """A .lod directory and a .lod.npz file of 3,000 points on a sphere."""
     from surfel.lod import build_lod, save_lod
     from surfel.lod.outofcore import build_outofcore
-    from surfel.rendering import complete
+    from surfel.preprocess import complete
 
     folder = tmp_path_factory.mktemp("lod")
     rng = np.random.default_rng(0)
