@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from samples import bunny_samples, coverage, covered_by, edge_wedge, nn_spacing, scan_lines, sphere, unit
+from samples import coverage, covered_by, dense_samples, edge_wedge, nn_spacing, scan_lines, sphere, unit
 from surfel.cloud import PointCloud
 from surfel.preprocess import estimate_normals, estimate_radii, fit_ellipses, fit_normal_field, prepare, tangent_frames
 
@@ -13,8 +13,8 @@ from surfel.preprocess import estimate_normals, estimate_radii, fit_ellipses, fi
 
 
 @pytest.mark.parametrize("step", [1, 4])
-def test_radii_and_ellipses_cover_bunny(step):
-    vertices, _, surface = bunny_samples()
+def test_radii_and_ellipses_cover_a_dense_mesh(step):
+    vertices, _, surface = dense_samples()
     points = vertices[::step]
     normals, _ = estimate_normals(points)
     radii = estimate_radii(points, normals=normals)

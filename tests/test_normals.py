@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from samples import angles, bunny_samples, sphere
+from samples import angles, dense_samples, sphere
 from surfel.preprocess import estimate_normals, estimate_radii
 
 
@@ -36,8 +36,8 @@ def test_orientation_each_component_outward():
     assert (np.einsum("ij,ij->i", normals, p - centre) > 0).all()
 
 
-def test_orientation_bunny_matches_mesh():
-    vertices, mesh_normals, _ = bunny_samples()
+def test_orientation_matches_mesh():
+    vertices, mesh_normals, _ = dense_samples()
     normals, ambiguous = estimate_normals(vertices)
     agree = np.einsum("ij,ij->i", normals, mesh_normals) > 0
     assert agree.mean() >= 0.99

@@ -7,13 +7,14 @@ import sys
 import numpy as np
 import pytest
 
-from conftest import data_file, requires_gl
+from conftest import requires_gl
+from models import SPOT
 from surfel.io import load
 from surfel.viewer import ViewState
 
 
 def test_keys_change_the_view_state():
-    state = ViewState(load(data_file("spot.obj")), "deferred", "phong")
+    state = ViewState(load(SPOT), "deferred", "phong")
     assert state.ewa_filter_on() is True  # deferred's own default, as on the command line
     assert state.key("3") and state.method == state.methods[2] == "gaussian"
     assert state.ewa_filter_on() is False  # gaussian's: the viewer forces nothing
@@ -36,13 +37,13 @@ def test_screenshot_from_a_real_window_under_xvfb(tmp_path):
 
     out = tmp_path / "shot.png"
     proc = subprocess.run(["xvfb-run", "-a", "-s", "-screen 0 800x600x24", sys.executable, "-m", "surfel.cli",
-                           "view", str(data_file("stanford-bunny.obj")), "--screenshot", str(out),
+                           "view", str(SPOT), "--screenshot", str(out),
                            "--size", "320x240"], capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr
     image = np.asarray(Image.open(out).convert("L")).astype(float)
     assert image.shape == (240, 320)
     middle = image[60:180, 80:240]
-    assert (middle > 100).mean() > 0.2  # the lit bunny fills the middle of the window
+    assert (middle > 100).mean() > 0.2  # the lit cow fills the middle of the window
     assert (image[0:16] > 128).any()     # the status line is drawn across the top
 
 

@@ -68,6 +68,14 @@ _ALIASES = {"scananglerank": "scan_angle"}
 DERIVED = frozenset({"phong_alpha", "phong_beta", "clip_lines", "screen_facing", "lod_emin", "lod_emax",
                      "lod_dparent", "lod_dsuffix"})
 DERIVED_DTYPE = np.dtype(np.float32)
+# Each derived array's per-point shape (scalars but the clip lines: two lines a u + b v <= c,
+# as surfel.preprocess estimates them); a file holding another is refused, since every
+# renderer indexes them so.
+DERIVED_SHAPES = {name: () for name in DERIVED} | {"clip_lines": (2, 3)}
+# The derived arrays that are lengths in world units (the others are relative to a splat's
+# axes); the largest float32 among them stands for infinity (the root's parent error).
+DERIVED_LENGTHS = frozenset({"lod_emin", "lod_emax", "lod_dparent", "lod_dsuffix"})
+INFINITE_LENGTH = float(np.finfo(np.float32).max)
 # The geometry fields of a PointCloud: never attribute names.
 GEOMETRY = frozenset({"positions", "normals", "colors", "radii", "axes", "faces"})
 _NUMERIC = "biuf"

@@ -101,12 +101,20 @@ class Camera:
     def with_(self, **changes) -> Camera:
         return replace(self, **changes)
 
-    def scaled(self, factor: int) -> Camera:
+    def supersampled(self, factor: int) -> Camera:
         """The same view on a render target `factor` times larger per side (supersampling)."""
         if factor == 1:
             return self
         return replace(self, width=self.width * factor, height=self.height * factor, fx=self.fx * factor,
                        fy=self.fy * factor, cx=self.cx * factor, cy=self.cy * factor)
+
+    def scaled(self, factor: float) -> Camera:
+        """The same view of a world whose lengths are multiplied by `factor` (PointCloud.scaled):
+        the same image, eye depths times `factor`."""
+        m = self.world_to_eye.copy()
+        m[:3, 3] *= factor
+        return replace(self, world_to_eye=m, near=self.near * factor, far=self.far * factor,
+                       ortho_height=None if self.ortho_height is None else self.ortho_height * factor)
 
     # ---- derived quantities ---------------------------------------------------------
     @property
@@ -191,7 +199,8 @@ class Camera:
     def fit_clip_planes(self, center, radius: float) -> Camera:
         """Near/far planes bracketing a bounding sphere (they change no output, only precision)."""
         d = float(-(self.view_matrix() @ np.append(np.asarray(center, np.float64), 1.0))[2])
-        far = max(d + radius * 1.05, 1e-6)
+        # relative to the scene's own scale, which may be anything from 1e-10 to 1e18
+        far = max(d + radius * 1.05, 1e-6 * max(radius, abs(d)))
         near = max(d - radius * 1.05, far * 1e-4)
         if self.ortho_height is not None:
             near = d - radius * 1.05  # may be negative: orthographic needs no positive near

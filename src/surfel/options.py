@@ -242,5 +242,20 @@ class RenderOptions(Settings):
         return self.shading == EDL
 
 
+# Samples (pixels times supersampling squared) the CPU rasterizers hold at most: their
+# per-sample buffers take about 160 bytes a sample (EWA's two layers of accumulators, then
+# the resolved layers), some 10 GB at this size (8192 x 8192, or 2048 x 2048 at 4 x 4).
+MAX_CPU_SAMPLES = 8192 * 8192
+
+
+def check_cpu_samples(width: int, height: int) -> None:
+    """Refuse a supersampled CPU render target of width x height samples beyond
+    MAX_CPU_SAMPLES, naming the options that set it."""
+    if width * height > MAX_CPU_SAMPLES:
+        raise SurfelError(f"--size/--supersample: rendering on the CPU needs {width}x{height} samples (the image size "
+                          f"times the supersampling), more than its limit of {MAX_CPU_SAMPLES} samples; choose a "
+                          "smaller --size or --supersample")
+
+
 # The options a method may not use: set (not None), they must be used by the chosen method.
 METHOD_DEPENDENT = ("lod_error", "point_budget", "dump_passes")

@@ -34,7 +34,7 @@ import numpy as np
 
 from . import colors
 from .camera import Camera, frame
-from .cloud import PointCloud
+from .cloud import PointCloud, render_unit
 from .errors import SurfelError
 from .methods import get_method
 from .options import RenderOptions
@@ -261,6 +261,19 @@ class Renderer:
             raise SurfelError(f"method {method!r} needs a mesh input (faces); {cloud.source or 'this cloud'} has none")
         self._release_gone()
         camera = camera or default_camera(cloud, size)
+        lo, hi = cloud.bounds
+        # coincident points have no extent to bring to unit scale (their framing radius is a
+        # fraction of their distance from the origin, which scaling does not change)
+        unit = render_unit(cloud.bounding_radius) if (hi > lo).any() else 1.0
+        if unit != 1.0:
+            return self._render_at_unit_scale(cloud, camera, method, unit, backend=backend, options=options,
+                                              params=params)
+        return self._render_cloud(cloud, camera, method, backend=backend, options=options, params=params)
+
+    def _render_cloud(self, cloud: PointCloud, camera: Camera, method: str, *, backend: str | None,
+                      options: RenderOptions, params) -> RenderResult:
+        """`render` of a PointCloud at a scale the methods work at."""
+        m = get_method(method)
         input_points = len(cloud)
         backend = resolve_backend(method, backend)
         cloud, options = self.appearance(cloud, options)
@@ -300,6 +313,18 @@ class Renderer:
         if estimated:
             stats["estimated"] = estimated
         result.stats = stats
+        return result
+
+    def _render_at_unit_scale(self, cloud: PointCloud, camera: Camera, method: str, unit: float, *,
+                              backend: str | None, options: RenderOptions, params) -> RenderResult:
+        """Render a cloud far from unit scale (1e-30 or 1e30 units across) divided by `unit`, a
+        power of two, so that every method's float32 arithmetic and tolerances work as they do
+        at unit scale; the image is the same, eye depths are scaled back."""
+        scaled = self.cached(cloud, ("unit scale", unit), lambda: cloud.scaled(1 / unit))
+        result = self._render_cloud(scaled, camera.scaled(1 / unit), method, backend=backend, options=options,
+                                    params=params)
+        result.depth = result.depth * np.float32(unit)
+        result.stats.update(near=result.stats["near"] * unit, far=result.stats["far"] * unit, unit_scale=unit)
         return result
 
     def _render_source(self, source, camera: Camera | None, method: str, *, backend: str | None, size,

@@ -33,8 +33,9 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import SurfelError
+from ..files import write_atomically
 from .context import get_context
-from .targets import GBuffer, gbuffer_result, read_texture
+from .targets import GBuffer, allocating, gbuffer_result, read_texture
 from .uniforms import CATEGORY_UNIT
 
 UNIFORM_UNITS = {"u_visibility": 1, "u_accum_color": 2, "u_accum_normal": 3, "u_category": CATEGORY_UNIT}
@@ -63,17 +64,18 @@ class SplatTargets:
     def allocate(cls, width: int, height: int, guard: int = 0, back_layer: bool = False) -> SplatTargets:
         ctx = get_context()
         target = (width + 2 * guard, height + 2 * guard)
-        visibility = ctx.texture(target, 2, dtype="f4")
-        accum = [ctx.texture(target, 4, dtype="f4") for _ in range(2)]
-        back = ctx.texture(target, 1, dtype="f4") if back_layer else None
-        back_accum = [ctx.texture(target, 4, dtype="f4") for _ in range(2)] if back_layer else []
-        category = ctx.texture(target, 2, dtype="f4")
-        for tex in (visibility, *accum, *back_accum, *([back] if back else []), category):
-            tex.filter = (ctx.NEAREST, ctx.NEAREST)
-        return cls(guard, visibility, ctx.framebuffer(color_attachments=[visibility]), accum,
-                   ctx.framebuffer(color_attachments=accum + back_accum), GBuffer(width, height),
-                   category, ctx.framebuffer(color_attachments=[category]),
-                   back, ctx.framebuffer(color_attachments=[back]) if back else None, back_accum)
+        with allocating(*target):
+            visibility = ctx.texture(target, 2, dtype="f4")
+            accum = [ctx.texture(target, 4, dtype="f4") for _ in range(2)]
+            back = ctx.texture(target, 1, dtype="f4") if back_layer else None
+            back_accum = [ctx.texture(target, 4, dtype="f4") for _ in range(2)] if back_layer else []
+            category = ctx.texture(target, 2, dtype="f4")
+            for tex in (visibility, *accum, *back_accum, *([back] if back else []), category):
+                tex.filter = (ctx.NEAREST, ctx.NEAREST)
+            return cls(guard, visibility, ctx.framebuffer(color_attachments=[visibility]), accum,
+                       ctx.framebuffer(color_attachments=accum + back_accum), GBuffer(width, height),
+                       category, ctx.framebuffer(color_attachments=[category]),
+                       back, ctx.framebuffer(color_attachments=[back]) if back else None, back_accum)
 
     def release(self) -> None:
         for obj in (self.visibility, self.visibility_fbo, *self.accum, self.accum_fbo, self.out,
@@ -193,7 +195,8 @@ class SplatPasses:
         weight = color[..., 3] / max(float(color[..., 3].max()), 1e-12)
 
         def save(name, image):
-            Image.fromarray(np.round(np.clip(image, 0, 1) * 255).astype(np.uint8)).save(folder / name)
+            picture = Image.fromarray(np.round(np.clip(image, 0, 1) * 255).astype(np.uint8))
+            write_atomically(folder / name, lambda file: picture.save(file, format="PNG"))
 
         save("1-visibility-depth.png", gray)
         save("2-accumulated-weight.png", weight)

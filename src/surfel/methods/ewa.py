@@ -66,7 +66,7 @@ import numpy as np
 
 from ..camera import Camera
 from ..cloud import PointCloud
-from ..options import RenderOptions, non_negative, open_unit_interval, positive, setting
+from ..options import RenderOptions, check_cpu_samples, non_negative, open_unit_interval, positive, setting
 from ..preprocess import INACTIVE_CLIP, drawn_normals
 from ..result import RenderResult
 from ..shading import shade
@@ -221,6 +221,7 @@ def render_ewa_cpu(cloud: PointCloud, camera: Camera, options: RenderOptions, pa
     supersample = options.supersample or DEFAULT_SUPERSAMPLE
     target = target_camera(camera, supersample)
     w, h = target.width, target.height
+    check_cpu_samples(w, h)
     intr = np.array([target.fx, target.fy, target.cx, target.cy], np.float64)
     clip_lines = splat_clip_lines(cloud)
     splats, extra, box = k.setup_splats(cloud.positions, np.asarray(cloud.local_origin, np.float64),

@@ -47,7 +47,7 @@ def render_mesh(cloud, camera, options, params: MeshParams, renderer):
         vao.render()
         ctx.finish()
         return gbuffer_result(gbuffer, camera, options, ss, {"splats": 0, "triangles": len(cloud.faces)},
-                              surface=renderer.surface_colors(cloud, camera.scaled(ss), options))
+                              surface=renderer.surface_colors(cloud, camera.supersampled(ss), options))
     finally:
         for obj in (vao, vbo, ibo):
             obj.release()

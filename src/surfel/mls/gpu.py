@@ -47,7 +47,7 @@ from ..camera import Camera
 from ..cloud import PointCloud
 from ..gl.context import get_context
 from ..gl.program import set_uniforms
-from ..gl.targets import GBuffer, gbuffer_result, read_texture
+from ..gl.targets import GBuffer, check_target_size, gbuffer_result, read_texture
 from ..gl.uniforms import apply_common
 from ..options import RenderOptions, at_least, setting
 from ..result import RenderResult
@@ -128,6 +128,7 @@ def render_mls_gl(cloud: PointCloud, camera: Camera, options: RenderOptions, par
         apply_common(program, camera, surface.origin, ss, options, **common)
     renderer.use_color_table(options)
     size = (camera.width * ss, camera.height * ss)
+    check_target_size(*size)
 
     def texture():
         tex = ctx.texture(size, 4, dtype="f4")
@@ -218,7 +219,7 @@ def render_mls_gl(cloud: PointCloud, camera: Camera, options: RenderOptions, par
                  "point_fit_failures": int((~scene.valid).sum()), "supersample": ss,
                  "kernel_width": surface.scale, "polynomial_prepass": "cpu"}
         return gbuffer_result(gbuffer, camera, options, ss, stats,
-                              surface=renderer.surface_colors(cloud, camera.scaled(ss), options))
+                              surface=renderer.surface_colors(cloud, camera.supersampled(ss), options))
     finally:
         ctx.blend_equation = ctx.FUNC_ADD
         ctx.depth_func = "<"

@@ -33,7 +33,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from ..options import at_least, between, positive, setting
+from ..options import at_least, between, check_cpu_samples, positive, setting
 from ..result import RenderResult
 from ..shading import KEY_LIGHT, shade
 from .surface import (
@@ -297,6 +297,7 @@ def environment(directions_eye: np.ndarray) -> np.ndarray:
 
 def render_mls_cpu(cloud, camera, options, params: MlsParams, renderer) -> RenderResult:
     ss = options.supersample or DEFAULT_SUPERSAMPLE
+    check_cpu_samples(camera.width * ss, camera.height * ss)
     tolerance, max_iter = params.tolerance, params.max_iterations
     scene = cached_scene(cloud, params, renderer)
     surface = scene.surface
