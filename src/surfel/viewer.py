@@ -9,9 +9,10 @@ start at the data's defaults (surfel.colors, surfel.shading). A geospatial tile 
 oblique view (OBLIQUE_ELEVATION degrees) framed by its extent, and keeps that distance as the
 camera orbits.
 
-While the camera moves, frames that take longer than MOTION_FRAME_MS are drawn at a coarser
-level of detail (the sequential point tree's projected-error cut, doubled per slow frame and
-halved per fast one); once it stops, the view is drawn again at the detail the keys chose. So a
+While the camera moves, frames are drawn at half the window's resolution (each pixel shown
+2x2), and those that take longer than MOTION_FRAME_MS at a coarser level of detail too (the
+sequential point tree's projected-error cut, doubled per slow frame and halved per fast one);
+once it stops, the view is drawn again in full, at the detail the keys chose. So a
 million-point tile stays interactive on a software rasterizer without giving up its still frame.
 
     mouse: left drag orbits, right drag pans, wheel zooms
@@ -41,8 +42,8 @@ from .shading import DEFAULT as DEFAULT_SHADING
 from .shading import EDL, MODELS, default_for
 
 OBLIQUE_ELEVATION = 35.0  # degrees: how a geospatial tile opens
-MOTION_FRAME_MS = 80.0  # a frame while the camera moves: coarser detail until it takes no longer
-MAX_MOTION_ERROR = 64.0  # pixels: beyond this a cut shows too little to steer by
+MOTION_FRAME_MS = 150.0  # a moving frame: coarser detail until it takes no longer (7 frames a second)
+MAX_MOTION_ERROR = 8.0  # pixels: coarser cuts turn a canopy into blobs
 MOTION_SETTLE_S = 0.25  # the camera counts as stopped after this long without a drag or a wheel step
 HELP = [line.strip() for line in __doc__.split("\n\n")[2].splitlines() if line.strip()]
 VERTEX = """#version 330
@@ -147,6 +148,9 @@ class ViewState:
         return max(self.lod_error, self.motion_error) if self.moving else self.lod_error
 
     def render(self, size):
+        """The next frame for a window of `size`: at half its resolution while moving."""
+        if self.moving:
+            size = (max(1, size[0] // 2), max(1, size[1] // 2))
         values = {"shading": self.shading, "color": self.color, "colormap": self.colormap,
                   "backface_culling": self.backface_culling, "ewa_filter": self.ewa_filter,
                   "lod_error": self.frame_lod_error() or None}
@@ -301,7 +305,9 @@ def view(cloud, *, method: str = "deferred", shading: str | None = None, color: 
                 width, height = glfw.get_framebuffer_size(window)
                 result, ms = state.render((width, height))
                 glfw.make_context_current(window)  # rendering used the headless context
-                rgb = annotate(np.round(np.clip(result.color, 0, 1) * 255).astype(np.uint8), state, result, ms)
+                rgb = np.round(np.clip(result.color, 0, 1) * 255).astype(np.uint8)
+                rows = np.arange(height) * rgb.shape[0] // height  # a moving frame's pixels, shown 2x2
+                rgb = annotate(rgb[rows][:, np.arange(width) * rgb.shape[1] // width], state, result, ms)
                 if texture is None or texture.size != (width, height):
                     texture = ctx.texture((width, height), 3)
                 texture.write(np.ascontiguousarray(rgb).tobytes())
