@@ -10,9 +10,10 @@ oblique view (OBLIQUE_ELEVATION degrees) framed by its extent, and keeps that di
 camera orbits.
 
 While the camera moves, frames are drawn at half the window's resolution (each pixel shown
-2x2), and those that take longer than MOTION_FRAME_MS at a coarser level of detail too (the
-sequential point tree's projected-error cut, doubled per slow frame and halved per fast one);
-once it stops, the view is drawn again in full, at the detail the keys chose. So a
+2x2), at MOVING_LOD_FACTOR times the LOD error the keys chose, and, while they take longer than
+MOTION_FRAME_MS, at a coarser level of detail still (the sequential point tree's
+projected-error cut, doubled per slow frame and halved per fast one); once it stops, the view
+is drawn again in full, at the detail the keys chose. The notebook widget moves the same way. So a
 million-point tile stays interactive on a software rasterizer without giving up its still frame.
 
     mouse: left drag orbits, right drag pans, wheel zooms
@@ -42,6 +43,7 @@ from .shading import DEFAULT as DEFAULT_SHADING
 from .shading import EDL, MODELS, default_for
 
 OBLIQUE_ELEVATION = 35.0  # degrees: how a geospatial tile opens
+MOVING_LOD_FACTOR = 4.0  # a moving frame's LOD error / the still frame's (when that is not 0)
 MOTION_FRAME_MS = 150.0  # a moving frame: coarser detail until it takes no longer (7 frames a second)
 MAX_MOTION_ERROR = 8.0  # pixels: coarser cuts turn a canopy into blobs
 MOTION_SETTLE_S = 0.25  # the camera counts as stopped after this long without a drag or a wheel step
@@ -145,7 +147,9 @@ class ViewState:
 
     def frame_lod_error(self) -> float:
         """The level of detail of the next frame: the keys' choice, coarser while moving."""
-        return max(self.lod_error, self.motion_error) if self.moving else self.lod_error
+        if not self.moving:
+            return self.lod_error
+        return max(self.lod_error * MOVING_LOD_FACTOR, self.motion_error)
 
     def render(self, size):
         """The next frame for a window of `size`: at half its resolution while moving."""
