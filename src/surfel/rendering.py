@@ -319,12 +319,18 @@ class Renderer:
                               backend: str | None, options: RenderOptions, params) -> RenderResult:
         """Render a cloud far from unit scale (1e-30 or 1e30 units across) divided by `unit`, a
         power of two, so that every method's float32 arithmetic and tolerances work as they do
-        at unit scale; the image is the same, eye depths are scaled back."""
+        at unit scale; the image is the same, eye depths are scaled back, and an elevation
+        colour range is the original's (elevation is a length: it scales with the cloud)."""
         scaled = self.cached(cloud, ("unit scale", unit), lambda: cloud.scaled(1 / unit))
+        coloring = self.appearance(cloud, options)[1].coloring
+        if coloring.name == colors.ELEVATION:
+            options = replace(options, color_range=(coloring.range[0] / unit, coloring.range[1] / unit))
         result = self._render_cloud(scaled, camera.scaled(1 / unit), method, backend=backend, options=options,
                                     params=params)
         result.depth = result.depth * np.float32(unit)
         result.stats.update(near=result.stats["near"] * unit, far=result.stats["far"] * unit, unit_scale=unit)
+        if coloring.name == colors.ELEVATION:
+            result.stats["color_range"] = list(coloring.range)
         return result
 
     def _render_source(self, source, camera: Camera | None, method: str, *, backend: str | None, size,
