@@ -18,6 +18,7 @@ from surfel.errors import InputError, SurfelError
 from surfel.io import load
 from surfel.lod import build_lod
 from surfel.lod.copc import CopcSource
+from surfel.metrics import top_view_footprint
 from surfel.preprocess import prepare, tangent_frames
 from surfel.preprocess.spacing import BOUND_FACTOR
 from surfel.rendering import Renderer, render
@@ -37,38 +38,6 @@ def top_camera(cloud: PointCloud, pixels: int = 512):
                  ortho_height=float(height) * 1.02)
 
 
-def pixel_centres_xy(camera) -> np.ndarray:
-    """World x, y (H, W, 2) of the pixel centres of an orthographic top camera."""
-    j, i = np.meshgrid(np.arange(camera.width) + 0.5, np.arange(camera.height) + 0.5)
-    scale = camera.ortho_height / camera.height
-    inverse = np.linalg.inv(camera.world_to_eye)
-    right, up = ((j - camera.cx) * scale)[..., None], ((camera.cy - i) * scale)[..., None]
-    return (right * inverse[:3, 0] + up * inverse[:3, 1] + inverse[:3, 3])[..., :2]
-
-
-def far_and_uncovered(result, camera, positions: np.ndarray, distinct: bool = False) -> tuple[float, float]:
-    """Issue 14's measures of a top view: the share of covered pixels farther than 4 median
-    horizontal point spacings from every return, and the share of the footprint (pixels within
-    1.5 spacings of a return) left uncovered. The spacing is the nearest-neighbour distance, or
-    with `distinct` the distance to the nearest return elsewhere (coincident returns would make
-    it 0)."""
-    xy = positions[:, :2]
-    tree = cKDTree(xy)
-    distances, _ = tree.query(xy, k=8)
-    if distinct:
-        positive = distances > 0
-        rows = positive.any(axis=1)
-        spacing = float(np.median(distances[rows, positive[rows].argmax(axis=1)]))
-    else:
-        spacing = float(np.median(distances[:, 1]))
-    nearest, _ = tree.query(pixel_centres_xy(camera).reshape(-1, 2))
-    nearest = nearest.reshape(camera.height, camera.width)
-    covered = result.alpha > 0
-    far = (covered & (nearest > 4 * spacing)).sum() / max(covered.sum(), 1)
-    footprint = nearest <= 1.5 * spacing
-    return float(far), float((footprint & ~covered).sum() / max(footprint.sum(), 1))
-
-
 # --- the sampling bound on real tiles ----------------------------------------------------------
 
 @requires_gl
@@ -77,7 +46,7 @@ def test_top_view_of_real_tiles_stays_near_the_returns_and_covers_them(name):
     cloud = load(DATA / name)
     camera = top_camera(cloud)
     result = render(cloud, camera)  # the defaults
-    far, uncovered = far_and_uncovered(result, camera, cloud.positions)
+    far, uncovered = top_view_footprint(result, camera, cloud.positions)
     assert far <= 0.02 and uncovered <= 0.01, (far, uncovered)
     bound = result.stats["estimated"]["splat_bound"]
     horizontal, _ = cKDTree(cloud.positions[:, :2]).query(cloud.positions[:, :2], k=2)
@@ -89,7 +58,7 @@ def test_top_view_of_real_tiles_stays_near_the_returns_and_covers_them(name):
 def test_a_regular_surface_stays_hole_free():
     cloud = load(DATA / "plane.laz")  # a flat real surface, quantised to 1 cm: many coincident returns
     camera = top_camera(cloud)
-    _, uncovered = far_and_uncovered(render(cloud, camera), camera, cloud.positions, distinct=True)
+    _, uncovered = top_view_footprint(render(cloud, camera), camera, cloud.positions, distinct=True)
     assert uncovered <= 0.01
     # seen obliquely: every pixel between projected returns is covered
     oblique = frame(cloud.center, cloud.bounding_radius, geospatial=True, size=(512, 512), azimuth=30, elevation=35)
