@@ -18,6 +18,7 @@ from .request import (
     PAGE_COMMAND,
     RENDER,
     RENDER_COMMAND,
+    SCAN,
     TURNTABLE_COMMAND,
     TURNTABLE_ELEVATION,
     TURNTABLE_SIZE,
@@ -271,6 +272,25 @@ def prepare(input, output, neighbors, sensor, elliptical, normal_field, sharp_fe
                                   elliptical=elliptical, normal_field=normal_field, sharp_features=sharp_features)
     write_ply(prepared, output)
     click.echo(f"{output}: {len(prepared)} points; " + ", ".join(f"{k}: {v}" for k, v in report.items()), err=True)
+
+
+@main.command(context_settings=CONTEXT)
+@click.argument("mesh", type=click.Path(dir_okay=False))
+@click.option("-o", "--output", required=True, help="PLY to write: positions, the scan index, sensor positions.")
+@table_options(*SCAN)
+def scan(mesh, output, **values):
+    """Scan MESH with a virtual range scanner: depth images from several views, samples lost at
+    grazing angles, range noise along each ray, each view misregistered; no normals.
+
+    \b
+    Example:
+      surfel scan bunny.obj -o bunny-scan.ply --views 6 --noise 0.001 --misalignment 0.0005
+      surfel render bunny-scan.ply -o bunny-scan.png --method phong
+    """
+    from .scan import scan_command
+
+    cloud = scan_command(mesh, output, values)
+    click.echo(f"{output}: {len(cloud)} points from {len(cloud.sensors)} views", err=True)
 
 
 @main.command(context_settings=CONTEXT)

@@ -1,0 +1,129 @@
+"""The virtual range scanner (surfel.scan): its samples against the analytic sphere it scans,
+its grazing losses, misregistration and seed, the PLY it writes, and `surfel scan`'s errors."""
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from conftest import requires_gl
+from models import unit_sphere
+from surfel.cli import main
+from surfel.io import load
+from surfel.scan import ScanSettings, scan, view_directions
+
+pytestmark = requires_gl
+
+
+@pytest.fixture(scope="module")
+def sphere():
+    return unit_sphere()
+
+
+def radial_error(cloud) -> np.ndarray:
+    return np.linalg.norm(cloud.positions, axis=1) - 1.0
+
+
+def test_samples_lie_within_the_range_noise_of_the_surface(sphere):
+    size = 2 * sphere.bounding_radius
+    exact = scan(sphere, ScanSettings(views=3, resolution=96, noise=0.0, misalignment=0.0))
+    assert np.abs(radial_error(exact)).max() < 2e-3 * size  # a depth buffer's precision
+    noisy = scan(sphere, ScanSettings(views=3, resolution=96, noise=0.004, misalignment=0.0))
+    spread = np.std(radial_error(noisy))
+    # range noise along rays that meet the sphere at incidence theta moves a point radially by
+    # e cos(theta): the spread lies below the noise, but not far below it
+    assert 0.5 * 0.004 * size < spread < 1.05 * 0.004 * size
+    assert exact.normals is None and noisy.normals is None
+
+
+def test_views_and_sensors(sphere):
+    cloud = scan(sphere, ScanSettings(views=4, resolution=64, noise=0.0, misalignment=0.0))
+    assert cloud.sensors.shape == (4, 3)
+    assert set(np.unique(cloud.attributes["scan"])) == {0, 1, 2, 3}
+    # every point faces its own sensor: the sphere's outward normal points towards it
+    towards = cloud.sensor_positions() - cloud.positions
+    assert (np.einsum("ij,ij->i", towards, cloud.positions) > 0).all()
+    elevations = [e for _, e in view_directions(6)]
+    assert max(elevations) > 30 and min(elevations) < -30
+
+
+def incidence(cloud) -> np.ndarray:
+    towards = cloud.sensor_positions() - cloud.positions
+    return np.degrees(np.arccos(np.einsum("ij,ij->i", towards / np.linalg.norm(towards, axis=1, keepdims=True),
+                                          cloud.positions / np.linalg.norm(cloud.positions, axis=1, keepdims=True))))
+
+
+def test_grazing_samples_are_lost(sphere):
+    settings = dict(views=2, resolution=128, noise=0.0, misalignment=0.0)
+    wide, narrow = (scan(sphere, ScanSettings(**settings, grazing=g)) for g in (89.0, 50.0))
+    assert len(narrow) < 0.8 * len(wide)
+    assert incidence(narrow).max() < 51.0
+    # fewer, not none, between half the limit and the limit
+    seen = incidence(narrow)
+    share = np.mean((seen > 37.5) & (seen < 50)), np.mean((incidence(wide) > 37.5) & (incidence(wide) < 50))
+    assert 0 < share[0] < share[1] * len(wide) / len(narrow)
+
+
+def test_misalignment_moves_each_view_rigidly(sphere):
+    base = dict(views=3, resolution=64, noise=0.0, seed=5)
+    still = scan(sphere, ScanSettings(**base, misalignment=0.0))
+    moved = scan(sphere, ScanSettings(**base, misalignment=0.01))
+    assert len(still) == len(moved)  # the same samples, moved
+    size = 2 * sphere.bounding_radius
+    for view in range(3):
+        members = still.attributes["scan"] == view
+        shift = moved.positions[members] - still.positions[members]
+        magnitude = np.linalg.norm(shift, axis=1)
+        assert 0.2 * 0.01 * size < magnitude.mean() < 3 * 0.01 * size
+        sensor_shift = np.linalg.norm(moved.sensors[view] - still.sensors[view])
+        assert sensor_shift > 0.2 * 0.01 * size
+        # rigid: distances between the view's points are kept
+        a, b = still.positions[members][:50], moved.positions[members][:50]
+        assert np.allclose(np.linalg.norm(a[:, None] - a[None], axis=2), np.linalg.norm(b[:, None] - b[None], axis=2))
+
+
+def test_the_seed_reproduces_a_scan(sphere):
+    settings = dict(views=2, resolution=64)
+    first, again, other = (scan(sphere, ScanSettings(**settings, seed=s)) for s in (3, 3, 4))
+    assert np.array_equal(first.positions, again.positions)
+    assert len(first) != len(other) or not np.array_equal(first.positions, other.positions)
+
+
+def test_cli_writes_a_scan_with_its_sensors(tmp_path):
+    out = tmp_path / "scan.ply"
+    result = CliRunner().invoke(main, ["scan", "tests/data/spot.obj", "-o", str(out), "--views", "3",
+                                       "--resolution", "64", "--seed", "2"])
+    assert result.exit_code == 0, result.output
+    cloud = load(str(out))
+    assert cloud.normals is None and cloud.sensors.shape == (3, 3)
+    assert cloud.attributes["scan"].max() == 2
+    direct = scan(load("tests/data/spot.obj"), ScanSettings(views=3, resolution=64, seed=2))
+    assert np.array_equal(cloud.positions, direct.positions)
+    assert np.array_equal(cloud.sensors, direct.sensors)
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--views", "0"], "--views: must be in 1..64"),
+    (["--resolution", "big"], "--resolution: needs an integer"),
+    (["--noise", "-0.1"], "--noise: must be in [0, 0.1)"),
+    (["--misalignment", "nan"], "--misalignment: needs a finite number"),
+    (["--grazing", "95"], "--grazing: must be in (0, 90] degrees"),
+    (["--seed", "-1"], "--seed: must not be negative"),
+])
+def test_cli_refuses_bad_options(tmp_path, args, message):
+    out = tmp_path / "scan.ply"
+    result = CliRunner().invoke(main, ["scan", "tests/data/spot.obj", "-o", str(out), *args])
+    assert result.exit_code == 2
+    lines = result.output.strip().splitlines()
+    assert len(lines) == 1 and message in lines[0]
+    assert not out.exists()
+
+
+def test_cli_refuses_a_point_cloud_and_a_wrong_output(tmp_path):
+    points = tmp_path / "points.ply"
+    result = CliRunner().invoke(main, ["scan", "tests/data/spot.obj", "-o", str(points), "--views", "1",
+                                       "--resolution", "32"])
+    assert result.exit_code == 0
+    again = CliRunner().invoke(main, ["scan", str(points), "-o", str(tmp_path / "b.ply")])
+    assert again.exit_code == 2 and "needs a mesh" in again.output
+    wrong = CliRunner().invoke(main, ["scan", "tests/data/spot.obj", "-o", str(tmp_path / "b.png")])
+    assert wrong.exit_code == 2 and "name it .ply" in wrong.output
