@@ -36,7 +36,7 @@ from .normal_field import FIELD_NEIGHBOURS, field_slopes
 from .normals import NORMAL_NEIGHBOURS, oriented_normals
 from .sharp_features import SHARP_ANGLE, find_sharp_features
 from .spacing import BOUND_FACTOR, bound_semi_axes, sampling_spacing
-from .structure import round_radii, screen_facing
+from .structure import round_radii, scans_surroundings, screen_facing
 
 
 def complete(cloud: PointCloud, *, needs_radii: bool = True, elliptical: bool = False,
@@ -109,7 +109,8 @@ def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np
         estimated["normals"] = normals
         report["normals"] = f"estimated (PCA, k={k_normals}, {how})"
         report["ambiguous_normals"] = int(ambiguous.sum())
-        facing = screen_facing(eigenvalues, raw_scan=cloud.geospatial or sensors is not None)
+        located = cloud if sensor is None else cloud.with_(sensors=np.asarray(sensor, np.float64).reshape(1, 3))
+        facing = screen_facing(eigenvalues, raw_scan=scans_surroundings(located))
         attributes["screen_facing"] = nbh.unsort(facing.astype(np.float32))
         report["screen_facing"] = int(facing.sum())
     radii, axes = given["radii"], given["axes"]
