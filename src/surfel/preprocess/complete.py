@@ -4,10 +4,12 @@
 command): one k-nearest-neighbour search, k = max(k_normals, RADIUS_NEIGHBOURS,
 FIELD_NEIGHBOURS), serves every estimation, in this order, each using the ones before:
 
-  1. normals (`normals.py`): u x v of given axes, else PCA oriented towards the sensor when its
-     position is known (`sensor`, or the cloud's `sensors`), +Z for geospatial clouds (aerial
-     scans, seen from above), or by propagation and outward; with them, from the same PCA, the
-     points drawn facing the camera (`structure.py`);
+  1. normals (`normals.py`): u x v of given axes, else PCA (each point's neighbourhood size
+     selected when the cloud is noisy and not geospatial, and k_normals is the default),
+     oriented towards the sensor when its position is known (`sensor`, or the cloud's
+     `sensors`), +Z for geospatial clouds (aerial scans, seen from above), or by propagation
+     and outward; with them, from the same PCA, the points drawn facing the camera
+     (`structure.py`);
   2. the sampling spacing (`spacing.py`), when radii or axes are estimated;
   3. sharp features (`sharp_features.py`), when both radii and axes are estimated;
   4. radii (`cells.py`): covering radii of the tangent-plane Voronoi cells;
@@ -33,7 +35,7 @@ from .cells import INACTIVE_CLIP, RADIUS_MARGIN, RADIUS_NEIGHBOURS, clip_lines, 
 from .frames import tangent_frames, unit
 from .neighbourhood import Neighbourhood
 from .normal_field import FIELD_NEIGHBOURS, field_slopes
-from .normals import NORMAL_NEIGHBOURS, oriented_normals
+from .normals import NORMAL_NEIGHBOURS, SCALES, oriented_normals
 from .sharp_features import SHARP_ANGLE, find_sharp_features
 from .spacing import BOUND_FACTOR, bound_semi_axes, sampling_spacing
 from .structure import round_radii, scans_surroundings, screen_facing
@@ -105,9 +107,12 @@ def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np
             towards, how = np.array([0.0, 0.0, 1.0]), "facing up (+Z)"
         else:
             towards, how = None, "oriented by MST propagation, outward"
-        normals, ambiguous, eigenvalues = oriented_normals(nbh, k_normals, towards, progress)
+        # geospatial tiles keep one scale: millions of points, and aerial noise is not an object's
+        select = not cloud.geospatial and k_normals == NORMAL_NEIGHBOURS
+        normals, ambiguous, eigenvalues, selected = oriented_normals(nbh, k_normals, towards, progress, select)
         estimated["normals"] = normals
-        report["normals"] = f"estimated (PCA, k={k_normals}, {how})"
+        scale = f"k per point in {SCALES[0]}..{SCALES[-1]} (noisy)" if selected else f"k={k_normals}"
+        report["normals"] = f"estimated (PCA, {scale}, {how})"
         report["ambiguous_normals"] = int(ambiguous.sum())
         located = cloud if sensor is None else cloud.with_(sensors=np.asarray(sensor, np.float64).reshape(1, 3))
         facing = screen_facing(eigenvalues, raw_scan=scans_surroundings(located))
