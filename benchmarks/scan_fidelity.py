@@ -7,7 +7,8 @@ at 512 x 512 with lambert shading, from the front and from azimuth 60, elevation
     python benchmarks/scan_fidelity.py MESH.obj [MESH.ply ...] [--methods deferred,phong]
         [--smooth] [--json]
 
---smooth denoises the scan first (`surfel prepare --smooth`: preprocess.smooth_positions).
+--smooth denoises the scan first: the positions of `surfel prepare --smooth` (normals and
+splats are then estimated by each method's completion, as for the raw scan).
 Prints one row per model and view, then the median PSNR of each method over all of them.
 """
 
@@ -23,6 +24,7 @@ from surfel.camera import frame
 from surfel.io import load
 from surfel.metrics import compare_results
 from surfel.options import RenderOptions
+from surfel.preprocess import prepare
 from surfel.rendering import Renderer
 from surfel.scan import ScanSettings, scan
 
@@ -34,9 +36,7 @@ def measure(path: str, methods: list[str], smooth: bool, renderer: Renderer) -> 
     mesh = load(path)
     cloud = scan(mesh, ScanSettings(), renderer)
     if smooth:
-        from surfel.preprocess import smooth_positions
-
-        cloud = cloud.with_(positions=smooth_positions(cloud.positions))
+        cloud = cloud.with_(positions=prepare(cloud, smooth=True)[0].positions)
     options = RenderOptions(shading="lambert", background=(0.0, 0.0, 0.0))
     rows = []
     for view, (azimuth, elevation) in VIEWS.items():
