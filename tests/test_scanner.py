@@ -8,7 +8,7 @@ from click.testing import CliRunner
 from conftest import requires_gl
 from models import unit_sphere
 from surfel.cli import main
-from surfel.io import load
+from surfel.io import load, write_ply
 from surfel.scan import ScanSettings, scan, view_directions
 
 pytestmark = requires_gl
@@ -180,3 +180,33 @@ def test_scanned_normals_select_their_scale():
 
     assert np.mean(error(prepared.normals)) < 0.95 * np.mean(error(plain))
     assert np.median(error(prepared.normals)) < 0.9 * np.median(error(plain))
+
+
+def test_render_smooth_brings_a_scan_closer_to_its_mesh(tmp_path):
+    """`surfel render --smooth` on a scan of Spot: deferred's render comes closer to the mesh's
+    than without it; a level-of-detail source refuses it."""
+    from surfel.camera import frame
+    from surfel.metrics import compare_results
+    from surfel.options import RenderOptions
+    from surfel.rendering import Renderer
+    from surfel.request import parse_render
+
+    mesh = load("tests/data/spot.obj")
+    cloud = scan(mesh)
+    camera = frame(mesh.center, mesh.bounding_radius, size=(384, 384))
+    options = RenderOptions(shading="lambert", background=(0.0, 0.0, 0.0))
+    renderer = Renderer()
+    reference = renderer.render(mesh, camera, "mesh", options=options)
+    raw = compare_results(reference, renderer.render(cloud, camera, "deferred", options=options))
+    request = parse_render({"input": "scan.ply", "output": "x.png", "smooth": True, "shading": "lambert",
+                            "background": "0,0,0"})
+    assert request.options.smooth
+    smoothed = renderer.render(cloud, camera, "deferred", options=request.options)
+    assert "smooth" in smoothed.stats["estimated"]
+    metrics = compare_results(reference, smoothed)
+    assert metrics["psnr"] > raw["psnr"] + 1 and metrics["holes"] < 0.001
+    lod = tmp_path / "spot.lod"  # a lazy source, read node by node
+    write_ply(cloud, tmp_path / "spot.ply")
+    assert CliRunner().invoke(main, ["lod", "build", str(tmp_path / "spot.ply"), "-o", str(lod)]).exit_code == 0
+    refused = CliRunner().invoke(main, ["render", str(lod), "-o", str(tmp_path / "x.png"), "--smooth"])
+    assert refused.exit_code == 2 and "smoothing applies to clouds loaded whole" in refused.output

@@ -170,6 +170,8 @@ OPTIONS: dict[str, Option] = {o.name: o for o in [
            "options", metavar="PX"),
     Option("point_budget", integer, "Most points drawn from a .lod hierarchy or COPC file (its LOD error is "
            "raised to fit).", "options", metavar="N"),
+    Option("smooth", None, "Denoise the positions first: move them onto the points' MLS surface, as `surfel "
+           "prepare --smooth` does (raw scans) [default: off].", "options"),
     Option("dump_passes", text, "Write the intermediate passes to this folder as images (gaussian, deferred, "
            "phong, object-space, ewa on gl).", "options", metavar="FOLDER"),
     # method parameters (methods/params.py and each method's dataclass)

@@ -46,7 +46,7 @@ from .structure import round_radii, scans_surroundings, screen_facing
 
 def complete(cloud: PointCloud, *, needs_radii: bool = True, elliptical: bool = False,
              normal_field: bool = False, progress: bool | None = None,
-             reference_spacing: np.ndarray | None = None) -> tuple[PointCloud, dict]:
+             reference_spacing: np.ndarray | None = None, smooth: bool = False) -> tuple[PointCloud, dict]:
     """The cloud with what a method needs, and the report of what was estimated ({} if nothing).
 
     The method's capability flags say what it needs: every method needs normals;
@@ -54,14 +54,14 @@ def complete(cloud: PointCloud, *, needs_radii: bool = True, elliptical: bool = 
     when the axes are estimated; `normal_field`: Phong splatting's normal fields. A cloud that
     lacks any of them is prepared (`prepare`, its defaults), which estimates normals, radii and
     axes alike whichever was missing, so that one completed cloud serves every method.
-    `reference_spacing`: as `prepare`'s.
+    `reference_spacing`, `smooth`: as `prepare`'s (smooth: always prepared).
     """
     missing = cloud.normals is None or (needs_radii and (cloud.radii is None or cloud.axes is None))
     missing = missing or (normal_field and "phong_alpha" not in cloud.attributes)
-    if not missing:
+    if not missing and not smooth:
         return cloud, {}
     return prepare(cloud, elliptical=elliptical, normal_field=normal_field, progress=progress,
-                   reference_spacing=reference_spacing)
+                   reference_spacing=reference_spacing, smooth=smooth)
 
 
 def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np.ndarray | None = None,
