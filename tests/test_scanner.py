@@ -210,3 +210,21 @@ def test_render_smooth_brings_a_scan_closer_to_its_mesh(tmp_path):
     assert CliRunner().invoke(main, ["lod", "build", str(tmp_path / "spot.ply"), "-o", str(lod)]).exit_code == 0
     refused = CliRunner().invoke(main, ["render", str(lod), "-o", str(tmp_path / "x.png"), "--smooth"])
     assert refused.exit_code == 2 and "smoothing applies to clouds loaded whole" in refused.output
+
+
+def test_ply_carries_the_sensors(tmp_path):
+    """surfel_sensor header comments: written in order, read back bit-exact; a malformed one is
+    refused in one line naming the file."""
+    from surfel.cloud import PointCloud
+    from surfel.errors import InputError
+
+    sensors = np.array([[0.1, -2.5, 1e6 + 0.125], [3.0, 4.0, -5.0]])
+    cloud = PointCloud(np.eye(3), sensors=sensors, attributes={"scan": np.array([0, 1, 1], np.int16)})
+    path = tmp_path / "two.ply"
+    write_ply(cloud, path)
+    back = load(str(path))
+    assert np.array_equal(back.sensors, sensors) and np.array_equal(back.sensor_positions()[1], sensors[1])
+    text = path.read_bytes().replace(b"comment surfel_sensor 3 4 -5", b"comment surfel_sensor 3 4 x")
+    (tmp_path / "bad.ply").write_bytes(text)
+    with pytest.raises(InputError, match="bad PLY header line"):
+        load(str(tmp_path / "bad.ply"))
