@@ -7,7 +7,8 @@ last level-of-detail subset, the EWA rasterizer's Morton order, object-space EWA
 weights, the MLS ray tracing scene, and the cloud's GPU buffers. Clouds are keyed by identity,
 held weakly: a PointCloud and its arrays cannot change, so what was derived from one stays
 true, and an entry goes when its cloud goes (its GL objects are released on the next frame).
-It also keeps the compiled GL programs and the three-pass targets of the last frame size.
+It also keeps the compiled GL programs, the three-pass targets of the last frame size and
+those a method draws with itself (the MLS caster's), also of the last size.
 Its lifetime is the object's: `close()`, or leaving a `with` block, releases its GL objects.
 `surfel.render()` uses a module-level Renderer; the viewer, turntable, bench and each batch
 worker hold their own.
@@ -95,6 +96,7 @@ class Renderer:
         self._per_cloud: weakref.WeakKeyDictionary[PointCloud, dict] = weakref.WeakKeyDictionary()
         self._programs: dict = {}
         self._targets: tuple | None = None  # (size key, gl.passes.SplatTargets)
+        self._kept_targets: dict = {}  # a method's own targets by kind: (key, targets) of the last key
         self._released_clouds: list = []  # GL objects of clouds that are gone, released on the next frame
 
     # ---- the caches methods use -----------------------------------------------------
@@ -148,6 +150,16 @@ class Renderer:
             self._targets = (key, SplatTargets.allocate(width, height, guard, back_layer))
         return self._targets[1]
 
+    def targets(self, kind: str, key, make):
+        """A method's own GL targets (`release()`), made by `make()` for `key` (their size);
+        those of the last key of each kind are kept, as `splat_targets` keeps its own."""
+        kept = self._kept_targets.get(kind)
+        if kept is None or kept[0] != key:
+            if kept is not None:
+                self._kept_targets.pop(kind)[1].release()  # nothing kept if the allocation fails
+            self._kept_targets[kind] = (key, make())
+        return self._kept_targets[kind][1]
+
     def complete(self, cloud: PointCloud, *, need_radii: bool = True, elliptical: bool = False,
                  normal_field: bool = False) -> tuple[PointCloud, dict]:
         """`complete()`, once per cloud and setting (turntables and benchmarks estimate once)."""
@@ -168,6 +180,9 @@ class Renderer:
         if self._targets is not None:
             self._targets[1].release()
             self._targets = None
+        for _, targets in self._kept_targets.values():
+            targets.release()
+        self._kept_targets.clear()
         self._release_gone()
 
     def __enter__(self) -> Renderer:

@@ -14,9 +14,11 @@ points sorted in Morton order, 8 spheres a leaf. Per ray (numba, parallel over r
 
 Colour is the fit's weighted mean of the neighbours' colours, the normal the gradient of
 the last polynomial (n - g_u e1 - g_v e2). Parameters (`MlsParams`):
-    h_scale (1.5)       kernel width h_i = h_scale * local spacing s_i (surface.MlsKernel)
+    h_scale (1.2)       kernel width h_i = h_scale * local spacing s_i (surface.MlsKernel)
     domain (2.0)        domain test / sphere radius in units of s_i (surface.MlsKernel)
-    tolerance (1e-3)    eps, as a fraction of the median kernel width
+    normal_sigma (0.6)  width of the normal-agreement weight (surface.MlsKernel)
+    boundary (0.6)      half-disc test bound, in units of the local width l (surface.MlsKernel)
+    tolerance (1e-3)    eps, as a fraction of the local kernel width l
     max_iterations (8)  fits per candidate sphere before giving up on it
     shadows (False)     a shadow ray to the directional key light of shading.py (eye space
                         (-0.4, 0.6, 0.8)); shadowed pixels keep only the ambient 0.2 albedo
@@ -98,10 +100,15 @@ def prepare_scene(cloud, kernel: MlsKernel = DEFAULT_KERNEL) -> MLSScene:
     return MLSScene(surface, polys, valid, radius, boxes)
 
 
-def cached_scene(cloud, kernel: MlsKernel, renderer) -> MLSScene:
+def scene_kernel(params: MlsKernel) -> MlsKernel:
+    """The surface's part of a method's parameters: what a scene is made from (and keyed by)."""
+    return MlsKernel(**{name: getattr(params, name) for name in MlsKernel.names()})
+
+
+def cached_scene(cloud, params: MlsKernel, renderer) -> MLSScene:
     """The scene, made once per cloud and kernel by the Renderer (both MLS methods share it)."""
-    surface_kernel = MlsKernel(kernel.h_scale, kernel.domain, kernel.normal_sigma, kernel.boundary)
-    return renderer.cached(cloud, ("mls scene", surface_kernel), lambda: prepare_scene(cloud, surface_kernel))
+    kernel = scene_kernel(params)
+    return renderer.cached(cloud, ("mls scene", kernel), lambda: prepare_scene(cloud, kernel))
 
 
 @numba.njit(cache=True, fastmath=True)
