@@ -1,8 +1,9 @@
-from pathlib import Path
+"""Shared fixtures. Every model a test renders is carried by the repository or made by
+tests/models.py; no test depends on files outside the checkout."""
 
 import pytest
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+from browser import browser  # noqa: F401  (headless Chromium, one per session, for the page and widget tests)
 
 
 def gl_ok() -> bool:
@@ -14,16 +15,19 @@ def gl_ok() -> bool:
 requires_gl = pytest.mark.skipif(not gl_ok(), reason="no OpenGL context")
 
 
-def data_file(name: str) -> Path:
-    path = DATA / name
-    if not path.exists():
-        pytest.skip(f"{path} not available")
-    return path
+@pytest.fixture(scope="session")
+def dense_spot():
+    """Spot refined to 46,850 vertices (models.dense_spot), completed (radii, tangent axes):
+    a dense organic mesh whose vertices are the splats."""
+    from models import dense_spot
+    from surfel.preprocess import complete
+
+    return complete(dense_spot())[0]
 
 
 @pytest.fixture(scope="session")
-def bunny():
-    from surfel.io import load
-    from surfel.rendering import complete
+def turned_part():
+    """The CAD part with sharp creases (models.turned_part), as a mesh."""
+    from models import turned_part
 
-    return complete(load(data_file("stanford-bunny.obj")))[0]
+    return turned_part()

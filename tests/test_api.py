@@ -4,13 +4,14 @@ import numpy as np
 import pytest
 
 import surfel
-from conftest import data_file, requires_gl
+from conftest import requires_gl
+from models import SPOT
 from surfel.adapters import from_numpy, from_trimesh, to_numpy, to_trimesh
 
 
 @requires_gl
 def test_render_returns_a_result_that_shows_itself_as_png():
-    result = surfel.render(surfel.load(data_file("stanford-bunny.obj")), method="deferred", size=(128, 128))
+    result = surfel.render(surfel.load(SPOT), method="deferred", size=(128, 128))
     png = result._repr_png_()
     assert png.startswith(b"\x89PNG\r\n\x1a\n")
     assert result.color.shape == (128, 128, 3) and 0.1 < result.alpha.mean() < 0.6
@@ -24,7 +25,7 @@ def test_numpy_round_trip():
 
 
 def test_trimesh_round_trip_keeps_the_mesh():
-    cloud = surfel.load(data_file("spot.obj"))
+    cloud = surfel.load(SPOT)
     back = from_trimesh(to_trimesh(cloud))
     assert back.is_mesh and len(back) == len(cloud)
     assert np.allclose(back.positions, cloud.positions)
@@ -33,7 +34,7 @@ def test_trimesh_round_trip_keeps_the_mesh():
 
 def test_open3d_adapter_is_optional():
     pytest.importorskip("open3d")
-    cloud = surfel.load(data_file("spot.obj"))
+    cloud = surfel.load(SPOT)
     from surfel.adapters import from_open3d, to_open3d
 
     assert np.allclose(from_open3d(to_open3d(cloud)).positions, cloud.positions)
@@ -46,7 +47,7 @@ def test_turntable_gif_has_the_frames(tmp_path):
     from surfel.turntable import turntable
 
     out = tmp_path / "t.gif"
-    turntable(surfel.load(data_file("stanford-bunny.obj")), out, frames=12, size=(64, 64), progress=False)
+    turntable(surfel.load(SPOT), out, frames=12, size=(64, 64), progress=False)
     assert Image.open(out).n_frames == 12
 
 
@@ -54,7 +55,7 @@ def test_pyvista_adapter_is_optional():
     pytest.importorskip("pyvista")
     from surfel.adapters import from_pyvista, to_pyvista
 
-    cloud = surfel.load(data_file("spot.obj"))
+    cloud = surfel.load(SPOT)
     back = from_pyvista(to_pyvista(cloud))
     assert back.is_mesh and np.allclose(back.positions, cloud.positions)
 

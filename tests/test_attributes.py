@@ -106,10 +106,13 @@ def test_attributes_keep_their_dtype_and_are_validated():
     assert dtypes["clip_lines"] == np.float32  # derived arrays are float32
     positions = np.zeros((3, 3))
     for attributes, message in [({"normals": np.zeros(3)}, "cannot name"), ({"s": np.array(["a", "b", "c"])},
-                                "not numeric"), ({"h": np.array([0.0, np.nan, 1.0])}, "NaN"),
+                                "not numeric"), ({"lod_emin": np.array([0.0, np.nan, 1.0])}, "NaN"),
                                 ({"h": np.zeros(4)}, "shape")]:
         with pytest.raises(InputError, match=message):
             PointCloud(positions, attributes=attributes)
+    # a scanner's missing values (NaN in a LAS extra-bytes field) are kept; surfel's estimates must be finite
+    kept = PointCloud(positions, attributes={"h": np.array([0.0, np.nan, 1.0])}).attributes["h"]
+    assert np.isnan(kept[1]) and kept[2] == 1.0
 
 
 def test_cloud_arrays_are_read_only():

@@ -7,7 +7,8 @@ import sys
 
 import numpy as np
 
-from conftest import data_file, requires_gl
+from conftest import requires_gl
+from models import DATA, SPOT
 
 
 def run(*args, cwd=None):
@@ -33,8 +34,7 @@ def test_demo_render_writes_a_picture_of_spot(tmp_path):
 
 @requires_gl
 def test_compare_reports_metrics_and_writes_side_by_side(tmp_path):
-    bunny = data_file("stanford-bunny.obj")
-    proc = run("compare", bunny, "--method", "deferred", "--size", "128x128", "--shading", "lambert", "--json",
+    proc = run("compare", SPOT, "--method", "deferred", "--size", "128x128", "--shading", "lambert", "--json",
                "-o", tmp_path / "cmp.png")
     assert proc.returncode == 0, proc.stderr
     metrics = json.loads(proc.stdout)
@@ -43,7 +43,7 @@ def test_compare_reports_metrics_and_writes_side_by_side(tmp_path):
 
     assert Image.open(tmp_path / "cmp.png").size == (384, 128)
 
-    sparse = run("compare", bunny, "--method", "deferred", "--size", "128x128", "--shading", "lambert", "--json",
+    sparse = run("compare", SPOT, "--method", "deferred", "--size", "128x128", "--shading", "lambert", "--json",
                  "--every", "4", "-o", tmp_path / "sparse.png")
     assert sparse.returncode == 0, sparse.stderr
     sparse_metrics = json.loads(sparse.stdout)
@@ -111,7 +111,7 @@ def test_bad_inputs_give_one_line_and_exit_2(tmp_path):
 
 
 def test_info_reports_attributes_and_estimates():
-    proc = run("info", data_file("autzen_trim.laz"), "--json")
+    proc = run("info", DATA / "autzen_trim.laz", "--json")
     assert proc.returncode == 0, proc.stderr
     info = json.loads(proc.stdout)
     assert info["points"] == 110000 and info["geospatial"]

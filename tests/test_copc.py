@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from conftest import data_file, requires_gl
+from conftest import requires_gl
+from models import DATA, SPOT
 from surfel.camera import frame
 from surfel.cloud import PointCloud
 from surfel.errors import InputError
@@ -21,14 +22,14 @@ from surfel.lod.source import open_source
 from surfel.metrics import compare_results
 from surfel.rendering import render
 
-REAL_COPC = Path(__file__).parent / "data" / "simple_with_page.copc.laz"  # laspy's, BSD licence
+REAL_COPC = DATA / "simple_with_page.copc.laz"  # laspy's, BSD licence
 SIZE = (256, 256)
 
 
 def _lidar_cloud() -> PointCloud:
     """Real aerial LiDAR (autzen_trim, 110,000 points) with cheap attributes: normals up, radii
     1.5 x the mean distance to the 6 nearest neighbours (enough to cover, fast to compute)."""
-    las = laspy.read(data_file("autzen_trim.laz"))
+    las = laspy.read(DATA / "autzen_trim.laz")
     positions = np.column_stack([las.x, las.y, las.z])
     distances, _ = cKDTree(positions).query(positions, k=7)
     rgb = np.column_stack([las.red, las.green, las.blue]).astype(np.float64)
@@ -152,7 +153,7 @@ def test_bad_files_give_one_line_errors(lidar_copc, tmp_path):
     assert "\n" not in str(error.value)
 
     plain = tmp_path / "plain.laz"
-    plain.write_bytes(data_file("autzen_trim.laz").read_bytes())
+    plain.write_bytes((DATA / "autzen_trim.laz").read_bytes())
     with pytest.raises(InputError, match="not a COPC file"):
         CopcSource(plain)
 
@@ -165,7 +166,7 @@ def test_build_command_and_cli_render(tmp_path):
     from surfel.lod.copc_write import build_command
 
     out = tmp_path / "spot.copc.laz"
-    stats = build_command(data_file("spot.obj"), out)
+    stats = build_command(SPOT, out)
     assert stats["points"] == CopcSource(out).total_points and stats["bytes"] == out.stat().st_size
     result = CliRunner().invoke(main, ["render", str(out), "-o", str(tmp_path / "spot.png"),
                                        "--size", "64x64"])

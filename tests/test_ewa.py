@@ -1,9 +1,8 @@
-"""EWA splatting (Zwicker et al. 2001), CPU backend: filter maths and renders of the bunny."""
+"""EWA splatting (Zwicker et al. 2001), CPU backend: filter maths and renders of real models."""
 
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,8 +13,6 @@ from surfel.methods import ewa_kernels as k
 from surfel.methods.ewa import EwaParams, render_ewa_cpu, splat_axes, splat_clip_lines, splat_fields
 from surfel.options import RenderOptions, SettingError
 from surfel.rendering import Renderer
-
-BUNNY = Path(__file__).resolve().parents[2] / "shared" / "data" / "stanford-bunny.obj"
 
 
 def _plane(n: int = 40) -> PointCloud:
@@ -84,25 +81,23 @@ def test_plane_is_covered_without_holes(ortho):
     assert res.stats["splats"] == len(cloud)
 
 
-@pytest.mark.skipif(not BUNNY.exists(), reason="shared test data missing")
-@pytest.mark.parametrize("model", ["stanford-bunny.obj", "spot.obj", "fandisk.obj"])
+@pytest.mark.parametrize("model", ["dense_spot", "spot", "turned_part"])
 @pytest.mark.parametrize("view", ["front", "right"])
 def test_against_mesh(model, view):
     from surfel.gl.context import gl_available
     if not gl_available():
         pytest.skip("the mesh reference needs OpenGL")
-    from surfel.io import load
+    import models
     from surfel.metrics import compare_results
-    from surfel.rendering import complete, default_camera, render
+    from surfel.preprocess import complete
+    from surfel.rendering import default_camera, render
 
-    if not (BUNNY.parent / model).exists():
-        pytest.skip(f"{model} not available")
-    cloud = load(str(BUNNY.parent / model))
+    cloud = getattr(models, model)()
     cam = default_camera(cloud, (512, 512), view=view)
     ref = render(cloud, cam, "mesh", shading="lambert")
     res = ewa_cpu(complete(cloud, normal_field=True)[0], cam, shading="lambert")
     m = compare_results(ref, res)
-    assert m["psnr"] >= 27 and m["holes"] <= 0.001
+    assert m["psnr"] >= 27 and m["holes"] <= 0.001, m
     both = (ref.alpha > 0.99) & (res.alpha > 0.99)
     assert np.median(np.abs(ref.depth[both] - res.depth[both])) < 0.01 * np.median(ref.depth[both])
 

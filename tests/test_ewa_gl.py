@@ -28,21 +28,19 @@ def _both(cloud, camera, supersample=None, **params):
 
 
 @pytest.mark.parametrize("size", [256, 512])
-def test_gl_matches_cpu_on_the_bunny(bunny, size):
-    cam = frame(bunny.center, bunny.bounding_radius, view="front", size=(size, size))
-    cpu, gl = _both(bunny, cam)
-    assert gl.alpha.sum() > 0.05 * size * size  # the bunny is there
+def test_gl_matches_cpu_on_dense_spot(dense_spot, size):
+    cam = frame(dense_spot.center, dense_spot.bounding_radius, view="front", size=(size, size))
+    cpu, gl = _both(dense_spot, cam)
+    assert gl.alpha.sum() > 0.05 * size * size  # the model is there
     assert compare_results(cpu, gl)["psnr"] >= MIN_PSNR
-    assert gl.stats["splats"] == len(bunny) and gl.stats["fragments"] > 0
+    assert gl.stats["splats"] == len(dense_spot) and gl.stats["fragments"] > 0
 
 
-def test_clip_lines_and_normal_fields_match_cpu():
-    """fandisk: splats cut at its creases, shaded with Phong normal fields, on both backends."""
-    from conftest import data_file
-    from surfel.io import load
-    from surfel.rendering import complete
+def test_clip_lines_and_normal_fields_match_cpu(turned_part):
+    """A CAD part: splats cut at its creases, shaded with Phong normal fields, on both backends."""
+    from surfel.preprocess import complete
 
-    cloud = complete(load(data_file("fandisk.obj")), normal_field=True)[0]
+    cloud = complete(turned_part, normal_field=True)[0]
     assert (cloud.attributes["clip_lines"][:, 0, 2] < 1).mean() > 0.1
     for view in ("front", "right"):
         cam = frame(cloud.center, cloud.bounding_radius, view=view, size=(256, 256))
@@ -50,17 +48,17 @@ def test_clip_lines_and_normal_fields_match_cpu():
         assert compare_results(cpu, gl)["psnr"] >= MIN_PSNR
 
 
-def test_orthographic_matches_cpu(bunny):
-    cam = frame(bunny.center, bunny.bounding_radius, view="right", size=(256, 256),
-                ortho_height=2.2 * bunny.bounding_radius)
-    cpu, gl = _both(bunny, cam)
+def test_orthographic_matches_cpu(dense_spot):
+    cam = frame(dense_spot.center, dense_spot.bounding_radius, view="right", size=(256, 256),
+                ortho_height=2.2 * dense_spot.bounding_radius)
+    cpu, gl = _both(dense_spot, cam)
     assert gl.alpha.sum() > 0.05 * 256 * 256
     assert compare_results(cpu, gl)["psnr"] >= MIN_PSNR
 
 
-def test_supersampling_and_culling_match_cpu(bunny):
-    cam = frame(bunny.center, bunny.bounding_radius, view="front", size=(128, 128))
-    cpu, gl = _both(bunny, cam, supersample=2, backface_culling=True)
+def test_supersampling_and_culling_match_cpu(dense_spot):
+    cam = frame(dense_spot.center, dense_spot.bounding_radius, view="front", size=(128, 128))
+    cpu, gl = _both(dense_spot, cam, supersample=2, backface_culling=True)
     assert gl.color.shape == (128, 128, 3)
     assert compare_results(cpu, gl)["psnr"] >= MIN_PSNR
     np.testing.assert_allclose(gl.stats["full_weight"], cpu.stats["full_weight"], rtol=0.05)

@@ -11,12 +11,11 @@ import pytest
 from scipy.spatial import cKDTree
 
 import surfel.lod as lod
+from models import dense_spot
 from surfel.camera import Camera, frame
 from surfel.cloud import PointCloud
 from surfel.lod.build import ROOT_PARENT_ERROR
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
-BUNNY = DATA / "stanford-bunny.obj"
 FLT_MAX = ROOT_PARENT_ERROR
 
 
@@ -33,18 +32,15 @@ def disk_cloud(positions: np.ndarray, normals: np.ndarray, colors=None) -> Point
 
 
 @pytest.fixture(scope="module")
-def bunny() -> PointCloud:
-    if not BUNNY.exists():
-        pytest.skip("stanford-bunny.obj not available")
-    from surfel.io import load
-
-    mesh = load(BUNNY)
+def dense() -> PointCloud:
+    """Spot refined to 46,850 vertices (tests/models.py), as circular disks."""
+    mesh = dense_spot()
     return disk_cloud(mesh.positions, mesh.normals)
 
 
 @pytest.fixture(scope="module")
-def tree(bunny) -> lod.LodTree:
-    return lod.build_lod(bunny, progress=False)
+def tree(dense) -> lod.LodTree:
+    return lod.build_lod(dense, progress=False)
 
 
 @pytest.fixture(scope="module")
@@ -105,10 +101,10 @@ def test_fig13_one_node_per_path_at_every_distance():
 
 # ---- the hierarchy -----------------------------------------------------------------------
 
-def test_tree_structure(bunny, tree):
-    n = len(bunny)
+def test_tree_structure(dense, tree):
+    n = len(dense)
     assert tree.n_leaves == n and sorted(tree.point_index.tolist()) == list(range(n))
-    assert np.allclose(tree.positions[:n], bunny.positions[tree.point_index])
+    assert np.allclose(tree.positions[:n], dense.positions[tree.point_index])
     assert tree.parent[tree.root] == -1 and (tree.parent[:-1] >= 0).all()
     counts = np.diff(tree.child_start)
     assert (counts[:n] == 0).all() and (counts[n:] >= 2).all()  # no single-child nodes
@@ -167,9 +163,9 @@ def ancestors_selected(tree: lod.LodTree, selected: np.ndarray) -> np.ndarray:
 
 
 @pytest.mark.parametrize("zoom", [1, 2, 4, 16, 64])
-def test_selected_disks_cover_every_point(tree, seq, bunny, zoom):
+def test_selected_disks_cover_every_point(tree, seq, dense, zoom):
     """No holes: each input point and its splat rim lies inside a selected disk's cylinder."""
-    cam = camera_at(bunny, zoom)
+    cam = camera_at(dense, zoom)
     order = lod.sequential_order(tree)
     for selected in (lod.select_recursive(tree, cam, 1.0), order[lod.select_sequential(seq, cam, 1.0)]):
         owner = ancestors_selected(tree, selected)
@@ -201,10 +197,10 @@ def test_sequential_order_sorted(tree, seq):
 
 
 @pytest.mark.parametrize("height_factor", [0.5, 2, 8, 32])
-def test_orthographic_sequential_equals_recursive(tree, seq, bunny, height_factor):
+def test_orthographic_sequential_equals_recursive(tree, seq, dense, height_factor):
     """One distance for all nodes (orthographic): the two selections are identical."""
-    base = camera_at(bunny, 1)
-    cam = base.with_(ortho_height=2 * bunny.bounding_radius * height_factor)
+    base = camera_at(dense, 1)
+    cam = base.with_(ortho_height=2 * dense.bounding_radius * height_factor)
     order = lod.sequential_order(tree)
     recursive = lod.select_recursive(tree, cam, 1.0)
     sequential = np.sort(order[lod.select_sequential(seq, cam, 1.0)])
@@ -212,10 +208,10 @@ def test_orthographic_sequential_equals_recursive(tree, seq, bunny, height_facto
 
 
 @pytest.mark.parametrize("zoom,view", [(1, "front"), (2, "right"), (4, "front"), (8, "iso")])
-def test_perspective_sequential_matches_recursive(tree, seq, bunny, zoom, view):
+def test_perspective_sequential_matches_recursive(tree, seq, dense, zoom, view):
     """Per-point distances: the sequential cut contains the recursive one, plus a thin band
     of overlapping parents and children (the view-independent simplification)."""
-    cam = camera_at(bunny, zoom, view)
+    cam = camera_at(dense, zoom, view)
     order = lod.sequential_order(tree)
     recursive = lod.select_recursive(tree, cam, 1.0)
     sequential = np.sort(order[lod.select_sequential(seq, cam, 1.0)])
@@ -226,9 +222,9 @@ def test_perspective_sequential_matches_recursive(tree, seq, bunny, zoom, view):
     assert extra <= 0.02 * len(recursive)
 
 
-def test_prefix_never_cuts_a_selected_node(seq, bunny):
+def test_prefix_never_cuts_a_selected_node(seq, dense):
     for zoom in (0.3, 1, 3, 10):
-        cam = camera_at(bunny, zoom)
+        cam = camera_at(dense, zoom)
         k = lod.lod_scale(cam, 1.0)
         count = lod.prefix_count(seq, lod.near_distance(seq, cam), k)
         r = np.linalg.norm(seq.positions - cam.eye, axis=1)
@@ -239,11 +235,11 @@ def test_prefix_never_cuts_a_selected_node(seq, bunny):
         assert count < len(seq) or zoom < 1
 
 
-def test_lod_reduces_with_distance_and_subset(seq, bunny):
-    drawn = [lod.select_sequential(seq, camera_at(bunny, z), 1.0).sum() for z in (1, 4, 16)]
+def test_lod_reduces_with_distance_and_subset(seq, dense):
+    drawn = [lod.select_sequential(seq, camera_at(dense, z), 1.0).sum() for z in (1, 4, 16)]
     assert drawn[0] > drawn[1] > drawn[2] >= 1
-    assert drawn[1] <= 0.3 * len(bunny)
-    cam = camera_at(bunny, 4)
+    assert drawn[1] <= 0.3 * len(dense)
+    cam = camera_at(dense, 4)
     subset = lod.lod_subset(seq, cam, 1.0)
     assert len(subset) == drawn[1] and subset.attributes == {}
 
@@ -254,12 +250,13 @@ def test_glsl_matches_numpy():
     """lod.glsl's lod_selected(), run by transform feedback, agrees with the numpy twin."""
     try:
         from surfel.gl.context import get_context
+        from surfel.gl.program import expand_includes
 
         ctx = get_context()
     except Exception as error:  # no OpenGL here
         pytest.skip(f"no OpenGL: {error}")
     gl = Path(lod.__file__).resolve().parents[1] / "gl"
-    shared = [(gl / name).read_text() for name in ("common.glsl", "lod.glsl")]
+    shared = [expand_includes(gl / name) for name in ("common.glsl", "lod.glsl")]
     source = "\n".join(["#version 430 core", *shared, """
 in vec4 in_lod;  // r, emin, emax, dparent
 out float v_selected;
@@ -298,7 +295,7 @@ def test_save_load_round_trip(tree, seq, tmp_path):
     from surfel.errors import InputError
     from surfel.io import load
 
-    path = tmp_path / "bunny.lod.npz"
+    path = tmp_path / "spot.lod.npz"
     lod.save_lod(tree, path)
     loaded = lod.load_lod(path)
     for name in ("positions", "radii", "axes"):
@@ -308,7 +305,7 @@ def test_save_load_round_trip(tree, seq, tmp_path):
         assert np.array_equal(loaded.attributes[name], seq.attributes[name]), name
     generic = load(path)  # any surfel reader of .npz sees the LOD extras
     assert set(lod.sequential.EXTRAS) <= set(generic.attributes)
-    assert [p.name for p in tmp_path.iterdir()] == ["bunny.lod.npz"]  # no temporaries left
+    assert [p.name for p in tmp_path.iterdir()] == ["spot.lod.npz"]  # no temporaries left
     plain = tmp_path / "plain.npz"
     np.savez(plain, positions=seq.positions)
     with pytest.raises(InputError):
@@ -319,31 +316,31 @@ def test_save_load_round_trip(tree, seq, tmp_path):
         lod.load_lod(bad)
 
 
-def test_build_command(bunny, tmp_path):
+def test_build_command(dense, tmp_path):
     source = tmp_path / "in.npz"
     rng = np.random.default_rng(0)
-    colors = rng.random((len(bunny), 3)).astype(np.float32)
-    np.savez(source, positions=bunny.positions, normals=bunny.normals, radii=bunny.radii,
-             axes=bunny.axes, colors=colors)
+    colors = rng.random((len(dense), 3)).astype(np.float32)
+    np.savez(source, positions=dense.positions, normals=dense.normals, radii=dense.radii,
+             axes=dense.axes, colors=colors)
     stats = lod.build_command(source, tmp_path / "out.lod.npz", tmp_path / "stats.json")
     import json
 
     assert json.loads((tmp_path / "stats.json").read_text()) == stats
-    assert stats["points"] == len(bunny) and stats["nodes"] > len(bunny) and stats["ms"] > 0
+    assert stats["points"] == len(dense) and stats["nodes"] > len(dense) and stats["ms"] > 0
     loaded = lod.load_lod(tmp_path / "out.lod.npz")
     assert loaded.colors is not None and len(loaded) == stats["nodes"]
 
 
-def test_build_throughput(bunny):
-    """Printed, not asserted: points per second on the bunny replicated with jitter to 1M."""
+def test_build_throughput(dense):
+    """Printed, not asserted: points per second on the dense replicated with jitter to 1M."""
     rng = np.random.default_rng(1)
     n = 1_000_000
-    rep = -(-n // len(bunny))
-    positions = np.tile(bunny.positions, (rep, 1))[:n]
-    positions = positions + rng.normal(scale=float(bunny.radii.mean()) * 0.3, size=positions.shape)
-    big = PointCloud(positions, normals=np.tile(bunny.normals, (rep, 1))[:n],
-                     radii=np.tile(bunny.radii, rep)[:n] * 0.3,
-                     axes=np.tile(bunny.axes, (rep, 1, 1))[:n] * 0.3)
+    rep = -(-n // len(dense))
+    positions = np.tile(dense.positions, (rep, 1))[:n]
+    positions = positions + rng.normal(scale=float(dense.radii.mean()) * 0.3, size=positions.shape)
+    big = PointCloud(positions, normals=np.tile(dense.normals, (rep, 1))[:n],
+                     radii=np.tile(dense.radii, rep)[:n] * 0.3,
+                     axes=np.tile(dense.axes, (rep, 1, 1))[:n] * 0.3)
     lod.build_lod(PointCloud(positions[:1000], normals=big.normals[:1000], radii=big.radii[:1000]),
                   progress=False)  # JIT warm-up, not timed
     start = time.perf_counter()
@@ -354,24 +351,23 @@ def test_build_throughput(bunny):
           f"= {n / seconds / 1e6:.2f} M points/s")
 
 
-def test_clip_lines_of_sharp_features_survive_the_hierarchy(tmp_path):
-    """fandisk's leaves keep their clip lines through build, file and cut; crease points (cut
-    away whole) are no leaves; the cut at 1 px still meets the full-detail quality bar."""
-    from conftest import data_file, gl_ok
-    from surfel.io import load
+def test_clip_lines_of_sharp_features_survive_the_hierarchy(tmp_path, turned_part):
+    """A CAD part's leaves keep their clip lines through build, file and cut; crease points
+    (cut away whole) are no leaves; the cut at 1 px still meets the full-detail quality bar."""
+    from conftest import gl_ok
     from surfel.metrics import compare_results
-    from surfel.preprocess import clipped_away
-    from surfel.rendering import complete, render
+    from surfel.preprocess import clipped_away, complete
+    from surfel.rendering import render
 
-    mesh = load(data_file("fandisk.obj"))
+    mesh = turned_part
     cloud = complete(mesh)[0]
     dropped = clipped_away(cloud)
     tree = lod.build_lod(cloud, progress=False)
     assert tree.n_leaves == len(cloud) - dropped.sum() and dropped.sum() > 0
     np.testing.assert_array_equal(tree.clip_lines[:tree.n_leaves], cloud.attributes["clip_lines"][tree.point_index])
     assert (tree.clip_lines[tree.n_leaves:, :, 2] == 1).all()
-    lod.save_lod(tree, tmp_path / "fandisk.lod.npz")
-    seq = lod.load_lod(tmp_path / "fandisk.lod.npz")
+    lod.save_lod(tree, tmp_path / "part.lod.npz")
+    seq = lod.load_lod(tmp_path / "part.lod.npz")
     assert "clip_lines" in seq.attributes
     if gl_ok():
         cam = frame(mesh.center, mesh.bounding_radius, size=(256, 256))

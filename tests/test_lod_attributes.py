@@ -20,7 +20,7 @@ from surfel.lod.copc import CopcSource
 from surfel.lod.copc_write import write_copc
 from surfel.lod.lazy import LazyHierarchy
 from surfel.lod.outofcore import BYTES_PER_POINT, MEMORY_OVERHEAD, build_outofcore
-from surfel.rendering import complete
+from surfel.preprocess import complete
 
 DATA = Path(__file__).parent / "data"  # laspy's test files, BSD licence (see the .LICENSE files)
 CLASSES = np.array([2, 6], np.uint8)  # an average of the two (4) is neither

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
+from models import SPOT
 from surfel.camera import frame
 from surfel.cli import main
 from surfel.cloud import PointCloud
@@ -24,9 +25,9 @@ from surfel.lod.outofcore import (
 )
 from surfel.lod.source import is_source, open_source
 from surfel.metrics import compare_results
-from surfel.rendering import complete, render
+from surfel.preprocess import complete
+from surfel.rendering import render
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 POINTS = 60_000
 # a budget that forces about eight partitions of at most 10,000 points
 SMALL_MEMORY = MEMORY_OVERHEAD + 10_000 * BYTES_PER_POINT
@@ -49,7 +50,7 @@ def built(tmp_path_factory):
     """(input PLY, the completed in-memory cloud, the built .lod directory, build stats)."""
     root = tmp_path_factory.mktemp("outofcore")
     ply = root / "spot.ply"
-    write_ply(sample_surface(load(DATA / "spot.obj"), POINTS), ply)
+    write_ply(sample_surface(load(SPOT), POINTS), ply)
     stats = build_outofcore(ply, root / "spot.lod", memory=SMALL_MEMORY, progress=False)
     cloud, _ = complete(load(ply))
     return ply, cloud, root / "spot.lod", stats

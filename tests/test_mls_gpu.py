@@ -59,11 +59,11 @@ def test_domain_test_keeps_holes_open():
     assert np.allclose(res.depth[31:33, 31:33], 5.0, rtol=1e-4)  # through the hole onto z = -1
 
 
-def test_agrees_with_cpu_mls_on_bunny(bunny):
-    cam = frame(bunny.center, bunny.bounding_radius, size=(256, 256))
+def test_agrees_with_cpu_mls_on_bunny(dense_spot):
+    cam = frame(dense_spot.center, dense_spot.bounding_radius, size=(256, 256))
     options = RenderOptions(shading="lambert")
-    gpu = mls_gl(bunny, cam, options)
-    cpu = mls_cpu(bunny, cam, options)
+    gpu = mls_gl(dense_spot, cam, options)
+    cpu = mls_cpu(dense_spot, cam, options)
     metrics = compare_results(cpu, gpu)
     assert metrics["psnr"] >= 30 and metrics["holes"] <= 0.005
     both = np.isfinite(cpu.depth) & np.isfinite(gpu.depth)

@@ -4,9 +4,9 @@ import numba
 import numpy as np
 import pytest
 
-from conftest import data_file, requires_gl
+from conftest import requires_gl
+from models import dense_spot
 from surfel.camera import frame
-from surfel.io import load
 from surfel.metrics import psnr
 from surfel.rendering import render
 
@@ -66,7 +66,7 @@ def independent_lambert(cloud, camera, samples=4):
 
 @pytest.mark.parametrize("view", ["front", "right"])
 def test_mesh_matches_independent_rasterization(view):
-    cloud = load(data_file("stanford-bunny.obj"))
+    cloud = dense_spot()
     camera = frame(cloud.center, cloud.bounding_radius, view=view, size=(256, 256))
     ours = render(cloud, camera, "mesh", shading="lambert")
     color, alpha = independent_lambert(cloud, camera)

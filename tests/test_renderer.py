@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 import surfel
-from conftest import data_file, requires_gl
+from conftest import requires_gl
+from models import SPOT
 from surfel.camera import frame
 from surfel.cloud import PointCloud
 from surfel.errors import SurfelError
@@ -157,7 +158,7 @@ def test_the_viewer_renders_gaussian_as_the_command_line_does():
     from surfel.request import parse_render
     from surfel.viewer import ViewState
 
-    cloud = surfel.load(data_file("spot.obj"))
+    cloud = surfel.load(SPOT)
     state = ViewState(cloud, "gaussian", "lambert")
     viewed, _ = state.render((64, 64))
     request = parse_render({"input": "spot.obj", "output": "x.png", "method": "gaussian", "shading": "lambert"})

@@ -4,29 +4,30 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from conftest import data_file, requires_gl
+from conftest import requires_gl
+from models import DATA
 from scenes import checker_plane, checker_reference, far_half_rms, grazing_camera
 from surfel.camera import frame
 from surfel.cloud import PointCloud
 from surfel.metrics import compare_results
 from surfel.rendering import render
-from surfel.shading import MODELS, shade
+from surfel.shading import MODEL_IDS, shade
 
 pytestmark = requires_gl
 SIZE = (512, 512)
 
 
 @pytest.fixture(scope="module")
-def views(bunny):
-    cams = {v: frame(bunny.center, bunny.bounding_radius, view=v, size=SIZE) for v in ("front", "right")}
-    refs = {v: render(bunny, cam, "mesh", shading="lambert") for v, cam in cams.items()}
+def views(dense_spot):
+    cams = {v: frame(dense_spot.center, dense_spot.bounding_radius, view=v, size=SIZE) for v in ("front", "right")}
+    refs = {v: render(dense_spot, cam, "mesh", shading="lambert") for v, cam in cams.items()}
     return cams, refs
 
 
 @pytest.mark.parametrize("view", ["front", "right"])
-def test_deferred_and_gaussian_against_mesh(bunny, views, view):
+def test_deferred_and_gaussian_against_mesh(dense_spot, views, view):
     cams, refs = views
-    cloud = bunny.with_(faces=None)
+    cloud = dense_spot.with_(faces=None)
     points = compare_results(refs[view], render(cloud, cams[view], "points", shading="lambert"))
     deferred = compare_results(refs[view], render(cloud, cams[view], "deferred", shading="lambert"))
     gaussian = compare_results(refs[view], render(cloud, cams[view], "gaussian", shading="lambert"))
@@ -36,12 +37,12 @@ def test_deferred_and_gaussian_against_mesh(bunny, views, view):
     assert points["holes"] <= 0.02
 
 
-@pytest.fixture(scope="module", params=["fandisk.obj", "spot.obj"])
+@pytest.fixture(scope="module", params=["turned_part", "spot"])
 def other_model(request):
     """A CAD part with sharp creases and a coarse smooth model, their meshes rendered front and right."""
-    from surfel.io import load
+    import models
 
-    mesh = load(data_file(request.param))
+    mesh = getattr(models, request.param)()
     cams = {v: frame(mesh.center, mesh.bounding_radius, view=v, size=SIZE) for v in ("front", "right")}
     refs = {v: render(mesh, cam, "mesh", shading="lambert") for v, cam in cams.items()}
     return mesh.with_(faces=None), cams, refs
@@ -49,24 +50,28 @@ def other_model(request):
 
 @pytest.mark.parametrize("view", ["front", "right"])
 def test_splat_methods_against_mesh_on_creases_and_coarse_sampling(other_model, view):
-    """fandisk's 90 degree creases need the clip lines of sharp features; spot is sampled coarsely."""
+    """The CAD part's creases need the clip lines of sharp features; spot is sampled coarsely.
+    Object-space EWA leaves slivers along the part's grazing convex creases uncovered (0.13%
+    of its silhouette, front view; fandisk's had 0.007%), hence its own bound there."""
     cloud, cams, refs = other_model
     for method, least in (("deferred", 27), ("gaussian", 25), ("phong", 27), ("object-space", 26)):
         metrics = compare_results(refs[view], render(cloud, cams[view], method, shading="lambert"))
-        assert metrics["psnr"] >= least and metrics["holes"] <= 0.001, (method, metrics)
+        holes = 0.002 if method == "object-space" and cloud.source == "turned part" else 0.001
+        assert metrics["psnr"] >= least and metrics["holes"] <= holes, (method, metrics)
 
 
-def test_phong_splatting_against_mesh(bunny, views):
+def test_phong_splatting_against_mesh(dense_spot, views):
     cams, refs = views
-    metrics = compare_results(refs["front"], render(bunny.with_(faces=None), cams["front"], "phong", shading="lambert"))
+    metrics = compare_results(refs["front"], render(dense_spot.with_(faces=None), cams["front"], "phong",
+                                                    shading="lambert"))
     assert metrics["psnr"] >= 27 and metrics["holes"] <= 0.001
 
 
-def test_phong_beats_gaussian_on_sparse_sampling(bunny, views):
-    """The survey's Fig. 6, right against middle: every 4th point of the bunny, normals kept,
+def test_phong_beats_gaussian_on_sparse_sampling(dense_spot, views):
+    """The survey's Fig. 6, right against middle: every 4th point of dense Spot, normals kept,
     everything else estimated; Phong splatting's interior PSNR at least 1 dB above gaussian's."""
     cams, refs = views
-    sparse = PointCloud(bunny.positions[::4], normals=bunny.normals[::4])
+    sparse = PointCloud(dense_spot.positions[::4], normals=dense_spot.normals[::4])
     for view in ("front", "right"):
         phong = compare_results(refs[view], render(sparse, cams[view], "phong", shading="lambert"))
         gaussian = compare_results(refs[view], render(sparse, cams[view], "gaussian", shading="lambert"))
@@ -102,39 +107,41 @@ def test_phong_splats_are_curved_to_the_surface():
     assert spill["phong"] < 0.01 * spill["deferred"]
 
 
-def test_dense_clouds_of_sub_pixel_splats_cover_whole_pixels(bunny, views):
-    """400k points on the bunny's surface: splats smaller than a pixel. Each alone covers
-    part of a pixel, their union all of it: no dark speckle inside, no bright halo outside."""
+def test_dense_clouds_of_sub_pixel_splats_cover_whole_pixels(dense_spot, views):
+    """400k points on dense Spot's surface: splats smaller than a pixel. Each alone covers
+    part of a pixel, their union all of it: no dark speckle inside, no bright halo outside.
+    Deferred's low-pass filter softens Spot's interior shading more than the bunny's
+    (measured 34.3 dB, the bunny 37.2): its interior bound keeps the bunny's 1.2 dB margin."""
     trimesh = pytest.importorskip("trimesh")
-    surface = trimesh.Trimesh(bunny.positions, bunny.faces, process=False)
+    surface = trimesh.Trimesh(dense_spot.positions, dense_spot.faces, process=False)
     points, face = trimesh.sample.sample_surface(surface, 400_000, seed=1)
     weights = trimesh.triangles.points_to_barycentric(surface.triangles[face], points)
-    normals = (weights[..., None] * bunny.normals[bunny.faces[face]]).sum(1)
+    normals = (weights[..., None] * dense_spot.normals[dense_spot.faces[face]]).sum(1)
     cloud = PointCloud(points, normals=normals / np.linalg.norm(normals, axis=1, keepdims=True))
     cams, refs = views
     inside = ndimage.binary_erosion(refs["front"].alpha >= 0.5, iterations=2)
-    for method, least in (("phong", 40), ("gaussian", 40), ("deferred", 34)):
+    for method, least, interior in (("phong", 40, 36), ("gaussian", 40, 36), ("deferred", 34, 33)):
         result = render(cloud, cams["front"], method, shading="lambert")
         assert (result.alpha[inside] < 0.99).mean() < 0.001, method
         metrics = compare_results(refs["front"], result)
-        assert metrics["psnr"] >= least and metrics["interior_psnr"] >= 36, (method, metrics)
+        assert metrics["psnr"] >= least and metrics["interior_psnr"] >= interior, (method, metrics)
 
 
-def test_mesh_shading_models_match_numpy(bunny):
+def test_mesh_shading_models_match_numpy(dense_spot):
     """The GLSL shading models and their numpy twins give the same colours."""
-    cam = frame(bunny.center, bunny.bounding_radius, size=(128, 128))
-    for model in MODELS:
-        result = render(bunny, cam, "mesh", shading=model, supersample=1)
+    cam = frame(dense_spot.center, dense_spot.bounding_radius, size=(128, 128))
+    for model in MODEL_IDS:  # the per-pixel models (edl's screen-space term: test_colors.py)
+        result = render(dense_spot, cam, "mesh", shading=model, supersample=1)
         covered = result.alpha == 1
         near, far = result.stats["near"], result.stats["far"]  # the renderer's clip planes
         expected = np.clip(shade(model, np.ones_like(result.color), result.normals, result.depth, near, far), 0, 1)
         assert np.abs(result.color[covered] - expected[covered]).max() < 2e-3, model
 
 
-def test_buffers_follow_the_contract(bunny):
-    cam = frame(bunny.center, bunny.bounding_radius, size=(96, 64))
-    mesh = render(bunny, cam, "mesh", shading="lambert")
-    splat = render(bunny.with_(faces=None), cam, "deferred", shading="lambert")
+def test_buffers_follow_the_contract(dense_spot):
+    cam = frame(dense_spot.center, dense_spot.bounding_radius, size=(96, 64))
+    mesh = render(dense_spot, cam, "mesh", shading="lambert")
+    splat = render(dense_spot.with_(faces=None), cam, "deferred", shading="lambert")
     for r in (mesh, splat):
         assert r.color.shape == (64, 96, 3) and r.depth.shape == (64, 96) and r.normals.shape == (64, 96, 3)
         assert np.isinf(r.depth[r.alpha == 0]).all() and (r.normals[r.alpha == 0] == 0).all()
@@ -149,13 +156,13 @@ def test_buffers_follow_the_contract(bunny):
     assert (mesh.depth[both] > cam.near).all() and (mesh.depth[both] < cam.far).all()
 
 
-def test_orthographic_camera_for_every_splat_method(bunny):
-    r = bunny.bounding_radius
-    cam = frame(bunny.center, r, size=(128, 128), ortho_height=2.2 * r)
-    ref = render(bunny, cam, "mesh", shading="lambert")
+def test_orthographic_camera_for_every_splat_method(dense_spot):
+    r = dense_spot.bounding_radius
+    cam = frame(dense_spot.center, r, size=(128, 128), ortho_height=2.2 * r)
+    ref = render(dense_spot, cam, "mesh", shading="lambert")
     assert ref.alpha.mean() > 0.1
     for method in ("points", "gaussian", "deferred", "phong"):
-        metrics = compare_results(ref, render(bunny.with_(faces=None), cam, method, shading="lambert"))
+        metrics = compare_results(ref, render(dense_spot.with_(faces=None), cam, method, shading="lambert"))
         assert metrics["holes"] <= 0.01 and metrics["psnr"] > 20, method
 
 
@@ -163,7 +170,7 @@ def test_lidar_colours_are_splatted(tmp_path):
     from surfel.io import load
     from surfel.rendering import default_camera
 
-    cloud = load(data_file("autzen_trim.laz"))
+    cloud = load(DATA / "autzen_trim.laz")
     cam = default_camera(cloud, (256, 256), view="top")
     result = render(cloud, cam, "deferred", shading="none")
     covered = result.alpha > 0.99
@@ -188,9 +195,9 @@ def test_ewa_filter_halves_minification_error():
     assert filtered < 0.5 * points
 
 
-def test_dump_passes_writes_the_three_passes(bunny, tmp_path):
-    cam = frame(bunny.center, bunny.bounding_radius, size=(64, 64))
-    render(bunny.with_(faces=None), cam, "deferred", dump_passes=str(tmp_path))
+def test_dump_passes_writes_the_three_passes(dense_spot, tmp_path):
+    cam = frame(dense_spot.center, dense_spot.bounding_radius, size=(64, 64))
+    render(dense_spot.with_(faces=None), cam, "deferred", dump_passes=str(tmp_path))
     names = sorted(p.name for p in tmp_path.iterdir())
     assert names == ["1-visibility-depth.png", "2-accumulated-weight.png", "3-accumulated-color.png",
                      "4-normalized.png"]

@@ -7,13 +7,14 @@ import sys
 import numpy as np
 import pytest
 
-from conftest import data_file, requires_gl
+from conftest import requires_gl
+from models import SPOT
 from surfel.io import load
 from surfel.viewer import ViewState
 
 
 def test_keys_change_the_view_state():
-    state = ViewState(load(data_file("spot.obj")), "deferred", "phong")
+    state = ViewState(load(SPOT), "deferred", "phong")
     assert state.ewa_filter_on() is True  # deferred's own default, as on the command line
     assert state.key("3") and state.method == state.methods[2] == "gaussian"
     assert state.ewa_filter_on() is False  # gaussian's: the viewer forces nothing
@@ -36,11 +37,35 @@ def test_screenshot_from_a_real_window_under_xvfb(tmp_path):
 
     out = tmp_path / "shot.png"
     proc = subprocess.run(["xvfb-run", "-a", "-s", "-screen 0 800x600x24", sys.executable, "-m", "surfel.cli",
-                           "view", str(data_file("stanford-bunny.obj")), "--screenshot", str(out),
+                           "view", str(SPOT), "--screenshot", str(out),
                            "--size", "320x240"], capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr
     image = np.asarray(Image.open(out).convert("L")).astype(float)
     assert image.shape == (240, 320)
     middle = image[60:180, 80:240]
-    assert (middle > 100).mean() > 0.2  # the lit bunny fills the middle of the window
+    assert (middle > 100).mean() > 0.2  # the lit cow fills the middle of the window
     assert (image[0:16] > 128).any()     # the status line is drawn across the top
+
+
+@requires_gl
+@pytest.mark.skipif(shutil.which("xvfb-run") is None, reason="Xvfb is not installed")
+def test_a_tile_opens_obliquely_across_the_window(tmp_path):
+    """A geospatial tile: the whole tile seen from above the horizon, filling the window's
+    width (not a sliver at ground level), in elevation colours."""
+    pytest.importorskip("glfw")
+    from pathlib import Path
+
+    from PIL import Image
+
+    tile = Path(__file__).parent / "data" / "autzen_trim.laz"
+    out = tmp_path / "shot.png"
+    proc = subprocess.run(["xvfb-run", "-a", "-s", "-screen 0 800x600x24", sys.executable, "-m", "surfel.cli",
+                           "view", str(tile), "--screenshot", str(out), "--size", "400x300", "--color", "elevation"],
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    image = np.asarray(Image.open(out).convert("RGB")).astype(int)
+    drawn = image[20:165].max(axis=2) > 30  # between the status line and the help
+    columns = np.flatnonzero(drawn.any(axis=0))
+    rows = np.flatnonzero(drawn.any(axis=1))
+    assert (columns[-1] - columns[0] + 1) / 400 > 0.7 and len(rows) > 30  # across the window, seen from above
+    assert len(np.unique(image[20:165][drawn] // 32, axis=0)) > 8  # a colour ramp, not one colour

@@ -20,7 +20,8 @@ import surfel
 from surfel.camera import frame
 from surfel.methods import METHODS
 from surfel.metrics import compare_results
-from surfel.rendering import complete, render
+from surfel.preprocess import complete
+from surfel.rendering import render
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parents[1] / "tests"))

@@ -4,6 +4,7 @@
     cloud = surfel.load("bunny.obj")
     image = surfel.render(cloud, method="deferred", size=(512, 512))   # shows itself in notebooks
     image.color, image.alpha, image.depth, image.normals              # numpy arrays
+    tile = surfel.render(surfel.load("tile.laz"), color="classification", classes=(2, 6))
 """
 
 from .cloud import PointCloud
@@ -16,8 +17,22 @@ __all__ = ["PointCloud", "InputError", "SurfelError", "Renderer", "load", "write
 __version__ = "0.1.0"
 
 
-def show(cloud: PointCloud, method: str = "deferred", size=(512, 512), **options):
-    """Render with the default camera and display it: inline in a notebook, else the image viewer."""
+def show(cloud, method: str = "deferred", size=(512, 512), *, interactive: bool | None = None, **options):
+    """Show `cloud` (a PointCloud, or a .lod hierarchy / COPC source from surfel.lod.open_source).
+
+    In a Jupyter kernel with the notebook extra (pip install 'surfel[notebook]'), or with
+    interactive=True: an interactive view rendered by the kernel and streamed to the
+    browser, with controls for method, colour mode, shading and LOD error (surfel.widget;
+    options shading, color, colormap, lod_error). Elsewhere: one frame from the default
+    camera (options: those of `render`, color="classification" for instance), displayed
+    inline in a notebook, else in the image viewer; returned as a RenderResult.
+    """
+    from .widget import make_view, widget_frontend
+
+    if interactive is None:
+        interactive = widget_frontend()
+    if interactive:
+        return make_view(cloud, method=method, size=size, **options)
     result = render(cloud, method=method, size=size, **options)
     try:
         from IPython import get_ipython

@@ -45,13 +45,13 @@ def to_numpy(cloud: PointCloud) -> dict:
 
 
 def _mesh_cloud(vertices, faces, normals=None, colors=None, attributes=None, kinds=None, source=None) -> PointCloud:
-    from .io.mesh import area_weighted_vertex_normals, referenced_vertices
+    from .io.mesh import mesh_normals, referenced_vertices
 
     vertices, faces = np.asarray(vertices, np.float64), np.asarray(faces, np.int64)
     keep, faces = referenced_vertices(faces, len(vertices))
     vertices = vertices[keep]
     colors = None if colors is None else np.asarray(colors)[keep]
-    normals = area_weighted_vertex_normals(vertices, faces) if normals is None else np.asarray(normals)[keep]
+    normals = mesh_normals(vertices, faces) if normals is None else np.asarray(normals)[keep]
     attributes = {name: np.asarray(values)[keep] for name, values in (attributes or {}).items()}
     return PointCloud(vertices, normals=normals, colors=colors, faces=faces, attributes=attributes,
                       kinds=kinds or {}, source=source)

@@ -65,6 +65,14 @@ _ALIASES = {"scananglerank": "scan_angle"}
 DERIVED = frozenset({"phong_alpha", "phong_beta", "clip_lines", "lod_emin", "lod_emax", "lod_dparent",
                      "lod_dsuffix"})
 DERIVED_DTYPE = np.dtype(np.float32)
+# Each derived array's per-point shape (scalars but the clip lines: two lines a u + b v <= c,
+# as surfel.preprocess estimates them); a file holding another is refused, since every
+# renderer indexes them so.
+DERIVED_SHAPES = {name: () for name in DERIVED} | {"clip_lines": (2, 3)}
+# The derived arrays that are lengths in world units (the others are relative to a splat's
+# axes); the largest float32 among them stands for infinity (the root's parent error).
+DERIVED_LENGTHS = frozenset({"lod_emin", "lod_emax", "lod_dparent", "lod_dsuffix"})
+INFINITE_LENGTH = float(np.finfo(np.float32).max)
 # The geometry fields of a PointCloud: never attribute names.
 GEOMETRY = frozenset({"positions", "normals", "colors", "radii", "axes", "faces"})
 _NUMERIC = "biuf"
@@ -232,8 +240,9 @@ class Schema(Mapping):
 
 def summarize(attributes: Mapping[str, np.ndarray], schema: Schema, max_values: int = 12) -> dict[str, dict]:
     """What `surfel info` shows of each attribute: dtype, shape, kind, whether derived, and
-    min and max (continuous) or the most frequent values with their counts (categorical,
-    at most `max_values` of them; `more` counts the others)."""
+    min and max of the finite values and the count of the others (continuous) or the most
+    frequent values with their counts (categorical, at most `max_values` of them; `more`
+    counts the others)."""
     out = {}
     for name, spec in schema.items():
         values = attributes[name]
@@ -247,7 +256,11 @@ def summarize(attributes: Mapping[str, np.ndarray], schema: Schema, max_values: 
             if len(codes) > max_values:
                 entry["more"] = int(len(codes) - max_values)
         elif values.size:
-            entry["min"], entry["max"] = values.min().item(), values.max().item()
+            finite = values[np.isfinite(values)] if values.dtype.kind == "f" else values
+            if finite.size:
+                entry["min"], entry["max"] = finite.min().item(), finite.max().item()
+            if finite.size < values.size:
+                entry["not_finite"] = int(values.size - finite.size)
         out[name] = entry
     return out
 
@@ -263,7 +276,8 @@ def summary_lines(summary: Mapping[str, dict]) -> list[str]:
             what = ", ".join(f"{code}: {count}" for code, count in entry["values"].items())
             what += f", ... {entry['more']} more" if entry.get("more") else ""
         else:
-            what = f"{entry['min']:.10g} .. {entry['max']:.10g}" if "min" in entry else "empty"
+            what = f"{entry['min']:.10g} .. {entry['max']:.10g}" if "min" in entry else "no finite value"
+            what += f", {entry['not_finite']} not finite" if entry.get("not_finite") else ""
         rows.append((name, dtype, kind, what))
     widths = [max((len(row[column]) for row in rows), default=0) for column in range(3)]
     return [f"{name:{widths[0]}s}  {dtype:{widths[1]}s}  {kind:{widths[2]}s}  {what}"

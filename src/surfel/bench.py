@@ -19,7 +19,8 @@ from .cloud import PointCloud
 from .errors import SurfelError
 from .methods import get_method
 from .options import RenderOptions
-from .rendering import Renderer, complete, default_camera
+from .preprocess import complete
+from .rendering import Renderer, default_camera
 from .request import parse_values
 
 

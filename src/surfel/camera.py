@@ -1,6 +1,6 @@
 """Cameras: OpenGL look-at with a vertical field of view, OpenCV pinhole (K, R, t), orthographic.
 
-One representation serves all of them (CONVENTIONS.md, "Coordinates and camera"):
+One representation serves all of them (docs/conventions.md, "Coordinates and camera"):
 
 * `world_to_eye`: 4x4 float64 rigid transform into OpenGL eye space (x right, y up,
   looking down -z).
@@ -15,14 +15,18 @@ A point at eye coordinates (X, Y, Z), Z < 0, lands on image position
 
 from __future__ import annotations
 
+import json
 import math
 from dataclasses import dataclass, replace
+from pathlib import Path
 
 import numpy as np
 
 from .errors import SurfelError
 
 VIEWS = ("front", "back", "left", "right", "top", "bottom", "iso")
+EXTENT_MARGIN = 0.05  # geospatial framing: the projected bounding box leaves this fraction of the image each side
+AUTO = "auto"  # ortho_height: fit the view to the data like auto-framing
 
 
 def _unit(v) -> np.ndarray:
@@ -96,6 +100,21 @@ class Camera:
 
     def with_(self, **changes) -> Camera:
         return replace(self, **changes)
+
+    def supersampled(self, factor: int) -> Camera:
+        """The same view on a render target `factor` times larger per side (supersampling)."""
+        if factor == 1:
+            return self
+        return replace(self, width=self.width * factor, height=self.height * factor, fx=self.fx * factor,
+                       fy=self.fy * factor, cx=self.cx * factor, cy=self.cy * factor)
+
+    def scaled(self, factor: float) -> Camera:
+        """The same view of a world whose lengths are multiplied by `factor` (PointCloud.scaled):
+        the same image, eye depths times `factor`."""
+        m = self.world_to_eye.copy()
+        m[:3, 3] *= factor
+        return replace(self, world_to_eye=m, near=self.near * factor, far=self.far * factor,
+                       ortho_height=None if self.ortho_height is None else self.ortho_height * factor)
 
     # ---- derived quantities ---------------------------------------------------------
     @property
@@ -180,11 +199,50 @@ class Camera:
     def fit_clip_planes(self, center, radius: float) -> Camera:
         """Near/far planes bracketing a bounding sphere (they change no output, only precision)."""
         d = float(-(self.view_matrix() @ np.append(np.asarray(center, np.float64), 1.0))[2])
-        far = max(d + radius * 1.05, 1e-6)
+        # relative to the scene's own scale, which may be anything from 1e-10 to 1e18
+        far = max(d + radius * 1.05, 1e-6 * max(radius, abs(d)))
         near = max(d - radius * 1.05, far * 1e-4)
         if self.ortho_height is not None:
             near = d - radius * 1.05  # may be negative: orthographic needs no positive near
         return replace(self, near=near, far=far)
+
+
+@dataclass(frozen=True)
+class OpenCvCamera:
+    """A pinhole camera from an OpenCV JSON file {"K": 3x3, "R": 3x3, "t": 3}, checked."""
+
+    path: str
+    K: np.ndarray
+    R: np.ndarray
+    t: np.ndarray
+
+    @classmethod
+    def read(cls, path: str) -> OpenCvCamera:
+        try:
+            spec = json.loads(Path(path).read_text())
+            K, R, t = (np.array(spec[key], float) for key in ("K", "R", "t"))
+        except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError) as exc:
+            reason = getattr(exc, "strerror", None) or f"{type(exc).__name__}: {exc}"
+            raise SurfelError(f"{path}: not an OpenCV camera JSON with K, R, t ({reason})") from None
+        problem = cls.problem(K, R, t)
+        if problem:
+            raise SurfelError(f"{path}: {problem}")
+        return cls(path, K, R, t.reshape(3))
+
+    @staticmethod
+    def problem(K: np.ndarray, R: np.ndarray, t: np.ndarray) -> str | None:
+        for name, array, shape in (("K", K, (3, 3)), ("R", R, (3, 3)), ("t", t, (3,))):
+            if array.shape != shape and not (name == "t" and array.size == 3):
+                return f"{name} must be {'x'.join(map(str, shape))}, got shape {array.shape}"
+            if not np.isfinite(array).all():
+                return f"{name} holds values that are not finite numbers"
+        if not np.array_equal(K[2], [0.0, 0.0, 1.0]) or K[1, 0] != 0 or K[0, 1] != 0:
+            return "K must be a pinhole matrix [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]"
+        if not (K[0, 0] > 0 and K[1, 1] > 0):
+            return f"K's focal lengths must be positive, got fx={K[0, 0]:g}, fy={K[1, 1]:g}"
+        if not np.allclose(R @ R.T, np.eye(3), atol=1e-4) or np.linalg.det(R) <= 0:
+            return "R must be a rotation (orthonormal, determinant 1)"
+        return None
 
 
 def default_up(geospatial: bool) -> np.ndarray:
@@ -221,20 +279,70 @@ def view_direction(view: str | None, up, azimuth: float | None = None, elevation
     return _unit(direction), cam_up
 
 
+def _view_axes(direction, cam_up) -> tuple[np.ndarray, np.ndarray]:
+    """The image's right and up axes of a camera looking along -direction."""
+    right = _unit(np.cross(-np.asarray(direction, np.float64), cam_up))
+    return right, np.cross(right, -np.asarray(direction, np.float64))
+
+
+def _corners(bounds) -> np.ndarray:
+    lo, hi = (np.asarray(b, np.float64) for b in bounds)
+    return np.array([[(hi if i & 1 else lo)[0], (hi if i & 2 else lo)[1], (hi if i & 4 else lo)[2]] for i in range(8)])
+
+
+def extent_distance(bounds, target, direction, cam_up, fov: float, size) -> float:
+    """The distance from `target` along `direction` at which the bounding box's corners,
+    projected, fill the image with EXTENT_MARGIN each side: for a corner at (x, y) across the
+    view and z towards the eye, |x| / (d - z) <= t_x and |y| / (d - z) <= t_y, with
+    t_y = (1 - 2 margin) tan(fov / 2), t_x = t_y W / H."""
+    right, image_up = _view_axes(direction, cam_up)
+    relative = _corners(bounds) - np.asarray(target, np.float64)
+    x, y, z = relative @ right, relative @ image_up, relative @ np.asarray(direction, np.float64)
+    t_y = (1 - 2 * EXTENT_MARGIN) * math.tan(math.radians(fov) / 2)
+    t_x = t_y * size[0] / size[1]
+    return float(np.max(z + np.maximum(np.abs(x) / t_x, np.abs(y) / t_y)))
+
+
+def extent_height(bounds, eye, target, cam_up, size) -> float:
+    """The orthographic view height at which the bounding box, projected along eye -> target
+    about the target, fills the image with EXTENT_MARGIN each side."""
+    direction = _unit(np.asarray(eye, np.float64) - np.asarray(target, np.float64))
+    right, image_up = _view_axes(direction, cam_up)
+    relative = _corners(bounds) - np.asarray(target, np.float64)
+    half = max(float(np.abs(relative @ image_up).max()), float(np.abs(relative @ right).max()) * size[1] / size[0])
+    return max(2 * half / (1 - 2 * EXTENT_MARGIN), 1e-9)
+
+
 def frame(center, radius: float, *, view: str | None = "front", azimuth=None, elevation=None,
           up=None, geospatial: bool = False, fov: float = 30.0, size=(1024, 1024),
-          eye=None, target=None, ortho_height: float | None = None, zoom: float = 1.0) -> Camera:
-    """The camera of CONVENTIONS.md: explicit eye/target, or auto framing of a bounding sphere.
+          eye=None, target=None, ortho_height: float | str | None = None, zoom: float = 1.0,
+          bounds=None) -> Camera:
+    """The camera of docs/conventions.md: explicit eye/target, or auto framing.
 
-    Auto framing looks at `center` from 1.1x the distance at which the sphere just fills the
-    vertical field of view (times `zoom`, used by benchmarks to move the camera away).
+    Auto framing looks at the target (default `center`) along the view direction from 1.1x
+    the distance at which the bounding sphere just fills the vertical field of view; for
+    geospatial data whose `bounds` (lo, hi) are given, from the distance at which the
+    bounding box's projection fills the image with a margin (`extent_distance`): a long tile
+    seen from the top fills the image's width. Either distance is multiplied by `zoom` (used
+    by benchmarks to move the camera away). `ortho_height` "auto": the orthographic height
+    that fits the projected box (the bounding sphere's box without `bounds`) likewise, times
+    `zoom`. Explicit eye and target are never changed.
     """
-    up = default_up(geospatial) if up is None else _unit(up)
+    default = up is None
+    up = default_up(geospatial) if default else _unit(up)
     target = np.asarray(center if target is None else target, np.float64)
     cam_up = up
     if eye is None:
         direction, cam_up = view_direction(view, up, azimuth, elevation)
-        distance = 1.1 * radius / math.sin(math.radians(fov) / 2) * zoom
+        if geospatial and bounds is not None:
+            distance = extent_distance(bounds, target, direction, cam_up, fov, size) * zoom
+        else:
+            distance = 1.1 * radius / math.sin(math.radians(fov) / 2) * zoom
         eye = target + direction * distance
+    elif default and abs(np.dot(_unit(target - np.asarray(eye, np.float64)), up)) > 1 - 1e-9:
+        cam_up = view_direction("top", up)[1]  # looking along the default up axis: image up is away from front
+    if ortho_height == AUTO:
+        box = bounds if bounds is not None else (np.asarray(center) - radius, np.asarray(center) + radius)
+        ortho_height = extent_height(box, eye, target, cam_up, size) * zoom
     cam = Camera.look_at(eye, target, cam_up, fov=fov, size=size, ortho_height=ortho_height)
     return cam.fit_clip_planes(center, radius)

@@ -16,6 +16,7 @@ from .errors import SurfelError
 from .request import (
     CAMERA,
     OPTIONS,
+    PAGE_COMMAND,
     RENDER,
     RENDER_COMMAND,
     TURNTABLE_COMMAND,
@@ -114,6 +115,36 @@ def render(**values):
     s = result.stats
     click.echo(f"{request.outputs.png}: {result.width}x{result.height} {request.method}@{s['backend']} "
                f"{s['splats']} splats in {s['ms']:.0f} ms", err=True)
+
+
+@main.command("export-html", context_settings=CONTEXT)
+@table_options(*PAGE_COMMAND, required=("output",), defaults={"point_budget": "300000"},
+               helps={"output": "HTML page to write.", "method": "deferred or gaussian.",
+                      "point_budget": "Above N points the page draws a sequential point tree.",
+                      "supersample": "Samples per pixel side, 1 to 4 (default 1)."})
+def export_html(**values):
+    """Write one self-contained HTML page that splats INPUT in the browser (WebGL2, offline).
+
+    It opens at the camera of these flags (as `surfel render`), orbits, pans and zooms with
+    the mouse, switches method, colour mode and shading; PAGE.html#capture shows the canvas
+    alone. A .lod hierarchy or a COPC file gives the page its uniform cut.
+
+    \b
+    Example:
+      surfel export-html bunny.obj -o bunny.html --method deferred --size 800x600
+      surfel export-html scan.laz -o scan.html --color elevation --shading edl --view iso
+    """
+    from .files import check_output
+    from .rendering import Renderer
+    from .web import export_html as do_export
+    from .web.export import page_request
+
+    request = page_request(values)
+    check_output(request.outputs.png, "--output")
+    cloud = request.open_input()
+    report = do_export(cloud, request.camera.camera(cloud), request.outputs.png, method=request.method,
+                       options=request.options, renderer=Renderer())
+    click.echo(f"{request.outputs.png}: {report['points']} points, {report['bytes'] / 1e6:.1f} MB", err=True)
 
 
 @main.command(context_settings=CONTEXT)
@@ -245,13 +276,15 @@ def prepare(input, output, neighbors, viewpoint, elliptical, normal_field, sharp
 @main.command(context_settings=CONTEXT)
 @click.option("--screenshot", type=click.Path(dir_okay=False), default=None,
               help="Draw one frame in the window, save it as PNG and exit (for scripts and tests).")
-@table_options("input", "demo", "method", "shading", "size", defaults={"size": "x".join(map(str, VIEW_SIZE))})
+@table_options("input", "demo", "method", "shading", "color", "colormap", "size",
+               defaults={"size": "x".join(map(str, VIEW_SIZE))})
 def view(screenshot, **values):
     """Open INPUT in an interactive window (needs the view extra: pip install 'surfel[view]').
 
     \b
     Mouse: left drag orbits, right drag pans, wheel zooms. Keys: 1-9 method, e EWA filter,
-    + - LOD error, s shading, b back-face culling, r reset, h help, q quit.
+    + - LOD error, s shading, c colour mode, l eye-dome lighting, b back-face culling,
+    r reset, h help, q quit.
     Example:
       surfel view bunny.obj --method phong
       xvfb-run surfel view bunny.obj --screenshot shot.png

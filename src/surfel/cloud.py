@@ -12,12 +12,23 @@ are then marked read-only in place; changing a cloud means making a new one (`wi
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 
 import numpy as np
 
-from .attributes import CONTINUOUS, DERIVED, DERIVED_DTYPE, GEOMETRY, KINDS, Schema
+from .attributes import (
+    CONTINUOUS,
+    DERIVED,
+    DERIVED_DTYPE,
+    DERIVED_LENGTHS,
+    DERIVED_SHAPES,
+    GEOMETRY,
+    INFINITE_LENGTH,
+    KINDS,
+    Schema,
+)
 from .errors import InputError
 
 
@@ -32,10 +43,49 @@ def _contiguous(value, dtype) -> np.ndarray:
     return array if array.flags.c_contiguous else np.ascontiguousarray(array)
 
 
+def file_normals(normals) -> np.ndarray | None:
+    """Normals as a file gives them, under the one policy of every reader (so that `render`
+    and `lod build`, in memory or out of core, agree on a file): a zero vector is the "no
+    normal" placeholder some exporters write, and a file holding any counts as having no
+    normals; they are then estimated, as for a file without any. Other values (NaN) are left
+    for PointCloud to refuse."""
+    if normals is None:
+        return None
+    normals = np.asarray(normals)
+    return normals if normals.any(axis=1).all() else None
+
+
+# Bounding radii surfel renders: depths and splat sizes are float32 (up to 3.4e38, normal
+# down to 1.2e-38), with eight orders of magnitude to spare for splats much smaller than the
+# cloud and for what is computed from them.
+EXTENT_RANGE = (1e-30, 1e30)
+# The coarsest float64 step between coordinates, relative to the bounding radius, that still
+# renders the cloud faithfully: Spot moved 1e12 units from the origin (steps of 1.2e-4 of its
+# radius) renders within 54 dB of Spot at the origin, 1e13 (2e-3) within 36 dB.
+RESOLUTION = 2.0 ** -10
+
+# Extents (bounding radii) at which every method renders as at unit scale, measured on Spot
+# scaled by powers of ten: object-space EWA, the most sensitive, holds from 1e-7 to 1e9.
+# Clouds outside are rendered at unit scale (`render_unit`).
+UNIT_RANGE = (2.0 ** -16, 2.0 ** 16)
+
+
+def render_unit(radius: float) -> float:
+    """1, or for a bounding radius outside UNIT_RANGE the power of two nearest it: the length
+    a renderer divides every length by to work at unit scale (exactly: see PointCloud.scaled)."""
+    if radius == 0 or UNIT_RANGE[0] <= radius <= UNIT_RANGE[1]:
+        return 1.0
+    return 2.0 ** round(math.log2(radius))
+
+
 def framing_sphere(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, float]:
-    """Centre and radius of the sphere auto framing fits (CONVENTIONS.md): the bounding box's
-    centre and half its diagonal (never 0, so a single point can still be framed)."""
-    return (lo + hi) / 2, max(float(np.linalg.norm(hi - lo)) / 2, 1e-9)
+    """Centre and radius of the sphere auto framing fits (docs/conventions.md): the bounding box's
+    centre and half its diagonal, whatever its scale; for a single point (or coincident
+    ones) a radius of 1e-9 of the point's distance from the origin, at least 1e-9, so that it
+    can still be framed."""
+    center = (lo + hi) / 2
+    radius = float(np.linalg.norm(hi - lo)) / 2
+    return center, radius if radius > 0 else 1e-9 * max(float(np.abs(center).max()), 1.0)
 
 
 @dataclass(frozen=True, eq=False)
@@ -50,8 +100,9 @@ class PointCloud:
                 its ellipse semi-axis length (a circular splat has |u| = |v| = radius), or None
     faces     : (F, 3) int64 triangle indices when the input was a mesh, or None
     attributes: every other per-point array, (N, ...) keyed by name, in its own numeric dtype
-                (scanner fields such as intensity or classification; surfel's derived arrays,
-                float32, under the reserved names of surfel.attributes.DERIVED)
+                (scanner fields such as intensity or classification, which may hold NaN where a
+                value is missing; surfel's derived arrays, float32 and finite, under the
+                reserved names of surfel.attributes.DERIVED)
     kinds     : the kind ("categorical" or "continuous") of attributes whose reader knows
                 it; the others' are resolved by surfel.attributes.resolve_kind. Kinds of
                 names the cloud does not hold are dropped.
@@ -84,13 +135,13 @@ class PointCloud:
             what = "NaN" if nan == int(bad.sum()) else "NaN or infinite"
             raise InputError(src, f"{int(bad.sum())} points have {what} coordinates")
 
-        def per_point(name, value, tail, dtype=np.float32):
+        def per_point(name, value, tail, dtype=np.float32, finite=True):
             if value is None:
                 return None
             arr = _contiguous(value, dtype)
             if arr.shape != (n, *tail):
                 raise InputError(src, f"{name} must have shape {(n, *tail)}, got {arr.shape}")
-            if arr.dtype.kind == "f" and not np.isfinite(arr).all():
+            if finite and arr.dtype.kind == "f" and not np.isfinite(arr).all():
                 count = int((~np.isfinite(arr.reshape(n, -1))).any(axis=1).sum())
                 raise InputError(src, f"{count} points have NaN or infinite {name}")
             return arr
@@ -99,13 +150,14 @@ class PointCloud:
             if not isinstance(name, str) or not name or name in GEOMETRY:
                 raise InputError(src, f"{name!r} cannot name an attribute (a geometry field, or not a name)")
             value = np.asarray(value)
-            if name in DERIVED:
-                dtype = DERIVED_DTYPE
-            elif value.dtype.kind in "biuf" and value.dtype.fields is None:
-                dtype = value.dtype if value.dtype.isnative else value.dtype.newbyteorder("=")
-            else:
+            if value.dtype.kind not in "biuf" or value.dtype.fields is not None:
                 raise InputError(src, f"attribute '{name}' is not numeric ({value.dtype})")
-            return per_point(name, value, value.shape[1:], dtype)
+            if name in DERIVED:
+                return per_point(name, value, DERIVED_SHAPES[name], DERIVED_DTYPE)
+            dtype = value.dtype if value.dtype.isnative else value.dtype.newbyteorder("=")
+            # a scanner's measurement may be missing (a LAS extra-bytes field holding NaN): kept,
+            # and shown in a neutral colour (surfel.colors); surfel's own estimates are finite
+            return per_point(name, value, value.shape[1:], dtype, finite=False)
 
         normals = per_point("normals", self.normals, (3,))
         if normals is not None:
@@ -148,6 +200,29 @@ class PointCloud:
         for name, value in [("positions", pos), ("normals", normals), ("colors", colors), ("radii", radii),
                             ("axes", axes), ("faces", faces), ("attributes", attributes), ("kinds", kinds)]:
             object.__setattr__(self, name, value)
+        self._check_scale()
+
+    def _check_scale(self) -> None:
+        """Refuse a cloud no renderer can draw faithfully (EXTENT_RANGE, RESOLUTION)."""
+        lo, hi = self.bounds
+        with np.errstate(over="ignore"):
+            radius = float(np.linalg.norm(hi - lo)) / 2
+        largest = float(np.abs(np.concatenate([lo, hi])).max())
+        if radius == 0:  # one point, or coincident ones: framed by framing_sphere's floor
+            if framing_sphere(lo, hi)[1] > EXTENT_RANGE[1]:
+                raise InputError(self.source, f"its points coincide at coordinates as large as {largest:.3g}; "
+                                              f"surfel frames such a cloud only within {EXTENT_RANGE[1] * 1e9:g} "
+                                              "of the origin")
+            return
+        if not EXTENT_RANGE[0] <= radius <= EXTENT_RANGE[1]:
+            raise InputError(self.source, f"the cloud is {2 * radius:.3g} units across; surfel renders clouds "
+                                          f"{2 * EXTENT_RANGE[0]:g} to {2 * EXTENT_RANGE[1]:g} units across "
+                                          "(depths and splat sizes are float32)")
+        step = float(np.spacing(largest))
+        if step > RESOLUTION * radius:
+            raise InputError(self.source, f"coordinates as large as {largest:.3g} are resolved only to {step:.3g} "
+                                          f"in float64, too coarse for a cloud {2 * radius:.3g} units across "
+                                          f"(at most {RESOLUTION:g} of its radius)")
 
     def __len__(self) -> int:
         return len(self.positions)
@@ -155,6 +230,24 @@ class PointCloud:
     def with_(self, **changes) -> PointCloud:
         """A copy with some fields replaced (validated again)."""
         return replace(self, **changes)
+
+    def scaled(self, factor: float) -> PointCloud:
+        """The same cloud with every length multiplied by `factor`: positions (about the
+        coordinate origin), radii, axes and the LOD errors. With a power of two every value
+        scales exactly, so that a renderer may work at unit scale (`render_unit`)."""
+        def lengths(values):
+            return None if values is None else values * np.asarray(factor, values.dtype)
+
+        def errors(values):  # scaled but for the stand-in for infinity
+            scaled = values.copy()
+            finite = values != INFINITE_LENGTH
+            scaled[finite] *= np.float32(factor)
+            return scaled
+
+        attributes = {name: errors(values) if name in DERIVED_LENGTHS else values
+                      for name, values in self.attributes.items()}
+        return replace(self, positions=self.positions * factor, radii=lengths(self.radii), axes=lengths(self.axes),
+                       attributes=attributes, kinds=self.schema.kinds)
 
     def take(self, index: np.ndarray) -> PointCloud:
         """The points at `index` (indices or a mask) with all their attributes;

@@ -53,12 +53,12 @@ def compare_with_mesh(mesh, camera, method: str, options, renderer, *, backend: 
     from dataclasses import replace
 
     from .errors import SurfelError
-    from .options import RenderOptions
 
     if not mesh.is_mesh:
         raise SurfelError(f"{mesh.source}: compare needs a mesh (faces) as ground truth")
     black = (0.0, 0.0, 0.0)  # the metrics are defined over black
-    reference = renderer.render(mesh, camera, "mesh", options=RenderOptions(shading=options.shading, background=black))
+    reference = renderer.render(mesh, camera, "mesh", options=replace(
+        options, background=black, params=None, supersample=None, lod_error=None, point_budget=None, dump_passes=None))
     vertices = mesh.take(np.arange(0, len(mesh), every))  # every = 1: all of them, without the faces
     result = renderer.render(vertices, camera, method, backend=backend, options=replace(options, background=black))
     metrics = {"method": method, "backend": result.stats["backend"], **compare_results(reference, result),

@@ -19,9 +19,12 @@ from collections.abc import Callable, Mapping
 from dataclasses import MISSING, dataclass, field, fields
 from functools import cache
 
+from .colors import DEFAULT_COLORMAP, RETURN_WORDS, Coloring, check_colormap
+from .edl import DEFAULT_RADIUS as DEFAULT_EDL_RADIUS
+from .edl import DEFAULT_STRENGTH as DEFAULT_EDL_STRENGTH
 from .errors import SurfelError
 from .shading import DEFAULT as DEFAULT_SHADING
-from .shading import MODELS
+from .shading import EDL, MODELS, PER_PIXEL
 
 
 class SettingError(SurfelError):
@@ -66,6 +69,28 @@ def one_of(choices) -> Callable:
     return check
 
 
+def increasing(value) -> str | None:
+    lo, hi = value
+    ok = math.isfinite(lo) and math.isfinite(hi) and lo < hi
+    return None if ok else f"must be two finite numbers LO,HI with LO below HI, got {lo:g},{hi:g}"
+
+
+def class_codes(value) -> str | None:
+    if not value:
+        return "must name at least one class"
+    bad = [v for v in value if not 0 <= v <= 255]
+    return f"classification codes are 0..255, got {bad[0]}" if bad else None
+
+
+def return_choices(value) -> str | None:
+    if not value:
+        return "must name at least one return"
+    for v in value:
+        if v not in RETURN_WORDS and not (v.isdigit() and 1 <= int(v) <= 15):
+            return f"returns are numbers 1..15, first or last, got {v!r}"
+    return None
+
+
 def unit_rgb(value) -> str | None:
     ok = all(math.isfinite(v) and 0 <= v <= 1 for v in value)
     return None if ok else f"must be three values in [0, 1], got {','.join(f'{v:g}' for v in value)}"
@@ -94,7 +119,11 @@ def _coerce(name: str, value, hint):
         return value if value in typing.get_args(hint) else _refuse(name, value, hint)
     if origin is tuple:
         items = typing.get_args(hint)
-        if isinstance(value, (str, bytes)) or not hasattr(value, "__len__") or len(value) != len(items):
+        if isinstance(value, (str, bytes)) or not hasattr(value, "__len__"):
+            _refuse(name, value, hint)
+        if len(items) == 2 and items[1] is Ellipsis:  # tuple[X, ...]: any number of X
+            items = (items[0],) * len(value)
+        if len(value) != len(items):
             _refuse(name, value, hint)
         return tuple(_coerce(name, v, h) for v, h in zip(value, items, strict=True))
     if hint is bool:
@@ -115,7 +144,8 @@ def _refuse(name: str, value, hint):
     if typing.get_origin(hint) is typing.Literal:
         wanted = "one of " + ", ".join(map(str, typing.get_args(hint)))
     elif typing.get_origin(hint) is tuple:
-        wanted = f"{len(typing.get_args(hint))} numbers"
+        items = typing.get_args(hint)
+        wanted = "a list of values" if items[-1] is Ellipsis else f"{len(items)} numbers"
     raise SettingError(name, f"must be {wanted or getattr(hint, '__name__', hint)}, got {value!r}")
 
 
@@ -161,7 +191,16 @@ class Settings:
 class RenderOptions(Settings):
     """What a render is asked for, beyond the camera and the method:
 
-    shading      : a model of shading.MODELS; every method
+    shading      : a model of shading.MODELS, None for the data's default (`shading.default_for`:
+                   edl for a geospatial cloud without normals, else phong); every method
+    color        : what the albedo shows (surfel.colors): rgb, elevation or an attribute's
+                   name; None for the data's default (`colors.default_color`: rgb where the
+                   cloud has colours, else elevation for geospatial data, else white)
+    colormap     : matplotlib's name of the colour map of continuous attributes
+    color_range  : (lo, hi) the colour map spans; None for the 2nd-98th percentiles
+    classes      : classification codes to draw, None for all (`colors.selection`)
+    returns      : return numbers and/or "first", "last" to draw, None for all
+    edl_strength, edl_radius : eye-dome lighting (`edl`): strength, radius in output pixels
     background   : RGB in [0, 1] the image is composited over; every method
     supersample  : samples per pixel side, None for the method's default; every method
     lod_error    : sequential point tree error threshold in pixels, None for full detail (a
@@ -175,13 +214,47 @@ class RenderOptions(Settings):
                    defaults
     """
 
-    shading: str = setting(DEFAULT_SHADING, one_of(MODELS))
+    shading: str | None = setting(None, one_of(MODELS))
+    color: str | None = setting(None, lambda value: None if value else "must not be empty")
+    colormap: str = setting(DEFAULT_COLORMAP, check_colormap)
+    color_range: tuple[float, float] | None = setting(None, increasing)
+    classes: tuple[int, ...] | None = setting(None, class_codes)
+    returns: tuple[str, ...] | None = setting(None, return_choices)
+    edl_strength: float = setting(DEFAULT_EDL_STRENGTH, non_negative)
+    edl_radius: float = setting(DEFAULT_EDL_RADIUS, positive)
     background: tuple[float, float, float] = setting((0.0, 0.0, 0.0), unit_rgb)
     supersample: int | None = setting(None, between(1, 8))
     lod_error: float | None = setting(None, positive)
     point_budget: int | None = setting(None, at_least(1))
     dump_passes: str | None = None
     params: Settings | None = None
+    coloring: Coloring | None = None  # `color` resolved for the cloud drawn (by the Renderer); None: rgb
+
+    @property
+    def surface_shading(self) -> str:
+        """The model methods shade each pixel with: `shading`, where edl's per-pixel part is
+        none (its screen-space term is applied to the samples afterwards); unresolved, the
+        default model."""
+        return PER_PIXEL.get(self.shading or DEFAULT_SHADING, self.shading or DEFAULT_SHADING)
+
+    @property
+    def edl(self) -> bool:
+        return self.shading == EDL
+
+
+# Samples (pixels times supersampling squared) the CPU rasterizers hold at most: their
+# per-sample buffers take about 160 bytes a sample (EWA's two layers of accumulators, then
+# the resolved layers), some 10 GB at this size (8192 x 8192, or 2048 x 2048 at 4 x 4).
+MAX_CPU_SAMPLES = 8192 * 8192
+
+
+def check_cpu_samples(width: int, height: int) -> None:
+    """Refuse a supersampled CPU render target of width x height samples beyond
+    MAX_CPU_SAMPLES, naming the options that set it."""
+    if width * height > MAX_CPU_SAMPLES:
+        raise SurfelError(f"--size/--supersample: rendering on the CPU needs {width}x{height} samples (the image size "
+                          f"times the supersampling), more than its limit of {MAX_CPU_SAMPLES} samples; choose a "
+                          "smaller --size or --supersample")
 
 
 # The options a method may not use: set (not None), they must be used by the chosen method.

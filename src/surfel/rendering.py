@@ -1,14 +1,24 @@
 """`render()` and the `Renderer`: one entry point for every method and backend (numpy in,
 RenderResult out), and the one owner of everything kept from one frame to the next.
 
+Before anything is estimated, the Renderer applies --classes and --returns and resolves
+what the data decides (surfel.colors, surfel.shading): the colour mode (rgb where the cloud
+has colours, else elevation for geospatial data) with its range, and the shading (eye-dome
+lighting for a geospatial cloud without normals, else phong). The cloud a method draws
+carries the colour mode's encoded colours (`colors.Coloring.encode`); the options it gets
+carry the resolved `coloring`. All of it is reported in the stats.
+
 A Renderer keeps, per cloud, what is derived from it once and reused every frame: the
-completed cloud (estimated normals, radii, normal fields), its sequential point tree and the
-last level-of-detail subset, the EWA rasterizer's Morton order, object-space EWA's per-surfel
-weights, the MLS ray tracing scene, and the cloud's GPU buffers. Clouds are keyed by identity,
+filtered cloud, its colour mode, the completed cloud (estimated normals, radii, normal
+fields), its sequential point tree and the last level-of-detail subset, the encoded colours,
+the EWA rasterizer's Morton order, object-space EWA's per-surfel weights, the MLS ray tracing
+scene, the neighbour tree that picks the categories of methods without splats, and the
+cloud's GPU buffers. Clouds are keyed by identity,
 held weakly: a PointCloud and its arrays cannot change, so what was derived from one stays
 true, and an entry goes when its cloud goes (its GL objects are released on the next frame).
 It also keeps the compiled GL programs, the three-pass targets of the last frame size and
-those a method draws with itself (the MLS caster's), also of the last size.
+those a method draws with itself (the MLS caster's), also of the last size, and the colour
+table of the last colour mode.
 Its lifetime is the object's: `close()`, or leaving a `with` block, releases its GL objects.
 `surfel.render()` uses a module-level Renderer; the viewer, turntable, bench and each batch
 worker hold their own.
@@ -21,29 +31,22 @@ import time
 import weakref
 from dataclasses import replace
 
+import numpy as np
+
+from . import colors
 from .camera import Camera, frame
-from .cloud import PointCloud
+from .cloud import PointCloud, render_unit
 from .errors import SurfelError
 from .methods import get_method
 from .options import RenderOptions
 from .result import RenderResult
+from .shading import default_for
 
 
 def default_camera(cloud: PointCloud, size=(1024, 1024), **framing) -> Camera:
-    """The auto-framing camera of CONVENTIONS.md for this cloud."""
-    return frame(cloud.center, cloud.bounding_radius, geospatial=cloud.geospatial, size=size, **framing)
-
-
-def complete(cloud: PointCloud, *, need_radii: bool = True, elliptical: bool = False,
-             normal_field: bool = False) -> tuple[PointCloud, dict]:
-    """Estimate whatever attributes the method needs and the cloud lacks (reported)."""
-    missing = cloud.normals is None or (need_radii and (cloud.radii is None or cloud.axes is None))
-    missing = missing or (normal_field and "phong_alpha" not in cloud.attributes)
-    if not missing:
-        return cloud, {}
-    from .preprocess import prepare
-
-    return prepare(cloud, elliptical=elliptical, normal_field=normal_field)
+    """The auto-framing camera of docs/conventions.md for this cloud."""
+    return frame(cloud.center, cloud.bounding_radius, geospatial=cloud.geospatial, size=size, bounds=cloud.bounds,
+                 **framing)
 
 
 def resolve_backend(method_name: str, backend: str | None) -> str:
@@ -97,6 +100,7 @@ class Renderer:
         self._programs: dict = {}
         self._targets: tuple | None = None  # (size key, gl.passes.SplatTargets)
         self._kept_targets: dict = {}  # a method's own targets by kind: (key, targets) of the last key
+        self._color_table: tuple | None = None  # (Coloring, its GL texture)
         self._released_clouds: list = []  # GL objects of clouds that are gone, released on the next frame
 
     # ---- the caches methods use -----------------------------------------------------
@@ -160,12 +164,68 @@ class Renderer:
             self._kept_targets[kind] = (key, make())
         return self._kept_targets[kind][1]
 
-    def complete(self, cloud: PointCloud, *, need_radii: bool = True, elliptical: bool = False,
+    def use_color_table(self, options: RenderOptions) -> None:
+        """Bind the colour mode's LUT or palette (gl/colors.glsl's u_color_table), 256
+        entries a row; made once per colour mode."""
+        from .gl.context import get_context
+        from .gl.uniforms import COLOR_TABLE_UNIT
+
+        coloring = options.coloring
+        if self._color_table is None or self._color_table[0] is not coloring:
+            if self._color_table is not None:
+                self._color_table[1].release()
+            self._color_table = None
+            table = coloring.table if coloring is not None else np.ones((1, 3), np.float32)
+            rows = -(-len(table) // 256)
+            padded = np.zeros((rows * 256 if rows > 1 else len(table), 4), np.float32)
+            padded[:len(table), :3] = table
+            texture = get_context().texture((min(len(table), 256) if rows == 1 else 256, rows), 4,
+                                            padded.tobytes(), dtype="f4")
+            texture.filter = (texture.ctx.NEAREST,) * 2  # entries are read by index, never interpolated
+            self._color_table = (coloring, texture)
+        self._color_table[1].use(COLOR_TABLE_UNIT)
+
+    def surface_colors(self, cloud: PointCloud, camera: Camera, options: RenderOptions):
+        """For methods without splats: a function of a sample depth buffer (seen by `camera`)
+        giving (albedo, palette indices) per sample (colors.surface_albedo), or None where
+        the colour mode is the method's own blend."""
+        coloring = options.coloring
+        if coloring is None or not (coloring.categorical or coloring.name == colors.ELEVATION):
+            return None
+        tree = None
+        if coloring.categorical:
+            from scipy.spatial import cKDTree
+
+            tree = self.cached(cloud, "neighbour tree", lambda: cKDTree(cloud.local_positions()))
+        return lambda depth: colors.surface_albedo(cloud, camera, depth, coloring, tree)
+
+    def appearance(self, cloud: PointCloud, options: RenderOptions) -> tuple[PointCloud, RenderOptions]:
+        """The cloud --classes and --returns keep, and the options with the data's defaults
+        (shading, colour mode) and the resolved colour mode; both kept per cloud."""
+        if options.classes is not None or options.returns is not None:
+            source = cloud
+            cloud = self.cached(source, ("filtered", options.classes, options.returns),
+                                lambda: source.take(colors.selection(source, options.classes, options.returns)))
+        shading = options.shading or default_for(cloud)
+        coloring = self.cached(cloud, ("coloring", options.color, options.colormap, options.color_range),
+                               lambda: colors.resolve(cloud, options.color, options.colormap, options.color_range))
+        return cloud, replace(options, shading=shading, coloring=coloring)
+
+    def colored(self, cloud: PointCloud, coloring) -> PointCloud:
+        """`cloud` with the colour mode's encoded colours (the cloud itself for rgb)."""
+        if coloring is None or coloring.kind == colors.RGB:
+            return cloud
+        return self.cached(cloud, "colored", lambda: cloud.with_(colors=coloring.encode(cloud)), version=coloring)
+
+    def complete(self, cloud: PointCloud, *, needs_radii: bool = True, elliptical: bool = False,
                  normal_field: bool = False) -> tuple[PointCloud, dict]:
-        """`complete()`, once per cloud and setting (turntables and benchmarks estimate once)."""
-        return self.cached(cloud, ("completed", need_radii, elliptical, normal_field),
-                           lambda: complete(cloud, need_radii=need_radii, elliptical=elliptical,
-                                            normal_field=normal_field))
+        """`preprocess.complete` (what a method with these capability flags needs), once per
+        cloud and setting (turntables and benchmarks estimate once)."""
+        from . import preprocess  # numba kernels: loaded when first needed
+
+        return self.cached(cloud, ("completed", needs_radii, elliptical, normal_field),
+                           lambda: preprocess.complete(cloud, needs_radii=needs_radii, elliptical=elliptical,
+                                                       normal_field=normal_field))
 
     def close(self) -> None:
         """Release every GL object this Renderer holds; it can render again afterwards."""
@@ -183,6 +243,9 @@ class Renderer:
         for _, targets in self._kept_targets.values():
             targets.release()
         self._kept_targets.clear()
+        if self._color_table is not None:
+            self._color_table[1].release()
+            self._color_table = None
         self._release_gone()
 
     def __enter__(self) -> Renderer:
@@ -213,9 +276,14 @@ class Renderer:
             raise SurfelError(f"method {method!r} needs a mesh input (faces); {cloud.source or 'this cloud'} has none")
         self._release_gone()
         camera = camera or default_camera(cloud, size)
+        unit = render_unit(cloud.bounding_radius)
+        if unit != 1.0:
+            return self._render_at_unit_scale(cloud, camera, method, unit, backend=backend, options=options)
         input_points = len(cloud)
         backend = resolve_backend(method, backend)
-        cloud, estimated = self.complete(cloud, need_radii=m.needs_radii, elliptical=m.elliptical,
+        cloud, options = self.appearance(cloud, options)
+        selected = len(cloud)
+        cloud, estimated = self.complete(cloud, needs_radii=m.needs_radii, elliptical=m.elliptical,
                                          normal_field=m.normal_field)
         if options.lod_error is not None:
             from .lod import as_sequential, lod_subset
@@ -225,6 +293,7 @@ class Renderer:
                 seq, epsilon = cloud, options.lod_error
                 view = (camera.world_to_eye.tobytes(), camera.pixel_scale(), camera.ortho_height, float(epsilon))
                 cloud = self.cached(seq, "lod subset", lambda: lod_subset(seq, camera, epsilon), version=view)
+        cloud = self.colored(cloud, options.coloring)
         # clip planes around the splats themselves, not only their centres (methods without
         # splats have no radius_scale)
         reach = cloud.max_splat_radius * getattr(params, "radius_scale", 1.0)
@@ -241,11 +310,25 @@ class Renderer:
             renderer = "cpu"
         stats = {"method": method, "backend": backend, "renderer": renderer, "points": input_points,
                  "splats": len(cloud), "width": camera.width, "height": camera.height, "ms": round(ms, 3),
-                 "shading": options.shading, "near": camera.near, "far": camera.far}
+                 "shading": options.shading, "near": camera.near, "far": camera.far,
+                 **options.coloring.describe()}
+        if selected != input_points:
+            stats.update(selected=selected, classes=options.classes, returns=options.returns)
         stats.update(result.stats)
         if estimated:
             stats["estimated"] = estimated
         result.stats = stats
+        return result
+
+    def _render_at_unit_scale(self, cloud: PointCloud, camera: Camera, method: str, unit: float, *,
+                              backend: str | None, options: RenderOptions) -> RenderResult:
+        """Render a cloud far from unit scale (1e-30 or 1e30 units across) divided by `unit`, a
+        power of two, so that every method's float32 arithmetic and tolerances work as they do
+        at unit scale; the image is the same, eye depths are scaled back."""
+        scaled = self.cached(cloud, ("unit scale", unit), lambda: cloud.scaled(1 / unit))
+        result = self.render(scaled, camera.scaled(1 / unit), method, backend=backend, options=options)
+        result.depth = result.depth * np.float32(unit)
+        result.stats.update(near=result.stats["near"] * unit, far=result.stats["far"] * unit, unit_scale=unit)
         return result
 
     def _render_source(self, source, camera: Camera | None, method: str, *, backend: str | None, size,
@@ -257,7 +340,8 @@ class Renderer:
             raise TypeError(f"render needs a PointCloud or a LodSource, got {type(source).__name__}")
         if not get_method(method).needs_radii:
             raise SurfelError(f"method {method!r} cannot render a level-of-detail source (it needs splats)")
-        camera = camera or frame(source.center, source.bounding_radius, geospatial=source.geospatial, size=size)
+        camera = camera or frame(source.center, source.bounding_radius, geospatial=source.geospatial, size=size,
+                                 bounds=source.bounds)
         epsilon = options.lod_error if options.lod_error is not None else SOURCE_DEFAULT_LOD_ERROR
         start = time.perf_counter()
         cut, selection = source.select(camera, epsilon, options.point_budget)
@@ -278,5 +362,4 @@ def render(cloud, camera: Camera | None = None, method: str = "deferred", **kwar
     return default_renderer.render(cloud, camera, method, **kwargs)
 
 
-__all__ = ["render", "Renderer", "default_renderer", "default_camera", "complete", "resolve_backend",
-           "split_options"]
+__all__ = ["render", "Renderer", "default_renderer", "default_camera", "resolve_backend", "split_options"]

@@ -21,21 +21,20 @@ that contradict each other; and every output location (`files.check_output`).
 
 from __future__ import annotations
 
-import json
 import math
 import os
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
-import numpy as np
-
-from .camera import VIEWS, Camera, frame
+from .camera import VIEWS, Camera, OpenCvCamera, frame
+from .colors import NAMED
 from .errors import SurfelError
 from .files import check_folder, check_output
 from .methods import METHODS, get_method
 from .methods.params import SplatParams
 from .options import RenderOptions, SettingError
+from .shading import DEFAULT_HELP as DEFAULT_SHADING_HELP
 from .shading import MODELS
 
 # The defaults of `surfel turntable` (and `surfel batch --turntable`), where they differ from render's.
@@ -131,49 +130,27 @@ def text(value: str) -> str:
     return value
 
 
+def integers(text: str) -> tuple[int, ...]:
+    try:
+        return tuple(int(v) for v in text.split(","))
+    except ValueError:
+        raise ValueError(f"needs comma-separated integers, got {text!r}") from None
+
+
+def words(text: str) -> tuple[str, ...]:
+    return tuple(v.strip().lower() for v in text.split(","))
+
+
+def ortho_height(text: str) -> float | str:
+    """--ortho: a view height in world units, or `auto` (the auto-framing's extent)."""
+    return "auto" if text == "auto" else positive_number(text)
+
+
 def field_of_view(text: str) -> float:
     value = number(text)
     if not 0 < value < 180:
         raise ValueError(f"must be in (0, 180) degrees, got {text!r}")
     return value
-
-
-@dataclass(frozen=True)
-class OpenCvCamera:
-    """A pinhole camera from an OpenCV JSON file {"K": 3x3, "R": 3x3, "t": 3}, checked."""
-
-    path: str
-    K: np.ndarray
-    R: np.ndarray
-    t: np.ndarray
-
-    @classmethod
-    def read(cls, path: str) -> OpenCvCamera:
-        try:
-            spec = json.loads(Path(path).read_text())
-            K, R, t = (np.array(spec[key], float) for key in ("K", "R", "t"))
-        except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError) as exc:
-            reason = getattr(exc, "strerror", None) or f"{type(exc).__name__}: {exc}"
-            raise SurfelError(f"{path}: not an OpenCV camera JSON with K, R, t ({reason})") from None
-        problem = cls.problem(K, R, t)
-        if problem:
-            raise SurfelError(f"{path}: {problem}")
-        return cls(path, K, R, t.reshape(3))
-
-    @staticmethod
-    def problem(K: np.ndarray, R: np.ndarray, t: np.ndarray) -> str | None:
-        for name, array, shape in (("K", K, (3, 3)), ("R", R, (3, 3)), ("t", t, (3,))):
-            if array.shape != shape and not (name == "t" and array.size == 3):
-                return f"{name} must be {'x'.join(map(str, shape))}, got shape {array.shape}"
-            if not np.isfinite(array).all():
-                return f"{name} holds values that are not finite numbers"
-        if not np.array_equal(K[2], [0.0, 0.0, 1.0]) or K[1, 0] != 0 or K[0, 1] != 0:
-            return "K must be a pinhole matrix [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]"
-        if not (K[0, 0] > 0 and K[1, 1] > 0):
-            return f"K's focal lengths must be positive, got fx={K[0, 0]:g}, fy={K[1, 1]:g}"
-        if not np.allclose(R @ R.T, np.eye(3), atol=1e-4) or np.linalg.det(R) <= 0:
-            return "R must be a rotation (orthonormal, determinant 1)"
-        return None
 
 
 # ---------------------------------------------------------------------------------------------
@@ -201,6 +178,7 @@ class Option:
     short: str | None = None
     metavar: str | None = None
     value: Callable[[bool], object] | None = None
+    shown: str | None = None  # the default --help shows where the data decides it
 
     @property
     def label(self) -> str:
@@ -219,8 +197,8 @@ class Option:
     def shown_default(self) -> str | None:
         """The default --help shows: the table's, or that of the dataclass field it sets (the
         splat methods' common parameters for a parameter; other parameters say theirs in help)."""
-        if self.default is not None or self.parse is None:
-            return self.default
+        if self.shown is not None or self.default is not None or self.parse is None:
+            return self.shown or self.default
         owner = {"camera": CameraSpec, "options": RenderOptions, "params": SplatParams}.get(self.sets)
         value = {f.name: f.default for f in fields(owner)}.get(self.target) if owner is not None else None
         if isinstance(value, tuple):
@@ -244,7 +222,7 @@ OPTIONS: dict[str, Option] = {o.name: o for o in [
            metavar="NAME"),
     Option("backend", choice("gl", "cpu"), "Default: gl, else cpu where the method has one.", "method",
            metavar="[gl|cpu]"),
-    # the camera (CONVENTIONS.md)
+    # the camera (docs/conventions.md)
     Option("size", size, "Image size in pixels.", "camera", metavar="WxH"),
     Option("view", choice(*VIEWS), "Auto-framing direction (default front).", "camera",
            metavar=f"[{'|'.join(VIEWS)}]"),
@@ -255,14 +233,29 @@ OPTIONS: dict[str, Option] = {o.name: o for o in [
     Option("target", numbers(3), "Look-at point (default: bounding-box centre).", "camera", metavar="X,Y,Z"),
     Option("up", direction, "Up vector (default 0,0,1 for LAS/LAZ, 0,1,0 otherwise).", "camera", metavar="X,Y,Z"),
     Option("fov", field_of_view, "Vertical field of view in degrees.", "camera", metavar="DEG"),
-    Option("ortho", positive_number, "Orthographic camera showing HEIGHT world units vertically.", "camera",
-           metavar="HEIGHT"),
+    Option("ortho", ortho_height, "Orthographic camera showing HEIGHT world units vertically; auto: the height "
+           "that frames the data as auto-framing does.", "camera", metavar="HEIGHT|auto"),
     Option("opencv", text, 'Pinhole camera from a JSON file {"K": 3x3, "R": 3x3, "t": 3} (OpenCV world-to-camera).',
            "camera", metavar="FILE"),
     Option("zoom", positive_number, "Move the auto-framed camera this many times farther.", "camera",
            metavar="FACTOR"),
     # every method
-    Option("shading", choice(*MODELS), "Shading model.", "options", metavar=f"[{'|'.join(MODELS)}]"),
+    Option("shading", choice(*MODELS), "Shading model (edl: eye-dome lighting).", "options",
+           metavar=f"[{'|'.join(MODELS)}]", shown=DEFAULT_SHADING_HELP),
+    Option("color", text, f"What the colour shows: {', '.join(NAMED)} or any attribute's name (see `surfel "
+           "info`).", "options", metavar="MODE",
+           shown="rgb where the cloud has colours, else elevation for geospatial clouds, else white"),
+    Option("colormap", text, "Colour map of continuous attributes (matplotlib's names).", "options",
+           metavar="NAME"),
+    Option("color_range", numbers(2), "Values the colour map spans [default: the 2nd to 98th percentile].",
+           "options", metavar="LO,HI"),
+    Option("classes", integers, "Draw only the points of these classification codes (e.g. 2,9).", "options",
+           metavar="CODES"),
+    Option("returns", words, "Draw only these returns: numbers, first, last (e.g. first or 1,2).", "options",
+           metavar="LIST"),
+    Option("edl_strength", number, "Eye-dome lighting strength.", "options", metavar="S"),
+    Option("edl_radius", positive_number, "Eye-dome lighting radius in pixels (shades at 1, 2 and 4 times it).",
+           "options", metavar="PX"),
     Option("background", numbers(3), "Background colour in [0, 1].", "options", metavar="R,G,B"),
     Option("supersample", integer, "Samples per pixel side, 1 to 8 (default: the method's).", "options",
            metavar="N"),
@@ -302,6 +295,11 @@ RENDER = tuple(name for name, o in OPTIONS.items() if o.sets in ("options", "par
 OUTPUTS = ("output", "depth", "normals", "stats")
 # what `surfel render` takes, and hence a batch job; what `surfel turntable` takes
 RENDER_COMMAND = ("input", "demo", *OUTPUTS, "method", "backend", *CAMERA, *RENDER)
+# what `surfel export-html` takes: render's options that the page honours
+PAGE_COMMAND = ("input", "demo", "output", "method", *CAMERA, "shading", "color", "colormap", "color_range",
+                "classes", "returns", "edl_strength", "edl_radius", "background", "supersample", "lod_error",
+                "point_budget", "radius_scale", "depth_offset", "backface_culling", "ewa_filter", "lowpass_radius")
+PAGE_MAX_SUPERSAMPLE = 4
 TURNTABLE_COMMAND = ("input", "output", "frames", "fps", "elevation", "size", "method", "backend", *RENDER)
 
 
@@ -443,7 +441,7 @@ class Outputs:
 
 @dataclass(frozen=True)
 class CameraSpec:
-    """The camera flags of CONVENTIONS.md, checked; `camera(cloud)` makes the camera."""
+    """The camera flags of docs/conventions.md, checked; `camera(cloud)` makes the camera."""
 
     size: tuple[int, int] = (1024, 1024)
     view: str | None = None
@@ -453,7 +451,7 @@ class CameraSpec:
     target: tuple[float, float, float] | None = None
     up: tuple[float, float, float] | None = None
     fov: float = 30.0
-    ortho: float | None = None
+    ortho: float | str | None = None  # a height, or "auto"
     opencv: OpenCvCamera | None = field(default=None, compare=False)
     zoom: float = 1.0
 
@@ -483,7 +481,8 @@ class CameraSpec:
             return Camera.from_opencv(c.K, c.R, c.t, self.size).fit_clip_planes(cloud.center, cloud.bounding_radius)
         return frame(cloud.center, cloud.bounding_radius, view=self.view, azimuth=self.azimuth,
                      elevation=self.elevation, up=self.up, geospatial=cloud.geospatial, fov=self.fov,
-                     size=self.size, eye=self.eye, target=self.target, ortho_height=self.ortho, zoom=self.zoom)
+                     size=self.size, eye=self.eye, target=self.target, ortho_height=self.ortho, zoom=self.zoom,
+                     bounds=cloud.bounds)
 
 
 # ---------------------------------------------------------------------------------------------

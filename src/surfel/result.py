@@ -1,4 +1,4 @@
-"""Render results: the buffers of CONVENTIONS.md "Outputs" and how they are written."""
+"""Render results: the buffers of docs/conventions.md "Outputs" and how they are written."""
 
 from __future__ import annotations
 
@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 import numba
 import numpy as np
 
+from .edl import eye_dome_lighting
 from .files import write_atomically, write_json
 
 
@@ -35,11 +36,50 @@ def _composite_over(shaded, coverage, depth, normals, background):  # pragma: no
     return color, alpha, depth_out, normals_out
 
 
+@numba.njit(parallel=True, cache=True)
+def _box_filter_categories(shaded, coverage, indices, s):  # pragma: no cover - compiled
+    """Premultiplied colour (H, W, 3) of s x s blocks that never mixes categories: each output
+    pixel takes the category of most coverage among its samples (ties: the first), and the
+    coverage-weighted colour of that category's samples times the block's mean coverage."""
+    h, w = coverage.shape[0] // s, coverage.shape[1] // s
+    out = np.zeros((h, w, 3), np.float32)
+    for y in numba.prange(h):
+        for x in range(w):
+            best, best_weight, alpha = -1, np.float32(0.0), np.float32(0.0)
+            for a in range(s * s):
+                ya, xa = y * s + a // s, x * s + a % s
+                alpha += coverage[ya, xa]
+                index = indices[ya, xa]
+                if index < 0 or coverage[ya, xa] <= 0:
+                    continue
+                weight = np.float32(0.0)
+                for b in range(s * s):
+                    yb, xb = y * s + b // s, x * s + b % s
+                    if indices[yb, xb] == index:
+                        weight += coverage[yb, xb]
+                if weight > best_weight:
+                    best, best_weight = index, weight
+            alpha /= s * s
+            total = np.float32(0.0)
+            color = np.zeros(3, np.float32)
+            for a in range(s * s):
+                ya, xa = y * s + a // s, x * s + a % s
+                if coverage[ya, xa] <= 0 or (best >= 0 and indices[ya, xa] != best):
+                    continue
+                total += coverage[ya, xa]
+                for c in range(3):
+                    color[c] += coverage[ya, xa] * shaded[ya, xa, c]
+            if total > 0:
+                for c in range(3):
+                    out[y, x, c] = color[c] / total * alpha
+    return out
+
+
 @dataclass(eq=False)
 class RenderResult:
     """color (H, W, 3) composited over the background; alpha (H, W) coverage in [0, 1];
     depth (H, W) eye-space distance along the viewing axis, inf where empty; normals
-    (H, W, 3) unit eye-space normals, 0 where empty; stats per CONVENTIONS.md."""
+    (H, W, 3) unit eye-space normals, 0 where empty; stats per docs/conventions.md."""
 
     color: np.ndarray
     alpha: np.ndarray
@@ -48,15 +88,27 @@ class RenderResult:
     stats: dict = field(default_factory=dict)
 
     @classmethod
-    def from_samples(cls, shaded, coverage, depth, normals, *, supersample: int, background,
-                     stats: dict) -> RenderResult:
-        """Box-filter supersampled buffers down to the output size.
+    def from_samples(cls, shaded, coverage, depth, normals, *, supersample: int, options, stats: dict,
+                     indices=None) -> RenderResult:
+        """The output buffers of a method's samples: eye-dome lighting, then a box filter
+        down to the output size, then compositing over the background.
 
         shaded (sH, sW, 3), coverage (sH, sW) in [0, 1], depth (sH, sW) (inf empty),
-        normals (sH, sW, 3). Colour is averaged premultiplied by coverage and then composited
-        over the background; depth keeps the nearest sample, normals the coverage-weighted mean.
+        normals (sH, sW, 3); `options` (RenderOptions): the background, and the `edl`
+        shading, whose term (surfel.edl, radius edl_radius output pixels) multiplies every
+        sample's (unlit) colour. Colour is averaged premultiplied by coverage and then
+        composited over the background; depth keeps the nearest sample, normals the
+        coverage-weighted mean. `indices` (sH, sW): the palette index of each sample in a
+        categorical colour mode (-1 where empty): categories are never mixed, a pixel takes
+        the colour of the one covering most of it.
         """
         s = int(supersample)
+        background = options.background
+        if options.edl:
+            term = eye_dome_lighting(np.where(coverage > 0, depth, np.inf), options.edl_radius * s,
+                                     options.edl_strength)
+            shaded = shaded * term[..., None]
+            stats = dict(stats, edl={"strength": options.edl_strength, "radius": options.edl_radius})
         if s == 1:  # nothing to filter: composite and mask in one pass
             buffers = (np.ascontiguousarray(a, np.float32) for a in (shaded, coverage, depth, normals))
             return cls(*_composite_over(*buffers, np.asarray(background, np.float32)), stats)
@@ -68,7 +120,11 @@ class RenderResult:
             return a.reshape(h, s, w, s, *a.shape[2:])
 
         alpha = blocks(cov).mean(axis=(1, 3))
-        premult = blocks(shaded * cov[..., None]).mean(axis=(1, 3))
+        if indices is None:
+            premult = blocks(shaded * cov[..., None]).mean(axis=(1, 3))
+        else:
+            premult = _box_filter_categories(np.ascontiguousarray(shaded, np.float32), cov,
+                                             np.ascontiguousarray(indices, np.int32), s)
         color = premult + (1 - alpha[..., None]) * bg
         d = np.where(cov > 0, depth, np.inf).astype(np.float32)
         depth_out = blocks(d).min(axis=(1, 3))

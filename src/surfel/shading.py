@@ -1,4 +1,4 @@
-"""Shading models (CONVENTIONS.md "Shading"), numpy side; gl/shading.glsl is the GPU twin.
+"""Shading models (docs/conventions.md "Shading"), numpy side; gl/shading.glsl is the GPU twin.
 
 lambert : albedo * (0.2 + 0.8 |n . v|), v the camera's viewing axis (a head-light). The
           comparable one: tests and `compare` use it.
@@ -6,6 +6,13 @@ phong   : the default for pretty pictures: a key light from the upper left plus 
           Blinn-Phong specular highlight, two-sided.
 none    : unlit albedo.  normals: eye-space normal as colour.  depth: near white, far black
           between the camera's near and far planes.
+edl     : eye-dome lighting (surfel.edl): the unlit albedo times a screen-space term of the
+          depth buffer, for clouds without normals; per pixel it is `none` (PER_PIXEL), the
+          term is applied to the samples of every method (result.RenderResult.from_samples).
+
+The default (`default_for`) depends on the data: edl for a geospatial cloud without normals
+(a raw LiDAR tile, whose estimated normals are those of a neighbourhood that is often not a
+surface), else phong.
 """
 
 from __future__ import annotations
@@ -14,12 +21,20 @@ import numpy as np
 
 from .errors import SurfelError
 
-MODELS = ("lambert", "phong", "none", "normals", "depth")
+MODELS = ("lambert", "phong", "none", "normals", "depth", "edl")
 MODEL_IDS = {"lambert": 0, "phong": 1, "none": 2, "normals": 3, "depth": 4}
 DEFAULT = "phong"
+EDL = "edl"
+PER_PIXEL = {EDL: "none"}  # what a model shades per pixel, where that is another model
+DEFAULT_HELP = "edl for geospatial clouds without normals, else phong"
 
 KEY_LIGHT = np.array([-0.4, 0.6, 0.8]) / np.linalg.norm([-0.4, 0.6, 0.8])
 _HALFWAY = (KEY_LIGHT + [0, 0, 1]) / np.linalg.norm(KEY_LIGHT + [0, 0, 1])
+
+
+def default_for(cloud) -> str:
+    """The shading of a cloud rendered without --shading (module docstring)."""
+    return EDL if cloud.geospatial and getattr(cloud, "normals", None) is None else DEFAULT
 
 
 def check_model(model: str) -> int:
@@ -31,6 +46,7 @@ def check_model(model: str) -> int:
 def shade(model: str, albedo: np.ndarray, normals: np.ndarray, depth: np.ndarray,
           near: float, far: float) -> np.ndarray:
     """Shaded RGB (..., 3) float32 from albedo (..., 3), unit eye normals (..., 3), eye depth (...)."""
+    model = PER_PIXEL.get(model, model)
     check_model(model)
     albedo = np.asarray(albedo, np.float32)
     n = np.asarray(normals, np.float32)

@@ -12,7 +12,7 @@ from tqdm import tqdm
 
 from .camera import frame
 from .errors import SurfelError
-from .files import check_output, write_atomically
+from .files import check_output, replaced_atomically, write_atomically
 from .options import RenderOptions
 from .rendering import Renderer
 from .request import (
@@ -66,12 +66,8 @@ def write_animation(images: list[np.ndarray], path, fps: float = TURNTABLE_FPS) 
             import imageio.v3 as iio
         except ImportError:
             raise SurfelError("mp4 output needs the video extra: pip install 'surfel[video]'") from None
-        temporary = path.with_name(f".{path.name}.tmp.mp4")
-        try:
+        with replaced_atomically(path, ".mp4") as temporary:  # imageio picks the format by the suffix
             iio.imwrite(temporary, np.stack([image[..., :3] for image in images]), fps=fps, codec="libx264")
-            temporary.replace(path)
-        finally:
-            temporary.unlink(missing_ok=True)
     else:
         raise SurfelError(f"{path}: turntable output must be .gif or .mp4")
 

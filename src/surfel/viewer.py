@@ -2,13 +2,17 @@
 
 Frames are rendered by the same headless pipeline as `surfel render`, by the viewer's own
 Renderer, and shown in the window through a textured full-screen triangle, with the status
-line and help drawn over them. The keys set options wherever the method has them
-(`request.render_options`): the EWA filter starts at each method's own default, as on the
-command line.
+line (method, time, splats, shading, colour mode and its range) and help drawn over them.
+The keys set options wherever the method has them (`request.render_options`): the EWA
+filter starts at each method's own default, as on the command line; colour mode and shading
+start at the data's defaults (surfel.colors, surfel.shading). A geospatial tile opens in an
+oblique view (OBLIQUE_ELEVATION degrees) framed by its extent, and keeps that distance as the
+camera orbits.
 
     mouse: left drag orbits, right drag pans, wheel zooms
     1-9  : choose the method (the order of `surfel methods`)    e: EWA filter on/off
     + -  : LOD error x2 / /2 (0 = full detail)                  s: next shading model
+    c    : next colour mode (rgb, elevation, attributes)        l: eye-dome lighting on/off
     b    : back-face culling on/off                             h: help on/off
     r    : reset the camera                                     q / Esc: quit
 """
@@ -21,14 +25,17 @@ import warnings
 
 import numpy as np
 
-from .camera import frame
+from . import colors
+from .camera import default_up, frame, view_direction
+from .cloud import PointCloud
 from .errors import SurfelError
 from .methods import METHODS, get_method
 from .rendering import Renderer
 from .request import VIEW_SIZE, default, parse_values, render_options
 from .shading import DEFAULT as DEFAULT_SHADING
-from .shading import MODELS
+from .shading import EDL, MODELS, default_for
 
+OBLIQUE_ELEVATION = 35.0  # degrees: how a geospatial tile opens
 HELP = [line.strip() for line in __doc__.split("\n\n")[2].splitlines() if line.strip()]
 VERTEX = """#version 330
 out vec2 uv;
@@ -47,12 +54,21 @@ void main() { color = vec4(texture(image, uv).rgb, 1.0); }"""
 class ViewState:
     """What the keys and the mouse change; everything a frame needs to render."""
 
-    def __init__(self, cloud, method: str, shading: str, renderer: Renderer | None = None):
+    def __init__(self, cloud, method: str, shading: str | None = None, renderer: Renderer | None = None, *,
+                 color: str | None = None, colormap: str = colors.DEFAULT_COLORMAP):
         self.cloud = cloud
-        self.methods = [m.name for m in METHODS.values() if m.name != "mesh" or cloud.is_mesh]
+        self.methods = [m.name for m in METHODS.values() if m.name != "mesh" or getattr(cloud, "is_mesh", False)]
         self.method = method
-        self.shading = shading
+        self.shading = shading or default_for(cloud)
+        self.lit = self.shading if self.shading != EDL else DEFAULT_SHADING  # what `l` turns EDL off to
+        self.colors = colors.offered(cloud)
+        # None: the data's default, decided per frame (a LodSource's cut shows whether it has colours)
+        self.color = color or (colors.default_color(cloud) if isinstance(cloud, PointCloud) else None)
+        if self.color is not None and self.color not in self.colors:
+            self.colors.append(self.color)
+        self.colormap = colormap
         self.renderer = renderer or Renderer()
+        self.distance: tuple | None = None  # (size, distance) of a geospatial tile's framing
         self.ewa_filter: bool | None = None  # None: the method's own default
         self.lod_error = 0.0
         self.backface_culling = False
@@ -60,13 +76,23 @@ class ViewState:
         self.reset()
 
     def reset(self):
-        self.azimuth, self.elevation, self.zoom = 0.0, 0.0, 1.0
+        self.azimuth, self.zoom = 0.0, 1.0
+        self.elevation = OBLIQUE_ELEVATION if self.cloud.geospatial else 0.0
         self.pan = np.zeros(3)
 
     def camera(self, size):
         c = self.cloud
-        return frame(c.center, c.bounding_radius, azimuth=self.azimuth, elevation=self.elevation,
-                     geospatial=c.geospatial, size=size, zoom=self.zoom, target=c.center + self.pan)
+        if not c.geospatial:
+            return frame(c.center, c.bounding_radius, azimuth=self.azimuth, elevation=self.elevation,
+                         geospatial=False, size=size, zoom=self.zoom, target=c.center + self.pan)
+        if self.distance is None or self.distance[0] != tuple(size):  # the whole tile, seen obliquely
+            start = frame(c.center, c.bounding_radius, azimuth=0.0, elevation=OBLIQUE_ELEVATION, geospatial=True,
+                          size=size, bounds=c.bounds)
+            self.distance = (tuple(size), float(np.linalg.norm(start.eye - c.center)))
+        direction, _ = view_direction(None, default_up(True), self.azimuth, self.elevation)
+        target = c.center + self.pan
+        return frame(c.center, c.bounding_radius, eye=target + direction * self.distance[1] * self.zoom,
+                     target=target, geospatial=True, size=size)
 
     def key(self, name: str) -> bool:
         """Apply a key; False to quit."""
@@ -82,6 +108,13 @@ class ViewState:
             self.lod_error = 0.0 if self.lod_error <= 1.0 else self.lod_error / 2
         elif name == "s":
             self.shading = MODELS[(MODELS.index(self.shading) + 1) % len(MODELS)]
+        elif name == "c":
+            now = self.colors.index(self.color) if self.color in self.colors else -1
+            self.color = self.colors[(now + 1) % len(self.colors)]
+        elif name == "l":
+            if self.shading != EDL:
+                self.lit = self.shading
+            self.shading = self.lit if self.shading == EDL else EDL
         elif name == "b":
             self.backface_culling = not self.backface_culling
         elif name == "h":
@@ -98,12 +131,21 @@ class ViewState:
         return m.make_params().ewa_filter if self.ewa_filter is None else self.ewa_filter
 
     def render(self, size):
-        values = {"shading": self.shading, "backface_culling": self.backface_culling,
-                  "ewa_filter": self.ewa_filter, "lod_error": self.lod_error or None}
+        values = {"shading": self.shading, "color": self.color, "colormap": self.colormap,
+                  "backface_culling": self.backface_culling, "ewa_filter": self.ewa_filter,
+                  "lod_error": self.lod_error or None}
         options = render_options(self.method, values, strict=False)
         start = time.perf_counter()
         result = self.renderer.render(self.cloud, self.camera(size), self.method, options=options)
         return result, (time.perf_counter() - start) * 1000
+
+
+def color_status(stats: dict) -> str:
+    """The colour mode as the status line shows it: its name, and its map and range."""
+    if "color_range" in stats:
+        lo, hi = stats["color_range"]
+        return f"{stats['color']} {stats['colormap']} {lo:.4g}..{hi:.4g}"
+    return stats.get("color", "rgb")
 
 
 def annotate(rgb: np.ndarray, state: ViewState, result, ms: float) -> np.ndarray:
@@ -116,7 +158,7 @@ def annotate(rgb: np.ndarray, state: ViewState, result, ms: float) -> np.ndarray
     ewa = state.ewa_filter_on()
     ewa = "" if ewa is None else f"  ewa filter {'on' if ewa else 'off'}"
     status = (f"{state.method}@{result.stats['backend']}  {ms:.0f} ms  {result.stats['splats']} splats"
-              f"  {state.shading}{lod}{ewa}")
+              f"  {state.shading}  {color_status(result.stats)}{lod}{ewa}")
     draw.rectangle([0, 0, image.width, 16], fill=(0, 0, 0))
     draw.text((4, 2), status, fill=(255, 255, 255))
     if state.show_help:
@@ -130,7 +172,7 @@ def annotate(rgb: np.ndarray, state: ViewState, result, ms: float) -> np.ndarray
 
 def view_command(values: dict, screenshot=None) -> None:
     """`surfel view`: the options parsed as the other commands parse them, then the window."""
-    parsed = parse_values(values, ("input", "demo", "method", "shading", "size"))
+    parsed = parse_values(values, ("input", "demo", "method", "shading", "color", "colormap", "size"))
     if parsed.get("demo", False) == ("input" in parsed):
         raise SurfelError("give an INPUT file or --demo (not both)")
     method = default("method", parsed)
@@ -143,12 +185,15 @@ def view_command(values: dict, screenshot=None) -> None:
         from .io import load
 
         cloud = load(parsed["input"])
-    view(cloud, method=method, shading=parsed.get("shading", DEFAULT_SHADING), size=parsed.get("size", VIEW_SIZE),
+    if "color" in parsed:
+        colors.resolve(cloud, parsed["color"])  # an attribute the cloud lacks: refused before the window opens
+    view(cloud, method=method, shading=parsed.get("shading"), color=parsed.get("color"),
+         colormap=parsed.get("colormap", colors.DEFAULT_COLORMAP), size=parsed.get("size", VIEW_SIZE),
          screenshot=screenshot)
 
 
-def view(cloud, *, method: str = "deferred", shading: str = DEFAULT_SHADING, size=VIEW_SIZE,
-         screenshot=None) -> None:
+def view(cloud, *, method: str = "deferred", shading: str | None = None, color: str | None = None,
+         colormap: str = colors.DEFAULT_COLORMAP, size=VIEW_SIZE, screenshot=None) -> None:
     """Open the window; with `screenshot`, draw one frame, save what the window shows, close."""
     try:
         import glfw
@@ -173,7 +218,7 @@ def view(cloud, *, method: str = "deferred", shading: str = DEFAULT_SHADING, siz
         ctx = moderngl.create_context()
         program = ctx.program(vertex_shader=VERTEX, fragment_shader=FRAGMENT)
         triangle = ctx.vertex_array(program, [])
-        state = ViewState(cloud, method, shading, Renderer())
+        state = ViewState(cloud, method, shading, Renderer(), color=color, colormap=colormap)
         drag = {"button": None, "x": 0.0, "y": 0.0}
         dirty = [True]
 

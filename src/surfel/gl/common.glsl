@@ -1,4 +1,5 @@
 // Uniforms and helpers every surfel program shares.
+#include "colors.glsl"
 uniform mat4 u_view;        // world (relative to the cloud's local origin) to eye
 uniform mat4 u_projection;  // eye to clip, reproducing the camera intrinsics
 uniform vec2 u_viewport;    // image size in pixels (supersampled)

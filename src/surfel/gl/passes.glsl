@@ -3,6 +3,7 @@
 uniform sampler2D u_visibility;   // (nearest depth + z_t, 1 - coverage) per pixel
 uniform sampler2D u_accum_color;  // (sum w rgb, sum w)
 uniform sampler2D u_accum_normal; // (sum w n, sum w z)
+uniform sampler2D u_category;     // categorical colour modes: the packed category of the heaviest splat
 
 #if defined(PASS_NORMALIZE) && defined(VERTEX_SHADER)
 void main() {  // full-screen triangle
@@ -22,6 +23,7 @@ struct Accumulated {
     vec3 normal;          // normalized sum w n
     float depth;          // sum w z / sum w
     float coverage;       // of the pixel, from the visibility pass
+    int category;         // palette index of a categorical colour mode, else -1
 };
 
 // The sums at this fragment's pixel (`guard`: the splat targets' margin); false where no
@@ -35,6 +37,7 @@ bool fetch_accumulated(int guard, out Accumulated a) {
     a.normal = length(normal.xyz) > 0.0 ? normalize(normal.xyz) : vec3(0.0, 0.0, 1.0);
     a.depth = color.a > 0.0 ? normal.a / color.a : 0.0;
     a.coverage = 1.0 - texelFetch(u_visibility, texel, 0).g;
+    a.category = u_color_mode == COLOR_CATEGORICAL ? category_unpack(texelFetch(u_category, texel, 0).r) : -1;
     if (color.a <= 0.0) {
         out_shaded = vec4(0.0); out_normal = vec4(0.0); out_depth = vec4(0.0);
         return false;
@@ -53,9 +56,16 @@ bool surrounded(int guard) {
     return true;
 }
 
+// The pixel's albedo: the winning category's palette entry, or the normalized colour decoded.
+vec3 pixel_albedo(Accumulated a) {
+    return a.category >= 0 ? table_entry(a.category) : blended_albedo(a.weighted_color / a.weight);
+}
+
+// The G-buffer: shaded colour and coverage, the normal and the category's palette index
+// (read back for the box filter, which never mixes categories), the depth.
 void write_gbuffer(vec3 shaded, Accumulated a) {
     out_shaded = vec4(shaded, a.coverage);
-    out_normal = vec4(a.normal, 0.0);
+    out_normal = vec4(a.normal, float(a.category));
     out_depth = vec4(a.depth, 0.0, 0.0, 0.0);
 }
 #endif

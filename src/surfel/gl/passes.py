@@ -8,6 +8,11 @@ splats with a visibility pass (Ren et al. 2002; Botsch & Kobbelt 2003; Botsch et
 3. normalization: a full-screen triangle turns the sums into the G-buffer layout of
    targets.gbuffer_result (shaded RGB + coverage, eye normal, eye depth).
 
+Categorical colour modes add, after the attribute pass,
+2c. category: MAX blending into an RG32F target of the packed (weight, palette index) of the
+   attribute pass's fragments (colors.glsl), per layer (front, back); the normalization pass
+   reads it at unit 15.
+
 With a back layer (`back_layer=True`, the EWA method's A-buffer-like compositing of the
 visible surface over the one behind it at partly covered pixels):
 1b. back: MIN blending into an R32F target: the depth of the nearest fragment behind the
@@ -28,10 +33,12 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import SurfelError
+from ..files import write_atomically
 from .context import get_context
-from .targets import GBuffer, gbuffer_result, read_texture
+from .targets import GBuffer, allocating, gbuffer_result, read_texture
+from .uniforms import CATEGORY_UNIT
 
-UNIFORM_UNITS = {"u_visibility": 1, "u_accum_color": 2, "u_accum_normal": 3}
+UNIFORM_UNITS = {"u_visibility": 1, "u_accum_color": 2, "u_accum_normal": 3, "u_category": CATEGORY_UNIT}
 BACK_LAYER_UNITS = {"u_visibility": 1, "u_back": 4}  # the back layer's programs (ewa_gl.glsl)
 FAR = 3.0e38
 
@@ -47,6 +54,8 @@ class SplatTargets:
     accum: list
     accum_fbo: object        # the front accumulators, then the back layer's
     out: GBuffer
+    category: object = None
+    category_fbo: object = None
     back: object = None
     back_fbo: object = None
     back_accum: list = field(default_factory=list)
@@ -55,19 +64,22 @@ class SplatTargets:
     def allocate(cls, width: int, height: int, guard: int = 0, back_layer: bool = False) -> SplatTargets:
         ctx = get_context()
         target = (width + 2 * guard, height + 2 * guard)
-        visibility = ctx.texture(target, 2, dtype="f4")
-        accum = [ctx.texture(target, 4, dtype="f4") for _ in range(2)]
-        back = ctx.texture(target, 1, dtype="f4") if back_layer else None
-        back_accum = [ctx.texture(target, 4, dtype="f4") for _ in range(2)] if back_layer else []
-        for tex in (visibility, *accum, *back_accum, *([back] if back else [])):
-            tex.filter = (ctx.NEAREST, ctx.NEAREST)
-        return cls(guard, visibility, ctx.framebuffer(color_attachments=[visibility]), accum,
-                   ctx.framebuffer(color_attachments=accum + back_accum), GBuffer(width, height),
-                   back, ctx.framebuffer(color_attachments=[back]) if back else None, back_accum)
+        with allocating(*target):
+            visibility = ctx.texture(target, 2, dtype="f4")
+            accum = [ctx.texture(target, 4, dtype="f4") for _ in range(2)]
+            back = ctx.texture(target, 1, dtype="f4") if back_layer else None
+            back_accum = [ctx.texture(target, 4, dtype="f4") for _ in range(2)] if back_layer else []
+            category = ctx.texture(target, 2, dtype="f4")
+            for tex in (visibility, *accum, *back_accum, *([back] if back else []), category):
+                tex.filter = (ctx.NEAREST, ctx.NEAREST)
+            return cls(guard, visibility, ctx.framebuffer(color_attachments=[visibility]), accum,
+                       ctx.framebuffer(color_attachments=accum + back_accum), GBuffer(width, height),
+                       category, ctx.framebuffer(color_attachments=[category]),
+                       back, ctx.framebuffer(color_attachments=[back]) if back else None, back_accum)
 
     def release(self) -> None:
         for obj in (self.visibility, self.visibility_fbo, *self.accum, self.accum_fbo, self.out,
-                    self.back, self.back_fbo, *self.back_accum):
+                    self.category, self.category_fbo, self.back, self.back_fbo, *self.back_accum):
             if obj is not None:
                 obj.release()
 
@@ -82,6 +94,7 @@ class SplatPasses:
         self.visibility, self.visibility_fbo, self.accum, self.accum_fbo, self.out = \
             t.visibility, t.visibility_fbo, t.accum, t.accum_fbo, t.out
         self.back, self.back_fbo, self.back_accum = t.back, t.back_fbo, t.back_accum
+        self.category = t.category
         ctx.disable(ctx.DEPTH_TEST | ctx.CULL_FACE)
         ctx.enable(ctx.BLEND | ctx.PROGRAM_POINT_SIZE)
 
@@ -118,6 +131,25 @@ class SplatPasses:
             self.back.use(4)
         draw()
 
+    def category_pass(self, draw) -> None:
+        """The packed category of the heaviest splat per pixel and layer (after attribute_pass)."""
+        self.visibility.use(1)
+        if self.back is not None:
+            self.back.use(4)
+        self._max_blended(self.targets.category_fbo, draw)
+        self.category.use(CATEGORY_UNIT)
+
+    def _max_blended(self, fbo, draw) -> None:
+        fbo.use()
+        fbo.clear(-1.0, -1.0, 0.0, 0.0)
+        self.ctx.enable(self.ctx.BLEND)
+        self.ctx.blend_equation = self.ctx.MAX
+        draw()
+
+    def categories(self) -> np.ndarray:
+        """The category pass's packed values (H, W, 2): front layer, back layer."""
+        return read_texture(self.category)
+
     def accumulators(self) -> np.ndarray:
         """The attribute pass's sums as one (H, W, 4 x layers) array, front layer first."""
         return np.concatenate([read_texture(t) for t in (*self.accum, *self.back_accum)], axis=-1)
@@ -130,6 +162,7 @@ class SplatPasses:
         self.visibility.use(1)
         self.accum[0].use(2)
         self.accum[1].use(3)
+        self.category.use(CATEGORY_UNIT)
         triangle = ctx.vertex_array(program, [])
         triangle.render(ctx.TRIANGLES, vertices=3)
         triangle.release()
@@ -162,7 +195,8 @@ class SplatPasses:
         weight = color[..., 3] / max(float(color[..., 3].max()), 1e-12)
 
         def save(name, image):
-            Image.fromarray(np.round(np.clip(image, 0, 1) * 255).astype(np.uint8)).save(folder / name)
+            picture = Image.fromarray(np.round(np.clip(image, 0, 1) * 255).astype(np.uint8))
+            write_atomically(folder / name, lambda file: picture.save(file, format="PNG"))
 
         save("1-visibility-depth.png", gray)
         save("2-accumulated-weight.png", weight)

@@ -27,14 +27,17 @@ _COMMENT = re.compile(r"//[^\n]*|/\*.*?\*/", re.S)
 _UNIFORM = re.compile(r"\buniform\s+\w+\s+([^;{]+);")
 
 
-def _expand(path: Path) -> str:
+def expand_includes(path: Path, first: tuple[Path, ...] = ()) -> str:
+    """The source of `path` with its includes resolved, recursively: in the folders `first`
+    (the browser page puts its own versions of shared files there), then beside the
+    including file, then in the package's gl folder."""
     text = path.read_text()
 
     def include(match):
         name = match.group(1)
-        for folder in (path.parent, _GL_DIR):
+        for folder in (*first, path.parent, _GL_DIR):
             if (folder / name).exists():
-                return _expand(folder / name)
+                return expand_includes(folder / name, first)
         raise FileNotFoundError(f"{path.name}: cannot include {name}")
 
     return _INCLUDE.sub(include, text)
@@ -59,7 +62,7 @@ def build_program(path: str | Path, defines: dict | None = None, *, geometry: bo
     declared uniform names for `set_uniforms`."""
     ctx = get_context()
     defines = dict(defines or {})
-    source = _expand(Path(path))
+    source = expand_includes(Path(path))
     stages = {"vertex_shader": _stage(source, "VERTEX_SHADER", defines),
               "fragment_shader": _stage(source, "FRAGMENT_SHADER", defines)}
     if geometry:

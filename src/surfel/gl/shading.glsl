@@ -1,4 +1,4 @@
-// Shading models of CONVENTIONS.md; shading.py holds the same formulas for the CPU paths.
+// Shading models of docs/conventions.md; shading.py holds the same formulas for the CPU paths.
 // Eye space: the camera looks down -z, so the head-light direction v is (0, 0, 1).
 // SHADING_* ids match shading.MODELS.
 #define SHADING_LAMBERT 0

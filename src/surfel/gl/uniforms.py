@@ -1,11 +1,17 @@
-"""The uniforms of common.glsl, from a camera at a given supersampling factor."""
+"""The uniforms of common.glsl (camera, shading, colour mode), from a camera at a given
+supersampling factor and the render's options."""
 
 from __future__ import annotations
 
 import numpy as np
 
+from ..colors import NEUTRAL
 from ..shading import MODEL_IDS
 from .program import set_uniforms
+
+COLOR_TABLE_UNIT = 14  # texture units above those any method's passes use
+CATEGORY_UNIT = 15
+COLOR_MODES = {"rgb": 0, "continuous": 1, "categorical": 2}
 
 
 def camera_uniforms(camera, origin, supersample: int) -> dict:
@@ -20,5 +26,14 @@ def camera_uniforms(camera, origin, supersample: int) -> dict:
     }
 
 
-def apply_common(program, camera, origin, supersample: int, shading: str, **extra) -> None:
-    set_uniforms(program, **camera_uniforms(camera, origin, supersample), u_shading=MODEL_IDS[shading], **extra)
+def color_uniforms(options) -> dict:
+    """colors.glsl's uniforms for the options' resolved colour mode (rgb when unresolved)."""
+    coloring = options.coloring
+    return {"u_color_mode": COLOR_MODES[coloring.kind if coloring is not None else "rgb"],
+            "u_neutral": np.array(NEUTRAL), "u_color_table": COLOR_TABLE_UNIT,
+            "u_code_levels": float(coloring.code_levels if coloring is not None else 2)}
+
+
+def apply_common(program, camera, origin, supersample: int, options, **extra) -> None:
+    set_uniforms(program, **camera_uniforms(camera, origin, supersample),
+                 u_shading=MODEL_IDS[options.surface_shading], **color_uniforms(options), **extra)

@@ -73,3 +73,5 @@ def load(path: str | os.PathLike, *, format: str | None = None) -> PointCloud:
             return _READERS[kind](name)
     except OSError as error:
         raise InputError(name, f"cannot read: {error.strerror or error}") from error
+    except MemoryError:
+        raise InputError(name, f"out of memory reading its {info.st_size} bytes") from None

@@ -17,7 +17,7 @@ formats 0-5 store whole degrees as scan_angle_rank, formats 6-10 units of 0.006 
 Extra-bytes dimensions keep their type and element count (an array type gives an (N, k)
 attribute) and their name, spelled as `surfel.attributes.canonical_names` makes it. Extra
 bytes named normal_x/y/z (or NormalX/Y/Z) and radius (or Radius), as surfel's COPC writer
-stores them, are normals and splat radii instead.
+stores them, are normals and splat radii instead (zero normals: see `cloud.file_normals`).
 
 A ``surfel`` VLR (written by surfel.lod.copc_write) holds JSON: ``geospatial`` (the up axis of
 the cloud that was written) and ``attributes``, the schema of the written attributes (see
@@ -27,8 +27,16 @@ other dimensions (the defaults the writer had to fill in) are left out.
 
 Before laspy sees the file, the public header (versions 1.0 to 1.4) is checked against the
 file size: header size, offset to the point data, the VLRs and EVLRs it lists, and the point
-count times the record length (for LAZ, where records are compressed, a bound on points per
-byte). A header that lies is rejected at once, without allocating what it claims.
+count times the record length. A LAZ file's records are compressed, and a run of identical
+points packs about 150 into a byte, so its size bounds nothing useful; its chunk table
+(LASzip: an int64 offset at the start of the point data, then version, number of chunks and
+each chunk's point and byte counts) does. The count must fit the chunks, each holding the
+LASzip VLR's chunk size (or its own count, for variable-size chunks) but at most
+LAZ_MAX_POINTS_PER_BYTE points a byte; their bytes must fit between the point data's start
+and the table. A header that lies is rejected at once, without allocating what it claims.
+What is left to a lie (chunks that hold fewer points than they claim) ends when the decoder
+runs out of data: points are decoded in pieces of PIECE_POINTS, so memory grows only with
+the points the file really holds.
 """
 
 from __future__ import annotations
@@ -43,7 +51,7 @@ import laspy
 import numpy as np
 
 from ..attributes import AttributeSpec, canonical_names
-from ..cloud import PointCloud
+from ..cloud import PointCloud, file_normals
 from ..errors import InputError
 
 _VLR_HEADER = 54  # bytes of a VLR header (its payload follows)
@@ -51,8 +59,13 @@ _EVLR_HEADER = 60
 # Smallest header each minor version allows, and smallest record of each point format.
 _HEADER_SIZE = {0: 227, 1: 227, 2: 227, 3: 235, 4: 375}
 _RECORD_SIZE = {0: 20, 1: 28, 2: 26, 3: 34, 4: 57, 5: 63, 6: 30, 7: 36, 8: 38, 9: 59, 10: 67}
-# Even a LAZ of identical points cannot pack more points than this into one byte.
-_MAX_POINTS_PER_BYTE = 50
+_LASZIP_VLR = ("laszip encoded", 22204)  # user id and record id of the LASzip VLR
+_LASZIP_CHUNK_SIZE = struct.Struct("<I")  # at byte 12 of its payload (0: no chunks)
+_CHUNK_TABLE_HEADER = struct.Struct("<II")  # version, number of chunks
+# LASzip's adaptive arithmetic coder saturates on repeated points: 4 million identical ones
+# take 148 points a byte (point format 0), 100 (format 6); no chunk holds more than this.
+LAZ_MAX_POINTS_PER_BYTE = 256
+PIECE_POINTS = 1_000_000  # points decoded at a time
 NORMAL_NAMES = (("normal_x", "normal_y", "normal_z"), ("NormalX", "NormalY", "NormalZ"))
 RADIUS_NAMES = ("radius", "Radius")
 COLOR_NAMES = ("red", "green", "blue")
@@ -62,24 +75,48 @@ SCAN_ANGLE_UNIT = 0.006  # degrees per unit of the scan_angle of point formats 6
 
 def read_las(path: str) -> PointCloud:
     """Read a LAS or LAZ file (see the module docstring); errors raise InputError."""
-    check_header(path)
+    count = check_header(path)
+    geometry: dict[str, list[np.ndarray]] = {"positions": [], "normals": [], "radii": [], "rgb": []}
+    scanned: dict[str, list[np.ndarray]] = {}
     try:
-        las = laspy.read(path)
-        positions = np.asarray(las.xyz, dtype=np.float64)
-        names = set(las.point_format.dimension_names)
-        rgb = np.column_stack([las[name] for name in COLOR_NAMES]) if set(COLOR_NAMES) <= names else None
-        layout = las_layout(las.point_format, las.header.vlrs, path)
-        normals, radii, attributes = layout_values(las.points, layout)
+        with laspy.open(path) as reader:
+            has_rgb = set(COLOR_NAMES) <= set(reader.header.point_format.dimension_names)
+            layout = las_layout(reader.header.point_format, reader.header.vlrs, path)
+            for points in reader.chunk_iterator(PIECE_POINTS):
+                normals, radii, attributes = layout_values(points, layout)
+                rgb = np.column_stack([points[name] for name in COLOR_NAMES]) if has_rgb else None
+                positions = np.column_stack([points.x, points.y, points.z]).astype(np.float64)
+                for key, value in (("positions", positions), ("normals", normals), ("radii", radii), ("rgb", rgb)):
+                    if value is not None:
+                        geometry[key].append(value)
+                for name, value in attributes.items():
+                    scanned.setdefault(name, []).append(value)
     except InputError:
         raise
     except Exception as error:  # laspy and lazrs raise many types; all mean a bad file here
         message = (str(error).splitlines() or [type(error).__name__])[0][:120]
+        if "failed to fill whole buffer" in message:  # lazrs (Rust's UnexpectedEof): the data ran out
+            raise InputError(path, f"the point data ends before the {count} points the header claims") from None
         raise InputError(path, f"cannot decode LAS data: {message}") from error
+    decoded = sum(len(piece) for piece in geometry["positions"])
+    if decoded != count:
+        raise InputError(path, f"LAS header claims {count} points, the file holds {decoded}")
+    # joined one field at a time, each field's pieces freed as it goes
+    positions, normals, radii, rgb = (_joined(geometry[key]) for key in ("positions", "normals", "radii", "rgb"))
+    attributes = {name: _joined(pieces) for name, pieces in scanned.items()}
     colors = None
     if rgb is not None and len(rgb) and rgb.max() > 0:
         colors = rgb / (255.0 if rgb.max() <= 255 else 65535.0)
-    return PointCloud(positions=positions, normals=normals, colors=colors, radii=radii, attributes=attributes,
-                      kinds=layout.kinds, geospatial=layout.geospatial, source=path)
+    return PointCloud(positions=positions, normals=file_normals(normals), colors=colors, radii=radii,
+                      attributes=attributes, kinds=layout.kinds, geospatial=layout.geospatial, source=path)
+
+
+def _joined(pieces: list[np.ndarray]) -> np.ndarray | None:
+    if not pieces:
+        return None
+    joined = pieces[0] if len(pieces) == 1 else np.concatenate(pieces)
+    pieces.clear()
+    return joined
 
 
 @dataclass(frozen=True)
@@ -184,9 +221,9 @@ def _dimension_shape(dimension) -> tuple[int, ...]:
     return () if dimension.num_elements == 1 else (dimension.num_elements,)
 
 
-def check_header(path: str) -> None:
-    """Check a LAS/LAZ public header against the file's size (module docstring); InputError if
-    it lies."""
+def check_header(path: str) -> int:
+    """Check a LAS/LAZ public header against the file's size and, for LAZ, its chunk table
+    (module docstring); InputError if it lies. Returns the point count."""
     size = os.path.getsize(path)
     with open(path, "rb") as file:
         head = file.read(375)
@@ -211,8 +248,8 @@ def check_header(path: str) -> None:
         if vlr_count * _VLR_HEADER > point_offset - header_size:
             raise InputError(path, f"LAS header claims {vlr_count} VLRs but there is room "
                                    f"for at most {(point_offset - header_size) // _VLR_HEADER}")
-        _check_records(file, header_size, vlr_count, _VLR_HEADER, "<H", point_offset,
-                       "VLR", "the start of the point data", path)
+        vlrs = _check_records(file, header_size, vlr_count, _VLR_HEADER, "<H", point_offset,
+                              "VLR", "the start of the point data", path)
 
         point_format = format_id & 0x3F
         compressed = bool(format_id & 0xC0)  # LAZ sets bit 7 (older writers bit 6)
@@ -222,33 +259,85 @@ def check_header(path: str) -> None:
             raise InputError(path, f"LAS point format {point_format} needs records of at least "
                                    f"{_RECORD_SIZE[point_format]} bytes, the header says {record_length}")
         points_end = evlr_offset if evlr_count else size
-        if compressed:
-            if count > size * _MAX_POINTS_PER_BYTE:
-                raise InputError(path, f"LAZ header claims {count} points, impossible in {size} bytes")
-        elif point_offset + count * record_length > points_end:
-            raise InputError(path, f"LAS header claims {count} points of {record_length} bytes, "
-                                   f"more than the file holds")
         if evlr_count:
             if not point_offset <= evlr_offset <= size - evlr_count * _EVLR_HEADER:
                 raise InputError(path, f"LAS header claims {evlr_count} EVLRs at offset "
                                        f"{evlr_offset}, outside the file")
             _check_records(file, evlr_offset, evlr_count, _EVLR_HEADER, "<Q", size,
                            "EVLR", "the end of the file", path)
+        if compressed:
+            laszip = vlrs.get(_LASZIP_VLR)
+            if laszip is None:
+                raise InputError(path, "LAZ point format but no LASzip VLR")
+            capacity = _chunk_capacity(file, laszip, point_offset, points_end, record_length, path)
+            if capacity is not None and count > capacity:
+                raise InputError(path, f"LAZ header claims {count} points, but its chunk table holds at most "
+                                       f"{capacity}")
+        elif point_offset + count * record_length > points_end:
+            raise InputError(path, f"LAS header claims {count} points of {record_length} bytes, "
+                                   f"more than the file holds")
+    return count
+
+
+def _chunk_capacity(file: BinaryIO, laszip: tuple[int, int], point_offset: int, points_end: int,
+                    record_length: int, path: str) -> int | None:
+    """The most points the chunk table of a LAZ file allows (module docstring), or None for
+    the rare files without one (LASzip's pointwise compressor: chunk size 0)."""
+    offset, length = laszip
+    if length < 16:
+        raise InputError(path, "LASzip VLR is too short")
+    file.seek(offset + 12)
+    (chunk_size,) = _LASZIP_CHUNK_SIZE.unpack(file.read(4))
+    if chunk_size == 0:
+        return None
+    file.seek(point_offset)
+    head = file.read(8)
+    (table_offset,) = struct.unpack("<q", head) if len(head) == 8 else (-2,)
+    if table_offset == -1:  # a writer that could not seek back put it in the last 8 bytes
+        file.seek(points_end - 8)
+        (table_offset,) = struct.unpack("<q", file.read(8))
+    if not point_offset + 8 <= table_offset <= points_end - _CHUNK_TABLE_HEADER.size:
+        raise InputError(path, f"LAZ chunk table offset {table_offset} lies outside the point data")
+    file.seek(table_offset)
+    _, chunks = _CHUNK_TABLE_HEADER.unpack(file.read(_CHUNK_TABLE_HEADER.size))
+    # each chunk starts with one uncompressed record
+    room = table_offset - point_offset - 8
+    if chunks * record_length > room:
+        raise InputError(path, f"LAZ chunk table lists {chunks} chunks, more than {room} bytes of points can hold")
+    import lazrs
+
+    try:
+        file.seek(offset)
+        vlr = lazrs.LazVlr(file.read(length))
+        file.seek(point_offset)
+        table = lazrs.read_chunk_table(file, vlr)  # fixed-size chunks: (chunk size, bytes) each
+    except Exception as error:  # lazrs reports a damaged table in several types
+        message = (str(error).splitlines() or [type(error).__name__])[0][:120]
+        raise InputError(path, f"LAZ chunk table is damaged: {message}") from None
+    if sum(chunk_bytes for _, chunk_bytes in table) > room:
+        raise InputError(path, "LAZ chunk table lists chunks larger than the point data")
+    return sum(min(points, chunk_bytes * LAZ_MAX_POINTS_PER_BYTE) for points, chunk_bytes in table)
 
 
 def _check_records(file: BinaryIO, offset: int, count: int, header_size: int, length_format: str,
-                   end: int, kind: str, limit: str, path: str) -> None:
-    """Walk `count` (E)VLR headers from `offset`; each record must end by `end`.
+                   end: int, kind: str, limit: str, path: str) -> dict[tuple[str, int], tuple[int, int]]:
+    """Walk `count` (E)VLR headers from `offset`; each record must end by `end`. Returns
+    where each record's payload lies, (offset, length), by (user id, record id).
 
     Both header kinds hold reserved (2 bytes), user id (16) and record id (2), then the
     payload length: 2 bytes in a VLR, 8 in an EVLR.
     """
+    records = {}
     for index in range(count):
         file.seek(offset)
         record = file.read(header_size)
         if len(record) < header_size or offset + header_size > end:
             raise InputError(path, f"LAS {kind} {index + 1} of {count} runs past {limit}")
         (length,) = struct.unpack_from(length_format, record, 20)
+        user_id = record[2:18].split(b"\0", 1)[0].decode("latin-1")
+        (record_id,) = struct.unpack_from("<H", record, 18)
+        records.setdefault((user_id, record_id), (offset + header_size, length))
         offset += header_size + length
         if offset > end:
             raise InputError(path, f"LAS {kind} {index + 1} of {count} runs past {limit}")
+    return records

@@ -7,6 +7,7 @@ area-weighted vertex normals from the faces; the OBJ and PLY readers share these
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from ..errors import InputError
 from ._parse import ragged_arange
@@ -45,14 +46,25 @@ def referenced_vertices(faces: np.ndarray, vertex_count: int) -> tuple[np.ndarra
     return keep, new_id[faces]
 
 
+def mesh_normals(positions: np.ndarray, faces: np.ndarray) -> np.ndarray | None:
+    """The vertex normals of a mesh read from a file: `area_weighted_vertex_normals`, or
+    None when no face has any area (the vertices are then points whose normals are
+    estimated, as for a cloud without normals)."""
+    normals = area_weighted_vertex_normals(positions, faces)
+    return normals if normals.any() else None
+
+
 def area_weighted_vertex_normals(positions: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """(N, 3) float64 unit vertex normals: each the sum of its faces' normals weighted by area.
 
     The cross product of two triangle edges is the face normal scaled by twice the area, so
     summing the raw cross products gives the area weighting. Counter-clockwise faces (seen
     from outside) give outward normals. A vertex whose faces have no area (degenerate
-    triangles, or faces cancelling exactly) takes the summed normals of its face neighbours;
-    vertices no face touches, or isolated degenerate patches, are left as zero vectors.
+    triangles, or faces cancelling exactly) takes the summed normals of its face neighbours,
+    repeatedly; one left without (a degenerate face apart from the rest of the mesh) takes
+    that of the nearest vertex that has one, so that one degenerate face never leaves a
+    valid mesh with vertices that have no normal. Vertices no face touches, and all vertices
+    when no face has any area, are left as zero vectors.
     """
     positions = np.asarray(positions, dtype=np.float64)
     faces = np.asarray(faces, dtype=np.int64)
@@ -72,6 +84,9 @@ def area_weighted_vertex_normals(positions: np.ndarray, faces: np.ndarray) -> np
             break
         normals[fixed] = neighbours[fixed] / length[fixed, None]
         undefined &= ~fixed
+    if undefined.any() and defined.any():
+        _, nearest = cKDTree(positions[defined]).query(positions[undefined])
+        normals[undefined] = normals[defined][nearest]
     return normals
 
 

@@ -3,7 +3,8 @@
 Arrays, by key:
 
 - ``positions`` (or ``points``, or ``xyz``): (N, 3), required;
-- ``normals`` (N, 3); ``radii`` (N,); ``axes`` (N, 2, 3);
+- ``normals`` (N, 3) (with zero vectors among them: none, `cloud.file_normals`); ``radii``
+  (N,); ``axes`` (N, 2, 3);
 - ``colors`` (N, 3): floats in [0, 1], or integers: 0..65535 for 16-bit types, 0..255 for
   the others (uint8 above all);
 - ``faces`` (F, 3) integer vertex indices. An NPZ is a container for a cloud, not a mesh
@@ -11,16 +12,26 @@ Arrays, by key:
 - ``geospatial``: an optional boolean scalar (as LOD files store it) marking the cloud
   geospatial (up axis +Z);
 - any other numeric array whose first dimension is N becomes ``attributes[key]``, in its own
-  dtype; anything else (other scalars, metadata) is ignored;
+  dtype; anything else (other scalars, metadata) is ignored, except under the names of
+  surfel's own arrays (`surfel.attributes.DERIVED`: LOD errors, clip lines, normal fields),
+  which must have their own shape;
 - ``surfel_schema``: an optional string scalar, the JSON of the attributes' schema
   (`surfel.attributes.Schema.to_json`), giving the kinds of the attributes it names.
 
 `cloud_arrays` gives the arrays of a cloud in this layout (what `np.savez` needs to write it).
 
 Pickles are never loaded: arrays are read with ``allow_pickle=False``, and an object array
-is refused with InputError before numpy reads it. Each array's header is also checked
-against the member's sizes in the archive first, so a crafted shape cannot make numpy
-allocate more than the archive can hold.
+is refused with InputError before numpy reads it.
+
+Allocations are bounded by what the archive can hold. Every member's .npy header is read
+first (a few decompressed bytes) and checked against the member's sizes in the archive, so a
+crafted shape cannot make numpy allocate more than the member holds; only the arrays this
+layout uses are then decompressed, streamed into their arrays. Deflate can expand data about
+1000 times, so a 1 MB archive may honestly hold a gigabyte of zeros; point data never
+compresses like that (measured with np.savez_compressed: aerial LiDAR with all its fields
+4 times, a perfect integer grid in float64 13 times, with constant normals and colours 21),
+so the arrays read may together expand at most MAX_EXPANSION times their compressed size
+(beyond SMALL_ARRAYS bytes, which any file may hold): more is a decompression bomb.
 """
 
 from __future__ import annotations
@@ -31,8 +42,8 @@ import zipfile
 
 import numpy as np
 
-from ..attributes import Schema
-from ..cloud import PointCloud
+from ..attributes import DERIVED, Schema
+from ..cloud import PointCloud, file_normals
 from ..errors import InputError, SurfelError
 
 _POSITION_KEYS = ("positions", "points", "xyz")
@@ -40,7 +51,9 @@ _ATTRIBUTE_KEYS = {"normals", "colors", "radii", "axes", "faces"}
 SCHEMA_KEY = "surfel_schema"
 GEOSPATIAL_KEY = "geospatial"
 # Deflate cannot expand data more than about 1032 times.
-_MAX_EXPANSION = 1100
+_DEFLATE_EXPANSION = 1100
+MAX_EXPANSION = 64  # how much the arrays read may expand, together (module docstring)
+SMALL_ARRAYS = 16 << 20
 _HEADER_READERS = {(1, 0): np.lib.format.read_array_header_1_0,
                    (2, 0): np.lib.format.read_array_header_2_0}
 
@@ -74,7 +87,7 @@ def read_npz(path: str) -> PointCloud:
     geospatial = flag is not None and flag.shape == () and flag.dtype.kind in "biu" and bool(flag)
     attributes = {key: value for key, value in arrays.items()
                   if key not in _ATTRIBUTE_KEYS and key not in _POSITION_KEYS
-                  and value.dtype.kind in "biuf" and value.ndim >= 1 and len(value) == n}
+                  and (key in DERIVED or value.dtype.kind in "biuf" and value.ndim >= 1 and len(value) == n)}
     kinds = {}
     stated = arrays.get(SCHEMA_KEY)
     if stated is not None:
@@ -84,7 +97,10 @@ def read_npz(path: str) -> PointCloud:
             kinds = {name: kind for name, kind in Schema.from_json(str(stated)).kinds.items() if name in attributes}
         except ValueError as error:
             raise InputError(path, f"NPZ '{SCHEMA_KEY}' is not an attribute schema: {error}") from None
-    return PointCloud(positions=positions, normals=arrays.get("normals"), colors=colors,
+    normals = arrays.get("normals")
+    if normals is not None and normals.ndim == 2:
+        normals = file_normals(normals)
+    return PointCloud(positions=positions, normals=normals, colors=colors,
                       radii=arrays.get("radii"), axes=arrays.get("axes"), faces=faces,
                       attributes=attributes, kinds=kinds, geospatial=geospatial, source=path)
 
@@ -106,15 +122,16 @@ def cloud_arrays(cloud: PointCloud) -> dict[str, np.ndarray]:
 
 
 def _read_arrays(path: str) -> dict[str, np.ndarray]:
+    """The arrays of the archive that this layout uses (module docstring), by key."""
     size = os.path.getsize(path)
-    arrays = {}
     with zipfile.ZipFile(path) as archive:
+        members = {}
         for info in archive.infolist():
             if not info.filename.endswith(".npy"):
                 continue  # numpy writes only .npy members; anything else is not ours
             key = info.filename[:-len(".npy")]
             if (info.header_offset + info.compress_size > size
-                    or info.file_size > _MAX_EXPANSION * max(info.compress_size, 1)):
+                    or info.file_size > _DEFLATE_EXPANSION * max(info.compress_size, 1)):
                 raise InputError(path, f"NPZ member '{key}' claims more data than the file holds")
             with archive.open(info) as member:
                 read_header = _HEADER_READERS.get(np.lib.format.read_magic(member))
@@ -126,6 +143,33 @@ def _read_arrays(path: str) -> dict[str, np.ndarray]:
                                        f"never unpickled")
             if math.prod(shape) * dtype.itemsize > info.file_size:
                 raise InputError(path, f"NPZ array '{key}' is truncated")
-            with archive.open(info) as member:
+            members[key] = (info, shape, dtype)
+        used = _used_members(members)
+        expanded = sum(math.prod(shape) * dtype.itemsize for _, shape, dtype in used.values())
+        compressed = sum(info.compress_size for info, _, _ in used.values())
+        if expanded > max(SMALL_ARRAYS, MAX_EXPANSION * compressed):
+            raise InputError(path, f"NPZ arrays would expand {compressed} compressed bytes {expanded // compressed} "
+                                   f"times, far beyond what point data compresses (at most {MAX_EXPANSION} times): "
+                                   "a decompression bomb")
+        arrays = {}
+        for key, (info, _, _) in used.items():
+            with archive.open(info) as member:  # read in pieces into the array numpy allocates
                 arrays[key] = np.lib.format.read_array(member, allow_pickle=False)
     return arrays
+
+
+def _used_members(members: dict[str, tuple]) -> dict[str, tuple]:
+    """The members `read_npz` reads (module docstring), from their (info, shape, dtype)."""
+    position_key = next((key for key in _POSITION_KEYS if key in members), None)
+    if position_key is None:
+        return {}
+    shape = members[position_key][1]
+    n = shape[0] if shape else None
+    used = {}
+    for key, member in members.items():
+        _, shape, dtype = member
+        scalar = shape == () and key in (GEOSPATIAL_KEY, SCHEMA_KEY)
+        attribute = key not in _POSITION_KEYS and len(shape) >= 1 and shape[0] == n and dtype.kind in "biuf"
+        if key == position_key or key in _ATTRIBUTE_KEYS or key in DERIVED or scalar or attribute:
+            used[key] = member  # geometry and surfel's own arrays whatever their shape: PointCloud reports it
+    return used

@@ -28,7 +28,7 @@ import numpy as np
 from ..cloud import PointCloud
 from ..errors import InputError
 from ._parse import numbers_by_line, unit_colors
-from .mesh import area_weighted_vertex_normals, referenced_vertices, triangles_from_polygons
+from .mesh import mesh_normals, referenced_vertices, triangles_from_polygons
 
 _COMMENT = re.compile(rb"#[^\n]*")
 _INDENT = re.compile(rb"^[ \t]+", re.MULTILINE)
@@ -85,7 +85,7 @@ def read_obj(path: str) -> PointCloud:
     positions = positions[keep]
     if colors is not None:
         colors = colors[keep]
-    normals = area_weighted_vertex_normals(positions, faces)
+    normals = mesh_normals(positions, faces)
     return PointCloud(positions=positions, normals=normals, colors=colors, faces=faces, source=path)
 
 

@@ -7,7 +7,7 @@ the points; its properties, by name:
 
 - ``x y z`` (required, any numeric type; kept as float64);
 - ``nx ny nz``: normals. Files whose normals include zero vectors (the "no normal"
-  placeholder some exporters write) count as having no normals;
+  placeholder some exporters write) count as having no normals (`cloud.file_normals`);
 - ``red green blue``: colours. 8-bit integer types are divided by 255, 16-bit ones by
   65535, wider integers are read as 0..255 values, floats are taken as they are; all are
   clipped to [0, 1]. ``alpha`` is ignored;
@@ -31,8 +31,9 @@ Elements are decoded whole, with no per-point Python loop: binary ones through n
 structured dtypes over a memory map of the file, ascii ones through one vectorised
 tokenisation of the body. The one exception is a binary element with list properties whose
 lengths differ between records (e.g. mixed triangles and quads): its record boundaries can
-only be found record by record. Every size a header claims is checked against what the
-file holds before anything is decoded, so a lying header cannot cause a large allocation.
+only be found record by record, by the compiled walks of `ply_records`. Every size a header
+claims is checked against what the file holds before anything is decoded, so a lying header
+cannot cause a large allocation.
 
 Writing
 -------
@@ -49,18 +50,18 @@ from __future__ import annotations
 import mmap
 import os
 import re
-import struct
 from dataclasses import dataclass, field
 from typing import BinaryIO, NamedTuple
 
 import numpy as np
 
 from ..attributes import KINDS, AttributeSpec, canonical_names
-from ..cloud import PointCloud
+from ..cloud import PointCloud, file_normals
 from ..errors import InputError, SurfelError
 from ..files import write_atomically
 from ._parse import numbers_by_line, ragged_arange
-from .mesh import area_weighted_vertex_normals, referenced_vertices, triangles_from_polygons
+from .mesh import mesh_normals, referenced_vertices, triangles_from_polygons
+from .ply_records import NEGATIVE, RecordLayout, gather_records, walk_records
 
 _TYPES = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
@@ -75,7 +76,6 @@ _TYPE_NAMES = {"i1": "char", "u1": "uchar", "i2": "short", "u2": "ushort", "i4":
 _WRITTEN_AS = {"b1": "u1", "i1": "i1", "u1": "u1", "i2": "i2", "u2": "u2", "i4": "i4", "u4": "u4",
                "i8": "f8", "u8": "f8", "f2": "f4", "f4": "f4", "f8": "f8"}
 _EXACT_IN_DOUBLE = 2 ** 53
-_STRUCT_CODES = {"i1": "b", "u1": "B", "i2": "h", "u2": "H", "i4": "i", "u4": "I"}
 _FORMATS = {"ascii": "ascii", "binary_little_endian": "<", "binary_big_endian": ">"}
 _FACE_LISTS = ("vertex_indices", "vertex_index")
 _ATTRIBUTE_COMMENT = "surfel_attribute"
@@ -244,27 +244,31 @@ def _read_binary(data: mmap.mmap, header: Header, wanted: set[str], path: str) -
     for element in header.elements:
         if wanted <= found.keys():
             break
-        columns, offset = _binary_element(data, offset, element, header.format, path)
+        kept = next((name for name in _FACE_LISTS if name in element.properties), None) \
+            if element.name == "face" else None
+        columns, offset = _binary_element(data, offset, element, header.format, kept, path)
         if element.name in wanted:
             found[element.name] = columns
     return found
 
 
-def _binary_element(data: mmap.mmap, offset: int, element: Element, order: str,
+def _binary_element(data: mmap.mmap, offset: int, element: Element, order: str, kept: str | None,
                     path: str) -> tuple[_Columns, int]:
-    """The element's columns (views into `data` where possible) and the offset after it."""
+    """The element's scalar columns and its list `kept` (views into `data` where possible), and
+    the offset after it. Other list properties are skipped (nothing reads them)."""
     props = list(element.properties.values())
     n = element.count
     if not props:
         return {}, offset
     smallest = sum(np.dtype(p.length_type or p.type).itemsize for p in props)  # empty lists
     _check_fits(element, n * smallest, len(data) - offset, path)
+    codes = np.frombuffer(data, dtype=np.uint8)
+    layout = RecordLayout.of(props, order, kept)
     lists = [p for p in props if p.is_list]
     if n and lists:
         # Guess that every record's lists are as long as the first record's (all faces
         # triangles, say): then the element is one fixed-size record array.
-        _, first_lengths, _ = _walk_records(data, offset, props, 1, order, element.name, path)
-        lengths = {p.name: int(first_lengths[p.name][0]) for p in lists}
+        lengths = _first_lengths(codes, offset, props, order, element.name, path)
     else:
         lengths = {p.name: 0 for p in lists}
     dtype = np.dtype([field for p in props for field in record_fields(p, order, lengths)])
@@ -272,24 +276,39 @@ def _binary_element(data: mmap.mmap, offset: int, element: Element, order: str,
     if size <= len(data) - offset:
         records = np.frombuffer(data, dtype=dtype, count=n, offset=offset)
         if all((records[_length_field(p)] == lengths[p.name]).all() for p in lists):
-            columns: _Columns = {
-                p.name: _List(np.full(n, lengths[p.name], dtype=np.int64), records[p.name].reshape(-1))
-                if p.is_list else records[p.name] for p in props}
+            columns: _Columns = {p.name: records[p.name] for p in props if not p.is_list}
+            if kept is not None:
+                columns[kept] = _List(np.full(n, lengths[kept], dtype=np.int64), records[kept].reshape(-1))
             return columns, offset + size
-    starts, list_lengths, end = _walk_records(data, offset, props, n, order, element.name, path)
-    codes = np.frombuffer(data, dtype=np.uint8)
-    columns = {}
+    # Lists of varying lengths: walked record by record by compiled kernels (ply_records).
+    walk = walk_records(codes, offset, n, layout)
+    if walk.end < 0:
+        raise _walk_error(walk.end, element.name, path)
+    scalars, items = gather_records(codes, offset, n, layout, walk)
+    columns = {} if scalars is None else {p.name: scalars[p.name] for p in props if not p.is_list}
+    if kept is not None:
+        item = np.dtype(order + element.properties[kept].type)
+        columns[kept] = _List(walk.lengths.astype(np.int64), items.view(item))
+    return columns, walk.end
+
+
+def _first_lengths(codes: np.ndarray, offset: int, props: list[Property], order: str, element: str,
+                   path: str) -> dict[str, int]:
+    """The list lengths of the record at `offset`."""
+    lengths = {}
     for p in props:
-        item = np.dtype(order + p.type)
-        begin = np.array(starts[p.name], dtype=np.int64)
-        if p.length_type is not None:
-            counts = np.array(list_lengths[p.name], dtype=np.int64)
-            first_item = begin + np.dtype(p.length_type).itemsize
-            positions = np.repeat(first_item, counts) + ragged_arange(counts) * item.itemsize
-            columns[p.name] = _List(counts, _gather(codes, positions, item))
-        else:
-            columns[p.name] = _gather(codes, begin, item)
-    return columns, end
+        if not p.is_list:
+            offset += np.dtype(p.type).itemsize
+            continue
+        length_type = np.dtype(order + p.length_type)
+        if offset + length_type.itemsize > len(codes):
+            raise _truncated(element, path)
+        length = int(codes[offset:offset + length_type.itemsize].view(length_type)[0])
+        if length < 0:
+            raise _walk_error(NEGATIVE, element, path)
+        lengths[p.name] = length
+        offset += length_type.itemsize + length * np.dtype(p.type).itemsize
+    return lengths
 
 
 def record_fields(prop: Property, order: str, lengths: dict[str, int]) -> list[tuple]:
@@ -305,36 +324,10 @@ def _length_field(prop: Property) -> str:
     return f"{prop.name} length"  # PLY names have no spaces, so this never collides
 
 
-def _walk_records(data: mmap.mmap, offset: int, props: list[Property], count: int, order: str,
-                  element: str, path: str) -> tuple[dict[str, list[int]], dict[str, list[int]], int]:
-    """Record by record: where each property starts, each list's length, and the end offset."""
-    end = len(data)
-    starts: dict[str, list[int]] = {p.name: [] for p in props}
-    lengths: dict[str, list[int]] = {p.name: [] for p in props}  # stays empty for scalars
-    steps = [(starts[p.name], np.dtype(p.type).itemsize,
-              None if p.length_type is None else struct.Struct(order + _STRUCT_CODES[p.length_type]),
-              lengths[p.name]) for p in props]
-    for _ in range(count):
-        for begin, item_size, length_reader, record_lengths in steps:
-            begin.append(offset)
-            if length_reader is None:
-                offset += item_size
-                continue
-            if offset + length_reader.size > end:
-                raise _truncated(element, path)
-            (length,) = length_reader.unpack_from(data, offset)
-            if length < 0:
-                raise InputError(path, f"PLY element '{element}' has a list of negative length")
-            record_lengths.append(length)
-            offset += length_reader.size + length * item_size
-        if offset > end:
-            raise _truncated(element, path)
-    return starts, lengths, offset
-
-
-def _gather(codes: np.ndarray, starts: np.ndarray, dtype: np.dtype) -> np.ndarray:
-    """The values of `dtype` stored at the byte offsets `starts` of `codes`."""
-    return codes[starts[:, None] + np.arange(dtype.itemsize)].view(dtype).reshape(-1)
+def _walk_error(code: int, element: str, path: str) -> InputError:
+    if code == NEGATIVE:
+        return InputError(path, f"PLY element '{element}' has a list of negative length")
+    return _truncated(element, path)
 
 
 def _check_fits(element: Element, need: int, have: int, path: str) -> None:
@@ -406,9 +399,9 @@ def _cloud(header: Header, found: dict[str, _Columns], path: str) -> PointCloud:
     columns = found["vertex"]
 
     def stacked(names: tuple[str, ...], dtype: type = np.float32) -> np.ndarray | None:
-        present = [columns.get(name) for name in names]
-        if any(isinstance(column, _List) for column in present):
+        if any(name in vertex.properties and vertex.properties[name].is_list for name in names):
             raise InputError(path, f"PLY vertex properties {' '.join(names)} must not be lists")
+        present = [columns.get(name) for name in names]
         arrays = [column for column in present if isinstance(column, np.ndarray)]
         return np.column_stack(arrays).astype(dtype) if len(arrays) == len(names) else None
 
@@ -416,9 +409,7 @@ def _cloud(header: Header, found: dict[str, _Columns], path: str) -> PointCloud:
     if positions is None:
         raise InputError(path, "PLY vertex element lacks x, y or z")
     n = len(positions)
-    normals = stacked(_NORMAL)
-    if normals is not None and not normals.any(axis=1).all():
-        normals = None
+    normals = file_normals(stacked(_NORMAL))
     colors = stacked(_COLOR)
     if colors is not None:
         scale = [color_scale(vertex.properties[name].type) for name in _COLOR]
@@ -445,7 +436,7 @@ def _cloud(header: Header, found: dict[str, _Columns], path: str) -> PointCloud:
                 None if a is None else a[keep] for a in (normals, colors, radii, axes))
             attributes = {name: value[keep] for name, value in attributes.items()}
         if normals is None:
-            normals = area_weighted_vertex_normals(positions, faces)
+            normals = mesh_normals(positions, faces)
     return PointCloud(positions=positions, normals=normals, colors=colors, radii=radii, axes=axes,
                       faces=faces, attributes=attributes,
                       kinds={a.spec.name: a.spec.kind for a in layout if a.stated},

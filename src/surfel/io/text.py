@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from ..attributes import canonical_names
-from ..cloud import PointCloud
+from ..cloud import PointCloud, file_normals
 from ..errors import InputError
 from ._parse import numbers_by_line, unit_colors
 
@@ -101,7 +101,7 @@ def read_text(path: str) -> PointCloud:
     if normals is not None and not np.linalg.norm(normals, axis=1).all():
         normals = None
     attributes = {} if intensity is None else {"intensity": _column(intensity)}
-    return PointCloud(positions=table[:, :3], normals=normals, attributes=attributes,
+    return PointCloud(positions=table[:, :3], normals=file_normals(normals), attributes=attributes,
                       colors=None if colors is None else unit_colors(colors), source=path)
 
 
@@ -139,7 +139,7 @@ def _named_columns(table: np.ndarray, names: list[str], path: str) -> PointCloud
     if len(set(attribute_names)) < len(attribute_names):
         raise InputError(path, "the header names a column twice")
     attributes = {name: _column(table[:, index]) for name, index in zip(attribute_names, rest, strict=True)}
-    return PointCloud(positions=table[:, found["positions"]], normals=normals, colors=colors,
+    return PointCloud(positions=table[:, found["positions"]], normals=file_normals(normals), colors=colors,
                       attributes=attributes, source=path)
 
 

@@ -56,7 +56,7 @@ import numpy as np
 from ..camera import Camera
 from ..cloud import PointCloud, framing_sphere
 from ..errors import InputError
-from ..io.las import check_header, las_layout, layout_values
+from ..io.las import LAZ_MAX_POINTS_PER_BYTE, check_header, las_layout, layout_values
 
 VLR_HEADER = struct.Struct("<H16sHH32s")     # reserved, user id, record id, length, description
 EVLR_HEADER = struct.Struct("<H16sHQ32s")
@@ -159,6 +159,8 @@ class CopcSource:
         self.layout = las_layout(self.point_format, self.header.vlrs, self.path)
         self.geospatial = self.layout.geospatial
         self.total_points = int(self.header.point_count)
+        if self.total_points == 0:
+            raise InputError(self.path, "COPC file holds no points")
         lo, hi = np.asarray(self.header.mins, np.float64), np.asarray(self.header.maxs, np.float64)
         self.bounds = (lo, hi)
         self.center, self.bounding_radius = framing_sphere(lo, hi)
@@ -171,6 +173,9 @@ class CopcSource:
             if count > 0 and (off + nbytes > self.size or nbytes <= 0):
                 raise InputError(self.path, f"COPC node {d}-{x}-{y}-{z} points past the end of the file "
                                             f"(truncated?)")
+            if count > min(self.total_points, nbytes * LAZ_MAX_POINTS_PER_BYTE):
+                raise InputError(self.path, f"COPC node {d}-{x}-{y}-{z} claims {count} points in {nbytes} bytes, "
+                                            f"more than the file or LAZ can hold")
             if count == -1 and (off + nbytes > self.size or nbytes % ENTRY.size):
                 raise InputError(self.path, f"COPC hierarchy page of node {d}-{x}-{y}-{z} does not fit the file")
             if not 0 <= d <= _KEY_BITS or min(x, y, z) < 0 or max(x, y, z) >= 1 << d:
@@ -243,10 +248,19 @@ class CopcSource:
                     refine.append(frontier[i])
             frontier = self._existing_children(np.array(refine, np.int64).reshape(-1, 4))
         if not selected:  # nothing in view: the coarsest nodes, so that the cut is not empty
-            coarsest = min(code >> (3 * _KEY_BITS) for code, e in self._entries.items() if e.point_count > 0)
-            selected = [(_decode(code), e) for code, e in self._entries.items()
-                         if e.point_count > 0 and code >> (3 * _KEY_BITS) == coarsest]
+            selected = self._coarsest(file)
         return selected, epsilon_used
+
+    def _coarsest(self, file: _CountingFile) -> list[tuple[tuple[int, int, int, int], Entry]]:
+        """The nodes holding points at the coarsest depth that has any (pages read as needed)."""
+        level = np.zeros((1, 4), np.int64)
+        while len(level):
+            entries = [(tuple(int(v) for v in key), self._entry(file, key)) for key in level]
+            holding = [(key, entry) for key, entry in entries if entry.point_count > 0]
+            if holding:
+                return holding
+            level = self._existing_children(level)
+        raise InputError(self.path, "COPC hierarchy has no node holding points")
 
     def _entry(self, file: _CountingFile, key: np.ndarray) -> Entry:
         """The entry of an existing key, reading its hierarchy page first if it has one."""
@@ -329,10 +343,10 @@ class CopcSource:
                            geospatial=self.geospatial, source=self.path)
         self._kinds = self._kinds or cloud.schema.kinds
         estimated: dict = {}
-        if normals is None or radii is None:
-            from ..preprocess import prepare  # numba kernels: loaded only when needed
+        if normals is None or radii is None:  # with both, the axes follow the grown radii below
+            from ..preprocess import complete  # numba kernels: loaded only when needed
 
-            cloud, estimated = prepare(cloud, progress=False)
+            cloud, estimated = complete(cloud, progress=False)
         own = cloud.radii
         radii = np.maximum(own, (COVER * region).astype(np.float32))
         extras = dict(cloud.attributes)

@@ -54,7 +54,7 @@ import lazrs
 import numpy as np
 
 from ..attributes import AttributeSpec
-from ..cloud import PointCloud
+from ..cloud import PointCloud, framing_sphere
 from ..errors import SurfelError
 from ..files import write_atomically, write_json
 from ..io.las import SCAN_ANGLE_UNIT, SURFEL_VLR
@@ -99,7 +99,8 @@ def write_copc(cloud: PointCloud, path: str | os.PathLike, *, leaf_points: int =
     stored = ints * scales + offsets
     lo, hi = stored.min(axis=0), stored.max(axis=0)
     # the cube starts at the data's minimum corner, as Untwine's (PDAL's COPC writer) does
-    halfsize = max(float((hi - lo).max()) / 2, 1e-9) * (1 + 1e-6)
+    # (a single point's cube: the radius framing gives it, so that it scales with the data)
+    halfsize = (float((hi - lo).max()) / 2 or framing_sphere(lo, hi)[1]) * (1 + 1e-6)
     center = lo + halfsize
     unit = (stored - lo) / (2 * halfsize)   # in [0, 1)
     root_cells = _root_cells(unit)
@@ -168,7 +169,7 @@ def build_command(in_path: str | os.PathLike, out_path: str | os.PathLike,
     not reading the input or estimating its attributes), and what was estimated.
     """
     from ..io import load
-    from ..rendering import complete
+    from ..preprocess import complete
 
     cloud, estimated = complete(load(in_path))
     start = time.perf_counter()
@@ -185,7 +186,7 @@ def _quantization(positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """LAS scale and offset: a power of ten that keeps 9 digits of the extent in int32."""
     lo, hi = positions.min(axis=0), positions.max(axis=0)
     offsets = np.round((lo + hi) / 2, 2)
-    span = max(float(np.abs(positions - offsets).max()), 1e-9)
+    span = float(np.abs(positions - offsets).max()) or framing_sphere(lo, hi)[1]  # any scale, whatever the size
     scale = 10.0 ** math.ceil(math.log10(span / 1e9))
     return np.full(3, scale), offsets
 

@@ -84,7 +84,7 @@ def build_command(in_path: str | os.PathLike, out_path: str | os.PathLike,
     points_per_s (points / ms).
     """
     from ..io import load
-    from ..rendering import complete
+    from ..preprocess import complete
 
     cloud, estimated = complete(load(in_path))
     points = len(cloud)

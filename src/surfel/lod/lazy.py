@@ -29,7 +29,9 @@ that successive views (a viewer, a turntable) re-read only what changed.
 from __future__ import annotations
 
 import json
+import math
 import os
+import re
 from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
@@ -82,31 +84,24 @@ class LazyHierarchy:
     def __init__(self, path: str | os.PathLike, memory: int = 1 << 30):
         self.path = os.fspath(path)
         self.memory = memory
-        root = Path(self.path)
+        manifest = _Manifest(self.path)
+        self.geospatial = manifest.field("geospatial", bool)
+        self.total_points = manifest.count("total_points")
+        self.nodes = manifest.count("nodes")
+        self.has_colors = manifest.field("colors", bool)
         try:
-            manifest = json.loads((root / MANIFEST).read_text())
-        except (OSError, ValueError) as error:
-            raise InputError(self.path, f"unreadable LOD manifest ({error})") from None
-        if manifest.get("format") != DIR_FORMAT or manifest.get("version") != DIR_VERSION:
-            raise InputError(self.path, f"not a surfel LOD directory of version {DIR_VERSION}")
-        self.geospatial = bool(manifest["geospatial"])
-        self.total_points = int(manifest["total_points"])
-        self.nodes = int(manifest["nodes"])
-        self.has_colors = bool(manifest["colors"])
-        try:
-            self.schema = Schema.from_json(manifest.get("attributes", []))
+            self.schema = Schema.from_json(manifest.field("attributes", list))
         except ValueError as error:
             raise InputError(self.path, f"the LOD manifest's attribute schema is invalid: {error}") from None
-        lo, hi = (np.array(b, np.float64) for b in manifest["bounds"])
+        lo, hi = manifest.bounds(manifest.data, "bounds")
         self.bounds = (lo, hi)
         self.center, self.bounding_radius = framing_sphere(lo, hi)
-        self.partitions = [_Partition(p["name"], p["points"], p["nodes"], np.array(p["bounds"][0]),
-                                      np.array(p["bounds"][1]), float(p["max_radius"]))
-                           for p in manifest["partitions"]]
-        for part in self.partitions:
-            if not (root / part.name / "lod_emax.npy").is_file():
-                raise InputError(self.path, f"partition {part.name} is missing")
-        self.top = self._read_all("top") if manifest["top_nodes"] else None
+        self.partitions = [manifest.partition(entry) for entry in manifest.field("partitions", list)]
+        if not self.partitions:
+            raise InputError(self.path, "the LOD manifest lists no partitions")
+        self._rows = {part.name: part.nodes for part in self.partitions}
+        self._rows["top"] = manifest.count("top_nodes")
+        self.top = self._read_all("top") if self._rows["top"] else None
         self._cache: OrderedDict[str, _Prefix] = OrderedDict()
 
     def __len__(self) -> int:
@@ -120,10 +115,26 @@ class LazyHierarchy:
                     f"{spec.name} ({spec.dtype.name}, {spec.kind})" for spec in self.schema.values()]}
 
     def _array(self, part: str, name: str) -> np.ndarray:
+        """A partition's (or the top tree's) array, memory-mapped, with the rows the manifest
+        gives it and the per-node shape and type its name calls for."""
         try:
-            return np.load(Path(self.path) / part / f"{name}.npy", mmap_mode="r")
+            array = np.load(Path(self.path) / part / f"{name}.npy", mmap_mode="r")
         except (OSError, ValueError) as error:
-            raise InputError(self.path, f"cannot read {part}/{name}.npy ({error})") from None
+            reason = getattr(error, "strerror", None) or error
+            raise InputError(self.path, f"cannot read {part}/{name}.npy ({reason})") from None
+        tail, dtype = self._layout(name)
+        expected = (self._rows[part], *tail)
+        if array.shape != expected or (array.dtype != dtype if dtype is not None else array.dtype.kind != "f"):
+            raise InputError(self.path, f"{part}/{name}.npy holds {array.dtype} {array.shape}; the manifest calls for "
+                                        f"{dtype or 'float'} {expected}")
+        return array
+
+    def _layout(self, name: str) -> tuple[tuple[int, ...], np.dtype | None]:
+        """The per-node shape of an array, and its dtype (attributes; None: any float)."""
+        if name.startswith("attribute-"):
+            spec = list(self.schema.values())[int(name.removeprefix("attribute-"))]
+            return spec.shape, spec.dtype
+        return {"positions": (3,), "normals": (3,), "colors": (3,), "axes": (2, 3)}.get(name, ()), None
 
     def _geometry(self) -> tuple[str, ...]:
         """The per-node arrays a cut holds besides positions: file names, attributes by index."""
@@ -257,6 +268,69 @@ class LazyHierarchy:
             read += out[key].nbytes
         out["bytes"] = read
         return out
+
+
+class _Manifest:
+    """The manifest of a hierarchy directory, read and checked field by field (InputError,
+    naming the directory, for anything `outofcore` would not have written)."""
+
+    def __init__(self, path: str):
+        self.path = path
+        try:
+            self.data = json.loads((Path(path) / MANIFEST).read_text())
+        except (OSError, ValueError) as error:
+            reason = getattr(error, "strerror", None) or error
+            raise InputError(path, f"unreadable LOD manifest ({reason})") from None
+        if not isinstance(self.data, dict):
+            raise InputError(path, f"the LOD manifest is a JSON {type(self.data).__name__}, not an object")
+        if self.data.get("format") != DIR_FORMAT or self.data.get("version") != DIR_VERSION:
+            raise InputError(path, f"not a surfel LOD directory of version {DIR_VERSION}")
+
+    def field(self, key: str, kind: type, entry: dict | None = None, where: str = ""):
+        container = self.data if entry is None else entry
+        if key not in container:
+            raise InputError(self.path, f"the LOD manifest lacks {where}'{key}'")
+        value = container[key]
+        # JSON's true and false are no counts, nor are counts true or false
+        if not isinstance(value, kind) or (kind is int and isinstance(value, bool)):
+            raise InputError(self.path, f"the LOD manifest's {where}'{key}' is not {_KIND_NAMES[kind]}: {value!r}")
+        return value
+
+    def count(self, key: str, entry: dict | None = None, where: str = "", least: int = 0) -> int:
+        value = self.field(key, int, entry, where)
+        if value < least:
+            raise InputError(self.path, f"the LOD manifest's {where}'{key}' must be at least {least}, got {value}")
+        return value
+
+    def bounds(self, entry: dict, key: str, where: str = "") -> tuple[np.ndarray, np.ndarray]:
+        value = self.field(key, list, entry, where)
+        try:
+            lo, hi = (np.array(corner, np.float64) for corner in value)
+        except (TypeError, ValueError):
+            lo = hi = np.zeros(0)
+        if lo.shape != (3,) or hi.shape != (3,) or not (np.isfinite(lo).all() and np.isfinite(hi).all()):
+            raise InputError(self.path, f"the LOD manifest's {where}'{key}' is not two corners of 3 finite numbers")
+        return lo, hi
+
+    def partition(self, entry) -> _Partition:
+        if not isinstance(entry, dict):
+            raise InputError(self.path, f"the LOD manifest lists a partition that is not an object: {entry!r}")
+        name = self.field("name", str, entry, "partition ")
+        where = f"partition {name!r}: "
+        # a name is one directory inside the hierarchy: never a path out of it
+        if not _PARTITION_NAME.fullmatch(name) or name == "top" or not (Path(self.path) / name).is_dir():
+            raise InputError(self.path, f"the LOD manifest names partition {name!r}, which is no directory of it")
+        lo, hi = self.bounds(entry, "bounds", where)
+        radius = self.field("max_radius", (int, float), entry, where)
+        if not (math.isfinite(radius) and radius >= 0):
+            raise InputError(self.path, f"the LOD manifest's {where}'max_radius' is not a number >= 0: {radius!r}")
+        return _Partition(name, self.count("points", entry, where, 1), self.count("nodes", entry, where, 1),
+                          lo, hi, float(radius))
+
+
+_KIND_NAMES = {bool: "true or false", int: "a whole number", list: "a list", str: "a name",
+               (int, float): "a number"}
+_PARTITION_NAME = re.compile(r"[A-Za-z0-9_-][A-Za-z0-9_.-]*")
 
 
 def _total(masks: dict[str, np.ndarray]) -> int:

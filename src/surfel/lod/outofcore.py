@@ -5,8 +5,9 @@ The input (binary PLY read in chunks at file offsets, LAS/LAZ through laspy's ch
 iterator, a directory of such tiles as one cloud; other formats are loaded whole: see
 streaming.py) is read three times and never held in memory:
 
-1. scan: bounds, for LAS the colour range (8-bit values in 16-bit fields), and the kinds of
-   the attributes (streaming.KindVote);
+1. scan: bounds, for LAS the colour range (8-bit values in 16-bit fields), the kinds of
+   the attributes (streaming.KindVote), and whether the normals hold zero placeholders (the
+   input then counts as having none, as every reader has it: `cloud.file_normals`);
 2. histogram: point counts of the 2^7 x 2^7 x 2^7 cells of the bounding cube; the cube is
    split octree-wise, a cell being split while it holds more than `cap` points, into
    partitions (the non-empty leaves of that octree), where
@@ -17,7 +18,7 @@ streaming.py) is read three times and never held in memory:
    partition's file.
 
 Each partition is then loaded, completed (radii and tangent axes estimated as for any cloud,
-`preprocess.prepare`; normals from the input when it has them), built (`build_lod`),
+`preprocess.complete`; normals from the input when it has them), built (`build_lod`),
 sequentialised (`to_sequential_cloud`) and written as raw .npy arrays in sequential order.
 No halo is used: points at a partition border miss their neighbours across it, which only
 widens their covering radii (the Voronoi cell is unbounded on that side) and so cannot
@@ -73,9 +74,9 @@ import numpy as np
 from tqdm import tqdm
 
 from ..attributes import Schema
-from ..cloud import PointCloud
+from ..cloud import PointCloud, file_normals, framing_sphere
 from ..errors import SurfelError
-from ..files import write_json
+from ..files import write_atomically, write_json
 from ..preprocess import INACTIVE_CLIP
 from .build import ROOT_PARENT_ERROR, _merge_cells, _next_level, aggregate_attributes, build_lod, morton_codes
 from .sequential import EXTRAS, r_max_bucket, to_sequential_cloud
@@ -211,6 +212,8 @@ def build_outofcore(in_path: str | os.PathLike, out_path: str | os.PathLike, *, 
     start = time.perf_counter()
     out = Path(out_path)
     partial = out.with_name(out.name + ".partial")
+    if out.is_symlink():  # replacing the hierarchy would replace the link, not what it names
+        raise SurfelError(f"{out}: is a symbolic link; not replacing it (name the directory itself)")
     if out.exists() and not (out / MANIFEST).is_file():
         raise SurfelError(f"{out}: exists and is not a surfel LOD directory; not replacing it")
     inputs = open_inputs(in_path)
@@ -296,6 +299,7 @@ def _bin_input(inputs: list[StreamInput], partial: Path, cap: int, signature: di
     lo = np.full(3, np.inf)
     hi = np.full(3, -np.inf)
     vote = KindVote(inputs)
+    placeholders = False  # zero normals: the input counts as having none (cloud.file_normals)
     for source in inputs:  # colour ranges of LAS files are needed before the colours are scaled
         color_max = 0.0
         with _bar(source.count, f"scan {os.path.basename(source.path)}", progress) as bar:
@@ -303,6 +307,7 @@ def _bin_input(inputs: list[StreamInput], partial: Path, cap: int, signature: di
                 lo = np.minimum(lo, chunk.positions.min(axis=0))
                 hi = np.maximum(hi, chunk.positions.max(axis=0))
                 vote.add(chunk)
+                placeholders = placeholders or (chunk.normals is not None and file_normals(chunk.normals) is None)
                 if chunk.colors is not None and source.kind == "las":
                     color_max = max(color_max, float(chunk.colors.max()))
                 bar.update(len(chunk.positions))
@@ -310,7 +315,7 @@ def _bin_input(inputs: list[StreamInput], partial: Path, cap: int, signature: di
             # chunks were scaled by 1: 8-bit values in 16-bit fields, or real 16-bit ones
             source.color_scale = 255.0 if color_max <= 255 else 65535.0
             source.has_colors = color_max > 0
-    size = max(float((hi - lo).max()), 1e-9) * (1 + 1e-9)
+    size = (float((hi - lo).max()) or 2 * framing_sphere(lo, hi)[1]) * (1 + 1e-9)  # one point: its framing
     res = 1 << HISTOGRAM_BITS
     plan = Plan(lo, size, [], [])
     histogram = np.zeros(res ** 3, np.int64)
@@ -321,7 +326,7 @@ def _bin_input(inputs: list[StreamInput], partial: Path, cap: int, signature: di
     plan = _plan(histogram.reshape(res, res, res), lo, size, cap)
     del histogram
     lookup = plan.lookup()
-    has_normals, has_colors = inputs[0].has_normals, any(i.has_colors for i in inputs)
+    has_normals, has_colors = inputs[0].has_normals and not placeholders, any(i.has_colors for i in inputs)
     kinds = vote.kinds
     schema = Schema(replace(spec, kind=kinds[spec.name]) for spec in vote.specs)
     dtype = _record_dtype(has_normals, has_colors, schema)
@@ -342,6 +347,8 @@ def _bin_input(inputs: list[StreamInput], partial: Path, cap: int, signature: di
             sorted_part = part[order]
             bounds = np.flatnonzero(np.diff(sorted_part)) + 1
             for run in np.split(np.arange(len(order)), bounds):
+                # appended chunk by chunk, so not through write_atomically: scratch files in
+                # the build's own NAME.partial/, which is published only by its final rename
                 with open(bins / f"part-{sorted_part[run[0]]:05d}.bin", "ab") as file:
                     records[run[0]:run[-1] + 1].tofile(file)
             bar.update(len(order))
@@ -352,7 +359,7 @@ def _bin_input(inputs: list[StreamInput], partial: Path, cap: int, signature: di
 
 def _build_partition(partial: Path, name: str, dtype: np.dtype, schema: Schema, geospatial: bool) -> None:
     """Complete, build, sequentialise and write one partition; its root summary last."""
-    from ..preprocess import prepare
+    from ..preprocess import complete
 
     records = np.fromfile(partial / "bins" / f"{name}.bin", dtype)
     cloud = PointCloud(records["p"], normals=records["n"] if "n" in dtype.names else None,
@@ -360,7 +367,7 @@ def _build_partition(partial: Path, name: str, dtype: np.dtype, schema: Schema, 
                        attributes={spec.name: records[f"a{i}"] for i, spec in enumerate(schema.values())},
                        kinds=schema.kinds, source=name)
     del records
-    cloud, _ = prepare(cloud, progress=False)
+    cloud, _ = complete(cloud, progress=False)
     points = len(cloud)
     lo, hi = cloud.bounds
     tree = build_lod(cloud, progress=False)
@@ -377,15 +384,19 @@ def _build_partition(partial: Path, name: str, dtype: np.dtype, schema: Schema, 
               **{attribute_key(i): seq.attributes[name] for i, name in enumerate(stored)}}
     for key, value in arrays.items():
         if value is not None:
-            np.save(work / f"{key}.npy", value)
+            _save_array(work / f"{key}.npy", value)
     summary = {"name": name, "points": points, "nodes": len(seq), "bounds": [lo.tolist(), hi.tolist()],
                "radius": float(seq.radii[0]), "attributes": stored.to_list(), **root}
-    (work / "root.json").write_text(json.dumps(summary))
+    write_json(work / "root.json", summary)
     del seq, arrays
     final = partial / name
     shutil.rmtree(final, ignore_errors=True)
     os.replace(work, final)
     (partial / "bins" / f"{name}.bin").unlink(missing_ok=True)
+
+
+def _save_array(path: Path, value: np.ndarray) -> None:
+    write_atomically(path, lambda file: np.save(file, value, allow_pickle=False))
 
 
 def _root_summary(tree) -> dict:
@@ -481,7 +492,7 @@ def _top_tree(partial: Path, parts: list[dict], has_colors: bool, stored: Schema
     arrays.update({attribute_key(i): attributes[name][order] for i, name in enumerate(stored)})
     top_dir.mkdir()
     for key, value in arrays.items():
-        np.save(top_dir / f"{key}.npy", value)
+        _save_array(top_dir / f"{key}.npy", value)
     return len(inner)
 
 

@@ -24,7 +24,7 @@ class LodSource(Protocol):
     geospatial: bool          # up axis +Z (LAS/LAZ/COPC)
     total_points: int         # leaf (input) points in the whole hierarchy
     bounds: tuple[np.ndarray, np.ndarray]   # world AABB lo, hi (float64 (3,))
-    center: np.ndarray        # bbox centre, for auto framing (CONVENTIONS.md)
+    center: np.ndarray        # bbox centre, for auto framing (docs/conventions.md)
     bounding_radius: float    # half the bbox diagonal, like PointCloud
 
     def select(self, camera: Camera, epsilon: float, point_budget: int | None = None

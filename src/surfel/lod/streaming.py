@@ -123,9 +123,10 @@ def checked(path: str, positions: np.ndarray, normals: np.ndarray | None, colors
     if not np.isfinite(positions).all():
         raise InputError(path, "points have NaN or infinite coordinates")
     if normals is not None:
-        bad = ~np.isfinite(normals).all(axis=1) | ~normals.any(axis=1)
+        # zero vectors are placeholders (cloud.file_normals): the scan pass drops such normals
+        bad = ~np.isfinite(normals).all(axis=1)
         if bad.any():
-            raise InputError(path, f"{int(bad.sum())} points in a chunk have invalid or zero normals")
+            raise InputError(path, f"{int(bad.sum())} points in a chunk have NaN or infinite normals")
     for name, values in attributes.items():
         if values.dtype.kind == "f" and not np.isfinite(values).all():
             raise InputError(path, f"points have NaN or infinite {name}")

@@ -66,7 +66,7 @@ import numpy as np
 
 from ..camera import Camera
 from ..cloud import PointCloud
-from ..options import RenderOptions, non_negative, open_unit_interval, positive, setting
+from ..options import RenderOptions, check_cpu_samples, non_negative, open_unit_interval, positive, setting
 from ..preprocess import INACTIVE_CLIP
 from ..result import RenderResult
 from ..shading import shade
@@ -114,6 +114,15 @@ def ortho_scale(camera: Camera) -> float:
     return 0.0 if camera.ortho_height is None else camera.height / camera.ortho_height
 
 
+def splat_categories(cloud: PointCloud, options: RenderOptions) -> tuple[np.ndarray, int]:
+    """(N,) int32 palette indices of a categorical colour mode and its code levels, or a
+    (1,) placeholder and 0 (no category pass)."""
+    coloring = options.coloring
+    if coloring is None or not coloring.categorical:
+        return np.zeros(1, np.int32), 0
+    return coloring.indices(cloud.colors).astype(np.int32), coloring.code_levels
+
+
 def splat_colors(cloud: PointCloud) -> np.ndarray:
     """(N, 3) albedo, or (1, 3) white for a cloud without colours."""
     return cloud.colors if cloud.colors is not None else np.ones((1, 3), np.float32)
@@ -152,14 +161,19 @@ def splat_axes(cloud: PointCloud) -> np.ndarray:
 
 
 def resolve_accumulators(acc: np.ndarray, camera: Camera, options: RenderOptions, params: EwaParams,
-                         supersample: int, stats: dict) -> RenderResult:
+                         supersample: int, stats: dict, categories: np.ndarray | None = None) -> RenderResult:
     """Normalise the accumulated (H, W, 8 or 16) = w*rgb, w, w*normal, w*depth and shade (deferred).
 
     With 16 channels the second 8 are the back layer (the nearest surface behind the front
     one), composited under the front layer with the front layer's coverage, so a pixel at an
     occlusion contour that the front surface only partly covers shows the surface behind it.
+    Colour modes (surfel.colors): the normalized colour is decoded per layer; in a
+    categorical mode `categories` (H, W, 2) holds each layer's packed heaviest category, the
+    layer's albedo is its palette entry, and a pixel shows the layer that contributes most
+    instead of compositing the two (categories are never blended).
     Shared by both backends so that they differ only by the rasterization itself.
     """
+    from ..colors import category_unpack
     from .ewa_kernels import composite_layers, normalise_layers
 
     front = acc[..., 3]
@@ -169,13 +183,24 @@ def resolve_accumulators(acc: np.ndarray, camera: Camera, options: RenderOptions
     albedo, normals, depth, layer_alpha = normalise_layers(np.ascontiguousarray(acc, np.float32),
                                                           np.float32(1.0 / max(params.coverage * full, 1e-30)))
     covered = layer_alpha > 0  # shade only where a layer has a surface (a fraction of the screen)
+    coloring = options.coloring
+    layer_indices = None
+    if coloring is not None and coloring.categorical:
+        layer_indices = np.moveaxis(category_unpack(categories, coloring.code_levels), -1, 0)[:len(albedo)]
+        albedo = coloring.table[np.maximum(layer_indices, 0)]
+    elif coloring is not None:
+        albedo[covered] = coloring.decode(albedo[covered])
     shaded = np.zeros_like(albedo)
-    shaded[covered] = shade(options.shading, albedo[covered], normals[covered], depth[covered],
+    shaded[covered] = shade(options.surface_shading, albedo[covered], normals[covered], depth[covered],
                             camera.near, camera.far)
-    color, alpha, depth_out, normals_out = composite_layers(shaded, layer_alpha, depth, normals)
+    color, alpha, depth_out, normals_out, top = composite_layers(shaded, layer_alpha, depth, normals,
+                                                                 layer_indices is not None)
+    indices = None
+    if layer_indices is not None:
+        indices = np.where(alpha > 0, np.take_along_axis(layer_indices, top[None], 0)[0], -1).astype(np.int32)
     stats = dict(stats, full_weight=full)
     return RenderResult.from_samples(color, alpha, depth_out, normals_out, supersample=supersample,
-                                     background=options.background, stats=stats)
+                                     options=options, stats=stats, indices=indices)
 
 
 def spatially_ordered(cloud: PointCloud) -> PointCloud:
@@ -196,6 +221,7 @@ def render_ewa_cpu(cloud: PointCloud, camera: Camera, options: RenderOptions, pa
     supersample = options.supersample or DEFAULT_SUPERSAMPLE
     target = target_camera(camera, supersample)
     w, h = target.width, target.height
+    check_cpu_samples(w, h)
     intr = np.array([target.fx, target.fy, target.cx, target.cy], np.float64)
     clip_lines = splat_clip_lines(cloud)
     splats, extra, box = k.setup_splats(cloud.positions, np.asarray(cloud.local_origin, np.float64),
@@ -209,11 +235,13 @@ def render_ewa_cpu(cloud: PointCloud, camera: Camera, options: RenderOptions, pa
                                  bool(params.backface_culling), w, h)
     tiles_x, tiles_y = -(-w // k.TILE), -(-h // k.TILE)
     offsets, index = k.bin_splats(box, tiles_x, tiles_y)
-    acc, fragments = k.rasterize_tiles(splats, extra, box, offsets, index, tile_order(tiles_x, tiles_y), tiles_x,
-                                       w, h, np.float32(params.cutoff2), len(clip_lines) > 1, has_normal_field(cloud))
+    codes, levels = splat_categories(cloud, options)
+    acc, fragments, categories = k.rasterize_tiles(splats, extra, box, offsets, index, tile_order(tiles_x, tiles_y),
+                                                   tiles_x, w, h, np.float32(params.cutoff2), len(clip_lines) > 1,
+                                                   has_normal_field(cloud), codes, levels)
     drawn = int(np.count_nonzero(box[:, 0] <= box[:, 1]))
     return resolve_accumulators(acc, target, options, params, supersample,
-                                {"splats": drawn, "fragments": int(fragments)})
+                                {"splats": drawn, "fragments": int(fragments)}, categories if levels else None)
 
 
 def tile_order(tiles_x: int, tiles_y: int) -> np.ndarray:

@@ -10,6 +10,8 @@
 //                    M = J V J^T + l^2 I: (w rgb, w) and (w n, w z) additively blended into
 //                    the front layer for fragments no farther than the visibility depth, into
 //                    the back layer for those within z_t of the back layer's depth
+//   PASS_CATEGORY    categorical colour modes: the packed (weight, palette index) of the same
+//                    fragments, MAX-blended per layer into (front, back) (colors.glsl)
 // Each splat is an instanced 4-vertex strip covering the pixel box of its cut-off ellipse;
 // the conic is evaluated per fragment at the pixel centre.
 #include "common.glsl"
@@ -174,6 +176,17 @@ void main() {
     float z = plane_depth();
     if (z <= texelFetch(u_visibility, ivec2(gl_FragCoord.xy), 0).r) discard;  // the front layer
     out_depth = vec4(z, 0.0, 0.0, 0.0);  // MIN blending: the nearest behind the front
+}
+#endif
+
+#ifdef PASS_CATEGORY
+layout(location = 0) out vec4 out_category;  // (front layer, back layer), MAX-blended
+void main() {  // the attribute pass's fragments and weights
+    float z = plane_depth();
+    bool front = z <= texelFetch(u_visibility, ivec2(gl_FragCoord.xy), 0).r;
+    if (!front && z > texelFetch(u_back, ivec2(gl_FragCoord.xy), 0).r + v_threshold) discard;
+    float category = category_pack(v_scale * exp(-0.5 * quadric), category_index(v_color));
+    out_category = front ? vec4(category, -1.0, 0.0, 0.0) : vec4(-1.0, category, 0.0, 0.0);
 }
 #endif
 

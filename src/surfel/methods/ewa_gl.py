@@ -50,10 +50,11 @@ def render_ewa_gl(cloud: PointCloud, camera: Camera, options: RenderOptions, par
     ctx = get_context()
     supersample = options.supersample or DEFAULT_SUPERSAMPLE
     target = target_camera(camera, supersample)
-    programs = {p: renderer.program(SHADER, {p: True}) for p in PASSES}
+    categorical = options.coloring is not None and options.coloring.categorical
+    programs = {p: renderer.program(SHADER, {p: True}) for p in (*PASSES, *(("PASS_CATEGORY",) if categorical else ()))}
     for program in programs.values():
         # The target camera already carries the supersampling: factor 1 here.
-        apply_common(program, target, cloud.local_origin, 1, options.shading,
+        apply_common(program, target, cloud.local_origin, 1, options,
                      u_radius_scale=params.radius_scale, u_sigma2=params.sigma ** 2,
                      u_lowpass2=params.lowpass ** 2, u_vis2=params.visibility ** 2, u_cutoff2=params.cutoff2,
                      u_depth_offset=params.depth_offset, u_depth_clamp=params.depth_clamp,
@@ -69,9 +70,13 @@ def render_ewa_gl(cloud: PointCloud, camera: Camera, options: RenderOptions, par
         passes.back_pass(draw("PASS_BACK"))
         with fragments:  # the fragments blended into either layer, as the CPU's count
             passes.attribute_pass(draw("PASS_ATTRIBUTE"))
+        categories = None
+        if categorical:
+            passes.category_pass(draw("PASS_CATEGORY"))
+            categories = passes.categories()
         acc = passes.accumulators()
         stats = {"splats": len(cloud), "fragments": int(fragments.samples)}
-        result = resolve_accumulators(acc, target, options, params, supersample, stats)
+        result = resolve_accumulators(acc, target, options, params, supersample, stats, categories)
         if options.dump_passes is not None:
             passes.dump(options.dump_passes, result)
     return result

@@ -26,6 +26,8 @@ import math
 import numba as nb
 import numpy as np
 
+from ..colors import category_pack
+
 TILE = 32
 SMALL_BOX = 16  # pixels: a splat box this small is scanned whole, testing the conic per pixel,
                 # instead of solving for each row's span (the cost of tiny minified splats)
@@ -282,8 +284,11 @@ def _field_normal(s, e, dx, dy):
 
 @nb.njit(parallel=True, fastmath=True, cache=True)
 def rasterize_tiles(splats, extra, box, offsets, index, order, tiles_x, width, height, cutoff2,
-                    clip_lines, normal_field):
-    """Accumulators (H, W, ACC_CHANNELS) float32 and the fragment count.
+                    clip_lines, normal_field, categories, category_levels):
+    """Accumulators (H, W, ACC_CHANNELS) float32, the fragment count and, with
+    `category_levels` > 0, the packed heaviest category (surfel.colors) of each pixel's front
+    and back layer (H, W, 2) float32 (-1 where none; `categories` holds each splat's palette
+    index), else a (1, 1, 2) placeholder.
 
     Visibility (A-buffer in the spirit of Zwicker et al. 2001, Sec. 5): pass 1 stores per
     pixel Z = min over fragments of (depth + threshold of its splat); pass 2 blends every
@@ -295,6 +300,8 @@ def rasterize_tiles(splats, extra, box, offsets, index, order, tiles_x, width, h
     Spernat & Kobbelt 2004, eq. 8), else the splat's normal (both from the `extra` table).
     """
     acc = np.zeros((height, width, ACC_CHANNELS), np.float32)
+    with_categories = category_levels > 0
+    best = np.full((height, width, 2) if with_categories else (1, 1, 2), -1.0, np.float32)
     fragments = np.zeros(order.shape[0], np.int64)
     half = np.float32(0.5)
     for k in nb.prange(order.shape[0]):
@@ -307,6 +314,7 @@ def rasterize_tiles(splats, extra, box, offsets, index, order, tiles_x, width, h
         zbuf = np.full((TILE, TILE), FAR, np.float32)
         zback = np.full((TILE, TILE), FAR, np.float32)
         local = np.zeros((TILE, TILE, ACC_CHANNELS), np.float32)
+        local_best = np.full((TILE, TILE, 2), -1.0, np.float32)
         for j in range(start, stop):
             i = index[j]
             s = splats[i]
@@ -354,6 +362,7 @@ def rasterize_tiles(splats, extra, box, offsets, index, order, tiles_x, width, h
                         base = LAYER
                         if z < zb - s[ZT]:
                             cell[LAYER:] = 0
+                            local_best[y - oy, x - ox, 1] = -1.0
                         if z < zb:
                             brow[x - ox] = z
                     w = s[WS] * math.exp(np.float32(-0.5) * q)
@@ -368,10 +377,16 @@ def rasterize_tiles(splats, extra, box, offsets, index, order, tiles_x, width, h
                     cell[base + 5] += w * ny
                     cell[base + 6] += w * nz
                     cell[base + 7] += w * z
+                    if with_categories:
+                        packed = category_pack(w, categories[i], category_levels)
+                        if packed > local_best[y - oy, x - ox, base // LAYER]:
+                            local_best[y - oy, x - ox, base // LAYER] = packed
                     count += 1
         acc[oy:oy + th, ox:ox + tw] = local[:th, :tw]
+        if with_categories:
+            best[oy:oy + th, ox:ox + tw] = local_best[:th, :tw]
         fragments[k] = count
-    return acc, fragments.sum()
+    return acc, fragments.sum(), best
 
 
 @nb.njit(parallel=True, fastmath=True, cache=True)
@@ -404,15 +419,17 @@ def normalise_layers(acc, scale):
 
 
 @nb.njit(parallel=True, cache=True)
-def composite_layers(shaded, alpha, depth, normals):  # pragma: no cover - compiled
+def composite_layers(shaded, alpha, depth, normals, winner_only):  # pragma: no cover - compiled
     """Front-to-back "over" of the shaded layers (L, H, W, 3) with coverages (L, H, W): the
-    straight colour (H, W, 3), total alpha (H, W), and the depth (H, W) and normal (H, W, 3)
-    of the layer that contributes most to each pixel."""
+    straight colour (H, W, 3), total alpha (H, W), and the depth (H, W), normal (H, W, 3)
+    and index (H, W) of the layer that contributes most to each pixel. `winner_only`: the
+    colour is that layer's alone (categories are never blended)."""
     layers, h, w = alpha.shape
     color = np.zeros((h, w, 3), np.float32)
     total = np.zeros((h, w), np.float32)
     depth_out = np.empty((h, w), np.float32)
     normals_out = np.empty((h, w, 3), np.float32)
+    tops = np.zeros((h, w), np.int64)
     for y in nb.prange(h):
         for x in range(w):
             so_far = np.float32(0.0)
@@ -429,9 +446,13 @@ def composite_layers(shaded, alpha, depth, normals):  # pragma: no cover - compi
                     best = contribution
                     top = layer
             total[y, x] = so_far
+            tops[y, x] = top
             depth_out[y, x] = depth[top, y, x]
             for c in range(3):
                 normals_out[y, x, c] = normals[top, y, x, c]
-            if so_far > 0:
+            if winner_only:
+                for c in range(3):
+                    color[y, x, c] = shaded[top, y, x, c]
+            elif so_far > 0:
                 color[y, x, 0], color[y, x, 1], color[y, x, 2] = r / so_far, g / so_far, b / so_far
-    return color, total, depth_out, normals_out
+    return color, total, depth_out, normals_out, tops

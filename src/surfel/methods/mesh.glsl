@@ -1,4 +1,6 @@
 // Reference mesh rasterizer: smooth (per-pixel interpolated) normals, same shading as splats.
+// Continuous colour modes interpolate the encoded vertex colours and map them per pixel
+// (colors.glsl); categorical ones are picked on the CPU (mesh.py).
 #include "common.glsl"
 #include "shading.glsl"
 
@@ -28,8 +30,8 @@ layout(location = 2) out vec4 out_depth;
 void main() {
     vec3 n = normalize(v_normal);
     if (faces_away(v_eye, n)) n = -n;  // report the side facing the camera
-    out_shaded = vec4(shade(u_shading, v_color, n, -v_eye.z, u_depth_range.x, u_depth_range.y), 1.0);
-    out_normal = vec4(n, 0.0);
+    out_shaded = vec4(shade(u_shading, blended_albedo(v_color), n, -v_eye.z, u_depth_range.x, u_depth_range.y), 1.0);
+    out_normal = vec4(n, -1.0);
     out_depth = vec4(-v_eye.z, 0.0, 0.0, 0.0);
 }
 #endif

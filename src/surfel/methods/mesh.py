@@ -30,7 +30,8 @@ def render_mesh(cloud, camera, options, params: MeshParams, renderer):
     ctx = get_context()
     ss = options.supersample or DEFAULT_SUPERSAMPLE
     program = renderer.program(SHADER)
-    apply_common(program, camera, cloud.local_origin, ss, options.shading)
+    apply_common(program, camera, cloud.local_origin, ss, options)
+    renderer.use_color_table(options)
     n = len(cloud)
     colors = cloud.colors if cloud.colors is not None else np.ones((n, 3), np.float32)
     data = np.hstack([cloud.local_positions(), cloud.normals, colors]).astype(np.float32)
@@ -45,7 +46,8 @@ def render_mesh(cloud, camera, options, params: MeshParams, renderer):
         ctx.enable(ctx.DEPTH_TEST)
         vao.render()
         ctx.finish()
-        return gbuffer_result(gbuffer, camera, options, ss, {"splats": 0, "triangles": len(cloud.faces)})
+        return gbuffer_result(gbuffer, camera, options, ss, {"splats": 0, "triangles": len(cloud.faces)},
+                              surface=renderer.surface_colors(cloud, camera.supersampled(ss), options))
     finally:
         for obj in (vao, vbo, ibo):
             obj.release()

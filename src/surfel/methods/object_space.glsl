@@ -5,6 +5,8 @@
 //   PASS_ATTRIBUTE   one textured quad per surfel shaped by the resampling filter M_k
 //                    (eqs. 3-5), Gaussian alpha texture times 1/(r0 r1) (eq. 4), additive
 //                    blending of fragments no farther than the visibility depth
+//   PASS_CATEGORY    categorical colour modes: the packed (weight, palette index) of the
+//                    attribute pass's fragments, MAX-blended (colors.glsl)
 //   PASS_NORMALIZE   full-screen: G-buffer from the accumulated sums, deferred shading
 // Variant: CLIP_LINES (surfels cut at sharp features by the clip lines of surfel.preprocess).
 // Variant: PER_SURFEL_NORMALIZATION (the paper: weights pre-scaled per surfel by in_weight,
@@ -38,7 +40,7 @@ flat out vec3 v_clip0;       // clip lines at sharp features, in those coordinat
 flat out vec3 v_clip1;
 #endif
 flat out vec3 v_normal;      // eye space, facing the camera
-flat out vec3 v_color;
+flat out vec3 v_color;      // encoded (colors.glsl)
 flat out float v_alpha;      // the constant 1/(r0 r1) of eq. 4 times the surfel's weight
 
 // Jacobian of the local tangent parameterisation (s, t) to image pixels at eye point c:
@@ -167,6 +169,18 @@ void main() {
 }
 #endif
 
+#ifdef PASS_CATEGORY
+layout(location = 0) out vec4 out_category;
+void main() {  // the attribute pass's fragments and weights
+#ifdef CLIP_LINES
+    if (clip_excess(v_local, v_clip0, v_clip1) > 0.0) discard;
+#endif
+    if (v_depth > texelFetch(u_visibility, ivec2(gl_FragCoord.xy), 0).r) discard;
+    float w = v_alpha * texture(u_kernel, v_texcoord).r;
+    out_category = vec4(category_pack(w, category_index(v_color)), -1.0, 0.0, 0.0);
+}
+#endif
+
 #ifdef PASS_NORMALIZE
 void main() {
     Accumulated a;
@@ -175,9 +189,10 @@ void main() {
     // The paper's frame buffer holds sum(w rgb) as it is (weights pre-normalized to sum to
     // about one), which already fades with coverage at the silhouette: the straight colour
     // is that divided by the coverage.
-    vec3 albedo = a.weighted_color / max(a.coverage, 1e-3);
+    vec3 albedo = blended_albedo(a.weighted_color / max(a.coverage, 1e-3));
+    if (a.category >= 0) albedo = table_entry(a.category);
 #else
-    vec3 albedo = a.weighted_color / a.weight;
+    vec3 albedo = pixel_albedo(a);
 #endif
     write_gbuffer(shade(u_shading, albedo, a.normal, a.depth, u_depth_range.x, u_depth_range.y), a);
 }

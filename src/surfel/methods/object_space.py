@@ -73,43 +73,6 @@ class ObjectSpaceParams(SplatParams):
     normalization: Literal["per-pixel", "per-surfel"] = "per-pixel"
 
 
-@dataclass(frozen=True)
-class ResamplingFilter:
-    """M_k decomposed as in eq. 3: M = rot diag(r0^2, r1^2) rot^T."""
-
-    theta: float
-    r0: float
-    r1: float
-
-    @property
-    def rotation(self) -> np.ndarray:
-        c, s = np.cos(self.theta), np.sin(self.theta)
-        return np.array([[c, -s], [s, c]])
-
-    def matrix(self) -> np.ndarray:
-        return self.rotation @ np.diag([self.r0**2, self.r1**2]) @ self.rotation.T
-
-    def quad_corners(self, cutoff: float = CUTOFF) -> np.ndarray:
-        """(4, 2) tangent-plane corners u of the quad, texture coordinates in strip order (eq. 5, 3)."""
-        v = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0], [1.0, 1.0]])
-        y = 2.0 * cutoff * (v - 0.5)
-        return (self.rotation @ (np.array([self.r0, self.r1]) * y).T).T
-
-
-def decompose(m: np.ndarray) -> ResamplingFilter:
-    """Eigen-decomposition of a symmetric positive definite 2x2 M (the vertex shader's formula)."""
-    mean = 0.5 * (m[0, 0] + m[1, 1])
-    root = np.hypot(0.5 * (m[0, 0] - m[1, 1]), m[0, 1])
-    theta = 0.5 * np.arctan2(2.0 * m[0, 1], m[0, 0] - m[1, 1])
-    return ResamplingFilter(float(theta), float(np.sqrt(mean + root)), float(np.sqrt(max(mean - root, 0.0))))
-
-
-def resampling_matrix(variance: np.ndarray, jacobian: np.ndarray, lowpass_std: float) -> np.ndarray:
-    """M_k = V_k + J_k^-1 (lowpass_std^2 I) J_k^-T for a 2x2 variance and image Jacobian."""
-    j_inv = np.linalg.inv(jacobian)
-    return variance + lowpass_std**2 * j_inv @ j_inv.T
-
-
 def surfel_weights(cloud: PointCloud, radius_scale: float = 1.0) -> np.ndarray:
     """Per-surfel normalization 1 / S_k, S_k = sum_j exp(-y.y/2) / (sigma_s sigma_t) of the
     neighbours' cut-off kernels at x_k."""
@@ -150,11 +113,13 @@ def render_object_space(cloud, camera, options, params: ObjectSpaceParams, rende
     ss = options.supersample or DEFAULT_SUPERSAMPLE
     width, height = camera.width * ss, camera.height * ss
     per_surfel = params.normalization == "per-surfel"
+    categorical = options.coloring is not None and options.coloring.categorical
+    passes = ("PASS_VISIBILITY", "PASS_ATTRIBUTE", *(("PASS_CATEGORY",) if categorical else ()), "PASS_NORMALIZE")
     programs = {p: renderer.program(SHADER, {p: True, "PER_SURFEL_NORMALIZATION": per_surfel,
                                              "CLIP_LINES": "clip_lines" in cloud.attributes})
-                for p in ("PASS_VISIBILITY", "PASS_ATTRIBUTE", "PASS_NORMALIZE")}
+                for p in passes}
     for program in programs.values():
-        apply_common(program, camera, cloud.local_origin, ss, options.shading,
+        apply_common(program, camera, cloud.local_origin, ss, options,
                      u_radius_scale=params.radius_scale, u_depth_offset=params.depth_offset,
                      u_kernel_std=KERNEL_STD, u_cutoff=CUTOFF,
                      u_lowpass_std=LOWPASS_STD * params.lowpass_radius * ss,
@@ -165,6 +130,7 @@ def render_object_space(cloud, camera, options, params: ObjectSpaceParams, rende
         extra = {"in_weight": renderer.cached(cloud, ("surfel weights", scale),
                                               lambda: surfel_weights(cloud, scale))}
 
+    renderer.use_color_table(options)
     kernel = gaussian_texture(ctx)
     buffers = renderer.splat_buffers(cloud)
     try:
@@ -174,6 +140,9 @@ def render_object_space(cloud, camera, options, params: ObjectSpaceParams, rende
                                                        ctx.TRIANGLE_STRIP, instanced=True))
             passes.attribute_pass(lambda: splats.draw(ctx, buffers, programs["PASS_ATTRIBUTE"],
                                                       ctx.TRIANGLE_STRIP, instanced=True, extra=extra))
+            if categorical:
+                passes.category_pass(lambda: splats.draw(ctx, buffers, programs["PASS_CATEGORY"],
+                                                         ctx.TRIANGLE_STRIP, instanced=True, extra=extra))
             passes.normalize_pass(programs["PASS_NORMALIZE"])
             stats = {"splats": len(cloud), "vertices": 4 * len(cloud), "supersample": ss,
                      "normalization": "per-surfel" if per_surfel else "per-pixel"}

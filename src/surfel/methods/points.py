@@ -24,8 +24,8 @@ def render_points(cloud, camera, options, params: RadiusParams, renderer):
     ss = options.supersample or 1
     program = renderer.program(SHADER)
     lod_k, prefix, drawn = splats.lod_frame(cloud, camera, options.lod_error)
-    apply_common(program, camera, cloud.local_origin, ss, options.shading, u_radius_scale=params.radius_scale,
-                 u_lod_k=lod_k)
+    apply_common(program, camera, cloud.local_origin, ss, options, u_radius_scale=params.radius_scale, u_lod_k=lod_k)
+    renderer.use_color_table(options)
     gbuffer = GBuffer(camera.width * ss, camera.height * ss)
     try:
         gbuffer.fbo.use()

@@ -2,6 +2,8 @@
 // One source, passes chosen by #define:
 //   PASS_VISIBILITY  eye depth + z_t of every splat fragment, MIN-blended: the nearest surface
 //   PASS_ATTRIBUTE   additive blending of weighted attributes of fragments within z_t of it
+//   PASS_CATEGORY    categorical colour modes: the packed (weight, palette index) of the same
+//                    fragments, MAX-blended: the heaviest splat's category per pixel (colors.glsl)
 //   PASS_NORMALIZE   full-screen: divide by the accumulated weight, then (deferred) shade
 // Variants: PER_SPLAT_SHADING (the 2003 Gouraud look: colours shaded per splat before
 // blending) or deferred shading from blended normals (2005); EWA_FILTER (2005 screen-space
@@ -30,7 +32,8 @@ flat out vec3 v_center;     // eye space
 flat out vec3 v_normal;     // eye space, facing the camera
 flat out vec3 v_u;          // axis_u / |axis_u|^2: dot(q - c, v_u) is the local coordinate u
 flat out vec3 v_v;
-flat out vec3 v_color;      // albedo, or the per-splat shaded colour
+flat out vec3 v_color;      // albedo (encoded, colors.glsl), or the per-splat shaded colour
+flat out float v_category;  // palette index of a categorical colour mode
 flat out vec2 v_center_px;  // projected centre in image pixels (for the low-pass)
 flat out float v_offset;    // z_t in eye units
 flat out float v_radius;    // largest semi-axis
@@ -113,10 +116,11 @@ void main() {
     v_u = au / max(dot(au, au), 1e-30);
     v_v = av / max(dot(av, av), 1e-30);
 #ifdef PER_SPLAT_SHADING
-    v_color = shade(u_shading, in_color, n, -c.z, u_depth_range.x, u_depth_range.y);
+    v_color = shade(u_shading, splat_albedo(in_color), n, -c.z, u_depth_range.x, u_depth_range.y);
 #else
     v_color = in_color;
 #endif
+    v_category = category_index(in_color);
     v_center_px = center_px;
 #ifdef CLIP_LINES
     v_clip0 = in_clip0;
@@ -135,6 +139,7 @@ flat in vec3 v_normal;
 flat in vec3 v_u;
 flat in vec3 v_v;
 flat in vec3 v_color;
+flat in float v_category;
 flat in vec2 v_center_px;
 flat in float v_offset;
 flat in float v_radius;
@@ -259,14 +264,30 @@ void main() {
 }
 #endif
 
+#ifdef PASS_CATEGORY
+layout(location = 0) out vec4 out_category;
+void main() {  // the attribute pass's fragments and weights
+    float z, clipped;
+    vec2 uv;
+    float rho2 = filter_distance(splat_distance(z, uv, clipped));
+    if (rho2 > 1.0 || clipped > 0.0) discard;
+    if (z > texelFetch(u_visibility, ivec2(gl_FragCoord.xy), 0).r) discard;
+    float w = v_weight * texture(u_kernel, vec2(rho2, 0.5)).r;
+    out_category = vec4(category_pack(w, v_category), -1.0, 0.0, 0.0);
+}
+#endif
+
 #ifdef PASS_NORMALIZE
 void main() {
     Accumulated a;
     if (!fetch_accumulated(int(u_guard), a)) return;
     if (surrounded(int(u_guard))) a.coverage = 1.0;
-    vec3 color = a.weighted_color / a.weight;
-#ifndef PER_SPLAT_SHADING
-    color = shade(u_shading, color, a.normal, a.depth, u_depth_range.x, u_depth_range.y);  // deferred shading
+#ifdef PER_SPLAT_SHADING
+    vec3 color = a.weighted_color / a.weight;  // shaded before blending
+    if (a.category >= 0) color = shade(u_shading, table_entry(a.category), a.normal, a.depth, u_depth_range.x,
+                                       u_depth_range.y);
+#else
+    vec3 color = shade(u_shading, pixel_albedo(a), a.normal, a.depth, u_depth_range.x, u_depth_range.y);  // deferred
 #endif
     write_gbuffer(color, a);
 }

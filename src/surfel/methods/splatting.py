@@ -127,15 +127,17 @@ def _render(cloud, camera, options, params, renderer, *, per_splat_shading: bool
     guard = GUARD if sprites else 0
     variant = {"PER_SPLAT_SHADING": per_splat_shading, "EWA_FILTER": ewa_filter, "NORMAL_FIELD": normal_field,
                "POINT_SPRITES": sprites, "CLIP_LINES": "clip_lines" in cloud.attributes}
-    programs = {p: renderer.program(SHADER, {p: True, **variant})
-                for p in ("PASS_VISIBILITY", "PASS_ATTRIBUTE", "PASS_NORMALIZE")}
+    categorical = options.coloring is not None and options.coloring.categorical
+    passes = ("PASS_VISIBILITY", "PASS_ATTRIBUTE", *(("PASS_CATEGORY",) if categorical else ()), "PASS_NORMALIZE")
+    programs = {p: renderer.program(SHADER, {p: True, **variant}) for p in passes}
     for program in programs.values():
-        apply_common(program, camera, cloud.local_origin, ss, options.shading,
+        apply_common(program, camera, cloud.local_origin, ss, options,
                      u_radius_scale=params.radius_scale, u_depth_offset=params.depth_offset,
                      u_lowpass_radius=params.lowpass_radius * ss, u_guard=float(guard),
                      u_backface_culling=int(params.backface_culling),
                      u_kernel=0, u_lod_k=lod_k, **UNIFORM_UNITS)
 
+    renderer.use_color_table(options)
     kernel = gaussian_kernel_texture(ctx)
     mode = ctx.POINTS if sprites else ctx.TRIANGLE_STRIP
     buffers = renderer.splat_buffers(cloud)
@@ -148,6 +150,8 @@ def _render(cloud, camera, options, params, renderer, *, per_splat_shading: bool
             kernel.use(0)
             passes.visibility_pass(draw(programs["PASS_VISIBILITY"]))
             passes.attribute_pass(draw(programs["PASS_ATTRIBUTE"]))
+            if categorical:
+                passes.category_pass(draw(programs["PASS_CATEGORY"]))
             passes.normalize_pass(programs["PASS_NORMALIZE"])
             stats = {"splats": len(cloud) if drawn is None else int(drawn.sum()), "supersample": ss,
                      "ewa_filter": ewa_filter, "primitive": "point sprites" if sprites else "quads"}

@@ -48,7 +48,7 @@ struct Quadratic {
     float l;             // the fit's local kernel width
 };
 
-// Smallest t in [lo, hi] where o + t d meets the quadratic (poly_ray of surface.py); the
+// Smallest t in [lo, hi] where o + t d meets the quadratic (polynomial.poly_ray); the
 // caller puts o near the surface so the coefficients stay small in float32.
 bool ray_quadratic(Quadratic g, vec3 o, vec3 d, float lo, float hi, out float t) {
     vec3 r = (o - g.q) / g.l;
@@ -84,7 +84,7 @@ vec3 quadratic_normal(Quadratic g, vec3 x) {
     return normalize(g.n - gu * g.e1 - gv * g.e2);
 }
 
-// The deterministic tangent basis of surface.tangent_frame.
+// The deterministic tangent basis of polynomial.tangent_frame.
 void tangent_frame(vec3 n, out vec3 e1, out vec3 e2) {
     vec3 a = abs(n.x) < 0.6 ? vec3(1.0, 0.0, 0.0) : vec3(0.0, 1.0, 0.0);
     e1 = normalize(cross(a, n));
@@ -267,7 +267,7 @@ uniform sampler2D u_color;
 layout(location = 0) out vec4 out_q;  // q = r + mean, half-disc offset of the mean in units of l
 layout(location = 1) out vec4 out_n;  // n (facing n_r), l (0: the fit failed)
 
-// Unit eigenvector of the symmetric 3x3 for the smallest eigenvalue (surface.smallest_eigenvector:
+// Unit eigenvector of the symmetric 3x3 for the smallest eigenvalue (polynomial.smallest_eigenvector:
 // trigonometric eigenvalue, then the largest cross product of two rows of C - l I).
 bool smallest_eigenvector(float c00, float c01, float c02, float c11, float c12, float c22, out vec3 n) {
     float p1 = c01 * c01 + c02 * c02 + c12 * c12;
@@ -388,7 +388,7 @@ void main() {
             a[i][j] = mom[k * (k + 1) / 2 + e.y];
         }
     }
-    // Cholesky (surface.solve_spd), in double: the moment matrix spans several decades
+    // Cholesky (polynomial.solve_spd), in double: the moment matrix spans several decades
     for (int j = 0; j < 6; j++) {
         double d = a[j][j];
         for (int k = 0; k < j; k++) d -= a[j][k] * a[j][k];
@@ -482,9 +482,9 @@ void main() {
     pixel_ray(gl_FragCoord.xy, oe, de);
     vec3 n = normalize(mat3(u_view) * texelFetch(u_normal, pix, 0).xyz);
     if (dot(n, -de) < 0.0) n = -n;  // two-sided: face the viewer
-    vec3 albedo = texelFetch(u_albedo, pix, 0).rgb;
+    vec3 albedo = blended_albedo(texelFetch(u_albedo, pix, 0).rgb);  // colour modes: colors.glsl
     out_shaded = vec4(shade(u_shading, albedo, n, t, u_depth_range.x, u_depth_range.y), 1.0);
-    out_eye_normal = vec4(n, 0.0);
+    out_eye_normal = vec4(n, -1.0);  // categories: picked on the CPU (gpu.py)
     out_depth = vec4(t, 0.0, 0.0, 0.0);
 }
 #endif

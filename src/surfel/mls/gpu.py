@@ -58,12 +58,13 @@ from ..camera import Camera
 from ..cloud import PointCloud
 from ..gl.context import get_context
 from ..gl.program import set_uniforms
-from ..gl.targets import GBuffer, gbuffer_result, read_texture
+from ..gl.targets import GBuffer, check_target_size, gbuffer_result, read_texture
 from ..gl.uniforms import apply_common
 from ..options import RenderOptions, at_least, setting
 from ..result import RenderResult
+from .polynomial import P_C, P_E1, P_E2, P_N, P_Q, P_SCALE
 from .raytrace import DEFAULT_SUPERSAMPLE, MLSScene, cached_scene, scene_kernel
-from .surface import P_C, P_E1, P_E2, P_N, P_Q, P_SCALE, REFERENCE_UPDATES, MlsKernel
+from .surface import REFERENCE_UPDATES, MlsKernel
 
 SHADER = Path(__file__).with_suffix(".glsl")
 FAR = 3.0e38
@@ -178,6 +179,7 @@ def render_mls_gl(cloud: PointCloud, camera: Camera, options: RenderOptions, par
     n = len(surface.points)
     buffers = renderer.cached_gl(cloud, ("mls buffers", scene_kernel(params)), lambda: SceneBuffers(scene))
     size = (camera.width * ss, camera.height * ss)
+    check_target_size(*size)
     targets = renderer.targets("mls caster", size, lambda: CasterTargets(size))
     view = camera.view_matrix(surface.origin)
     common = {"u_view_inv": np.linalg.inv(view), "u_scale": surface.scale, "u_domain": surface.domain,
@@ -185,7 +187,8 @@ def render_mls_gl(cloud: PointCloud, camera: Camera, options: RenderOptions, par
     programs = {name: renderer.program(SHADER, {f"PASS_{name.upper()}": True})
                 for name in ("intersect", "cull", "covariance", "frame", "system", "solve", "keep", "retry", "shade")}
     for program in programs.values():
-        apply_common(program, camera, surface.origin, ss, options.shading, **common)
+        apply_common(program, camera, surface.origin, ss, options, **common)
+    renderer.use_color_table(options)
     vaos = {name: ctx.vertex_array(prog, []) for name, prog in programs.items()}
 
     def iterate(step: int, current: int) -> int:
@@ -278,7 +281,8 @@ def render_mls_gl(cloud: PointCloud, camera: Camera, options: RenderOptions, par
                  "last_step_median": float(np.median(steps)) if steps.size else 0.0,
                  "point_fit_failures": int((~scene.valid).sum()), "supersample": ss,
                  "kernel_width": surface.scale, "polynomial_prepass": "cpu"}
-        return gbuffer_result(targets.gbuffer, camera, options, ss, stats)
+        return gbuffer_result(targets.gbuffer, camera, options, ss, stats,
+                              surface=renderer.surface_colors(cloud, camera.supersampled(ss), options))
     finally:
         ctx.blend_equation = ctx.FUNC_ADD
         ctx.depth_func = "<"

@@ -35,19 +35,16 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from ..options import at_least, between, positive, setting
+from ..options import at_least, between, check_cpu_samples, positive, setting
 from ..result import RenderResult
 from ..shading import KEY_LIGHT, shade
+from .polynomial import P_COLOR, P_OFFSET, P_SCALE, POLY_SIZE, poly_normal, poly_project, poly_ray
 from .surface import (
     DEFAULT_KERNEL,
     EMPTY,
     FIT_OK,
     LEAF,
     MAX_NEIGHBOURS,
-    P_COLOR,
-    P_OFFSET,
-    P_SCALE,
-    POLY_SIZE,
     REFERENCE_UPDATES,
     STACK,
     SUPPORT,
@@ -57,9 +54,6 @@ from .surface import (
     fit,
     leaf_tree,
     point_polynomials,
-    poly_normal,
-    poly_project,
-    poly_ray,
 )
 
 DEFAULT_SUPERSAMPLE = 2  # rays per pixel side, box filtered like every method
@@ -316,6 +310,7 @@ def environment(directions_eye: np.ndarray) -> np.ndarray:
 
 def render_mls_cpu(cloud, camera, options, params: MlsParams, renderer) -> RenderResult:
     ss = options.supersample or DEFAULT_SUPERSAMPLE
+    check_cpu_samples(camera.width * ss, camera.height * ss)
     tolerance, max_iter = params.tolerance, params.max_iterations
     scene = cached_scene(cloud, params, renderer)
     surface = scene.surface
@@ -339,7 +334,15 @@ def render_mls_cpu(cloud, camera, options, params: MlsParams, renderer) -> Rende
     n_eye[flip] *= -1
     n_eye[~hit] = 0
     albedo = np.where(hit[:, None], hits.colors, 1.0)
-    shaded = shade(options.shading, albedo, n_eye, depth, camera.near, camera.far).astype(np.float64)
+    indices = None
+    coloring = options.coloring
+    colors_of = renderer.surface_colors(cloud, cam, options)
+    if colors_of is not None:  # the surface's own elevation, the nearest sample's category (never a blend)
+        surface_albedo, indices = colors_of(depth.reshape(h, w))
+        albedo = np.where(hit[:, None], surface_albedo.reshape(-1, 3), 1.0)
+    elif coloring is not None:
+        albedo = np.where(hit[:, None], coloring.decode(hits.colors), 1.0)
+    shaded = shade(options.surface_shading, albedo, n_eye, depth, camera.near, camera.far).astype(np.float64)
     stats = {"splats": len(cloud), "rays": int(h * w), "hits": int(hit.sum()),
              "iterations_mean": round(float(hits.fits[hit].mean()), 3) if hit.any() else 0.0,
              "iterations_max": int(hits.fits[hit].max()) if hit.any() else 0,
@@ -367,10 +370,11 @@ def render_mls_cpu(cloud, camera, options, params: MlsParams, renderer) -> Rende
             bn = bounce.normals[b] @ rot.T
             bd = refl[b] @ rot.T
             bn *= np.where(np.sum(bn * bd, axis=1) > 0, -1.0, 1.0)[:, None]
-            seen[b] = shade(options.shading, bounce.colors[b], bn, depth[idx][b], camera.near, camera.far)
+            bounce_albedo = bounce.colors[b] if coloring is None else coloring.decode(bounce.colors[b])
+            seen[b] = shade(options.surface_shading, bounce_albedo, bn, depth[idx][b], camera.near, camera.far)
         shaded[idx] = (1 - reflectivity) * shaded[idx] + reflectivity * seen
         stats["reflected_hits"] = int(bounce.hit.sum())
     coverage = hit.astype(np.float32)
     return RenderResult.from_samples(shaded.reshape(h, w, 3).astype(np.float32), coverage.reshape(h, w),
                                      depth.reshape(h, w), n_eye.reshape(h, w, 3), supersample=ss,
-                                     background=options.background, stats=stats)
+                                     options=options, stats=stats, indices=indices)

@@ -1,0 +1,30 @@
+"""What surface splatting assumes of its points, estimated from raw positions.
+
+One module per estimation, each citing its source, with its tuning constants at its top:
+
+  normals.py         PCA normals; orientation by propagation (Hoppe et al. 1992) or towards a
+                     viewpoint
+  frames.py          circular splat axes: tangent frames (Duff et al. 2017)
+  cells.py           tangent-plane Voronoi cells: covering radii and ellipses (Botsch et al.
+                     2004), cut at creases, and the splats' clip lines there
+  sharp_features.py  flat points and crease points (Zwicker et al. 2002, Pauly et al. 2003)
+  normal_field.py    Phong splatting's linear normal fields (Botsch et al. 2004)
+  complete.py        `prepare`: fill in what a cloud lacks; `complete`: the one policy for what
+                     a method gets estimated
+
+They share two steps: `neighbourhood.py`, the k nearest neighbours in the k-d tree's leaf order,
+and `chunked.py`, the chunked, progress-reporting loop every per-point kernel runs in.
+
+Memory stays bounded: the neighbour lists (N x k indices) and the propagation graph are the
+only O(N k) arrays; all per-neighbour work runs in numba kernels (parallel over points) in
+chunks. Every public function takes and returns arrays in the input's order.
+"""
+
+from .cells import CLIP_LINES, INACTIVE_CLIP, clipped_away, estimate_radii, fit_ellipses
+from .complete import complete, prepare
+from .frames import tangent_frames
+from .normal_field import fit_normal_field
+from .normals import estimate_normals
+
+__all__ = ["CLIP_LINES", "INACTIVE_CLIP", "clipped_away", "complete", "estimate_normals", "estimate_radii",
+           "fit_ellipses", "fit_normal_field", "prepare", "tangent_frames"]

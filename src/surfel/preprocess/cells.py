@@ -1,0 +1,549 @@
+"""Tangent-plane Voronoi cells: splat radii and ellipses that cover the surface, cut at creases.
+
+Radii (`estimate_radii`): each splat covers its own Voronoi cell.
+    The union of disks covers a surface exactly when every sample's disk contains the part of
+    the surface nearer to it than to any other sample: its Voronoi cell. So the radius is the
+    distance from the point to the farthest vertex of its cell, computed in its tangent frame
+    (t, s) among its k nearest neighbours: the half-planes nearer to it than to each neighbour
+    d = (x, y), x X + y Y <= |d|^2 / 2, clipped to a regular CAP_SIDES-gon inscribed in the
+    circle of the farthest neighbour's distance (open cells, at borders, stop there); times
+    RADIUS_MARGIN for curvature and normal noise. Unlike a fixed multiple of a neighbour
+    distance, this adapts to the anisotropic spacing of LiDAR scan lines (a cell is long across
+    the lines, short along them) and to jittered sampling, without inflating the splats of
+    regular regions. Neighbours more than 45 degrees off the tangent plane (|z| > |(x, y)|, the
+    far side of a thin sheet) do not cut the cell, nor do neighbours whose oriented normals face
+    away (n_p . n_q < SHEET_COS, the other side of a sheet, a surface of its own that would cut
+    this side's cells into holes). A point whose radius exceeds ISOLATED_FACTOR x the median
+    radius of its neighbours (an outlier) is capped there so it does not become a blob.
+
+Ellipses (`fit_ellipses`, for Phong splatting, Botsch, Spernat & Kobbelt 2004):
+    axis directions are the principal curvature directions ("aligned along the curvature",
+    survey 2.1.4; the shape operator S, tilt = S offset, fitted by least squares to the
+    neighbours' normals) where the normals turn more one way than the other (by
+    CURVATURE_ANISOTROPY across the cell), else the principal directions of the neighbours
+    projected into the tangent plane; the semi-axes are those of the smallest-area ellipse with
+    these directions that contains the point's Voronoi cell (aspect at most
+    ELLIPSE_MAX_ASPECT): with semi-axes (e^(tau/2), e^(-tau/2)) x scale, the needed scale^2 is a
+    maximum of functions convex in tau, so a golden-section search finds tau. Times
+    RADIUS_MARGIN and the same outlier cap: the covering rule of the radii, never with more area
+    than the disk (the disk is one of the candidates). u is the major axis, (u, v, n)
+    right-handed.
+
+Cells at creases (Zwicker et al. 2002, Pauly et al. 2003; which points are flat and which lie on
+creases: `sharp_features.py`):
+    for flat neighbours p, q with normals more than SHARP_ANGLE apart, p's cell ends at the line
+    where their tangent planes meet instead of at the bisector, so that its radius reaches the
+    edge and no further. p keeps its centre's side of q's plane, g(X) = n_q . (X - q) having
+    the sign of g(p); if its centre lies in that plane (within ON_PLANE_SIN2, on the crease
+    line), the side away from q. Crease points bound no cell.
+    Each splat then carries up to CLIP_LINES clip lines a u + b v <= c in its local coordinates
+    (u, v) (1 on the rim), attributes["clip_lines"] (N, CLIP_LINES, 3), (a, b) a unit vector:
+    the crease nearest its centre, then the nearest in another direction (more than
+    acos(PARALLEL_COS) apart); crease points get lines that keep nothing (c < -1,
+    `clipped_away`), smooth surfaces INACTIVE_CLIP. Every splat method evaluates the lines per
+    fragment (the GPU methods in the splat's plane, EWA as pixel half-planes through its
+    Jacobian). The cell kernels and the clip lines share the crease geometry, so they share this
+    module: numba's on-disk cache does not see a change to a function in another file.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+from ..cloud import PointCloud
+from .chunked import map_chunks
+from .frames import orthonormal_basis, unit
+from .neighbourhood import Neighbourhood
+from .normals import pca_normals
+from .sharp_features import SharpFeatures
+
+RADIUS_NEIGHBOURS = 16         # neighbours bounding a Voronoi cell: enough to reach the next scan
+                               # line when lines are up to ~8 x farther apart than points on a line
+RADIUS_MARGIN = 1.2            # covering radius x this: curvature, normal noise, and overlap for
+                               # the Gaussian blending (coverage 99.98% at 1.0, 99.998% at 1.2)
+ISOLATED_FACTOR = 2.0          # a radius at most this x the median of its neighbours' radii
+ELLIPSE_MAX_ASPECT = 4.0       # no needles: major / minor semi-axis at most this
+CURVATURE_ANISOTROPY = 0.05    # radians by which the normals turn more one way than the other
+                               # across a cell, above which an ellipse follows the curvature
+SHEET_COS = -0.5               # neighbours' normals more than 120 degrees apart: two sides of a sheet
+CAP_SIDES = 8                  # a cell starts as a regular octagon inscribed in the circle through
+                               # the farthest neighbour: open cells (borders) stop there
+CLIP_LINES = 2                 # clip lines per splat: an edge, or an edge and a corner
+INACTIVE_CLIP = (0.0, 0.0, 1.0)  # 0 u + 0 v <= 1: cuts nothing
+PARALLEL_COS = math.cos(math.radians(30.0))  # clip lines closer in direction are one edge
+
+
+# ---------------------------------------------------------------------------------------------
+# the cell of one point: helpers of the kernels below, inlined into them (a call per point would
+# cost as much as the work; inline="always" keeps these small functions as fast as one loop body)
+
+
+@numba.njit(cache=True, inline="always")
+def _crease_half_plane(points, p, q, normal_q, frame, on_plane_sin2):  # pragma: no cover - compiled
+    """Where splat p meets the tangent plane of its neighbour q across a crease: the half-plane
+    a x + b y <= c of p's plane points p + x e1 + y e2, (e1, e2) = frame, that p keeps."""
+    side = 0.0
+    ga = 0.0
+    gb = 0.0
+    distance2 = 0.0
+    for a in range(3):
+        offset = points[p, a] - points[q, a]
+        side += offset * normal_q[a]
+        ga += frame[0, a] * normal_q[a]
+        gb += frame[1, a] * normal_q[a]
+        distance2 += offset * offset
+    # a plane point lies at g(x, y) = side + x ga + y gb from q's plane; keep sign * g >= 0
+    if side * side > on_plane_sin2 * distance2:
+        sign = 1.0 if side > 0.0 else -1.0
+    else:  # p on the crease line cannot tell its sides apart: the side away from q
+        qx = 0.0
+        qy = 0.0
+        for a in range(3):
+            qx += (points[q, a] - points[p, a]) * frame[0, a]
+            qy += (points[q, a] - points[p, a]) * frame[1, a]
+        at_q = side + qx * ga + qy * gb  # g where q projects into p's plane: that side goes
+        sign = -1.0 if at_q > 0.0 else 1.0
+    return -sign * ga, -sign * gb, sign * side
+
+
+@numba.njit(cache=True, inline="always")
+def _cell_bounds(points, normals, index, frames, i, p, features, sheet_cos):  # pragma: no cover - compiled
+    """The sheet and crease rules: the half-planes a x + b y <= c of p's tangent frame
+    (t, s) = frames[i] that bound its cell among its neighbours index[i], in the order they cut
+    it. (Rows, not row views: a view per point costs as much as a tenth of the kernel.)
+
+    Returns (lines (k, 3), bisectors, count, bounding, reach): lines[:bisectors] are the
+    bisectors of the bounding neighbours `bounding[:bisectors]` ((a, b) = their offset),
+    lines[bisectors:count] the creases; reach is the farthest neighbour's distance."""
+    k = index.shape[1]
+    lines = np.empty((k, 3))
+    creases = np.empty((k, 3))
+    bounding = np.empty(k, np.int64)
+    bisectors = 0
+    crease_count = 0
+    reach = 0.0
+    for j in range(k):
+        q = index[i, j]
+        d0 = points[q, 0] - points[p, 0]
+        d1 = points[q, 1] - points[p, 1]
+        d2 = points[q, 2] - points[p, 2]
+        x = d0 * frames[i, 0, 0] + d1 * frames[i, 0, 1] + d2 * frames[i, 0, 2]
+        y = d0 * frames[i, 1, 0] + d1 * frames[i, 1, 1] + d2 * frames[i, 1, 2]
+        z = d0 * normals[p, 0] + d1 * normals[p, 1] + d2 * normals[p, 2]
+        planar = x * x + y * y
+        reach = max(reach, math.sqrt(planar + z * z))
+        facing = 0.0
+        for a in range(3):
+            facing += normals[q, a] * normals[p, a]
+        if features.crease[q] or facing < sheet_cos:
+            continue
+        if facing < features.sharp_cos and features.flat[p] and features.flat[q]:
+            ca, cb, cc = _crease_half_plane(points, p, q, normals[q], frames[i], features.on_plane_sin2)
+            if ca * ca + cb * cb > 1e-12:  # not parallel planes (the far side of a sheet)
+                creases[crease_count, 0] = ca
+                creases[crease_count, 1] = cb
+                creases[crease_count, 2] = cc
+                crease_count += 1
+            continue
+        if planar > 0 and z * z <= planar:  # skip duplicates and the far side of thin sheets
+            lines[bisectors, 0] = x
+            lines[bisectors, 1] = y
+            lines[bisectors, 2] = 0.5 * planar  # nearer to p than to q: (x, y) . X <= |d|^2 / 2
+            bounding[bisectors] = q
+            bisectors += 1
+    for c in range(crease_count):  # the creases cut after every bisector
+        for a in range(3):
+            lines[bisectors + c, a] = creases[c, a]
+    return lines, bisectors, bisectors + crease_count, bounding, reach
+
+
+@numba.njit(cache=True, inline="always")
+def _clip(polygon, count, a, b, c, out):  # pragma: no cover - compiled
+    """Clip the convex polygon[:count] to the half-plane a x + b y <= c into out; returns its
+    number of vertices."""
+    kept = 0
+    for i in range(count):
+        j = i + 1 if i + 1 < count else 0
+        si = a * polygon[i, 0] + b * polygon[i, 1] - c
+        sj = a * polygon[j, 0] + b * polygon[j, 1] - c
+        if si <= 0:
+            out[kept, 0] = polygon[i, 0]
+            out[kept, 1] = polygon[i, 1]
+            kept += 1
+        if (si <= 0) != (sj <= 0):
+            t = si / (si - sj)
+            out[kept, 0] = polygon[i, 0] + t * (polygon[j, 0] - polygon[i, 0])
+            out[kept, 1] = polygon[i, 1] + t * (polygon[j, 1] - polygon[i, 1])
+            kept += 1
+    return kept
+
+
+@numba.njit(cache=True, inline="always")
+def _cell_polygon(lines, count, reach):  # pragma: no cover - compiled
+    """The cell: the regular CAP_SIDES-gon inscribed in the circle of radius `reach`, clipped to
+    lines[:count] in order. Returns (polygon (size, 2), its number of vertices)."""
+    size = CAP_SIDES + lines.shape[0] + 1  # each clip of a convex polygon adds at most one vertex
+    polygon = np.empty((size, 2))
+    spare = np.empty((size, 2))
+    for c in range(CAP_SIDES):
+        angle = 2.0 * math.pi * c / CAP_SIDES
+        polygon[c, 0] = reach * math.cos(angle)
+        polygon[c, 1] = reach * math.sin(angle)
+    vertices = CAP_SIDES
+    for j in range(count):
+        vertices = _clip(polygon, vertices, lines[j, 0], lines[j, 1], lines[j, 2], spare)
+        polygon, spare = spare, polygon
+    return polygon, vertices
+
+
+@numba.njit(cache=True, inline="always")
+def _covering_radius(polygon, vertices):  # pragma: no cover - compiled
+    """Distance from the centre to the polygon's farthest vertex."""
+    far = 0.0
+    for c in range(vertices):
+        far = max(far, polygon[c, 0] * polygon[c, 0] + polygon[c, 1] * polygon[c, 1])
+    return math.sqrt(far)
+
+
+@numba.njit(cache=True, inline="always")
+def _spread_direction(lines, bisectors):  # pragma: no cover - compiled
+    """The angle in the tangent frame of the principal direction of the bounding neighbours'
+    offsets lines[:bisectors, :2]."""
+    mx = 0.0
+    my = 0.0
+    for j in range(bisectors):
+        mx += lines[j, 0]
+        my += lines[j, 1]
+    mx /= max(bisectors, 1)
+    my /= max(bisectors, 1)
+    sxx = 0.0
+    syy = 0.0
+    sxy = 0.0
+    for j in range(bisectors):
+        sxx += (lines[j, 0] - mx) ** 2
+        syy += (lines[j, 1] - my) ** 2
+        sxy += (lines[j, 0] - mx) * (lines[j, 1] - my)
+    return 0.5 * math.atan2(2.0 * sxy, sxx - syy)
+
+
+@numba.njit(cache=True, inline="always")
+def _curvature_direction(lines, bisectors, bounding, normals, frames, i, p):  # pragma: no cover - compiled
+    """The angle in p's tangent frame (t, s) = frames[i] of the principal curvature direction of
+    largest curvature, and the difference of the principal curvatures (per unit length): from
+    the shape operator S, tilt = S offset, fitted by least squares to the bounding neighbours'
+    normals (tilt: the tangential part of n_q / (n_q . n_p), as in normal_field.py) at their
+    offsets lines[:bisectors, :2]."""
+    dxx = dxy = dyy = 0.0
+    txx = txy = tyx = tyy = 0.0
+    for j in range(bisectors):
+        q = bounding[j]
+        along = tx = ty = 0.0
+        for a in range(3):
+            along += normals[q, a] * normals[p, a]
+            tx += normals[q, a] * frames[i, 0, a]
+            ty += normals[q, a] * frames[i, 1, a]
+        if abs(along) < 0.5:  # across a crease, as normal_field.ACROSS_COS
+            continue
+        tx /= along
+        ty /= along
+        x = lines[j, 0]
+        y = lines[j, 1]
+        dxx += x * x
+        dxy += x * y
+        dyy += y * y
+        txx += tx * x
+        txy += tx * y
+        tyx += ty * x
+        tyy += ty * y
+    det = dxx * dyy - dxy * dxy
+    if det <= 1e-30:
+        return 0.0, 0.0
+    s00 = (txx * dyy - txy * dxy) / det
+    s01 = (txy * dxx - txx * dxy) / det
+    s10 = (tyx * dyy - tyy * dxy) / det
+    s11 = (tyy * dxx - tyx * dxy) / det
+    shear = 0.5 * (s01 + s10)  # S is symmetric in theory: its symmetric part
+    return 0.5 * math.atan2(2.0 * shear, s00 - s11), math.sqrt((s00 - s11) ** 2 + 4.0 * shear * shear)
+
+
+@numba.njit(cache=True, inline="always")
+def _ellipse_scale2(polygon, vertices, tau):  # pragma: no cover - compiled
+    """Squared scale by which the ellipse with semi-axes (e^(tau/2), e^(-tau/2)) must grow to
+    contain the polygon."""
+    wx = math.exp(-tau)
+    wy = math.exp(tau)
+    scale2 = 0.0
+    for c in range(vertices):
+        scale2 = max(scale2, polygon[c, 0] * polygon[c, 0] * wx + polygon[c, 1] * polygon[c, 1] * wy)
+    return scale2
+
+
+@numba.njit(cache=True, inline="always")
+def _covering_ellipse(polygon, vertices, co, si):  # pragma: no cover - compiled
+    """Semi-axes (a, b) along (co, si) and its perpendicular of the smallest ellipse with aspect
+    at most ELLIPSE_MAX_ASPECT that contains the polygon (rotated into those axes in place)."""
+    for c in range(vertices):
+        x0 = polygon[c, 0] * co + polygon[c, 1] * si
+        polygon[c, 1] = -polygon[c, 0] * si + polygon[c, 1] * co
+        polygon[c, 0] = x0
+    lo = -math.log(ELLIPSE_MAX_ASPECT)
+    hi = math.log(ELLIPSE_MAX_ASPECT)
+    for _ in range(24):  # brackets the optimum to 1e-5 of the log-aspect range
+        t1 = hi - 0.618033988749895 * (hi - lo)
+        t2 = lo + 0.618033988749895 * (hi - lo)
+        if _ellipse_scale2(polygon, vertices, t1) <= _ellipse_scale2(polygon, vertices, t2):
+            hi = t2
+        else:
+            lo = t1
+    tau = 0.5 * (lo + hi)
+    scale = math.sqrt(_ellipse_scale2(polygon, vertices, tau))
+    return math.exp(0.5 * tau) * scale, math.exp(-0.5 * tau) * scale
+
+
+# ---------------------------------------------------------------------------------------------
+# every point: the kernels of one chunk, points start + i
+
+
+@numba.njit(parallel=True, cache=True)
+def _covering_radii(points, normals, index, start, frames, features, sheet_cos):  # pragma: no cover - compiled
+    """The covering radius of each point's cell (0 where all its neighbours coincide with it)."""
+    m = index.shape[0]
+    radius = np.zeros(m)
+    for i in numba.prange(m):
+        lines, _, count, _, reach = _cell_bounds(points, normals, index, frames, i, start + i, features, sheet_cos)
+        if reach == 0.0:
+            continue
+        polygon, vertices = _cell_polygon(lines, count, reach)
+        radius[i] = _covering_radius(polygon, vertices)
+    return radius
+
+
+@numba.njit(parallel=True, cache=True)
+def _covering_ellipses(points, normals, index, start, frames, features, sheet_cos):  # pragma: no cover - compiled
+    """The covering radius of each point's cell, and the semi-axes (m, 2) and direction
+    (m, 2: cos, sin in the frame) of its covering ellipse (zero semi-axes for degenerate cells)."""
+    m = index.shape[0]
+    radius = np.zeros(m)
+    semi = np.zeros((m, 2))
+    direction = np.zeros((m, 2))
+    direction[:, 0] = 1.0
+    for i in numba.prange(m):
+        p = start + i
+        lines, bisectors, count, bounding, reach = _cell_bounds(points, normals, index, frames, i, p, features,
+                                                                sheet_cos)
+        if reach == 0.0:
+            continue
+        polygon, vertices = _cell_polygon(lines, count, reach)
+        radius[i] = _covering_radius(polygon, vertices)
+        if vertices < 3:
+            continue
+        # Splats "aligned along the curvature" (survey 2.1.4), so that the normal field's two
+        # slopes (eq. 8) describe the surface: the principal curvature directions, wherever the
+        # normals turn more one way than the other across the cell.
+        theta = _spread_direction(lines, bisectors)
+        curvature_theta, anisotropy = _curvature_direction(lines, bisectors, bounding, normals, frames, i, p)
+        if anisotropy * reach > CURVATURE_ANISOTROPY:
+            theta = curvature_theta
+        co = math.cos(theta)
+        si = math.sin(theta)
+        semi[i, 0], semi[i, 1] = _covering_ellipse(polygon, vertices, co, si)
+        direction[i, 0] = co
+        direction[i, 1] = si
+    return radius, semi, direction
+
+
+@numba.njit(cache=True, inline="always")
+def _crease_candidates(points, normals, index, axes, i, p, features, candidates):  # pragma: no cover - compiled
+    """The crease half-planes of splat p that cut it, among its neighbours index[i], in its axes
+    (u, v) = axes[i], as unit (a, b, c) rows of candidates; returns their number."""
+    count = 0
+    for j in range(index.shape[1]):
+        q = index[i, j]
+        facing = 0.0
+        for a in range(3):
+            facing += normals[q, a] * normals[p, a]
+        if facing >= features.sharp_cos or features.crease[q] or not (features.flat[p] and features.flat[q]):
+            continue
+        la, lb, lc = _crease_half_plane(points, p, q, normals[q], axes[i], features.on_plane_sin2)
+        length = math.sqrt(la * la + lb * lb)
+        if length < 1e-6 or lc >= length:  # parallel planes, or the line misses the splat
+            continue
+        candidates[count, 0] = la / length
+        candidates[count, 1] = lb / length
+        candidates[count, 2] = lc / length
+        count += 1
+    return count
+
+
+@numba.njit(cache=True, inline="always")
+def _nearest_creases(candidates, count, lines, i):  # pragma: no cover - compiled
+    """Fill lines[i] (CLIP_LINES, 3) with the most restrictive candidates (smallest c), each
+    more than acos(PARALLEL_COS) in direction from those chosen before."""
+    used = 0
+    while used < CLIP_LINES:
+        best = -1
+        for c in range(count):
+            parallel = False
+            for other in range(used):
+                if candidates[c, 0] * lines[i, other, 0] + candidates[c, 1] * lines[i, other, 1] > PARALLEL_COS:
+                    parallel = True
+            if not parallel and (best < 0 or candidates[c, 2] < candidates[best, 2]):
+                best = c
+        if best < 0:
+            return
+        for a in range(3):
+            lines[i, used, a] = candidates[best, a]
+        used += 1
+
+
+@numba.njit(parallel=True, cache=True)
+def _clip_lines(points, normals, index, start, axes, features):  # pragma: no cover - compiled
+    """CLIP_LINES clip lines (a, b, c) per splat, in its local coordinates (u, v) (1 on the rim):
+    the crease half-planes that end its cell. A dropped splat keeps nothing (u <= -2, -u <= -2)."""
+    m = index.shape[0]
+    lines = np.empty((m, CLIP_LINES, 3), np.float32)
+    for i in numba.prange(m):
+        p = start + i
+        for line in range(CLIP_LINES):
+            if features.crease[p]:
+                lines[i, line, 0] = 1.0 - 2.0 * line
+                lines[i, line, 1] = 0.0
+                lines[i, line, 2] = -2.0
+            else:
+                lines[i, line, 0] = INACTIVE_CLIP[0]
+                lines[i, line, 1] = INACTIVE_CLIP[1]
+                lines[i, line, 2] = INACTIVE_CLIP[2]
+        if not features.crease[p]:
+            candidates = np.empty((index.shape[1], 3))  # allocated here: an array returned costs as much
+            count = _crease_candidates(points, normals, index, axes, i, p, features, candidates)
+            _nearest_creases(candidates, count, lines, i)
+    return lines
+
+
+# ---------------------------------------------------------------------------------------------
+# every point, chunk by chunk
+
+
+def _ellipse_axes(frames: np.ndarray, semi: np.ndarray, direction: np.ndarray) -> np.ndarray:
+    """Axes (m, 2, 3) of ellipses with semi-axes `semi` along `direction` (cos, sin) in the
+    tangent frames (t, s): u the major axis, (u, v, n) right-handed."""
+    t, s = frames[:, 0], frames[:, 1]
+    co, si = direction[:, 0:1], direction[:, 1:2]
+    major = semi[:, 0] >= semi[:, 1]
+    e1 = co * t + si * s
+    e2 = -si * t + co * s
+    # u is the major axis; (e2, -e1) keeps (u, v, n) right-handed
+    u = np.where(major[:, None], e1 * semi[:, 0:1], e2 * semi[:, 1:2])
+    v = np.where(major[:, None], e2 * semi[:, 1:2], -e1 * semi[:, 0:1])
+    return np.stack([u, v], axis=1)
+
+
+def _cells(nbh: Neighbourhood, normals: np.ndarray, k: int, ellipse: bool, progress: bool | None,
+           features: SharpFeatures | None, oriented: bool) -> tuple[np.ndarray, np.ndarray | None]:
+    """Radii (N,) float64 and, if `ellipse`, axes (N, 2, 3) float64, both including the margin
+    and the outlier cap. Given `features`, cells end at creases and ignore the crease points.
+    With `oriented` normals, neighbours facing the other way (the far side of a thin sheet) do
+    not bound cells."""
+    n = len(nbh.points)
+    index = nbh.first(k)
+    normals = unit(np.asarray(normals, np.float64))
+    features = SharpFeatures.none(n) if features is None else features
+    sheet_cos = SHEET_COS if oriented else -2.0
+
+    def radii(start: int, stop: int) -> np.ndarray:
+        frames = orthonormal_basis(normals[start:stop])
+        return _covering_radii(nbh.points, normals, index[start:stop], start, frames, features, sheet_cos)
+
+    def ellipses(start: int, stop: int) -> tuple[np.ndarray, np.ndarray]:
+        frames = orthonormal_basis(normals[start:stop])
+        radius, semi, direction = _covering_ellipses(nbh.points, normals, index[start:stop], start, frames,
+                                                     features, sheet_cos)
+        return radius, _ellipse_axes(frames, semi, direction)
+
+    if ellipse:
+        raw, axes = map_chunks(ellipses, n, progress, "ellipses")
+    else:
+        raw, axes = map_chunks(radii, n, progress, "radii"), None
+    # Points all of whose neighbours coincide with them have no cell: borrow a typical size.
+    positive = raw > 0
+    raw[~positive] = np.median(raw[positive]) if positive.any() else 1.0
+    if ellipse:
+        circle = ~positive | (np.linalg.norm(axes, axis=2).min(axis=1) <= 0)
+        axes[circle] = orthonormal_basis(normals[circle]) * raw[circle][:, None, None]
+    scale = _margin_and_cap(raw, index)
+    if ellipse:
+        axes *= scale[:, None, None]
+    return raw * scale, axes
+
+
+def _margin_and_cap(raw: np.ndarray, index: np.ndarray) -> np.ndarray:
+    """RADIUS_MARGIN, times the outlier cap: at most ISOLATED_FACTOR x the median raw radius of
+    the neighbours."""
+    if index.shape[1] == 1:
+        return np.full(len(raw), RADIUS_MARGIN)
+
+    def cap(start: int, stop: int) -> np.ndarray:
+        typical = np.median(raw[index[start:stop, 1:]], axis=1)
+        return np.minimum(1.0, ISOLATED_FACTOR * typical / raw[start:stop])
+
+    return RADIUS_MARGIN * map_chunks(cap, len(raw))
+
+
+def covering_radii(nbh: Neighbourhood, normals: np.ndarray, progress: bool | None,
+                   features: SharpFeatures | None = None, k: int = RADIUS_NEIGHBOURS,
+                   oriented: bool = True) -> np.ndarray:
+    """Splat radii (N,) float64 in the neighbourhood's order (see the module docstring)."""
+    return _cells(nbh, normals, k, False, progress, features, oriented)[0]
+
+
+def covering_ellipses(nbh: Neighbourhood, normals: np.ndarray, progress: bool | None,
+                      features: SharpFeatures | None = None, k: int = RADIUS_NEIGHBOURS) -> np.ndarray:
+    """Elliptical splat axes (N, 2, 3) float64 in the neighbourhood's order."""
+    return _cells(nbh, normals, k, True, progress, features, True)[1]
+
+
+def clip_lines(nbh: Neighbourhood, normals: np.ndarray, axes: np.ndarray, features: SharpFeatures,
+               progress: bool | None, k: int = RADIUS_NEIGHBOURS) -> np.ndarray:
+    """Clip lines (N, CLIP_LINES, 3) float32 of the splats (normals, axes), in the
+    neighbourhood's order."""
+    index = nbh.first(k)
+    normals = unit(np.asarray(normals, np.float64))
+
+    def chunk(start: int, stop: int) -> np.ndarray:
+        return _clip_lines(nbh.points, normals, index[start:stop], start, np.asarray(axes[start:stop], np.float64),
+                           features)
+
+    return map_chunks(chunk, len(nbh.points), progress, "sharp features")
+
+
+def clipped_away(cloud: PointCloud) -> np.ndarray:
+    """(N,) bool: the splats whose clip lines keep nothing of them (crease points)."""
+    lines = cloud.attributes.get("clip_lines")
+    if lines is None:
+        return np.zeros(len(cloud), bool)
+    return (lines[:, :, 2] < -1).any(axis=1)
+
+
+def estimate_radii(positions: np.ndarray, k: int = RADIUS_NEIGHBOURS, normals: np.ndarray | None = None,
+                   workers: int = -1, progress: bool | None = None) -> np.ndarray:
+    """Splat radii (N,) float32 that cover the surface without holes: each point's covering
+    radius of its tangent-plane Voronoi cell among its k nearest neighbours, times
+    RADIUS_MARGIN, outliers capped (see the module docstring). Normals only define the tangent
+    planes; without them unoriented PCA normals over the same neighbours are used."""
+    nbh = Neighbourhood.build(positions, k, workers, progress)
+    oriented = normals is not None
+    normals = pca_normals(nbh, k, progress)[0] if normals is None else nbh.sort(normals)
+    radii = covering_radii(nbh, normals, progress, k=k, oriented=oriented)
+    return nbh.unsort(radii.astype(np.float32))
+
+
+def fit_ellipses(positions: np.ndarray, normals: np.ndarray, k: int = RADIUS_NEIGHBOURS, workers: int = -1,
+                 progress: bool | None = None) -> np.ndarray:
+    """Elliptical splat axes (N, 2, 3) float32 (u major, (u, v, n) right-handed): principal
+    directions of the curvature or of the neighbours in the tangent plane, semi-axes covering
+    the point's Voronoi cell like the radius rule (see the module docstring)."""
+    nbh = Neighbourhood.build(positions, k, workers, progress)
+    return nbh.unsort(covering_ellipses(nbh, nbh.sort(normals), progress, k=k).astype(np.float32))

@@ -1,0 +1,91 @@
+"""Phong splatting's linear normal fields (Botsch, Spernat & Kobbelt 2004; survey eq. 8).
+
+    N_j(u, v) = n_j + u alpha_j û_j + v beta_j v̂_j,
+
+where û_j, v̂_j are the UNIT axis directions and (u, v) = (u_j . (q - c_j) / |u_j|^2,
+v_j . (q - c_j) / |v_j|^2) are local coordinates that reach 1 on the ellipse's rim, so alpha and
+beta are dimensionless (the tangent of the normal's tilt at the rim). Fitted by least squares
+over the FIELD_NEIGHBOURS - 1 nearest neighbours' normals, each slope a 1-D problem with a
+closed form: with u_q the neighbour's coordinate and tilt_q = n_q . û_j / (n_q . n_j) the
+tangential part of its normal scaled to component 1 along n_j (the model's normal has that
+component), alpha_j = sum_q u_q tilt_q / sum_q u_q^2, and beta_j alike along v.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+from .chunked import map_chunks
+from .frames import unit
+from .neighbourhood import Neighbourhood
+
+FIELD_NEIGHBOURS = 16  # neighbours whose normals fit a splat's normal field
+ACROSS_COS = 0.5       # neighbours' normals more than 60 degrees off lie across a crease: not fitted
+
+
+@numba.njit(parallel=True, cache=True)
+def _slopes(points, index, start, normals, axes):  # pragma: no cover - compiled
+    """Least-squares slopes (alpha, beta) (m, 2) of each splat start + i over its neighbours."""
+    m, k = index.shape
+    slopes = np.zeros((m, 2))
+    for i in numba.prange(m):
+        p = start + i
+        num = np.zeros(2)
+        den = np.zeros(2)
+        for j in range(k):
+            q = index[i, j]
+            if q == p:
+                continue
+            along = 0.0
+            for a in range(3):
+                along += normals[q, a] * normals[p, a]
+            # Neighbours across a crease would only bend the fit; their sign does not matter.
+            if abs(along) < ACROSS_COS:
+                continue
+            for t in range(2):
+                length2 = 0.0
+                offset = 0.0
+                tilt = 0.0
+                for a in range(3):
+                    axis = axes[i, t, a]
+                    length2 += axis * axis
+                    offset += (points[q, a] - points[p, a]) * axis
+                    tilt += normals[q, a] * axis
+                if length2 == 0.0:
+                    continue
+                coordinate = offset / length2                      # 1 on the ellipse's rim
+                tilt /= math.sqrt(length2) * along
+                num[t] += coordinate * tilt
+                den[t] += coordinate * coordinate
+        for t in range(2):
+            if den[t] > 1e-12:
+                slopes[i, t] = num[t] / den[t]
+    return slopes
+
+
+def field_slopes(nbh: Neighbourhood, normals: np.ndarray, axes: np.ndarray, progress: bool | None,
+                 k: int = FIELD_NEIGHBOURS) -> tuple[np.ndarray, np.ndarray]:
+    """(alpha, beta), each (N,) float32, of the splats (normals, axes) in the neighbourhood's
+    order."""
+    index = nbh.first(k)
+    normals = unit(np.asarray(normals, np.float64))
+
+    def chunk(start: int, stop: int) -> np.ndarray:
+        axes_chunk = np.asarray(axes[start:stop], np.float64)
+        return _slopes(nbh.points, index[start:stop], start, normals, axes_chunk).astype(np.float32)
+
+    slopes = map_chunks(chunk, len(nbh.points), progress, "normal field")
+    return slopes[:, 0].copy(), slopes[:, 1].copy()
+
+
+def fit_normal_field(positions: np.ndarray, normals: np.ndarray, axes: np.ndarray, k: int = FIELD_NEIGHBOURS,
+                     workers: int = -1, progress: bool | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Phong splatting's linear normal field (alpha, beta), each (N,) float32:
+    N_j(u, v) = n_j + u alpha_j û_j + v beta_j v̂_j with unit axis directions û_j, v̂_j and
+    (u, v) in semi-axis units, least squares over the k - 1 nearest neighbours' normals."""
+    nbh = Neighbourhood.build(positions, k, workers, progress)
+    alpha, beta = field_slopes(nbh, nbh.sort(normals), nbh.sort(axes), progress, k)
+    return nbh.unsort(alpha), nbh.unsort(beta)

@@ -1,0 +1,123 @@
+"""Sharp features: which points are faces of a piecewise smooth shape, which lie on its creases.
+
+Circular or elliptical splats are smooth; at the crease of a piecewise smooth shape (a CAD part,
+a building) every splat near the edge sticks out past it, and the silhouette grows a scalloped
+rim. Following the clipped splats of Zwicker, Pauly, Knoll & Gross 2002 ("Pointshop 3D") and
+Pauly, Keiser, Kobbelt & Gross 2003 ("Shape modeling with point-sampled geometry"), splats are
+cut at creases. This module finds where:
+
+  * flat points: those whose neighbours with normals within SHARP_ANGLE lie within FLAT_SIN2
+    of their tangent plane (faces; not coarsely sampled curved surfaces, whose neighbours'
+    planes would facet them);
+  * two flat neighbours p, q with normals more than SHARP_ANGLE apart lie across a crease: the
+    line where their tangent planes meet;
+  * crease points, which lie (within ON_PLANE_SIN2) in the planes of two flat neighbours more
+    than SHARP_ANGLE apart (on the edge itself, their normals averaged over both faces), stick
+    out of one face or the other whatever their orientation: they are dropped.
+
+What is done with it is the cells' (`cells.py`): a flat point's cell ends at the crease instead
+of at the bisector, and its clip lines are the nearest such creases; crease points are cut away
+whole and bound no cell. Those kernels share the crease geometry, so they live in one module
+(numba's on-disk cache does not see a change to a function in another file).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numba
+import numpy as np
+
+from .chunked import map_chunks
+from .frames import unit
+from .neighbourhood import Neighbourhood
+
+SHARP_ANGLE = 45.0   # degrees between neighbouring normals that make a sharp feature:
+                     # a 90 degree crease tilts its averaged vertex normals 45 degrees
+SHARP_COS = math.cos(math.radians(SHARP_ANGLE))
+FLAT_SIN2 = math.sin(math.radians(10.0)) ** 2     # a face: its neighbours this close to its plane
+ON_PLANE_SIN2 = math.sin(math.radians(3.0)) ** 2  # a point this close to a neighbour's plane lies in it
+
+
+class SharpFeatures(NamedTuple):
+    """Where the cells end (a numba argument: masks in the neighbourhood's sorted order)."""
+
+    flat: np.ndarray      # (N,) bool: faces, whose cells end at creases
+    crease: np.ndarray    # (N,) bool: crease points, dropped
+    sharp_cos: float      # normals of two faces with a smaller dot product meet at a crease
+    on_plane_sin2: float  # squared sine within which a point lies in a plane
+
+    @classmethod
+    def none(cls, n: int) -> SharpFeatures:
+        """No sharp features: no point is flat, none is dropped."""
+        return cls(np.zeros(n, bool), np.zeros(n, bool), SHARP_COS, ON_PLANE_SIN2)
+
+
+@numba.njit(parallel=True, cache=True)
+def _flat_points(points, index, start, normals):  # pragma: no cover - compiled
+    """Whether each point start + i is flat: its neighbours with normals within SHARP_ANGLE of
+    its own lie in its tangent plane (within FLAT_SIN2)."""
+    m, k = index.shape
+    flat = np.ones(m, np.bool_)
+    for i in numba.prange(m):
+        p = start + i
+        for j in range(k):
+            q = index[i, j]
+            height = 0.0
+            facing = 0.0
+            distance2 = 0.0
+            for a in range(3):
+                offset = points[q, a] - points[p, a]
+                height += offset * normals[p, a]
+                facing += normals[q, a] * normals[p, a]
+                distance2 += offset * offset
+            if facing >= SHARP_COS and height * height > FLAT_SIN2 * distance2:
+                flat[i] = False
+                break
+    return flat
+
+
+@numba.njit(parallel=True, cache=True)
+def _crease_points(points, index, start, normals, flat):  # pragma: no cover - compiled
+    """Whether each point start + i lies on a crease itself: in the tangent planes (within
+    ON_PLANE_SIN2) of two flat neighbours whose normals are more than SHARP_ANGLE apart."""
+    m, k = index.shape
+    crease = np.zeros(m, np.bool_)
+    for i in numba.prange(m):
+        p = start + i
+        planes = np.empty(k, np.int64)  # flat neighbours in whose tangent plane the point lies
+        count = 0
+        for j in range(k):
+            q = index[i, j]
+            if q == p or not flat[q]:
+                continue
+            side = 0.0
+            distance2 = 0.0
+            for a in range(3):
+                offset = points[p, a] - points[q, a]
+                side += offset * normals[q, a]
+                distance2 += offset * offset
+            if side * side > ON_PLANE_SIN2 * distance2:
+                continue
+            for other in range(count):
+                across = 0.0
+                for a in range(3):
+                    across += normals[q, a] * normals[planes[other], a]
+                if across < SHARP_COS:
+                    crease[i] = True
+            if crease[i]:
+                break
+            planes[count] = q
+            count += 1
+    return crease
+
+
+def find_sharp_features(nbh: Neighbourhood, normals: np.ndarray, k: int) -> SharpFeatures:
+    """The flat points and crease points among each point's k nearest neighbours."""
+    n = len(nbh.points)
+    index = nbh.first(k)
+    normals = unit(np.asarray(normals, np.float64))
+    flat = map_chunks(lambda start, stop: _flat_points(nbh.points, index[start:stop], start, normals), n)
+    crease = map_chunks(lambda start, stop: _crease_points(nbh.points, index[start:stop], start, normals, flat), n)
+    return SharpFeatures(flat, crease, SHARP_COS, ON_PLANE_SIN2)

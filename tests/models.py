@@ -1,0 +1,71 @@
+"""The models the tests render, all carried by the repository or made here.
+
+- Spot (Keenan Crane, CC0; tests/data/spot.obj, see its LICENSE): a coarse organic mesh,
+  2,930 vertices, read from the file as users' OBJ files are.
+- `dense_spot`: Spot refined by two steps of Loop subdivision (trimesh), 46,850 vertices:
+  a smooth organic surface sampled as densely as a scan, standing in for the Stanford bunny
+  (whose terms are no clear open licence).
+- `turned_part`: a CAD part made here, a lathe profile (flange with a chamfer, a shaft with a
+  groove, a chamfered head) revolved about its axis: flat, cylindrical and conical faces
+  meeting at sharp convex and concave creases of 90 and 135 degrees, 10,754 vertices,
+  standing in for fandisk.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from surfel.cloud import PointCloud
+from surfel.io import load
+from surfel.io.mesh import area_weighted_vertex_normals
+
+DATA = Path(__file__).parent / "data"
+SPOT = DATA / "spot.obj"
+
+# (radius, height) corners of the turned part's profile, from the axis at the bottom to the tip
+PROFILE = [(0.0, 0.0), (1.0, 0.0), (1.0, 0.3), (0.85, 0.45), (0.5, 0.45), (0.5, 1.0), (0.4, 1.0), (0.4, 1.15),
+           (0.5, 1.15), (0.5, 1.5), (0.25, 1.75), (0.0, 1.75)]
+SECTIONS = 128  # around the axis
+TILT = 25.0  # degrees towards the viewer, so that the front view sees the flange's top faces
+
+
+def spot() -> PointCloud:
+    return load(SPOT)
+
+
+def mesh_cloud(vertices: np.ndarray, faces: np.ndarray, source: str) -> PointCloud:
+    return PointCloud(vertices, normals=area_weighted_vertex_normals(vertices, faces), faces=faces, source=source)
+
+
+def dense_spot() -> PointCloud:
+    """Spot refined twice by Loop subdivision, turned 150 degrees about +y (as the bundled
+    demo is) so that the front view shows her face in three-quarter view."""
+    from trimesh.remesh import subdivide_loop
+
+    coarse = spot()
+    vertices, faces = subdivide_loop(coarse.positions, coarse.faces, iterations=2)
+    t = np.radians(150.0)
+    rotation = np.array([[np.cos(t), 0, np.sin(t)], [0, 1, 0], [-np.sin(t), 0, np.cos(t)]])
+    return mesh_cloud(vertices @ rotation.T, faces, "spot, Loop-subdivided twice")
+
+
+def turned_part() -> PointCloud:
+    """The lathe part of the module docstring: the profile resampled every SPACING along
+    its segments (corners kept), revolved in SECTIONS steps, tilted TILT degrees about x."""
+    from trimesh.creation import revolve
+
+    spacing = 2 * np.pi / SECTIONS  # the step around the rim of the flange (radius 1)
+    points = [np.array(PROFILE[0])]
+    for a, b in zip(PROFILE[:-1], PROFILE[1:], strict=True):
+        a, b = np.array(a), np.array(b)
+        steps = max(1, int(np.ceil(np.linalg.norm(b - a) / spacing)))
+        points += [a + (b - a) * t for t in np.arange(1, steps + 1) / steps]
+    mesh = revolve(np.array(points), sections=SECTIONS)
+    mesh.merge_vertices()
+    vertices = np.asarray(mesh.vertices)[:, [0, 2, 1]] * [1, 1, -1]  # a rotation: the axis along +y
+    vertices[:, 1] -= 0.95
+    t = np.radians(TILT)
+    rotation = np.array([[1, 0, 0], [0, np.cos(t), -np.sin(t)], [0, np.sin(t), np.cos(t)]])
+    return mesh_cloud(vertices @ rotation.T, np.asarray(mesh.faces), "turned part")

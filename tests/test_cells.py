@@ -1,0 +1,141 @@
+"""Tangent-plane cells: hole-free radii and ellipses, tangent frames, cells and clip lines at creases."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from samples import coverage, covered_by, dense_samples, edge_wedge, nn_spacing, scan_lines, sphere, unit
+from surfel.cloud import PointCloud
+from surfel.preprocess import estimate_normals, estimate_radii, fit_ellipses, fit_normal_field, prepare, tangent_frames
+
+# --- radii and ellipses: hole-free coverage of the true surface ---------------------------------
+
+
+@pytest.mark.parametrize("step", [1, 4])
+def test_radii_and_ellipses_cover_a_dense_mesh(step):
+    vertices, _, surface = dense_samples()
+    points = vertices[::step]
+    normals, _ = estimate_normals(points)
+    radii = estimate_radii(points, normals=normals)
+    assert radii.dtype == np.float32 and (radii > 0).all()
+    assert coverage(surface, points, normals, tangent_frames(normals, radii)) >= 0.999
+    ellipses = fit_ellipses(points, normals)
+    assert coverage(surface, points, normals, ellipses) >= 0.999
+    # not needlessly large: about the nearest-neighbour spacing, ellipses smaller than the disks
+    assert radii.mean() < 2.0 * nn_spacing(points)
+    area = np.prod(np.linalg.norm(ellipses, axis=2), axis=1)
+    assert area.mean() <= (radii.astype(np.float64) ** 2).mean()
+
+
+def test_radii_and_ellipses_cover_lidar_scan_lines():
+    rng = np.random.default_rng(6)
+    strip = scan_lines(rng, 0.0, line=1.0, along=0.3)
+    overlap = scan_lines(rng, 0.5, line=1.3, along=0.25)  # a second flight line over half the tile
+    xy = np.concatenate([strip, overlap[overlap[:, 0] > 0]])
+
+    def height(xy):
+        return 0.5 * np.sin(xy[:, 0] / 7)
+
+    points = np.c_[xy, height(xy) + rng.normal(0, 0.02, len(xy))]
+    normals, _ = estimate_normals(points)
+    radii = estimate_radii(points, normals=normals)
+    sample = rng.uniform(-22, 22, (200_000, 2))
+    surface = np.c_[sample, height(sample)]
+    assert coverage(surface, points, normals, tangent_frames(normals, radii)) >= 0.999
+    assert coverage(surface, points, normals, fit_ellipses(points, normals)) >= 0.999
+
+
+def test_isolated_point_gets_no_blob():
+    rng = np.random.default_rng(7)
+    points = np.c_[rng.uniform(-1, 1, (5_000, 2)), np.zeros(5_000)]
+    points = np.concatenate([points, [[0.0, 0.0, 0.5]]])  # a stray return above the surface
+    radii = estimate_radii(points)
+    assert radii[-1] <= 3 * np.median(radii)  # its cell alone would be 0.5 across, 15 x the median
+
+
+def test_tangent_frames_orthonormal():
+    rng = np.random.default_rng(8)
+    poles = [[0, 0, 1], [0, 0, -1], [1e-9, 0, -1], [1, 0, 0], [1, 0, -0.0]]  # where naive frames break
+    normals = unit(np.concatenate([rng.normal(size=(1_000, 3)), poles]))
+    radii = rng.uniform(0.5, 2, len(normals))
+    axes = tangent_frames(normals, radii)
+    assert axes.shape == (len(normals), 2, 3) and axes.dtype == np.float32
+    u, v = axes[:, 0] / radii[:, None], axes[:, 1] / radii[:, None]
+    assert np.allclose(np.linalg.norm(u, axis=1), 1, atol=1e-5) and np.allclose(np.linalg.norm(v, axis=1), 1, atol=1e-5)
+    assert np.abs(np.einsum("ij,ij->i", u, v)).max() < 1e-5
+    assert np.abs(np.einsum("ij,ij->i", u, normals)).max() < 1e-5
+    assert np.allclose(np.cross(u, v), normals, atol=1e-5)  # right-handed (u, v, n)
+
+
+def test_ellipse_axes_are_tangent_and_right_handed():
+    p = sphere(5_000)
+    axes = fit_ellipses(p, p).astype(np.float64)
+    lengths = np.linalg.norm(axes, axis=2)
+    assert (lengths[:, 0] >= lengths[:, 1] - 1e-7).all()  # u is the major axis
+    assert np.abs(np.einsum("ntj,nj->nt", axes, p)).max() < 1e-5 * lengths.max()
+    assert (np.einsum("ij,ij->i", np.cross(axes[:, 0], axes[:, 1]), p) > 0).all()
+
+
+def test_ellipses_follow_the_principal_curvature_directions():
+    """On a cylinder sampled at random the neighbours spread evenly, so only the normals tell
+    the principal directions: around (curvature 1) and along the axis (curvature 0)."""
+    rng = np.random.default_rng(12)
+    phi, height = rng.uniform(0, 2 * np.pi, 20_000), rng.uniform(-3, 3, 20_000)
+    normals = np.c_[np.cos(phi), np.sin(phi), np.zeros_like(phi)]
+    points = normals + np.c_[np.zeros((len(phi), 2)), height]
+    axes = fit_ellipses(points, normals)
+    lengths = np.linalg.norm(axes.astype(np.float64), axis=2)
+    axial = np.abs(axes[:, 0, 2]) / lengths[:, 0]  # |cos| of u's angle to the cylinder's axis
+    assert ((axial > 0.97) | (axial < 0.25)).mean() > 0.99
+    alpha, beta = fit_normal_field(points, normals, axes)
+    around, along = np.where(axial > 0.97, beta, alpha), np.where(axial > 0.97, alpha, beta)
+    around_length = np.where(axial > 0.97, lengths[:, 1], lengths[:, 0])
+    # eq. 8 then holds exactly: the tilt at the rim is semi-axis / radius around, 0 along
+    assert np.median(np.abs(around / around_length - 1)) < 0.01
+    assert np.median(np.abs(along) / around_length) < 0.001
+
+
+def test_normals_passed_as_k_are_refused():
+    p = sphere(100)
+    with pytest.raises(TypeError, match="k must be a positive integer"):
+        estimate_radii(p, p)  # normals= is a keyword: the second argument is k
+
+
+# --- sharp features ------------------------------------------------------------------------------
+
+
+def test_sharp_edge_splats_end_at_the_edge():
+    """Splats at a crease are cut at the other face's plane and still cover their own face up
+    to the edge; the edge's own points (normals averaged over both faces) are dropped."""
+    h = 0.05
+    cloud, labels = edge_wedge(h)
+    prepared, report = prepare(cloud)
+    lines = prepared.attributes["clip_lines"]
+    assert "sharp_features" in report
+    dropped = lines[:, 0, 2] < -1
+    assert dropped[labels == 2].mean() > 0.8 and not dropped[labels < 2].any()
+    rng = np.random.default_rng(4)
+    # face A: nothing sticks out past x = 0, and the strip next to the edge is covered
+    face_a = np.flatnonzero(labels == 0)
+    beyond = np.stack([rng.uniform(0.002, 2 * h, 4000), rng.uniform(0.1, 0.9, 4000), np.zeros(4000)], 1)
+    assert not covered_by(prepared, face_a, beyond).any()
+    strip = np.stack([rng.uniform(-2 * h, 0, 4000), rng.uniform(0.1, 0.9, 4000), np.zeros(4000)], 1)
+    assert covered_by(prepared, face_a, strip).all()
+    # without sharp features the edge's splats are whole disks, and they stick out of the solid
+    plain, _ = prepare(cloud, sharp_features=False)
+    assert "clip_lines" not in plain.attributes
+    edge = np.flatnonzero(labels == 2)
+    uv = rng.uniform(-0.7, 0.7, (500, 2))
+    disk = (plain.positions[edge][:, None] + uv[None, :, :1] * plain.axes[edge][:, None, 0]
+            + uv[None, :, 1:] * plain.axes[edge][:, None, 1])
+    assert ((disk[..., 0] > 0.01 * h) | (disk[..., 2] > 0.01 * h)).mean() > 0.5
+
+
+def test_smooth_surfaces_get_no_clip_lines():
+    """A coarsely sampled sphere has neighbours with very different normals, but no faces:
+    its splats stay whole disks."""
+    p = sphere(300, seed=5)
+    prepared, report = prepare(PointCloud(p, normals=p))
+    lines = prepared.attributes.get("clip_lines")
+    assert lines is None or (lines[:, :, 2] >= 1).all()

@@ -1,0 +1,92 @@
+"""Completing a cloud: prepare fills exactly what is missing; complete follows a method's needs."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from samples import sphere
+from surfel.cloud import PointCloud
+from surfel.preprocess import complete, prepare
+
+
+def test_prepare_fills_exactly_what_is_missing():
+    p = sphere(3_000)
+    bare, report = prepare(PointCloud(p))
+    assert bare.normals is not None and bare.radii is not None and bare.axes is not None
+    assert report["ambiguous_normals"] == 0 and "normals" in report and "radii" in report and "axes" in report
+    assert np.allclose(np.cross(bare.axes[:, 0], bare.axes[:, 1]), bare.normals * bare.radii[:, None] ** 2, atol=1e-6)
+
+    given = PointCloud(p, normals=-p)  # inward on purpose: kept as given
+    filled, report = prepare(given)
+    assert np.array_equal(filled.normals, given.normals)
+    assert "normals" not in report and "ambiguous_normals" not in report and "radii" in report
+
+    complete = filled
+    same, report = prepare(complete)
+    assert same is complete and report == {}
+
+    ellipses, report = prepare(PointCloud(p, normals=p, radii=np.full(len(p), 0.05)), elliptical=True,
+                               normal_field=True)
+    assert np.array_equal(ellipses.radii, np.full(len(p), 0.05, np.float32))
+    assert report["axes"].startswith("fitted ellipses") and "normal_field" in report and "radii" not in report
+    assert ellipses.attributes["phong_alpha"].shape == (len(p),) and (ellipses.attributes["phong_alpha"] > 0).all()
+
+    axes_only, report = prepare(PointCloud(p, axes=bare.axes))
+    assert np.allclose(axes_only.normals, bare.normals, atol=1e-5) and np.array_equal(axes_only.axes, bare.axes)
+
+
+def test_prepare_geospatial_faces_up():
+    rng = np.random.default_rng(11)
+    xy = rng.uniform(0, 100, (5_000, 2))
+    cloud = PointCloud(np.c_[xy, 0.1 * xy[:, 0] + 400] + [636_000, 849_000, 0], geospatial=True)
+    prepared, report = prepare(cloud, progress=True)
+    assert (prepared.normals[:, 2] > 0).all() and "up" in report["normals"]
+
+
+def test_tiny_clouds():
+    for n in (1, 2, 3):
+        cloud, report = prepare(PointCloud(np.arange(3 * n, dtype=float).reshape(n, 3) ** 1.5))
+        assert (cloud.radii > 0).all() and report["ambiguous_normals"] == n
+
+
+def test_complete_gives_each_method_what_its_flags_ask():
+    p = sphere(2_000, seed=3)
+    bare, oriented = PointCloud(p), PointCloud(p, normals=p)
+    # every method needs normals: a cloud without them is prepared whole, whatever the method
+    for needs_radii in (True, False):
+        prepared, report = complete(bare, needs_radii=needs_radii)
+        assert prepared.radii is not None and prepared.axes is not None and "normals" in report
+    # MLS needs normals only
+    same, report = complete(oriented, needs_radii=False)
+    assert same is oriented and report == {}
+    # splats: circular by default, fitted ellipses for an elliptical method, given normals kept
+    circles, report = complete(oriented)
+    assert np.array_equal(circles.normals, oriented.normals) and set(report) == {"radii", "axes", "sharp_features"}
+    assert np.allclose(np.linalg.norm(circles.axes[:, 0], axis=1), circles.radii, rtol=1e-5)
+    ellipses, report = complete(oriented, elliptical=True, normal_field=True)
+    lengths = np.linalg.norm(ellipses.axes.astype(np.float64), axis=2)
+    assert report["axes"].startswith("fitted ellipses") and (lengths[:, 0] > 1.05 * lengths[:, 1]).any()
+    assert {"phong_alpha", "phong_beta"} <= set(ellipses.attributes)
+    # a complete cloud: given splats are kept (circles stay circles); only a missing field is fitted
+    same, report = complete(circles, elliptical=True)
+    assert same is circles and report == {}
+    fields, report = complete(circles, elliptical=True, normal_field=True)
+    assert set(report) == {"normal_field"} and np.array_equal(fields.axes, circles.axes)
+
+
+def test_renderer_remembers_completions_per_cloud():
+    from surfel.methods import METHODS
+    from surfel.rendering import Renderer
+
+    renderer = Renderer()
+    cloud = PointCloud(sphere(1_500, seed=4))
+    for method in METHODS.values():
+        flags = {"needs_radii": method.needs_radii, "elliptical": method.elliptical,
+                 "normal_field": method.normal_field}
+        first, report = renderer.complete(cloud, **flags)
+        assert renderer.complete(cloud, **flags)[0] is first  # estimated once
+        pure, pure_report = complete(cloud, **flags)
+        assert report == pure_report
+        for name in ("normals", "radii", "axes"):
+            assert np.array_equal(getattr(first, name), getattr(pure, name))
+        assert first.attributes.keys() == pure.attributes.keys()

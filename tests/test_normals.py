@@ -1,0 +1,79 @@
+"""Normals: PCA directions, orientation by propagation or towards a viewpoint, ambiguity."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from samples import angles, dense_samples, sphere
+from surfel.preprocess import estimate_normals, estimate_radii
+
+
+def test_pca_normals_plane_and_sphere():
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(-1, 1, (20_000, 2))
+    plane = np.c_[xy, rng.normal(0, 0.001, len(xy))]  # noise 1/14 of the spacing
+    normals, _ = estimate_normals(plane)
+    assert normals.dtype == np.float32 and normals.shape == plane.shape
+    assert np.allclose(np.linalg.norm(normals, axis=1), 1, atol=1e-5)
+    assert np.percentile(angles(normals, np.tile([0.0, 0, 1], (len(xy), 1)), oriented=False), 95) < 5
+    p = sphere(20_000, noise=0.001)
+    normals, _ = estimate_normals(p)
+    assert np.percentile(angles(normals, p, oriented=False), 95) < 3
+
+
+def test_orientation_sphere_outward_without_viewpoint():
+    p = sphere(20_000)
+    normals, ambiguous = estimate_normals(p)
+    assert (np.einsum("ij,ij->i", normals, p) > 0).all()
+    assert ambiguous == 0
+
+
+def test_orientation_each_component_outward():
+    a, b = sphere(5_000, seed=1), 0.5 * sphere(3_000, seed=2) + [5, 0, 0]  # two separate closed scans
+    p = np.concatenate([a, b])
+    normals, _ = estimate_normals(p)
+    centre = np.where(np.arange(len(p))[:, None] < len(a), 0.0, [5.0, 0, 0])
+    assert (np.einsum("ij,ij->i", normals, p - centre) > 0).all()
+
+
+def test_orientation_matches_mesh():
+    vertices, mesh_normals, _ = dense_samples()
+    normals, ambiguous = estimate_normals(vertices)
+    agree = np.einsum("ij,ij->i", normals, mesh_normals) > 0
+    assert agree.mean() >= 0.99
+    assert ambiguous < 0.01 * len(vertices)
+
+
+def test_orientation_towards_viewpoint():
+    p = sphere(5_000)
+    inward, _ = estimate_normals(p, viewpoint=np.zeros(3))  # a sensor inside the sphere
+    assert (np.einsum("ij,ij->i", inward, p) < 0).all()
+    rng = np.random.default_rng(3)
+    plane = np.c_[rng.uniform(-1, 1, (5_000, 2)), np.zeros(5_000)]
+    up, _ = estimate_normals(plane, viewpoint=[0, 0, 10])
+    assert (up[:, 2] > 0.99).all()
+    sensors = plane + np.where(plane[:, :1] > 0, 1.0, -1.0) * [0, 0, 1]  # per-point sensor positions
+    mixed, _ = estimate_normals(plane, viewpoint=sensors)
+    assert np.array_equal(np.sign(mixed[:, 2]), np.sign(plane[:, 0]))
+
+
+def test_ambiguous_on_degenerate_input():
+    t = np.linspace(0, 1, 500)
+    line = np.c_[t, 2 * t, -t]
+    _, ambiguous = estimate_normals(line)
+    assert ambiguous == len(line)
+    rng = np.random.default_rng(4)
+    a = rng.uniform(-1, 1, (4_000, 2))
+    crossing = np.concatenate([np.c_[a[:2000], np.zeros(2000)], np.c_[a[2000:, 0], np.zeros(2000), a[2000:, 1]]])
+    _, ambiguous = estimate_normals(crossing)
+    assert 0 < ambiguous < 0.2 * len(crossing)  # along the intersection line only
+
+
+def test_georeferenced_coordinates_keep_precision():
+    rng = np.random.default_rng(5)
+    local = np.c_[rng.uniform(0, 50, (5_000, 2)), rng.normal(0, 0.01, 5_000)]
+    offset = np.array([636_000.0, 849_000.0, 400.0])
+    n0, _ = estimate_normals(local, viewpoint=[25, 25, 100])
+    n1, _ = estimate_normals(local + offset, viewpoint=offset + [25, 25, 100])
+    assert np.allclose(n0, n1, atol=1e-4)
+    assert np.allclose(estimate_radii(local), estimate_radii(local + offset), rtol=1e-4)
