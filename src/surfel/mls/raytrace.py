@@ -40,19 +40,19 @@ from ..result import RenderResult
 from ..shading import KEY_LIGHT, shade
 from .polynomial import P_COLOR, P_OFFSET, P_SCALE, POLY_SIZE, poly_normal, poly_project, poly_ray
 from .surface import (
+    BLOCK,
     DEFAULT_KERNEL,
     EMPTY,
     FIT_OK,
     LEAF,
-    MAX_NEIGHBOURS,
     REFERENCE_UPDATES,
-    STACK,
     SUPPORT,
     MlsKernel,
     MLSSurface,
     build_surface,
     fit,
     leaf_tree,
+    new_scratch,
     point_polynomials,
 )
 
@@ -167,7 +167,7 @@ def queue_pop(keys, items, size):
 
 @numba.njit(cache=True, fastmath=True)
 def trace_ray(o, d, t_min, t_max, samples, polys, radius, boxes, tolerance, max_iter,
-              keys, items, stack, poly, work, nb, x, y, nref, normal, color):
+              keys, items, scratch, poly, x, y, nref, normal, color):
     """Nearest intersection of o + t d (|d| = 1) with the MLS surface in [t_min, t_max].
 
     The bounding spheres are visited in order of the ray's entry into them, lazily: a queue
@@ -226,7 +226,7 @@ def trace_ray(o, d, t_min, t_max, samples, polys, radius, boxes, tolerance, max_
             for a in range(3):
                 x[a] = o[a] + t * d[a]
             fits += 1
-            if fit(x, nref, samples, poly, work, nb, stack) != FIT_OK:
+            if fit(x, nref, samples, poly, scratch) != FIT_OK:
                 break
             if poly_project(poly, x, y) < (tolerance * poly[P_SCALE]) ** 2:
                 if poly[P_OFFSET] > samples.boundary:
@@ -251,20 +251,17 @@ def trace_rays(origins, directions, t_min, t_max, samples, polys, radius, boxes,
                out_t, out_normal, out_color, out_fits):
     """trace_ray for every ray, in parallel blocks that each own their scratch buffers."""
     n = len(origins)
-    block = 256
-    for bi in numba.prange((n + block - 1) // block):
+    for block in numba.prange((n + BLOCK - 1) // BLOCK):
         keys = np.empty(QUEUE)
         items = np.empty(QUEUE, np.int64)
-        stack = np.empty(STACK, np.int64)
+        scratch = new_scratch()  # its candidate cache serves neighbouring rays
         poly = np.empty(POLY_SIZE)
-        work = np.empty((7, 7))
-        nb = np.empty((MAX_NEIGHBOURS, 6))
         x = np.empty(3)
         y = np.empty(3)
         nref = np.empty(3)
-        for r in range(bi * block, min(n, (bi + 1) * block)):
+        for r in range(block * BLOCK, min(n, (block + 1) * BLOCK)):
             t, fits = trace_ray(origins[r], directions[r], t_min, t_max, samples, polys, radius, boxes,
-                                tolerance, max_iter, keys, items, stack, poly, work, nb, x, y, nref,
+                                tolerance, max_iter, keys, items, scratch, poly, x, y, nref,
                                 out_normal[r], out_color[r])
             out_t[r] = t
             out_fits[r] = fits
@@ -325,45 +322,44 @@ def render_mls_cpu(cloud, camera, options, params: MlsParams, renderer) -> Rende
     t_max = 2.0 * (camera.far + np.linalg.norm(view[:3, 3]))
     hits = trace(scene, origins, dirs, 0.0, t_max, tolerance, max_iter)
     hit = hits.hit
-    x_local = origins + hits.t[:, None] * dirs
-    x_eye = x_local @ view[:3, :3].T + view[:3, 3]
-    depth = np.where(hit, -x_eye[:, 2], np.inf)
-    n_eye = hits.normals @ rot.T
-    to_eye = -d_eye.reshape(-1, 3)
-    flip = np.sum(n_eye * to_eye, axis=1) < 0
-    n_eye[flip] *= -1
-    n_eye[~hit] = 0
-    albedo = np.where(hit[:, None], hits.colors, 1.0)
+    idx = np.flatnonzero(hit)  # what follows is per hit: most rays of a frame miss
+    x_local = origins[idx] + hits.t[idx, None] * dirs[idx]
+    depth = np.full(h * w, np.inf)
+    depth[idx] = -(x_local @ view[2, :3] + view[2, 3])
+    n_hit = hits.normals[idx] @ rot.T
+    n_hit *= np.where(np.sum(n_hit * d_eye.reshape(-1, 3)[idx], axis=1) > 0, -1.0, 1.0)[:, None]  # face the viewer
+    n_eye = np.zeros((h * w, 3))
+    n_eye[idx] = n_hit
+    albedo = hits.colors[idx]
     indices = None
     coloring = options.coloring
     colors_of = renderer.surface_colors(cloud, cam, options)
     if colors_of is not None:  # the surface's own elevation, the nearest sample's category (never a blend)
         surface_albedo, indices = colors_of(depth.reshape(h, w))
-        albedo = np.where(hit[:, None], surface_albedo.reshape(-1, 3), 1.0)
+        albedo = surface_albedo.reshape(-1, 3)[idx]
     elif coloring is not None:
-        albedo = np.where(hit[:, None], coloring.decode(hits.colors), 1.0)
-    shaded = shade(options.surface_shading, albedo, n_eye, depth, camera.near, camera.far).astype(np.float64)
-    stats = {"splats": len(cloud), "rays": int(h * w), "hits": int(hit.sum()),
-             "iterations_mean": round(float(hits.fits[hit].mean()), 3) if hit.any() else 0.0,
-             "iterations_max": int(hits.fits[hit].max()) if hit.any() else 0,
+        albedo = coloring.decode(albedo)
+    shaded_hit = shade(options.surface_shading, albedo, n_hit, depth[idx], camera.near, camera.far)
+    stats = {"splats": len(cloud), "rays": int(h * w), "hits": int(idx.size),
+             "iterations_mean": round(float(hits.fits[idx].mean()), 3) if idx.size else 0.0,
+             "iterations_max": int(hits.fits[idx].max()) if idx.size else 0,
              "point_fit_failures": int((~scene.valid).sum()), "supersample": ss,
              "kernel_width": surface.scale}
     offset = 2.0 * tolerance * surface.scale + 0.25 * surface.scale
-    idx = np.flatnonzero(hit)
-    n_world = n_eye[idx] @ rot  # flipped towards the viewer
+    n_world = n_hit @ rot  # flipped towards the viewer
     if params.shadows and idx.size:
         light = KEY_LIGHT @ rot  # eye-space key light to world
         facing = n_world @ light > 0
-        start = x_local[idx] + offset * np.where(facing[:, None], n_world, -n_world)
+        start = x_local + offset * np.where(facing[:, None], n_world, -n_world)
         blocked = trace(scene, start, np.broadcast_to(light, start.shape), 0.0, t_max, tolerance, max_iter).hit
-        shadowed = idx[blocked | ~facing]
-        shaded[shadowed] = 0.2 * albedo[shadowed]
-        stats["shadowed"] = int(len(shadowed))
+        shadowed = blocked | ~facing
+        shaded_hit[shadowed] = 0.2 * albedo[shadowed]
+        stats["shadowed"] = int(shadowed.sum())
     if params.reflect and idx.size:
         reflectivity = params.reflectivity
         dv = dirs[idx]
         refl = dv - 2 * np.sum(dv * n_world, axis=1)[:, None] * n_world
-        bounce = trace(scene, x_local[idx] + offset * n_world, refl, 0.0, t_max, tolerance, max_iter)
+        bounce = trace(scene, x_local + offset * n_world, refl, 0.0, t_max, tolerance, max_iter)
         seen = environment(refl @ rot.T)
         if bounce.hit.any():
             b = bounce.hit
@@ -372,9 +368,11 @@ def render_mls_cpu(cloud, camera, options, params: MlsParams, renderer) -> Rende
             bn *= np.where(np.sum(bn * bd, axis=1) > 0, -1.0, 1.0)[:, None]
             bounce_albedo = bounce.colors[b] if coloring is None else coloring.decode(bounce.colors[b])
             seen[b] = shade(options.surface_shading, bounce_albedo, bn, depth[idx][b], camera.near, camera.far)
-        shaded[idx] = (1 - reflectivity) * shaded[idx] + reflectivity * seen
+        shaded_hit = (1 - reflectivity) * shaded_hit + reflectivity * seen
         stats["reflected_hits"] = int(bounce.hit.sum())
+    shaded = np.zeros((h * w, 3), np.float32)  # misses: no coverage, their colour never shows
+    shaded[idx] = shaded_hit
     coverage = hit.astype(np.float32)
-    return RenderResult.from_samples(shaded.reshape(h, w, 3).astype(np.float32), coverage.reshape(h, w),
+    return RenderResult.from_samples(shaded.reshape(h, w, 3), coverage.reshape(h, w),
                                      depth.reshape(h, w), n_eye.reshape(h, w, 3), supersample=ss,
                                      options=options, stats=stats, indices=indices)

@@ -94,6 +94,9 @@ FIT_NOT_CONVERGED = 4  # projection did not reach the tolerance in the allowed i
 MIN_NEIGHBOURS = 6     # a bivariate quadratic has 6 coefficients
 SUPPORT = 2.5          # Gaussian truncated at SUPPORT * h (weight exp(-6.25) = 0.002)
 MAX_NEIGHBOURS = 512   # neighbour buffer of one fit (a support holds ~50 on even sampling)
+CACHE = 2048           # candidate cache of a thread's fits (see `gather`)
+CACHE_REACH = 0.5      # ... valid within this many median kernel widths of where it was filled
+BLOCK = 256            # queries of one thread in a row: samples, or rays of one image row
 SPACING_K = 8          # spacing: mean distance to the 8 nearest neighbours, median-smoothed
 WIDTH_SLOPE = 0.5      # kernel widths fall by at most this per unit distance along a sheet
 WIDTH_SHEET_COS = 0.7  # ... a sheet: samples whose normals lie within 45 degrees
@@ -119,8 +122,12 @@ DEFAULT_KERNEL = MlsKernel()
 # What the compiled kernels read, in Morton order (numba takes a namedtuple of arrays whole):
 # points (N, 3), normals (N, 3) unit and oriented, h (N,) kernel widths, spacing (N,) s_i,
 # colors (N, 3), boxes (2L - 1, 2, 3) support boxes of the tree's nodes, domain, normal_weight
-# (1 / sigma_n^2).
-Samples = namedtuple("Samples", "points normals h spacing colors boxes domain normal_weight boundary")
+# (1 / sigma_n^2), boundary (the half-disc bound), reach (of the candidate cache, CACHE_REACH h).
+Samples = namedtuple("Samples", "points normals h spacing colors boxes domain normal_weight boundary reach")
+# One thread's scratch for `fit`: nb (MAX_NEIGHBOURS, 6) neighbour rows, stack (STACK,) of the
+# traversal, cache (CACHE + 1,) candidate count then indices, centre (4,) where the cache was
+# filled and how far from there it holds (0: empty), work (7, 7) the normal equations.
+Scratch = namedtuple("Scratch", "nb stack cache centre work")
 
 
 @dataclass(frozen=True, eq=False)
@@ -229,36 +236,40 @@ def build_surface(cloud: PointCloud, kernel: MlsKernel = DEFAULT_KERNEL) -> MLSS
     unit = np.ones((len(points), 3))
     for _ in range(WIDTH_PASSES):
         provisional = Samples(points, normals, h, h / kernel.h_scale, unit, leaf_tree(points, SUPPORT * h), 0.0,
-                              0.0, 0.0)
+                              0.0, 0.0, CACHE_REACH * float(np.median(h)))
         h = limited_widths(provisional, WIDTH_SLOPE)
     spacing = h / kernel.h_scale
     colors = np.ones((len(points), 3)) if cloud.colors is None else cloud.colors[order].astype(np.float64)
     boxes = leaf_tree(points, SUPPORT * h)
     samples = Samples(points, normals, h, spacing, np.ascontiguousarray(colors), boxes, float(kernel.domain),
-                      1.0 / kernel.normal_sigma**2, float(kernel.boundary))
+                      1.0 / kernel.normal_sigma**2, float(kernel.boundary), CACHE_REACH * float(np.median(h)))
     return MLSSurface(origin, order, samples)
 
 
+@numba.njit(cache=True)
+def new_scratch():
+    """One thread's `Scratch`, its candidate cache empty."""
+    return Scratch(np.empty((MAX_NEIGHBOURS, 6)), np.empty(STACK, np.int64), np.zeros(CACHE + 1, np.int64),
+                   np.zeros(4), np.empty((7, 7)))
+
+
 @numba.njit(cache=True, fastmath=True)
-def gather(x, nref, samples, nb, stack):
-    """The samples whose support holds x, through the support hierarchy: rows of `nb` get
-    (p_i - x, w_i, h_i, index). Returns (count, facing, inside): the rows written, the samples
-    facing nref, and whether one of those passes the domain test."""
-    points, normals, h, spacing, boxes = samples.points, samples.normals, samples.h, samples.spacing, samples.boxes
-    normal_weight, domain2 = samples.normal_weight, samples.domain * samples.domain
+def collect(x, reach, samples, stack, cache):
+    """Through the support hierarchy, the samples whose support grown by `reach` holds x:
+    their indices into cache[1:], their count into cache[0]. False when more than CACHE."""
+    points, h, boxes = samples.points, samples.h, samples.boxes
     n = points.shape[0]
     first_leaf = (boxes.shape[0] + 1) // 2 - 1
     x0, x1, x2 = x[0], x[1], x[2]
     count = 0
-    facing = 0
-    inside = False
     stack[0] = 0
     top = 1
     while top > 0:
         top -= 1
         node = stack[top]
-        if (x0 < boxes[node, 0, 0] or x0 > boxes[node, 1, 0] or x1 < boxes[node, 0, 1]
-                or x1 > boxes[node, 1, 1] or x2 < boxes[node, 0, 2] or x2 > boxes[node, 1, 2]):
+        if (x0 < boxes[node, 0, 0] - reach or x0 > boxes[node, 1, 0] + reach or x1 < boxes[node, 0, 1] - reach
+                or x1 > boxes[node, 1, 1] + reach or x2 < boxes[node, 0, 2] - reach
+                or x2 > boxes[node, 1, 2] + reach):
             continue
         if node < first_leaf:
             stack[top] = 2 * node + 2
@@ -268,21 +279,58 @@ def gather(x, nref, samples, nb, stack):
         start = (node - first_leaf) * LEAF
         for i in range(start, min(start + LEAF, n)):
             dx, dy, dz = points[i, 0] - x0, points[i, 1] - x1, points[i, 2] - x2
-            d2 = dx * dx + dy * dy + dz * dz
-            hi2 = h[i] * h[i]
-            if d2 >= SUPPORT * SUPPORT * hi2 or count >= nb.shape[0]:
-                continue
-            cos = normals[i, 0] * nref[0] + normals[i, 1] * nref[1] + normals[i, 2] * nref[2]
-            # |n_i - n_r|^2 = 2 (1 - cos) for unit normals
-            nb[count, 0], nb[count, 1], nb[count, 2] = dx, dy, dz
-            nb[count, 3] = math.exp(-d2 / hi2 - 2.0 * (1.0 - cos) * normal_weight)
-            nb[count, 4] = h[i]
-            nb[count, 5] = i
-            count += 1
-            if cos > 0.0:
-                facing += 1
-                if d2 < domain2 * spacing[i] * spacing[i]:
-                    inside = True
+            grown = SUPPORT * h[i] + reach
+            if dx * dx + dy * dy + dz * dz < grown * grown:
+                if count == CACHE:
+                    cache[0] = count
+                    return False
+                count += 1
+                cache[count] = i
+    cache[0] = count
+    return True
+
+
+@numba.njit(cache=True, fastmath=True)
+def gather(x, nref, samples, scratch):
+    """The samples whose support holds x: rows of scratch.nb get (p_i - x, w_i, h_i, index).
+    Returns (count, facing, inside): the rows written, the samples facing nref, and whether
+    one of those passes the domain test.
+
+    Candidates come from a cache: the samples whose support grown by samples.reach holds the
+    cache's centre c include every sample whose support holds an x with |x - c| < reach
+    (triangle inequality). Successive queries nearby -- a ray's iterations, neighbouring rays,
+    consecutive samples in Morton order -- skip the hierarchy; the result is the same."""
+    points, normals, h, spacing = samples.points, samples.normals, samples.h, samples.spacing
+    normal_weight, domain2 = samples.normal_weight, samples.domain * samples.domain
+    nb, cache, centre = scratch.nb, scratch.cache, scratch.centre
+    x0, x1, x2 = x[0], x[1], x[2]
+    cx, cy, cz = x0 - centre[0], x1 - centre[1], x2 - centre[2]
+    if centre[3] <= 0.0 or cx * cx + cy * cy + cz * cz >= centre[3] * centre[3]:
+        centre[0], centre[1], centre[2], centre[3] = x0, x1, x2, samples.reach
+        if not collect(x, samples.reach, samples, scratch.stack, cache):
+            collect(x, 0.0, samples, scratch.stack, cache)  # crowded: exactly the supports holding x,
+            centre[3] = 0.0  # valid for x alone
+    count = 0
+    facing = 0
+    inside = False
+    for k in range(1, cache[0] + 1):
+        i = cache[k]
+        dx, dy, dz = points[i, 0] - x0, points[i, 1] - x1, points[i, 2] - x2
+        d2 = dx * dx + dy * dy + dz * dz
+        hi2 = h[i] * h[i]
+        if d2 >= SUPPORT * SUPPORT * hi2 or count >= nb.shape[0]:
+            continue
+        cos = normals[i, 0] * nref[0] + normals[i, 1] * nref[1] + normals[i, 2] * nref[2]
+        # |n_i - n_r|^2 = 2 (1 - cos) for unit normals
+        nb[count, 0], nb[count, 1], nb[count, 2] = dx, dy, dz
+        nb[count, 3] = math.exp(-d2 / hi2 - 2.0 * (1.0 - cos) * normal_weight)
+        nb[count, 4] = h[i]
+        nb[count, 5] = i
+        count += 1
+        if cos > 0.0:
+            facing += 1
+            if d2 < domain2 * spacing[i] * spacing[i]:
+                inside = True
     return count, facing, inside
 
 
@@ -292,43 +340,56 @@ def limited_widths(samples, slope):
     width of a sample of the same sheet whose support reaches it: h_i >= h_j - slope |p_i - p_j|."""
     points, normals, h = samples.points, samples.normals, samples.h
     out = h.copy()
-    for i in numba.prange(points.shape[0]):
-        nb = np.empty((MAX_NEIGHBOURS, 6))
-        stack = np.empty(STACK, np.int64)
-        count, _, _ = gather(points[i], normals[i], samples, nb, stack)
-        for k in range(count):
-            j = int(nb[k, 5])
-            cos = normals[i, 0] * normals[j, 0] + normals[i, 1] * normals[j, 1] + normals[i, 2] * normals[j, 2]
-            if cos > WIDTH_SHEET_COS:
-                distance = math.sqrt(nb[k, 0] ** 2 + nb[k, 1] ** 2 + nb[k, 2] ** 2)
-                out[i] = max(out[i], h[j] - slope * distance)
+    n = points.shape[0]
+    for block in numba.prange((n + BLOCK - 1) // BLOCK):
+        scratch = new_scratch()  # per block of consecutive (nearby) samples: its cache is reused
+        nb = scratch.nb
+        for i in range(block * BLOCK, min(n, (block + 1) * BLOCK)):
+            count, _, _ = gather(points[i], normals[i], samples, scratch)
+            for k in range(count):
+                j = int(nb[k, 5])
+                cos = normals[i, 0] * normals[j, 0] + normals[i, 1] * normals[j, 1] + normals[i, 2] * normals[j, 2]
+                if cos > WIDTH_SHEET_COS:
+                    distance = math.sqrt(nb[k, 0] ** 2 + nb[k, 1] ** 2 + nb[k, 2] ** 2)
+                    out[i] = max(out[i], h[j] - slope * distance)
     return out
 
 
 @numba.njit(cache=True, fastmath=True)
-def fit(x, nref, samples, poly, work, nb, stack):
+def fit(x, nref, samples, poly, scratch):
     """Fit the local MLS polynomial at x, for the sheet facing nref, into `poly` (POLY_SIZE);
-    returns a FIT_* status.
+    returns a FIT_* status. `scratch` is the thread's `Scratch`.
 
-    `work` is a scratch (7, 7) array, `nb` a scratch (MAX_NEIGHBOURS, 6) array for `gather`,
-    `stack` a scratch (STACK,) int64 array. Coordinates over H are in units of the local
-    kernel width l so that the normal equations stay well conditioned at any sampling density.
+    Coordinates over H are in units of the local kernel width l so that the normal equations
+    stay well conditioned at any sampling density. Two passes over the neighbours: the
+    weighted sums and second moments about x (float64: the mean's offset from x is within a
+    support, so C = S2 - W m m^T loses nothing that matters), then the 15 moments w u^a v^b
+    (a + b <= 4) and 6 sums w f u^a v^b (a + b <= 2) that make the quadratic's normal
+    equations, as the GPU caster sums them.
     """
-    count, facing, inside = gather(x, nref, samples, nb, stack)
+    count, facing, inside = gather(x, nref, samples, scratch)
     if facing < MIN_NEIGHBOURS:
         return FIT_TOO_FEW
     if not inside:
         return FIT_OUTSIDE
-    colors = samples.colors
+    nb, work, colors = scratch.nb, scratch.work, samples.colors
     sw = sh = mx = my = mz = cr = cg = cb = 0.0
+    sxx = sxy = sxz = syy = syz = szz = 0.0
     for k in range(count):
         w = nb[k, 3]
         i = int(nb[k, 5])
+        dx, dy, dz = nb[k, 0], nb[k, 1], nb[k, 2]
         sw += w
         sh += w * nb[k, 4]
-        mx += w * nb[k, 0]
-        my += w * nb[k, 1]
-        mz += w * nb[k, 2]
+        mx += w * dx
+        my += w * dy
+        mz += w * dz
+        sxx += w * dx * dx
+        sxy += w * dx * dy
+        sxz += w * dx * dz
+        syy += w * dy * dy
+        syz += w * dy * dz
+        szz += w * dz * dz
         cr += w * colors[i, 0]
         cg += w * colors[i, 1]
         cb += w * colors[i, 2]
@@ -340,18 +401,11 @@ def fit(x, nref, samples, poly, work, nb, stack):
     scale = sh / sw
     inv_s = 1.0 / scale
     # covariance about the weighted mean, in units of the local width
-    c00 = c01 = c02 = c11 = c12 = c22 = 0.0
-    for k in range(count):
-        w = nb[k, 3]
-        px, py, pz = (nb[k, 0] - mx) * inv_s, (nb[k, 1] - my) * inv_s, (nb[k, 2] - mz) * inv_s
-        c00 += w * px * px
-        c01 += w * px * py
-        c02 += w * px * pz
-        c11 += w * py * py
-        c12 += w * py * pz
-        c22 += w * pz * pz
+    inv_s2 = inv_s * inv_s
     nrm = poly[P_N:P_N + 3]
-    if not smallest_eigenvector(c00, c01, c02, c11, c12, c22, nrm):
+    if not smallest_eigenvector((sxx - sw * mx * mx) * inv_s2, (sxy - sw * mx * my) * inv_s2,
+                                (sxz - sw * mx * mz) * inv_s2, (syy - sw * my * my) * inv_s2,
+                                (syz - sw * my * mz) * inv_s2, (szz - sw * mz * mz) * inv_s2, nrm):
         return FIT_DEGENERATE
     if nrm[0] * nref[0] + nrm[1] * nref[1] + nrm[2] * nref[2] < 0.0:
         for a in range(3):
@@ -364,22 +418,48 @@ def fit(x, nref, samples, poly, work, nb, stack):
     e1 = poly[P_E1:P_E1 + 3]
     e2 = poly[P_E2:P_E2 + 3]
     tangent_frame(nrm, e1, e2)
-    # weighted least squares quadratic over H: normal equations (lower triangle) and rhs in row 6
-    for a in range(7):
-        for b in range(7):
-            work[a, b] = 0.0
+    # frame axes scaled by 1 / l, so (u, v, f) come from p - x directly
+    e1x, e1y, e1z = e1[0] * inv_s, e1[1] * inv_s, e1[2] * inv_s
+    e2x, e2y, e2z = e2[0] * inv_s, e2[1] * inv_s, e2[2] * inv_s
+    nx, ny, nz = nrm[0] * inv_s, nrm[1] * inv_s, nrm[2] * inv_s
+    m10 = m01 = m20 = m11 = m02 = m30 = m21 = m12 = m03 = m40 = m31 = m22 = m13 = m04 = 0.0
+    f00 = f10 = f01 = f20 = f11 = f02 = 0.0
     for k in range(count):
         w = nb[k, 3]
-        px, py, pz = (nb[k, 0] - mx) * inv_s, (nb[k, 1] - my) * inv_s, (nb[k, 2] - mz) * inv_s
-        u = px * e1[0] + py * e1[1] + pz * e1[2]
-        v = px * e2[0] + py * e2[1] + pz * e2[2]
-        f = px * nrm[0] + py * nrm[1] + pz * nrm[2]
-        bs = (1.0, u, v, u * u, u * v, v * v)
-        for a in range(6):
-            wa = w * bs[a]
-            work[6, a] += wa * f
-            for b in range(a + 1):
-                work[a, b] += wa * bs[b]
+        px, py, pz = nb[k, 0] - mx, nb[k, 1] - my, nb[k, 2] - mz
+        u = px * e1x + py * e1y + pz * e1z
+        v = px * e2x + py * e2y + pz * e2z
+        wf = w * (px * nx + py * ny + pz * nz)
+        wu, wv = w * u, w * v
+        wuu, wuv, wvv = wu * u, wu * v, wv * v
+        m10 += wu
+        m01 += wv
+        m20 += wuu
+        m11 += wuv
+        m02 += wvv
+        m30 += wuu * u
+        m21 += wuu * v
+        m12 += wuv * v
+        m03 += wvv * v
+        m40 += wuu * u * u
+        m31 += wuu * u * v
+        m22 += wuu * v * v
+        m13 += wuv * v * v
+        m04 += wvv * v * v
+        f00 += wf
+        f10 += wf * u
+        f01 += wf * v
+        f20 += wf * u * u
+        f11 += wf * u * v
+        f02 += wf * v * v
+    # normal equations of the basis (1, u, v, u^2, u v, v^2): lower triangle, rhs in row 6
+    work[0, 0] = sw
+    work[1, 0], work[1, 1] = m10, m20
+    work[2, 0], work[2, 1], work[2, 2] = m01, m11, m02
+    work[3, 0], work[3, 1], work[3, 2], work[3, 3] = m20, m30, m21, m40
+    work[4, 0], work[4, 1], work[4, 2], work[4, 3], work[4, 4] = m11, m21, m12, m31, m22
+    work[5, 0], work[5, 1], work[5, 2], work[5, 3], work[5, 4], work[5, 5] = m02, m12, m03, m22, m13, m04
+    work[6, 0], work[6, 1], work[6, 2], work[6, 3], work[6, 4], work[6, 5] = f00, f10, f01, f20, f11, f02
     coef = work[6, :6]
     if not solve_spd(work, coef, 6):
         return FIT_DEGENERATE
@@ -395,15 +475,12 @@ def fit(x, nref, samples, poly, work, nb, stack):
     return FIT_OK
 
 
-
 @numba.njit(cache=True)
 def project_points(xs, nrefs, samples, tolerance, max_iter, out, status, iterations):
     """Iterate r <- P(r) for every row of xs (reference normal: the row of nrefs, then each
     fit's normal at the projected point) until the step is below tolerance * l."""
     poly = np.empty(POLY_SIZE)
-    work = np.empty((7, 7))
-    nb = np.empty((MAX_NEIGHBOURS, 6))
-    stack = np.empty(STACK, np.int64)
+    scratch = new_scratch()
     x = np.empty(3)
     y = np.empty(3)
     nref = np.empty(3)
@@ -412,7 +489,7 @@ def project_points(xs, nrefs, samples, tolerance, max_iter, out, status, iterati
         nref[:] = nrefs[k]
         status[k] = FIT_NOT_CONVERGED
         for it in range(max_iter):
-            st = fit(x, nref, samples, poly, work, nb, stack)
+            st = fit(x, nref, samples, poly, scratch)
             iterations[k] = it + 1
             if st != FIT_OK:
                 status[k] = st
@@ -429,11 +506,11 @@ def project_points(xs, nrefs, samples, tolerance, max_iter, out, status, iterati
 def fit_points(samples, polys, status):
     """The polynomial of every sample point, fitted for its own normal (the per-point pre-pass
     of both ray tracers)."""
-    for k in numba.prange(samples.points.shape[0]):
-        work = np.empty((7, 7))
-        nb = np.empty((MAX_NEIGHBOURS, 6))
-        stack = np.empty(STACK, np.int64)
-        status[k] = fit(samples.points[k], samples.normals[k], samples, polys[k], work, nb, stack)
+    n = samples.points.shape[0]
+    for block in numba.prange((n + BLOCK - 1) // BLOCK):
+        scratch = new_scratch()  # per block of consecutive (nearby) samples: its cache is reused
+        for k in range(block * BLOCK, min(n, (block + 1) * BLOCK)):
+            status[k] = fit(samples.points[k], samples.normals[k], samples, polys[k], scratch)
 
 
 @dataclass(frozen=True)
