@@ -36,7 +36,7 @@ uniform bool u_last;            // the last iteration: apply the half-disc test 
 uniform bool u_update_reference;  // the fit's normal becomes the next reference normal
 uniform bool u_retry;           // a later candidate: the nearest beyond the one that failed
 
-// Three vec4 per point: (p_i, h_i), (colour, s_i), (n_i, 0).
+// Three vec4 per point: (p_i, h_i), (colour, s_i), (n_i, a_i) (a_i: its area, surface.Samples).
 layout(std430, binding = 0) readonly buffer Points { vec4 points[]; };
 // Six vec4 per point (the CPU pre-pass's polynomial): (q, valid), (n, 0), (e1, 0), (e2, 0),
 // (c0, c1, c2, c3), (c4, c5, l, 0).
@@ -264,7 +264,7 @@ uniform sampler2D u_sum;
 uniform sampler2D u_xx;
 uniform sampler2D u_yz;
 uniform sampler2D u_color;
-layout(location = 0) out vec4 out_q;  // q = r + mean, half-disc offset of the mean in units of l
+layout(location = 0) out vec4 out_q;  // q = r + mean, 0
 layout(location = 1) out vec4 out_n;  // n (facing n_r), l (0: the fit failed)
 
 // Unit eigenvector of the symmetric 3x3 for the smallest eigenvalue (polynomial.smallest_eigenvector:
@@ -304,10 +304,8 @@ void main() {
                               xx.w - sum.w * m.y * m.y, yz.x - sum.w * m.y * m.z, yz.y - sum.w * m.z * m.z, n))
         return;
     if (dot(n, texelFetch(u_reference, pix, 0).xyz) < 0.0) n = -n;
-    float l = texelFetch(u_color, pix, 0).a / sum.w * u_scale;
-    vec3 mean = m * (u_scale / l);
-    out_q = vec4(r + m * u_scale, length(mean - dot(mean, n) * n));
-    out_n = vec4(n, l);
+    out_q = vec4(r + m * u_scale, 0.0);
+    out_n = vec4(n, texelFetch(u_color, pix, 0).a / sum.w * u_scale);
 }
 #endif
 
@@ -319,12 +317,15 @@ uniform sampler2D u_n;
 #ifdef PASS_SYSTEM
 // The normal equations of the weighted quadratic fit need only the 15 moments w u^i v^j
 // (i + j <= 4) and the 6 right-hand sides w f u^i v^j (i + j <= 2): 21 sums in 6 targets.
+// A seventh holds the half-disc test's sums (surface.fit): weights a_i w_i with h_i
+// replaced by l, the samples' offsets from r in units of l.
 layout(location = 0) out vec4 out_m0;  // 1, u, v, uu
 layout(location = 1) out vec4 out_m1;  // uv, vv, uuu, uuv
 layout(location = 2) out vec4 out_m2;  // uvv, vvv, u4, u3v
 layout(location = 3) out vec4 out_m3;  // u2v2, uv3, v4, f
 layout(location = 4) out vec4 out_m4;  // fu, fv, fuu, fuv
 layout(location = 5) out vec4 out_m5;  // fvv
+layout(location = 6) out vec4 out_m6;  // a w (p - r) / l, a w
 void main() {
     vec3 r;
     float t, w, d2;
@@ -344,6 +345,9 @@ void main() {
     out_m3 = w * vec4(uu * vv, uv * vv, vv * vv, f);
     out_m4 = w * f * vec4(u, v, uu, uv);
     out_m5 = vec4(w * f * vv, 0.0, 0.0, 0.0);
+    float h = points[3 * v_index].w, area = points[3 * v_index + 2].w;
+    float wa = area * w * exp(d2 * (1.0 / (h * h) - 1.0 / (n.w * n.w)));
+    out_m6 = wa * vec4((points[3 * v_index].xyz - r) / n.w, 1.0);
 }
 #endif
 
@@ -354,6 +358,7 @@ uniform sampler2D u_m2;
 uniform sampler2D u_m3;
 uniform sampler2D u_m4;
 uniform sampler2D u_m5;
+uniform sampler2D u_m6;
 uniform sampler2D u_color;  // w rgb of the covariance pass
 uniform sampler2D u_weight; // (w x, w) of the covariance pass
 layout(location = 0) out vec4 out_state;      // new t (MISS if the fit failed), |step| / l
@@ -372,7 +377,11 @@ void main() {
     ivec2 pix = ivec2(gl_FragCoord.xy);
     vec4 q = texelFetch(u_q, pix, 0), n = texelFetch(u_n, pix, 0);
     if (!current_hit(r, t) || n.w == 0.0) return;
-    if (u_last && q.w > u_boundary) return;  // converged past the edge of its sheet
+    if (u_last) {  // the half-disc test where the projection converged: past the edge of its sheet?
+        vec4 m6 = texelFetch(u_m6, pix, 0);
+        vec3 mean = m6.xyz / m6.w;
+        if (length(mean - dot(mean, n.xyz) * n.xyz) > u_boundary) return;
+    }
     vec4 m0 = texelFetch(u_m0, pix, 0), m1 = texelFetch(u_m1, pix, 0), m2 = texelFetch(u_m2, pix, 0);
     vec4 m3 = texelFetch(u_m3, pix, 0), m4 = texelFetch(u_m4, pix, 0), m5 = texelFetch(u_m5, pix, 0);
     // moments by degree k and power of v j at index k (k + 1) / 2 + j

@@ -25,11 +25,12 @@ Then `iterations` times (default 3), at r = o + t d:
    against the hits' depths, so supports wholly behind the surface never reach the fragment
    shader -- a third of the cost on llvmpipe;
 3. frame (full screen): q = r + mean, C = sum w x x^T - W m m^T, n its smallest eigenvector
-   turned towards n_r, l, and the tangential offset of the mean in units of l (half-disc test);
+   turned towards n_r, and l;
    too few facing samples, the domain test failing or a degenerate C make the pixel a miss;
 4. system: the supports again; with (u, v, f) the coordinates of (p_i - q) / l in (e1, e2, n),
    the normal equations of  min sum w (g(u, v) - f)^2  need only the 15 moments w u^a v^b
    (a + b <= 4) and the 6 sums w f u^a v^b (a + b <= 2): six RGBA32F targets, full system;
+   a seventh sums the half-disc test's area-weighted offsets of the samples from r;
 5. solve + re-intersect (full screen): Cholesky of the 6x6 (double precision), then the ray
    meets the new quadratic within 2.5 l of r (the CPU tracer's window) -- the next t, whose
    window depth is rewritten for the next culling test. The fit's normal at the new point is
@@ -77,7 +78,7 @@ class MlsGpuParams(MlsKernel):
 
 
 def pack_points(scene: MLSScene) -> np.ndarray:
-    """(N, 3, 4) float32: (p_i, h_i), (colour, s_i), (n_i, 0), positions relative to the local origin."""
+    """(N, 3, 4) float32: (p_i, h_i), (colour, s_i), (n_i, a_i), positions relative to the local origin."""
     s = scene.surface
     out = np.zeros((len(s.points), 3, 4), np.float32)
     out[:, 0, :3] = s.points
@@ -85,6 +86,7 @@ def pack_points(scene: MLSScene) -> np.ndarray:
     out[:, 1, :3] = s.colors
     out[:, 1, 3] = s.spacing
     out[:, 2, :3] = s.normals
+    out[:, 2, 3] = s.samples.area
     return out
 
 
@@ -132,7 +134,7 @@ class CasterTargets:
         self.reference = [texture(), texture()]
         self.sums = [texture() for _ in range(4)]
         self.frame = [texture(), texture()]
-        self.system = [texture() for _ in range(6)]
+        self.system = [texture() for _ in range(7)]
         self.normal, self.albedo = texture(), texture()
         self.first, self.failed = texture(), texture()  # t of a candidate; of one whose fits failed
         self.kept = [texture() for _ in range(3)]  # state, normal and albedo of converged candidates
@@ -223,7 +225,7 @@ def render_mls_gl(cloud: PointCloud, camera: Camera, options: RenderOptions, par
         set_uniforms(programs["solve"], u_last=step == iterations - 1, u_update_reference=step < REFERENCE_UPDATES)
         _bind(programs["solve"], {"u_state": targets.state[current], "u_reference": targets.reference[current],
                                   "u_q": targets.frame[0], "u_n": targets.frame[1],
-                                  **{f"u_m{k}": targets.system[k] for k in range(6)},
+                                  **{f"u_m{k}": targets.system[k] for k in range(7)},
                                   "u_color": targets.sums[3], "u_weight": targets.sums[0]})
         full_screen("solve")
         return 1 - current

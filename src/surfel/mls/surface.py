@@ -43,9 +43,12 @@ Domain. A fit needs MIN_NEIGHBOURS samples facing n_r (n_i . n_r > 0) in its sup
 one of them within `domain * s_i` of r (Adamson & Alexa's domain test: no bridging of holes).
 A sheet that the normal weight separates from its neighbour would run on past the crease or
 rim where it ends, so where a projection converges the half-disc test of Bendels, Schnabel &
-Klein ("Detecting holes in point set surfaces", 2006) applies too: the weighted mean of the
-samples may lie at most `boundary * l` from r across the tangent plane (at the edge of a
-half-plane of samples it lies 0.56 l away). Failures are statuses (FIT_*), never exceptions.
+Klein ("Detecting holes in point set surfaces", 2006) applies too: the mean of the samples,
+weighted by a_i exp(-|p_i - r|^2 / l^2 - |n_i - n_r|^2 / sigma_n^2) (a_i the area a sample
+stands for: its spacing before the slope limit, squared), may lie at most `boundary * l`
+from r across the tangent plane (at the edge of a half-plane it lies l / sqrt(pi) = 0.56 l
+away). The areas and the one width l keep a jump in sampling density from reading as an
+edge. Failures are statuses (FIT_*), never exceptions.
 
 Neighbour search: a bounding volume hierarchy over the supports. The samples are stored in
 Morton order; each leaf holds LEAF consecutive samples, each node the box of its samples'
@@ -121,9 +124,10 @@ DEFAULT_KERNEL = MlsKernel()
 
 # What the compiled kernels read, in Morton order (numba takes a namedtuple of arrays whole):
 # points (N, 3), normals (N, 3) unit and oriented, h (N,) kernel widths, spacing (N,) s_i,
+# area (N,) the surface each sample stands for (its unlimited spacing squared, relative),
 # colors (N, 3), boxes (2L - 1, 2, 3) support boxes of the tree's nodes, domain, normal_weight
 # (1 / sigma_n^2), boundary (the half-disc bound), reach (of the candidate cache, CACHE_REACH h).
-Samples = namedtuple("Samples", "points normals h spacing colors boxes domain normal_weight boundary reach")
+Samples = namedtuple("Samples", "points normals h spacing area colors boxes domain normal_weight boundary reach")
 # One thread's scratch for `fit`: nb (MAX_NEIGHBOURS, 6) neighbour rows, stack (STACK,) of the
 # traversal, cache (CACHE + 1,) candidate count then indices, centre (4,) where the cache was
 # filled and how far from there it holds (0: empty), work (7, 7) the normal equations.
@@ -232,16 +236,18 @@ def build_surface(cloud: PointCloud, kernel: MlsKernel = DEFAULT_KERNEL) -> MLSS
     order = morton_order(cloud.positions)
     points = np.ascontiguousarray(cloud.positions[order] - origin)
     normals = np.ascontiguousarray(oriented_normals(cloud)[order])
-    h = kernel.h_scale * local_spacing(points)
+    sampled = local_spacing(points)
+    area = (sampled / np.median(sampled)) ** 2
+    h = kernel.h_scale * sampled
     unit = np.ones((len(points), 3))
     for _ in range(WIDTH_PASSES):
-        provisional = Samples(points, normals, h, h / kernel.h_scale, unit, leaf_tree(points, SUPPORT * h), 0.0,
+        provisional = Samples(points, normals, h, h / kernel.h_scale, area, unit, leaf_tree(points, SUPPORT * h), 0.0,
                               0.0, 0.0, CACHE_REACH * float(np.median(h)))
         h = limited_widths(provisional, WIDTH_SLOPE)
     spacing = h / kernel.h_scale
     colors = np.ones((len(points), 3)) if cloud.colors is None else cloud.colors[order].astype(np.float64)
     boxes = leaf_tree(points, SUPPORT * h)
-    samples = Samples(points, normals, h, spacing, np.ascontiguousarray(colors), boxes, float(kernel.domain),
+    samples = Samples(points, normals, h, spacing, area, np.ascontiguousarray(colors), boxes, float(kernel.domain),
                       1.0 / kernel.normal_sigma**2, float(kernel.boundary), CACHE_REACH * float(np.median(h)))
     return MLSSurface(origin, order, samples)
 
@@ -372,7 +378,7 @@ def fit(x, nref, samples, poly, scratch):
         return FIT_TOO_FEW
     if not inside:
         return FIT_OUTSIDE
-    nb, work, colors = scratch.nb, scratch.work, samples.colors
+    nb, work, colors, area = scratch.nb, scratch.work, samples.colors, samples.area
     sw = sh = mx = my = mz = cr = cg = cb = 0.0
     sxx = sxy = sxz = syy = syz = szz = 0.0
     for k in range(count):
@@ -410,11 +416,6 @@ def fit(x, nref, samples, poly, scratch):
     if nrm[0] * nref[0] + nrm[1] * nref[1] + nrm[2] * nref[2] < 0.0:
         for a in range(3):
             nrm[a] = -nrm[a]
-    # half-disc test (checked where a projection ends): past the edge of a sheet the weighted
-    # mean lies off to one side of x
-    ux, uy, uz = mx * inv_s, my * inv_s, mz * inv_s
-    along = ux * nrm[0] + uy * nrm[1] + uz * nrm[2]
-    poly[P_OFFSET] = math.sqrt(max(ux * ux + uy * uy + uz * uz - along * along, 0.0))
     e1 = poly[P_E1:P_E1 + 3]
     e2 = poly[P_E2:P_E2 + 3]
     tangent_frame(nrm, e1, e2)
@@ -424,9 +425,17 @@ def fit(x, nref, samples, poly, scratch):
     nx, ny, nz = nrm[0] * inv_s, nrm[1] * inv_s, nrm[2] * inv_s
     m10 = m01 = m20 = m11 = m02 = m30 = m21 = m12 = m03 = m40 = m31 = m22 = m13 = m04 = 0.0
     f00 = f10 = f01 = f20 = f11 = f02 = 0.0
+    sa = ax = ay = az = 0.0  # the half-disc test's sums
     for k in range(count):
         w = nb[k, 3]
-        px, py, pz = nb[k, 0] - mx, nb[k, 1] - my, nb[k, 2] - mz
+        dx, dy, dz = nb[k, 0], nb[k, 1], nb[k, 2]
+        # w with the sample's width h_i replaced by l: the normal-agreement factor stays
+        wa = area[int(nb[k, 5])] * w * math.exp((dx * dx + dy * dy + dz * dz) * (1.0 / (nb[k, 4] * nb[k, 4]) - inv_s2))
+        sa += wa
+        ax += wa * dx
+        ay += wa * dy
+        az += wa * dz
+        px, py, pz = dx - mx, dy - my, dz - mz
         u = px * e1x + py * e1y + pz * e1z
         v = px * e2x + py * e2y + pz * e2z
         wf = w * (px * nx + py * ny + pz * nz)
@@ -460,6 +469,12 @@ def fit(x, nref, samples, poly, scratch):
     work[4, 0], work[4, 1], work[4, 2], work[4, 3], work[4, 4] = m11, m21, m12, m31, m22
     work[5, 0], work[5, 1], work[5, 2], work[5, 3], work[5, 4], work[5, 5] = m02, m12, m03, m22, m13, m04
     work[6, 0], work[6, 1], work[6, 2], work[6, 3], work[6, 4], work[6, 5] = f00, f10, f01, f20, f11, f02
+    # half-disc test (checked where a projection ends): past the edge of a sheet the mean of
+    # the samples about x, each counted for its area under one Gaussian of the local width,
+    # lies off to one side of x (a jump in sampling density does not: the areas even it out)
+    ux, uy, uz = ax / sa * inv_s, ay / sa * inv_s, az / sa * inv_s
+    along = ux * nrm[0] + uy * nrm[1] + uz * nrm[2]
+    poly[P_OFFSET] = math.sqrt(max(ux * ux + uy * uy + uz * uz - along * along, 0.0))
     coef = work[6, :6]
     if not solve_spd(work, coef, 6):
         return FIT_DEGENERATE
