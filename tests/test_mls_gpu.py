@@ -80,8 +80,8 @@ def test_agrees_with_cpu_mls_on_coarse_spot():
     options = RenderOptions(shading="lambert")
     gpu = mls_gl(cloud, cam, options)
     cpu = mls_cpu(cloud, cam, options)
-    metrics = compare_results(cpu, gpu)  # measured 32.3 dB, 0.6% of the CPU's coverage missing
-    assert metrics["psnr"] >= 30 and metrics["holes"] <= 0.01 and metrics["spill"] <= 0.005
+    metrics = compare_results(cpu, gpu)  # measured 38.6 dB, 0.08% holes (two candidates: 32.2 dB, 0.6%)
+    assert metrics["psnr"] >= 35 and metrics["holes"] <= 0.002 and metrics["spill"] <= 0.002
     both = np.isfinite(cpu.depth) & np.isfinite(gpu.depth)
     assert np.median(np.abs(cpu.depth[both] - gpu.depth[both]) / cpu.depth[both]) <= 1e-5
 
