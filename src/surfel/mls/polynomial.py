@@ -22,8 +22,8 @@ import math
 import numba
 
 # Layout of one fitted polynomial row: q, n, e1, e2, coefficients c0..c5, colour, local width l.
-P_Q, P_N, P_E1, P_E2, P_C, P_COLOR, P_SCALE, P_OFFSET = 0, 3, 6, 9, 12, 18, 21, 22
-POLY_SIZE = 23
+P_Q, P_N, P_E1, P_E2, P_C, P_COLOR, P_SCALE = 0, 3, 6, 9, 12, 18, 21
+POLY_SIZE = 22
 
 
 @numba.njit(cache=True, fastmath=True)

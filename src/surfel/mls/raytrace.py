@@ -38,7 +38,7 @@ import numpy as np
 from ..options import at_least, between, check_cpu_samples, positive, setting
 from ..result import RenderResult
 from ..shading import KEY_LIGHT, shade
-from .polynomial import P_COLOR, P_OFFSET, P_SCALE, POLY_SIZE, poly_normal, poly_project, poly_ray
+from .polynomial import P_COLOR, P_SCALE, POLY_SIZE, poly_normal, poly_project, poly_ray
 from .surface import (
     BLOCK,
     DEFAULT_KERNEL,
@@ -53,6 +53,7 @@ from .surface import (
     fit,
     leaf_tree,
     new_scratch,
+    past_edge,
     point_polynomials,
 )
 
@@ -229,7 +230,7 @@ def trace_ray(o, d, t_min, t_max, samples, polys, radius, boxes, tolerance, max_
             if fit(x, nref, samples, poly, scratch) != FIT_OK:
                 break
             if poly_project(poly, x, y) < (tolerance * poly[P_SCALE]) ** 2:
-                if poly[P_OFFSET] > samples.boundary:
+                if past_edge(poly, samples, scratch):
                     break  # converged past the edge of the sheet
                 poly_normal(poly, x, normal)
                 for a in range(3):

@@ -77,7 +77,6 @@ from .polynomial import (
     P_E1,
     P_E2,
     P_N,
-    P_OFFSET,
     P_Q,
     P_SCALE,
     POLY_SIZE,
@@ -128,10 +127,11 @@ DEFAULT_KERNEL = MlsKernel()
 # colors (N, 3), boxes (2L - 1, 2, 3) support boxes of the tree's nodes, domain, normal_weight
 # (1 / sigma_n^2), boundary (the half-disc bound), reach (of the candidate cache, CACHE_REACH h).
 Samples = namedtuple("Samples", "points normals h spacing area colors boxes domain normal_weight boundary reach")
-# One thread's scratch for `fit`: nb (MAX_NEIGHBOURS, 6) neighbour rows, stack (STACK,) of the
+# One thread's scratch for `fit`: nb (MAX_NEIGHBOURS, 6) neighbour rows (found[0] of them
+# written by the last fit), stack (STACK,) of the
 # traversal, cache (CACHE + 1,) candidate count then indices, centre (4,) where the cache was
 # filled and how far from there it holds (0: empty), work (7, 7) the normal equations.
-Scratch = namedtuple("Scratch", "nb stack cache centre work")
+Scratch = namedtuple("Scratch", "nb found stack cache centre work")
 
 
 @dataclass(frozen=True, eq=False)
@@ -255,7 +255,8 @@ def build_surface(cloud: PointCloud, kernel: MlsKernel = DEFAULT_KERNEL) -> MLSS
 @numba.njit(cache=True)
 def new_scratch():
     """One thread's `Scratch`, its candidate cache empty."""
-    return Scratch(np.empty((MAX_NEIGHBOURS, 6)), np.empty(STACK, np.int64), np.zeros(CACHE + 1, np.int64),
+    return Scratch(np.empty((MAX_NEIGHBOURS, 6)), np.zeros(1, np.int64), np.empty(STACK, np.int64),
+                   np.zeros(CACHE + 1, np.int64),
                    np.zeros(4), np.empty((7, 7)))
 
 
@@ -378,7 +379,8 @@ def fit(x, nref, samples, poly, scratch):
         return FIT_TOO_FEW
     if not inside:
         return FIT_OUTSIDE
-    nb, work, colors, area = scratch.nb, scratch.work, samples.colors, samples.area
+    scratch.found[0] = count
+    nb, work, colors = scratch.nb, scratch.work, samples.colors
     sw = sh = mx = my = mz = cr = cg = cb = 0.0
     sxx = sxy = sxz = syy = syz = szz = 0.0
     for k in range(count):
@@ -425,17 +427,9 @@ def fit(x, nref, samples, poly, scratch):
     nx, ny, nz = nrm[0] * inv_s, nrm[1] * inv_s, nrm[2] * inv_s
     m10 = m01 = m20 = m11 = m02 = m30 = m21 = m12 = m03 = m40 = m31 = m22 = m13 = m04 = 0.0
     f00 = f10 = f01 = f20 = f11 = f02 = 0.0
-    sa = ax = ay = az = 0.0  # the half-disc test's sums
     for k in range(count):
         w = nb[k, 3]
-        dx, dy, dz = nb[k, 0], nb[k, 1], nb[k, 2]
-        # w with the sample's width h_i replaced by l: the normal-agreement factor stays
-        wa = area[int(nb[k, 5])] * w * math.exp((dx * dx + dy * dy + dz * dz) * (1.0 / (nb[k, 4] * nb[k, 4]) - inv_s2))
-        sa += wa
-        ax += wa * dx
-        ay += wa * dy
-        az += wa * dz
-        px, py, pz = dx - mx, dy - my, dz - mz
+        px, py, pz = nb[k, 0] - mx, nb[k, 1] - my, nb[k, 2] - mz
         u = px * e1x + py * e1y + pz * e1z
         v = px * e2x + py * e2y + pz * e2z
         wf = w * (px * nx + py * ny + pz * nz)
@@ -469,12 +463,6 @@ def fit(x, nref, samples, poly, scratch):
     work[4, 0], work[4, 1], work[4, 2], work[4, 3], work[4, 4] = m11, m21, m12, m31, m22
     work[5, 0], work[5, 1], work[5, 2], work[5, 3], work[5, 4], work[5, 5] = m02, m12, m03, m22, m13, m04
     work[6, 0], work[6, 1], work[6, 2], work[6, 3], work[6, 4], work[6, 5] = f00, f10, f01, f20, f11, f02
-    # half-disc test (checked where a projection ends): past the edge of a sheet the mean of
-    # the samples about x, each counted for its area under one Gaussian of the local width,
-    # lies off to one side of x (a jump in sampling density does not: the areas even it out)
-    ux, uy, uz = ax / sa * inv_s, ay / sa * inv_s, az / sa * inv_s
-    along = ux * nrm[0] + uy * nrm[1] + uz * nrm[2]
-    poly[P_OFFSET] = math.sqrt(max(ux * ux + uy * uy + uz * uz - along * along, 0.0))
     coef = work[6, :6]
     if not solve_spd(work, coef, 6):
         return FIT_DEGENERATE
@@ -488,6 +476,29 @@ def fit(x, nref, samples, poly, scratch):
     poly[P_COLOR + 2] = cb / sw
     poly[P_SCALE] = scale
     return FIT_OK
+
+
+@numba.njit(cache=True, fastmath=True)
+def past_edge(poly, samples, scratch):
+    """The half-disc test of the last fit (its neighbours still in `scratch`), made where a
+    projection converges: past the edge of a sheet the mean of the samples about x, each
+    counted for its area under one Gaussian of the local width, lies off to one side of x
+    (a jump in sampling density does not: the areas even it out)."""
+    nb, area = scratch.nb, samples.area
+    inv_l2 = 1.0 / (poly[P_SCALE] * poly[P_SCALE])
+    sa = ax = ay = az = 0.0
+    for k in range(scratch.found[0]):
+        dx, dy, dz = nb[k, 0], nb[k, 1], nb[k, 2]
+        # w with the sample's width h_i replaced by l: the normal-agreement factor stays
+        wa = area[int(nb[k, 5])] * nb[k, 3] * math.exp((dx * dx + dy * dy + dz * dz) * (1.0 / (nb[k, 4] * nb[k, 4])
+                                                                                        - inv_l2))
+        sa += wa
+        ax += wa * dx
+        ay += wa * dy
+        az += wa * dz
+    ax, ay, az = ax / sa, ay / sa, az / sa
+    along = ax * poly[P_N] + ay * poly[P_N + 1] + az * poly[P_N + 2]
+    return ax * ax + ay * ay + az * az - along * along > (samples.boundary * poly[P_SCALE]) ** 2
 
 
 @numba.njit(cache=True)
@@ -512,7 +523,7 @@ def project_points(xs, nrefs, samples, tolerance, max_iter, out, status, iterati
             step2 = poly_project(poly, x, y)
             x[:] = y
             if step2 < (tolerance * poly[P_SCALE]) ** 2:
-                status[k] = FIT_OK if poly[P_OFFSET] <= samples.boundary else FIT_OUTSIDE
+                status[k] = FIT_OUTSIDE if past_edge(poly, samples, scratch) else FIT_OK
                 break
         out[k] = x
 
