@@ -17,7 +17,7 @@ the last polynomial (n - g_u e1 - g_v e2). Parameters (`MlsParams`):
     h_scale (1.2)       kernel width h_i = h_scale * local spacing s_i (surface.MlsKernel)
     domain (2.0)        domain test / sphere radius in units of s_i (surface.MlsKernel)
     normal_sigma (0.6)  width of the normal-agreement weight (surface.MlsKernel)
-    boundary (0.6)      half-disc test bound, in units of the local width l (surface.MlsKernel)
+    boundary (0.7)      half-disc test bound, in units of the local width l (surface.MlsKernel)
     tolerance (1e-3)    eps, as a fraction of the local kernel width l
     max_iterations (8)  fits per candidate sphere before giving up on it
     shadows (False)     a shadow ray to the directional key light of shading.py (eye space

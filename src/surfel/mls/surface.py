@@ -116,7 +116,7 @@ class MlsKernel(Settings):
     h_scale: float = setting(1.2, positive)  # kernel width h_i = h_scale * local spacing s_i
     domain: float = setting(2.0, positive)  # domain test (and bounding sphere) radius, in units of s_i
     normal_sigma: float = setting(0.6, positive)  # width sigma_n of the normal-agreement weight
-    boundary: float = setting(0.6, positive)  # half-disc test: tangential offset of the weighted mean, in l
+    boundary: float = setting(0.7, positive)  # half-disc test: tangential offset of the mean, in l (edge: 0.56)
 
 
 DEFAULT_KERNEL = MlsKernel()
