@@ -17,7 +17,8 @@ cloud's GPU buffers. Clouds are keyed by identity,
 held weakly: a PointCloud and its arrays cannot change, so what was derived from one stays
 true, and an entry goes when its cloud goes (its GL objects are released on the next frame).
 It also keeps the compiled GL programs, the three-pass targets of the last frame size and
-the colour table of the last colour mode.
+those a method draws with itself (the MLS caster's), also of the last size, and the colour
+table of the last colour mode.
 Its lifetime is the object's: `close()`, or leaving a `with` block, releases its GL objects.
 `surfel.render()` uses a module-level Renderer; the viewer, turntable, bench and each batch
 worker hold their own.
@@ -98,6 +99,7 @@ class Renderer:
         self._per_cloud: weakref.WeakKeyDictionary[PointCloud, dict] = weakref.WeakKeyDictionary()
         self._programs: dict = {}
         self._targets: tuple | None = None  # (size key, gl.passes.SplatTargets)
+        self._kept_targets: dict = {}  # a method's own targets by kind: (key, targets) of the last key
         self._color_table: tuple | None = None  # (Coloring, its GL texture)
         self._released_clouds: list = []  # GL objects of clouds that are gone, released on the next frame
 
@@ -151,6 +153,16 @@ class Renderer:
             self._targets = None  # nothing kept if the allocation fails
             self._targets = (key, SplatTargets.allocate(width, height, guard, back_layer))
         return self._targets[1]
+
+    def targets(self, kind: str, key, make):
+        """A method's own GL targets (`release()`), made by `make()` for `key` (their size);
+        those of the last key of each kind are kept, as `splat_targets` keeps its own."""
+        kept = self._kept_targets.get(kind)
+        if kept is None or kept[0] != key:
+            if kept is not None:
+                self._kept_targets.pop(kind)[1].release()  # nothing kept if the allocation fails
+            self._kept_targets[kind] = (key, make())
+        return self._kept_targets[kind][1]
 
     def use_color_table(self, options: RenderOptions) -> None:
         """Bind the colour mode's LUT or palette (gl/colors.glsl's u_color_table), 256
@@ -229,6 +241,9 @@ class Renderer:
         if self._targets is not None:
             self._targets[1].release()
             self._targets = None
+        for _, targets in self._kept_targets.values():
+            targets.release()
+        self._kept_targets.clear()
         if self._color_table is not None:
             self._color_table[1].release()
             self._color_table = None

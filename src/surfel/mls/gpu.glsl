@@ -1,13 +1,23 @@
 // GPU ray casting of the MLS point set surface (Tejada, Gois, Nonato, Castelo & Ertl 2006;
 // survey section 2.3.2). One source, the passes chosen by #define (see gpu.py for the flow):
 //   PASS_INTERSECT   discs of the bounding spheres: pixel ray meets the point's polynomial,
-//                    nearest t kept by MIN blending
+//                    the nearest t kept by the depth test, with the sample's normal as the
+//                    reference normal n_r of the fits to come (on a retry: the nearest beyond
+//                    the candidate the pixel's fits failed from)
+//   PASS_CULL        full screen: pixels without a candidate get depth 0, so that no support
+//                    disc reaches their fragment shader
 //   PASS_COVARIANCE  discs of the kernel supports: weighted sums about the hit point r
-//   PASS_FRAME       full screen: weighted mean q and smallest eigenvector n of the covariance
+//   PASS_FRAME       full screen: weighted mean q, smallest eigenvector n of the covariance,
+//                    local kernel width l and the half-disc offset
 //   PASS_SYSTEM      discs of the kernel supports: moments of the quadratic's normal equations
 //   PASS_SOLVE       full screen: solve the 6x6 system, re-intersect the ray with the quadratic
+//   PASS_KEEP        full screen: the candidate's surface point, normal and colour where it
+//                    converged
+//   PASS_RETRY       full screen: the t of the candidate where its fits failed, for the next one
 //   PASS_SHADE       full screen: normal, colour and depth into the G-buffer layout
-// Lengths inside a fit are in units of u_scale (the median kernel width), like surface.py.
+// The weights are surface.py's: w = exp(-|p - r|^2 / h^2 - |n_i - n_r|^2 / sigma_n^2) within
+// SUPPORT h. Sums over a support are in units of u_scale (the median kernel width), a fit's
+// frame in units of its local width l, like surface.py.
 #include "common.glsl"
 #include "shading.glsl"
 
@@ -15,28 +25,34 @@
 #define FAR 3.0e38
 #define MISS 1.0e38
 #define MIN_NEIGHBOURS 6.0
+#define RETRY_GAP 0.5  // a later candidate lies this many of its kernel widths beyond a failed one
 
-uniform mat4 u_view_inv;  // eye to local world
-uniform float u_scale;    // median kernel width h
-uniform float u_domain;   // domain test / bounding sphere radius in units of the spacing s_i
-uniform float u_window;   // re-intersection window around the current t (SUPPORT * u_scale)
+uniform mat4 u_view_inv;        // eye to local world
+uniform float u_scale;          // median kernel width: the unit of the support sums
+uniform float u_domain;         // domain test / bounding sphere radius in units of the spacing s_i
+uniform float u_normal_weight;  // 1 / sigma_n^2
+uniform float u_boundary;       // half-disc test: largest offset of the weighted mean, in units of l
+uniform bool u_last;            // the last iteration: apply the half-disc test to its fit
+uniform bool u_update_reference;  // the fit's normal becomes the next reference normal
+uniform bool u_retry;           // a later candidate: the nearest beyond the one that failed
 
-// Two vec4 per point: (p_i, h_i), (colour, s_i).
+// Three vec4 per point: (p_i, h_i), (colour, s_i), (n_i, a_i) (a_i: its area, surface.Samples).
 layout(std430, binding = 0) readonly buffer Points { vec4 points[]; };
 // Six vec4 per point (the CPU pre-pass's polynomial): (q, valid), (n, 0), (e1, 0), (e2, 0),
-// (c0, c1, c2, c3), (c4, c5, 0, 0).
+// (c0, c1, c2, c3), (c4, c5, l, 0).
 layout(std430, binding = 1) readonly buffer Polys { vec4 polys[]; };
 
 struct Quadratic {
     vec3 q, n, e1, e2;   // origin and frame of the reference plane H
-    float c[6];          // g(u, v) = c0 + c1 u + c2 v + c3 u^2 + c4 u v + c5 v^2, in units of u_scale
+    float c[6];          // g(u, v) = c0 + c1 u + c2 v + c3 u^2 + c4 u v + c5 v^2, in units of l
+    float l;             // the fit's local kernel width
 };
 
-// Smallest t in [lo, hi] where o + t d meets the quadratic (poly_ray of surface.py); the
+// Smallest t in [lo, hi] where o + t d meets the quadratic (polynomial.poly_ray); the
 // caller puts o near the surface so the coefficients stay small in float32.
 bool ray_quadratic(Quadratic g, vec3 o, vec3 d, float lo, float hi, out float t) {
-    vec3 r = (o - g.q) / u_scale;
-    vec3 ds = d / u_scale;
+    vec3 r = (o - g.q) / g.l;
+    vec3 ds = d / g.l;
     float u0 = dot(r, g.e1), v0 = dot(r, g.e2), f0 = dot(r, g.n);
     float du = dot(ds, g.e1), dv = dot(ds, g.e2), df = dot(ds, g.n);
     float qa = g.c[3] * du * du + g.c[4] * du * dv + g.c[5] * dv * dv;
@@ -61,14 +77,14 @@ bool ray_quadratic(Quadratic g, vec3 o, vec3 d, float lo, float hi, out float t)
 
 // Unit normal of the quadratic at (the foot point of) x: n - g_u e1 - g_v e2.
 vec3 quadratic_normal(Quadratic g, vec3 x) {
-    vec3 r = (x - g.q) / u_scale;
+    vec3 r = (x - g.q) / g.l;
     float u = dot(r, g.e1), v = dot(r, g.e2);
     float gu = g.c[1] + 2.0 * g.c[3] * u + g.c[4] * v;
     float gv = g.c[2] + g.c[4] * u + 2.0 * g.c[5] * v;
     return normalize(g.n - gu * g.e1 - gv * g.e2);
 }
 
-// The deterministic tangent basis of surface.tangent_frame.
+// The deterministic tangent basis of polynomial.tangent_frame.
 void tangent_frame(vec3 n, out vec3 e1, out vec3 e2) {
     vec3 a = abs(n.x) < 0.6 ? vec3(1.0, 0.0, 0.0) : vec3(0.0, 1.0, 0.0);
     e1 = normalize(cross(a, n));
@@ -89,9 +105,9 @@ flat out int v_index;
 void main() {
     int i = gl_InstanceID;
     v_index = i;
-    vec4 ph = points[2 * i];
+    vec4 ph = points[3 * i];
 #ifdef PASS_INTERSECT
-    float radius = u_domain * points[2 * i + 1].w;
+    float radius = u_domain * points[3 * i + 1].w;
     if (polys[6 * i].w == 0.0) { gl_Position = vec4(2.0, 2.0, 2.0, 1.0); return; }  // failed fit
 #else
     float radius = SUPPORT * ph.w;
@@ -151,7 +167,8 @@ void local_ray(out vec3 o, out vec3 d) {
     d = mat3(u_view_inv) * de;
 }
 
-uniform sampler2D u_state;  // r: current ray parameter t (>= MISS: no surface), g: last step / scale
+uniform sampler2D u_state;      // r: current ray parameter t (>= MISS: no surface), g: last step / l
+uniform sampler2D u_reference;  // the reference normal n_r of the pixel's next fit
 
 Quadratic point_quadratic(int i) {
     Quadratic g;
@@ -161,6 +178,7 @@ Quadratic point_quadratic(int i) {
     g.e2 = polys[6 * i + 3].xyz;
     vec4 a = polys[6 * i + 4], b = polys[6 * i + 5];
     g.c = float[6](a.x, a.y, a.z, a.w, b.x, b.y);
+    g.l = b.z;
     return g;
 }
 
@@ -175,13 +193,16 @@ bool current_hit(out vec3 r, out float t) {
 }
 
 #ifdef PASS_INTERSECT
+uniform sampler2D u_failed;  // r: t of the candidate the pixel's fits failed from (>= MISS: none)
 layout(location = 0) out vec4 out_t;
+layout(location = 1) out vec4 out_reference;
+layout(location = 2) out vec4 out_first;  // t, kept for PASS_RETRY
 void main() {
     vec3 o, d;
     local_ray(o, d);
     int i = v_index;
-    vec3 oc = o - points[2 * i].xyz;
-    float radius = u_domain * points[2 * i + 1].w;
+    vec3 oc = o - points[3 * i].xyz;
+    float radius = u_domain * points[3 * i + 1].w;
     float a = dot(d, d), b = dot(oc, d), c = dot(oc, oc) - radius * radius;
     float disc = b * b - a * c;
     if (disc < 0.0) discard;
@@ -191,39 +212,50 @@ void main() {
     // solved from the sphere entry so the quadratic's coefficients stay small
     if (!ray_quadratic(point_quadratic(i), o + t_in * d, d, 0.0, t_out - t_in, dt)) discard;
     float t = t_in + dt;
+    if (u_retry) {
+        float failed = texelFetch(u_failed, ivec2(gl_FragCoord.xy), 0).r;
+        // beyond the failed candidate's sheet: its other samples meet the ray at nearly its t
+        if (failed >= MISS || t <= failed + RETRY_GAP * points[3 * i].w) discard;
+    }
     out_t = vec4(t, 0.0, 0.0, 0.0);
-    gl_FragDepth = window_depth(vec3(0.0, 0.0, -t));  // the hit depths for the passes' depth test
+    out_first = out_t;
+    out_reference = vec4(points[3 * i + 2].xyz, 0.0);
+    gl_FragDepth = window_depth(vec3(0.0, 0.0, -t));  // nearest wins; the passes' depth test
 }
 #endif
 
 #if defined(PASS_COVARIANCE) || defined(PASS_SYSTEM)
-// Gaussian weight of sample i at r (surface.fit): w = exp(-|p - r|^2 / h^2) within SUPPORT h.
-bool kernel(int i, vec3 r, out float w, out float d2) {
-    vec4 ph = points[2 * i];
+// Weight of sample i at r for the reference normal n_r (surface.gather): false outside its
+// support. `facing` tells whether its normal lies on n_r's side.
+bool kernel(int i, vec3 r, out float w, out float d2, out bool facing) {
+    vec4 ph = points[3 * i];
     vec3 delta = ph.xyz - r;
     d2 = dot(delta, delta);
     if (d2 >= SUPPORT * SUPPORT * ph.w * ph.w) return false;
-    w = exp(-d2 / (ph.w * ph.w));
+    float cosine = dot(points[3 * i + 2].xyz, texelFetch(u_reference, ivec2(gl_FragCoord.xy), 0).xyz);
+    facing = cosine > 0.0;
+    w = exp(-d2 / (ph.w * ph.w) - 2.0 * (1.0 - cosine) * u_normal_weight);
     return true;
 }
 #endif
 
 #ifdef PASS_COVARIANCE
-layout(location = 0) out vec4 out_sum;    // w x, w                   x = (p - r) / scale
+layout(location = 0) out vec4 out_sum;    // w x, w                   x = (p - r) / u_scale
 layout(location = 1) out vec4 out_xx;     // w (xx, xy, xz, yy)
-layout(location = 2) out vec4 out_yz;     // w (yz, zz), count, samples passing the domain test
-layout(location = 3) out vec4 out_color;  // w rgb
+layout(location = 2) out vec4 out_yz;     // w (yz, zz), samples facing n_r, those passing the domain test
+layout(location = 3) out vec4 out_color;  // w rgb, w h / u_scale
 void main() {
     vec3 r;
     float t, w, d2;
-    if (!current_hit(r, t) || !kernel(v_index, r, w, d2)) discard;
+    bool facing;
+    if (!current_hit(r, t) || !kernel(v_index, r, w, d2, facing)) discard;
     int i = v_index;
-    vec3 x = (points[2 * i].xyz - r) / u_scale;
-    float s = u_domain * points[2 * i + 1].w;
+    vec3 x = (points[3 * i].xyz - r) / u_scale;
+    float s = u_domain * points[3 * i + 1].w;
     out_sum = vec4(w * x, w);
     out_xx = w * vec4(x.x * x.x, x.x * x.y, x.x * x.z, x.y * x.y);
-    out_yz = vec4(w * x.y * x.z, w * x.z * x.z, 1.0, d2 < s * s ? 1.0 : 0.0);
-    out_color = vec4(w * points[2 * i + 1].rgb, 0.0);
+    out_yz = vec4(w * x.y * x.z, w * x.z * x.z, facing ? 1.0 : 0.0, facing && d2 < s * s ? 1.0 : 0.0);
+    out_color = vec4(w * points[3 * i + 1].rgb, w * points[3 * i].w / u_scale);
 }
 #endif
 
@@ -231,10 +263,11 @@ void main() {
 uniform sampler2D u_sum;
 uniform sampler2D u_xx;
 uniform sampler2D u_yz;
-layout(location = 0) out vec4 out_q;  // q = r + mean, 1 (0: the fit failed)
-layout(location = 1) out vec4 out_n;  // n, 0
+uniform sampler2D u_color;
+layout(location = 0) out vec4 out_q;  // q = r + mean, 0
+layout(location = 1) out vec4 out_n;  // n (facing n_r), l (0: the fit failed)
 
-// Unit eigenvector of the symmetric 3x3 for the smallest eigenvalue (surface.smallest_eigenvector:
+// Unit eigenvector of the symmetric 3x3 for the smallest eigenvalue (polynomial.smallest_eigenvector:
 // trigonometric eigenvalue, then the largest cross product of two rows of C - l I).
 bool smallest_eigenvector(float c00, float c01, float c02, float c11, float c12, float c22, out vec3 n) {
     float p1 = c01 * c01 + c02 * c02 + c12 * c12;
@@ -262,7 +295,7 @@ void main() {
     float t;
     ivec2 pix = ivec2(gl_FragCoord.xy);
     vec4 sum = texelFetch(u_sum, pix, 0), xx = texelFetch(u_xx, pix, 0), yz = texelFetch(u_yz, pix, 0);
-    // the fit's failure statuses: too few neighbours, outside the domain
+    // the fit's failure statuses: too few samples facing n_r, outside the domain
     if (!current_hit(r, t) || yz.b < MIN_NEIGHBOURS || yz.a == 0.0) return;
     vec3 m = sum.xyz / sum.w;
     // sum w (x - m)(x - m)^T = sum w x x^T - W m m^T
@@ -270,8 +303,9 @@ void main() {
     if (!smallest_eigenvector(xx.x - sum.w * m.x * m.x, xx.y - sum.w * m.x * m.y, xx.z - sum.w * m.x * m.z,
                               xx.w - sum.w * m.y * m.y, yz.x - sum.w * m.y * m.z, yz.y - sum.w * m.z * m.z, n))
         return;
-    out_q = vec4(r + m * u_scale, 1.0);
-    out_n = vec4(n, 0.0);
+    if (dot(n, texelFetch(u_reference, pix, 0).xyz) < 0.0) n = -n;
+    out_q = vec4(r + m * u_scale, 0.0);
+    out_n = vec4(n, texelFetch(u_color, pix, 0).a / sum.w * u_scale);
 }
 #endif
 
@@ -283,23 +317,27 @@ uniform sampler2D u_n;
 #ifdef PASS_SYSTEM
 // The normal equations of the weighted quadratic fit need only the 15 moments w u^i v^j
 // (i + j <= 4) and the 6 right-hand sides w f u^i v^j (i + j <= 2): 21 sums in 6 targets.
+// A seventh holds the half-disc test's sums (surface.fit): weights a_i w_i with h_i
+// replaced by l, the samples' offsets from r in units of l.
 layout(location = 0) out vec4 out_m0;  // 1, u, v, uu
 layout(location = 1) out vec4 out_m1;  // uv, vv, uuu, uuv
 layout(location = 2) out vec4 out_m2;  // uvv, vvv, u4, u3v
 layout(location = 3) out vec4 out_m3;  // u2v2, uv3, v4, f
 layout(location = 4) out vec4 out_m4;  // fu, fv, fuu, fuv
 layout(location = 5) out vec4 out_m5;  // fvv
+layout(location = 6) out vec4 out_m6;  // a w (p - r) / l, a w
 void main() {
     vec3 r;
     float t, w, d2;
-    if (!current_hit(r, t) || !kernel(v_index, r, w, d2)) discard;
+    bool facing;
+    if (!current_hit(r, t) || !kernel(v_index, r, w, d2, facing)) discard;
     ivec2 pix = ivec2(gl_FragCoord.xy);
-    vec4 q = texelFetch(u_q, pix, 0);
-    if (q.w == 0.0) discard;
-    vec3 n = texelFetch(u_n, pix, 0).xyz, e1, e2;
-    tangent_frame(n, e1, e2);
-    vec3 x = (points[2 * v_index].xyz - q.xyz) / u_scale;
-    float u = dot(x, e1), v = dot(x, e2), f = dot(x, n);
+    vec4 n = texelFetch(u_n, pix, 0);
+    if (n.w == 0.0) discard;
+    vec3 e1, e2;
+    tangent_frame(n.xyz, e1, e2);
+    vec3 x = (points[3 * v_index].xyz - texelFetch(u_q, pix, 0).xyz) / n.w;
+    float u = dot(x, e1), v = dot(x, e2), f = dot(x, n.xyz);
     float uu = u * u, uv = u * v, vv = v * v;
     out_m0 = w * vec4(1.0, u, v, uu);
     out_m1 = w * vec4(uv, vv, uu * u, uu * v);
@@ -307,6 +345,9 @@ void main() {
     out_m3 = w * vec4(uu * vv, uv * vv, vv * vv, f);
     out_m4 = w * f * vec4(u, v, uu, uv);
     out_m5 = vec4(w * f * vv, 0.0, 0.0, 0.0);
+    float h = points[3 * v_index].w, area = points[3 * v_index + 2].w;
+    float wa = area * w * exp(d2 * (1.0 / (h * h) - 1.0 / (n.w * n.w)));
+    out_m6 = wa * vec4((points[3 * v_index].xyz - r) / n.w, 1.0);
 }
 #endif
 
@@ -317,22 +358,30 @@ uniform sampler2D u_m2;
 uniform sampler2D u_m3;
 uniform sampler2D u_m4;
 uniform sampler2D u_m5;
+uniform sampler2D u_m6;
 uniform sampler2D u_color;  // w rgb of the covariance pass
 uniform sampler2D u_weight; // (w x, w) of the covariance pass
-layout(location = 0) out vec4 out_state;   // new t (MISS if the fit failed), |step| / scale
-layout(location = 1) out vec4 out_normal;  // local world normal of the surface at the new point
-layout(location = 2) out vec4 out_albedo;  // weighted mean colour of the neighbours
+layout(location = 0) out vec4 out_state;      // new t (MISS if the fit failed), |step| / l
+layout(location = 1) out vec4 out_reference;  // reference normal of the next fit
+layout(location = 2) out vec4 out_normal;     // local world normal of the surface at the new point
+layout(location = 3) out vec4 out_albedo;     // weighted mean colour of the neighbours
 
 void main() {
     out_state = vec4(FAR, 0.0, 0.0, 0.0);
+    out_reference = vec4(0.0);
     out_normal = vec4(0.0);
     out_albedo = vec4(0.0);
     gl_FragDepth = 0.0;  // a miss: the next disc passes skip the pixel
     vec3 r;
     float t;
     ivec2 pix = ivec2(gl_FragCoord.xy);
-    vec4 q = texelFetch(u_q, pix, 0);
-    if (!current_hit(r, t) || q.w == 0.0) return;
+    vec4 q = texelFetch(u_q, pix, 0), n = texelFetch(u_n, pix, 0);
+    if (!current_hit(r, t) || n.w == 0.0) return;
+    if (u_last) {  // the half-disc test where the projection converged: past the edge of its sheet?
+        vec4 m6 = texelFetch(u_m6, pix, 0);
+        vec3 mean = m6.xyz / m6.w;
+        if (length(mean - dot(mean, n.xyz) * n.xyz) > u_boundary) return;
+    }
     vec4 m0 = texelFetch(u_m0, pix, 0), m1 = texelFetch(u_m1, pix, 0), m2 = texelFetch(u_m2, pix, 0);
     vec4 m3 = texelFetch(u_m3, pix, 0), m4 = texelFetch(u_m4, pix, 0), m5 = texelFetch(u_m5, pix, 0);
     // moments by degree k and power of v j at index k (k + 1) / 2 + j
@@ -348,7 +397,7 @@ void main() {
             a[i][j] = mom[k * (k + 1) / 2 + e.y];
         }
     }
-    // Cholesky (surface.solve_spd), in double: the moment matrix spans several decades
+    // Cholesky (polynomial.solve_spd), in double: the moment matrix spans several decades
     for (int j = 0; j < 6; j++) {
         double d = a[j][j];
         for (int k = 0; k < j; k++) d -= a[j][k] * a[j][k];
@@ -373,26 +422,61 @@ void main() {
     }
     Quadratic g;
     g.q = q.xyz;
-    g.n = texelFetch(u_n, pix, 0).xyz;
+    g.n = n.xyz;
+    g.l = n.w;
     tangent_frame(g.n, g.e1, g.e2);
     g.c = float[6](float(b[0]), float(b[1]), float(b[2]), float(b[3]), float(b[4]), float(b[5]));
     // the ray meets the new quadratic near r (raytrace.trace_ray's window), solved from r
     vec3 o, d;
     local_ray(o, d);
-    float dt;
-    if (!ray_quadratic(g, r, d, max(-u_window, -t), u_window, dt)) return;
+    float dt, window = SUPPORT * g.l;
+    if (!ray_quadratic(g, r, d, max(-window, -t), window, dt)) return;
     vec3 x = r + dt * d;
     vec4 weight = texelFetch(u_weight, pix, 0);
-    out_state = vec4(t + dt, length(dt * d) / u_scale, 0.0, 0.0);
+    out_state = vec4(t + dt, length(dt * d) / g.l, 0.0, 0.0);
     gl_FragDepth = window_depth(vec3(0.0, 0.0, -(t + dt)));
     out_normal = vec4(quadratic_normal(g, x), 1.0);
+    out_reference = u_update_reference ? out_normal : texelFetch(u_reference, pix, 0);
     out_albedo = vec4(texelFetch(u_color, pix, 0).rgb / weight.w, 1.0);
 }
 #endif
 
-#ifdef PASS_SHADE
+#ifdef PASS_CULL
+void main() {
+    if (texelFetch(u_state, ivec2(gl_FragCoord.xy), 0).r < MISS) discard;
+    gl_FragDepth = 0.0;
+}
+#endif
+
+#if defined(PASS_KEEP) || defined(PASS_SHADE)
 uniform sampler2D u_normal;
 uniform sampler2D u_albedo;
+#endif
+
+#ifdef PASS_KEEP
+layout(location = 0) out vec4 out_state;
+layout(location = 1) out vec4 out_normal;
+layout(location = 2) out vec4 out_albedo;
+void main() {
+    ivec2 pix = ivec2(gl_FragCoord.xy);
+    out_state = texelFetch(u_state, pix, 0);
+    if (out_state.r >= MISS) discard;  // what an earlier candidate found stays
+    out_normal = texelFetch(u_normal, pix, 0);
+    out_albedo = texelFetch(u_albedo, pix, 0);
+}
+#endif
+
+#ifdef PASS_RETRY
+uniform sampler2D u_first;
+layout(location = 0) out vec4 out_failed;
+void main() {
+    ivec2 pix = ivec2(gl_FragCoord.xy);
+    float first = texelFetch(u_first, pix, 0).r;
+    out_failed = vec4(first < MISS && texelFetch(u_state, pix, 0).r >= MISS ? first : FAR, 0.0, 0.0, 0.0);
+}
+#endif
+
+#ifdef PASS_SHADE
 layout(location = 0) out vec4 out_shaded;
 layout(location = 1) out vec4 out_eye_normal;
 layout(location = 2) out vec4 out_depth;

@@ -14,9 +14,11 @@ points sorted in Morton order, 8 spheres a leaf. Per ray (numba, parallel over r
 
 Colour is the fit's weighted mean of the neighbours' colours, the normal the gradient of
 the last polynomial (n - g_u e1 - g_v e2). Parameters (`MlsParams`):
-    h_scale (1.5)       kernel width h_i = h_scale * local spacing s_i (surface.MlsKernel)
+    h_scale (1.2)       kernel width h_i = h_scale * local spacing s_i (surface.MlsKernel)
     domain (2.0)        domain test / sphere radius in units of s_i (surface.MlsKernel)
-    tolerance (1e-3)    eps, as a fraction of the median kernel width
+    normal_sigma (0.6)  width of the normal-agreement weight (surface.MlsKernel)
+    boundary (0.7)      half-disc test bound, in units of the local width l (surface.MlsKernel)
+    tolerance (1e-3)    eps, as a fraction of the local kernel width l
     max_iterations (8)  fits per candidate sphere before giving up on it
     shadows (False)     a shadow ray to the directional key light of shading.py (eye space
                         (-0.4, 0.6, 0.8)); shadowed pixels keep only the ambient 0.2 albedo
@@ -36,34 +38,34 @@ import numpy as np
 from ..options import at_least, between, check_cpu_samples, positive, setting
 from ..result import RenderResult
 from ..shading import KEY_LIGHT, shade
+from .polynomial import P_COLOR, P_SCALE, POLY_SIZE, poly_normal, poly_project, poly_ray
 from .surface import (
+    BLOCK,
     DEFAULT_KERNEL,
+    EMPTY,
     FIT_OK,
-    MAX_NEIGHBOURS,
-    POLY_SIZE,
+    LEAF,
+    REFERENCE_UPDATES,
     SUPPORT,
     MlsKernel,
     MLSSurface,
     build_surface,
     fit,
+    leaf_tree,
+    new_scratch,
+    past_edge,
     point_polynomials,
-    poly_normal,
-    poly_project,
-    poly_ray,
 )
 
 DEFAULT_SUPERSAMPLE = 2  # rays per pixel side, box filtered like every method
-LEAF = 8
-MAX_CANDIDATES = 4096
-STACK = 64
-DONE = 1e30  # marks a visited candidate (finite: fastmath assumes no infinities)
+QUEUE = 4096  # entries of a ray's traversal queue (nodes and spheres not yet visited)
 SKY = np.array([0.55, 0.7, 0.95])
 GROUND = np.array([0.25, 0.22, 0.2])
 
 
 @dataclass(frozen=True)
 class MlsParams(MlsKernel):
-    tolerance: float = setting(1e-3, positive)  # eps, as a fraction of the median kernel width
+    tolerance: float = setting(1e-3, positive)  # eps, as a fraction of the local kernel width
     max_iterations: int = setting(8, at_least(1))  # fits per candidate sphere before giving up on it
     shadows: bool = False  # a shadow ray to the key light
     reflect: bool = False  # one mirror bounce
@@ -72,74 +74,50 @@ class MlsParams(MlsKernel):
 
 @dataclass(frozen=True, eq=False)
 class MLSScene:
-    """A cloud ready to ray trace: surface, per-point polynomials, spheres and their BVH."""
+    """A cloud ready to ray trace: surface, per-sample polynomials and the sphere hierarchy
+    (all in the surface's Morton order)."""
 
     surface: MLSSurface
-    polys: np.ndarray       # (N, POLY_SIZE)
-    valid: np.ndarray       # (N,) bool: the point's own fit succeeded
-    radius: np.ndarray      # (N,) bounding sphere radius
-    leaf_order: np.ndarray  # (L * LEAF,) point indices in Morton order, -1 padding
-    boxes: np.ndarray       # (2L - 1, 2, 3) node AABBs of the implicit heap-ordered tree
-
-
-def _morton(points: np.ndarray) -> np.ndarray:
-    lo, hi = points.min(axis=0), points.max(axis=0)
-    q = ((points - lo) / np.maximum(hi - lo, 1e-30) * 1023).astype(np.uint64)
-    code = np.zeros(len(points), np.uint64)
-    for bit in range(10):
-        for axis in range(3):
-            code |= ((q[:, axis] >> np.uint64(bit)) & np.uint64(1)) << np.uint64(3 * bit + axis)
-    return code
-
-
-def build_bvh(centers: np.ndarray, radius: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Implicit complete binary tree: leaves of LEAF Morton-consecutive spheres, bounds bottom-up."""
-    order = np.argsort(_morton(centers), kind="stable")
-    leaves = 1 << max(0, math.ceil(math.log2(max(1, math.ceil(len(centers) / LEAF)))))
-    leaf_order = np.full(leaves * LEAF, -1, np.int64)
-    leaf_order[: len(order)] = order
-    lo = np.full((leaves * LEAF, 3), DONE)  # empty padding boxes (finite, see DONE)
-    hi = np.full((leaves * LEAF, 3), -DONE)
-    lo[: len(order)] = centers[order] - radius[order, None]
-    hi[: len(order)] = centers[order] + radius[order, None]
-    level_lo = lo.reshape(leaves, LEAF, 3).min(axis=1)
-    level_hi = hi.reshape(leaves, LEAF, 3).max(axis=1)
-    boxes = np.empty((2 * leaves - 1, 2, 3))
-    first = leaves - 1
-    while True:
-        boxes[first: first + len(level_lo), 0] = level_lo
-        boxes[first: first + len(level_lo), 1] = level_hi
-        if first == 0:
-            break
-        level_lo = np.minimum(level_lo[0::2], level_lo[1::2])
-        level_hi = np.maximum(level_hi[0::2], level_hi[1::2])
-        first = (first - 1) // 2
-    return leaf_order, boxes
+    polys: np.ndarray   # (N, POLY_SIZE)
+    valid: np.ndarray   # (N,) bool: the sample's own fit succeeded
+    radius: np.ndarray  # (N,) bounding sphere radius domain * s_i, 0 where not valid
+    boxes: np.ndarray   # (2L - 1, 2, 3) node boxes of the spheres, over the surface's leaves
 
 
 def prepare_scene(cloud, kernel: MlsKernel = DEFAULT_KERNEL) -> MLSScene:
     """The ray tracing scene of `cloud`."""
     surface = build_surface(cloud, kernel)
     polys, status = point_polynomials(surface)
-    radius = kernel.domain * surface.spacing
-    leaf_order, boxes = build_bvh(surface.points, radius)
-    return MLSScene(surface, polys, status == FIT_OK, radius, leaf_order, boxes)
+    valid = status == FIT_OK
+    # a sample whose own fit failed starts no intersection: no sphere, left out of the tree
+    radius = np.where(valid, kernel.domain * surface.spacing, 0.0)
+    boxes = leaf_tree(surface.points, np.where(valid, radius, -EMPTY))
+    return MLSScene(surface, polys, valid, radius, boxes)
 
 
-def cached_scene(cloud, kernel: MlsKernel, renderer) -> MLSScene:
+def scene_kernel(params: MlsKernel) -> MlsKernel:
+    """The surface's part of a method's parameters: what a scene is made from (and keyed by)."""
+    return MlsKernel(**{name: getattr(params, name) for name in MlsKernel.names()})
+
+
+def cached_scene(cloud, params: MlsKernel, renderer) -> MLSScene:
     """The scene, made once per cloud and kernel by the Renderer (both MLS methods share it)."""
-    key = ("mls scene", kernel.h_scale, kernel.domain)
-    return renderer.cached(cloud, key, lambda: prepare_scene(cloud, MlsKernel(kernel.h_scale, kernel.domain)))
+    kernel = scene_kernel(params)
+    return renderer.cached(cloud, ("mls scene", kernel), lambda: prepare_scene(cloud, kernel))
 
 
 @numba.njit(cache=True, fastmath=True)
-def _box_entry(box, o, inv_d, t_max):
-    """Entry parameter of the ray into the AABB, or -1 if it misses within [0, t_max]
-    (no infinities anywhere: fastmath lets the compiler assume there are none)."""
+def box_entry(boxes, node, o, inv_d, t_max):
+    """Entry parameter of the ray into the node's box, or -1 if it misses within [0, t_max]
+    (no infinities anywhere: fastmath lets the compiler assume there are none). An empty
+    box (lower corner above the upper) is missed: the slab test alone would swap it into a
+    box that holds everything."""
+    if boxes[node, 0, 0] > boxes[node, 1, 0]:
+        return -1.0
     t0, t1 = 0.0, t_max
     for a in range(3):
-        ta = (box[0, a] - o[a]) * inv_d[a]
-        tb = (box[1, a] - o[a]) * inv_d[a]
+        ta = (boxes[node, 0, a] - o[a]) * inv_d[a]
+        tb = (boxes[node, 1, a] - o[a]) * inv_d[a]
         if ta > tb:
             ta, tb = tb, ta
         t0 = max(t0, ta)
@@ -148,63 +126,94 @@ def _box_entry(box, o, inv_d, t_max):
 
 
 @numba.njit(cache=True, fastmath=True)
-def trace_ray(o, d, t_min, t_max, points, spacing, h, colors, domain, cell, lower, dims, order, starts,
-              scale, polys, valid, radius, leaf_order, boxes, tolerance, max_iter,
-              cand_t, cand_i, stack, poly, work, nb, x, y, normal, color):
+def queue_push(keys, items, size, key, item):
+    """Insert into the binary min-heap (keys, items) of `size` entries; returns the new size
+    (a full queue drops the entry)."""
+    if size >= keys.shape[0]:
+        return size
+    i = size
+    while i > 0:
+        parent = (i - 1) >> 1
+        if keys[parent] <= key:
+            break
+        keys[i] = keys[parent]
+        items[i] = items[parent]
+        i = parent
+    keys[i] = key
+    items[i] = item
+    return size + 1
+
+
+@numba.njit(cache=True, fastmath=True)
+def queue_pop(keys, items, size):
+    """Remove the smallest entry (read keys[0], items[0] first); returns the new size."""
+    size -= 1
+    key, item = keys[size], items[size]
+    i = 0
+    while True:
+        child = 2 * i + 1
+        if child >= size:
+            break
+        if child + 1 < size and keys[child + 1] < keys[child]:
+            child += 1
+        if keys[child] >= key:
+            break
+        keys[i] = keys[child]
+        items[i] = items[child]
+        i = child
+    keys[i] = key
+    items[i] = item
+    return size
+
+
+@numba.njit(cache=True, fastmath=True)
+def trace_ray(o, d, t_min, t_max, samples, polys, radius, boxes, tolerance, max_iter,
+              keys, items, scratch, poly, x, y, nref, normal, color):
     """Nearest intersection of o + t d (|d| = 1) with the MLS surface in [t_min, t_max].
 
-    Returns (t, fits); t < 0 when the ray misses. On a hit `normal` and `color` are set.
+    The bounding spheres are visited in order of the ray's entry into them, lazily: a queue
+    ordered by entry parameter holds tree nodes (item >= 0) and spheres (item = -1 - sample),
+    and a node is opened only when it comes first. Returns (t, fits); t < 0 when the ray
+    misses. On a hit `normal` and `color` are set.
     """
+    points, normals = samples.points, samples.normals
     inv_d = np.empty(3)
     for a in range(3):
         inv_d[a] = 1.0 / d[a] if d[a] != 0.0 else 1e30
-    # 1. spheres pierced by the ray, through the BVH
-    n_cand = 0
-    top = 0
-    stack[0] = 0
-    top = 1
     first_leaf = (boxes.shape[0] + 1) // 2 - 1
-    while top > 0:
-        top -= 1
-        node = stack[top]
-        if _box_entry(boxes[node], o, inv_d, t_max) < 0.0:
-            continue
-        if node >= first_leaf:
-            base = (node - first_leaf) * LEAF
-            for s in range(base, base + LEAF):
-                i = leaf_order[s]
-                if i < 0 or not valid[i]:
+    n = points.shape[0]
+    fits = 0
+    size = 0
+    entry = box_entry(boxes, 0, o, inv_d, t_max)
+    if entry >= 0.0:
+        size = queue_push(keys, items, size, entry, 0)
+    while size > 0:
+        t_in = keys[0]
+        item = items[0]
+        size = queue_pop(keys, items, size)
+        if item >= 0:
+            if item < first_leaf:
+                for child in (2 * item + 1, 2 * item + 2):
+                    entry = box_entry(boxes, child, o, inv_d, t_max)
+                    if entry >= 0.0:
+                        size = queue_push(keys, items, size, max(entry, t_min), child)
+                continue
+            start = (item - first_leaf) * LEAF
+            for i in range(start, min(start + LEAF, n)):
+                if radius[i] <= 0.0:
                     continue
                 ox, oy, oz = o[0] - points[i, 0], o[1] - points[i, 1], o[2] - points[i, 2]
                 b = ox * d[0] + oy * d[1] + oz * d[2]
-                c = ox * ox + oy * oy + oz * oz - radius[i] * radius[i]
-                disc = b * b - c
+                disc = b * b - (ox * ox + oy * oy + oz * oz - radius[i] * radius[i])
                 if disc < 0.0:
                     continue
-                t_exit = -b + math.sqrt(disc)
-                t_in = -b - math.sqrt(disc)
-                if t_exit < t_min or t_in > t_max or n_cand >= MAX_CANDIDATES:
+                root = math.sqrt(disc)
+                if -b + root < t_min or -b - root > t_max:
                     continue
-                cand_t[n_cand] = max(t_in, t_min)
-                cand_i[n_cand] = i
-                n_cand += 1
-        elif top + 2 <= stack.shape[0]:
-            stack[top] = 2 * node + 2
-            stack[top + 1] = 2 * node + 1
-            top += 2
-    # 2./3. nearest sphere first: its polynomial, then iterated projection
-    fits = 0
-    window = SUPPORT * scale
-    for _ in range(n_cand):
-        best = 0
-        for k in range(1, n_cand):
-            if cand_t[k] < cand_t[best]:
-                best = k
-        if cand_t[best] >= DONE:
-            break
-        t_in = cand_t[best]
-        i = cand_i[best]
-        cand_t[best] = DONE
+                size = queue_push(keys, items, size, max(-b - root, t_min), -1 - i)
+            continue
+        # a sphere, nearest entry first: its polynomial, then iterated projection
+        i = -1 - item
         ox, oy, oz = o[0] - points[i, 0], o[1] - points[i, 1], o[2] - points[i, 2]
         b = ox * d[0] + oy * d[1] + oz * d[2]
         c = ox * ox + oy * oy + oz * oz - radius[i] * radius[i]
@@ -212,44 +221,48 @@ def trace_ray(o, d, t_min, t_max, points, spacing, h, colors, domain, cell, lowe
         t = poly_ray(polys[i], o, d, t_in, t_out)
         if t < 0.0:
             continue
-        for _ in range(max_iter):
+        for a in range(3):
+            nref[a] = normals[i, a]
+        for it in range(max_iter):
             for a in range(3):
                 x[a] = o[a] + t * d[a]
             fits += 1
-            if fit(x, points, spacing, h, colors, domain, cell, lower, dims, order, starts, scale,
-                   poly, work, nb) != FIT_OK:
+            if fit(x, nref, samples, poly, scratch) != FIT_OK:
                 break
-            if poly_project(poly, x, y) < (tolerance * scale) ** 2:
+            if poly_project(poly, x, y) < (tolerance * poly[P_SCALE]) ** 2:
+                if past_edge(poly, samples, scratch):
+                    break  # converged past the edge of the sheet
                 poly_normal(poly, x, normal)
                 for a in range(3):
-                    color[a] = poly[18 + a]
+                    color[a] = poly[P_COLOR + a]
                 return t, fits
+            window = SUPPORT * poly[P_SCALE]
             t = poly_ray(poly, o, d, max(t - window, t_min), min(t + window, t_max))
             if t < 0.0:
                 break
+            if it < REFERENCE_UPDATES:
+                for a in range(3):
+                    x[a] = o[a] + t * d[a]
+                poly_normal(poly, x, nref)
     return -1.0, fits
 
 
 @numba.njit(cache=True, parallel=True, fastmath=True)
-def trace_rays(origins, directions, t_min, t_max, points, spacing, h, colors, domain, cell, lower, dims,
-               order, starts, scale, polys, valid, radius, leaf_order, boxes, tolerance, max_iter,
+def trace_rays(origins, directions, t_min, t_max, samples, polys, radius, boxes, tolerance, max_iter,
                out_t, out_normal, out_color, out_fits):
     """trace_ray for every ray, in parallel blocks that each own their scratch buffers."""
     n = len(origins)
-    block = 256
-    for bi in numba.prange((n + block - 1) // block):
-        cand_t = np.empty(MAX_CANDIDATES)
-        cand_i = np.empty(MAX_CANDIDATES, np.int64)
-        stack = np.empty(STACK, np.int64)
+    for block in numba.prange((n + BLOCK - 1) // BLOCK):
+        keys = np.empty(QUEUE)
+        items = np.empty(QUEUE, np.int64)
+        scratch = new_scratch()  # its candidate cache serves neighbouring rays
         poly = np.empty(POLY_SIZE)
-        work = np.empty((7, 7))
-        nb = np.empty((MAX_NEIGHBOURS, 4))
         x = np.empty(3)
         y = np.empty(3)
-        for r in range(bi * block, min(n, (bi + 1) * block)):
-            t, fits = trace_ray(origins[r], directions[r], t_min, t_max, points, spacing, h, colors, domain,
-                                cell, lower, dims, order, starts, scale, polys, valid, radius, leaf_order,
-                                boxes, tolerance, max_iter, cand_t, cand_i, stack, poly, work, nb, x, y,
+        nref = np.empty(3)
+        for r in range(block * BLOCK, min(n, (block + 1) * BLOCK)):
+            t, fits = trace_ray(origins[r], directions[r], t_min, t_max, samples, polys, radius, boxes,
+                                tolerance, max_iter, keys, items, scratch, poly, x, y, nref,
                                 out_normal[r], out_color[r])
             out_t[r] = t
             out_fits[r] = fits
@@ -274,11 +287,9 @@ def trace(scene: MLSScene, origins: np.ndarray, directions: np.ndarray, t_min: f
     """Trace rays given in the surface's local coordinates (directions unit length)."""
     n = len(origins)
     hits = Hits(np.empty(n), np.zeros((n, 3)), np.zeros((n, 3)), np.zeros(n, np.int64))
-    s = scene.surface
     trace_rays(np.ascontiguousarray(origins, np.float64), np.ascontiguousarray(directions, np.float64),
-               float(t_min), float(t_max), s.points, s.spacing, s.h, s.colors, s.domain, s.cell, s.lower,
-               s.dims, s.order, s.starts, s.scale, scene.polys, scene.valid, scene.radius,
-               scene.leaf_order, scene.boxes, float(tolerance), int(max_iter),
+               float(t_min), float(t_max), scene.surface.samples, scene.polys,
+               scene.radius, scene.boxes, float(tolerance), int(max_iter),
                hits.t, hits.normals, hits.colors, hits.fits)
     return hits
 
@@ -312,45 +323,44 @@ def render_mls_cpu(cloud, camera, options, params: MlsParams, renderer) -> Rende
     t_max = 2.0 * (camera.far + np.linalg.norm(view[:3, 3]))
     hits = trace(scene, origins, dirs, 0.0, t_max, tolerance, max_iter)
     hit = hits.hit
-    x_local = origins + hits.t[:, None] * dirs
-    x_eye = x_local @ view[:3, :3].T + view[:3, 3]
-    depth = np.where(hit, -x_eye[:, 2], np.inf)
-    n_eye = hits.normals @ rot.T
-    to_eye = -d_eye.reshape(-1, 3)
-    flip = np.sum(n_eye * to_eye, axis=1) < 0
-    n_eye[flip] *= -1
-    n_eye[~hit] = 0
-    albedo = np.where(hit[:, None], hits.colors, 1.0)
+    idx = np.flatnonzero(hit)  # what follows is per hit: most rays of a frame miss
+    x_local = origins[idx] + hits.t[idx, None] * dirs[idx]
+    depth = np.full(h * w, np.inf)
+    depth[idx] = -(x_local @ view[2, :3] + view[2, 3])
+    n_hit = hits.normals[idx] @ rot.T
+    n_hit *= np.where(np.sum(n_hit * d_eye.reshape(-1, 3)[idx], axis=1) > 0, -1.0, 1.0)[:, None]  # face the viewer
+    n_eye = np.zeros((h * w, 3))
+    n_eye[idx] = n_hit
+    albedo = hits.colors[idx]
     indices = None
     coloring = options.coloring
     colors_of = renderer.surface_colors(cloud, cam, options)
     if colors_of is not None:  # the surface's own elevation, the nearest sample's category (never a blend)
         surface_albedo, indices = colors_of(depth.reshape(h, w))
-        albedo = np.where(hit[:, None], surface_albedo.reshape(-1, 3), 1.0)
+        albedo = surface_albedo.reshape(-1, 3)[idx]
     elif coloring is not None:
-        albedo = np.where(hit[:, None], coloring.decode(hits.colors), 1.0)
-    shaded = shade(options.surface_shading, albedo, n_eye, depth, camera.near, camera.far).astype(np.float64)
-    stats = {"splats": len(cloud), "rays": int(h * w), "hits": int(hit.sum()),
-             "iterations_mean": round(float(hits.fits[hit].mean()), 3) if hit.any() else 0.0,
-             "iterations_max": int(hits.fits[hit].max()) if hit.any() else 0,
+        albedo = coloring.decode(albedo)
+    shaded_hit = shade(options.surface_shading, albedo, n_hit, depth[idx], camera.near, camera.far)
+    stats = {"splats": len(cloud), "rays": int(h * w), "hits": int(idx.size),
+             "iterations_mean": round(float(hits.fits[idx].mean()), 3) if idx.size else 0.0,
+             "iterations_max": int(hits.fits[idx].max()) if idx.size else 0,
              "point_fit_failures": int((~scene.valid).sum()), "supersample": ss,
              "kernel_width": surface.scale}
     offset = 2.0 * tolerance * surface.scale + 0.25 * surface.scale
-    idx = np.flatnonzero(hit)
-    n_world = n_eye[idx] @ rot  # flipped towards the viewer
+    n_world = n_hit @ rot  # flipped towards the viewer
     if params.shadows and idx.size:
         light = KEY_LIGHT @ rot  # eye-space key light to world
         facing = n_world @ light > 0
-        start = x_local[idx] + offset * np.where(facing[:, None], n_world, -n_world)
+        start = x_local + offset * np.where(facing[:, None], n_world, -n_world)
         blocked = trace(scene, start, np.broadcast_to(light, start.shape), 0.0, t_max, tolerance, max_iter).hit
-        shadowed = idx[blocked | ~facing]
-        shaded[shadowed] = 0.2 * albedo[shadowed]
-        stats["shadowed"] = int(len(shadowed))
+        shadowed = blocked | ~facing
+        shaded_hit[shadowed] = 0.2 * albedo[shadowed]
+        stats["shadowed"] = int(shadowed.sum())
     if params.reflect and idx.size:
         reflectivity = params.reflectivity
         dv = dirs[idx]
         refl = dv - 2 * np.sum(dv * n_world, axis=1)[:, None] * n_world
-        bounce = trace(scene, x_local[idx] + offset * n_world, refl, 0.0, t_max, tolerance, max_iter)
+        bounce = trace(scene, x_local + offset * n_world, refl, 0.0, t_max, tolerance, max_iter)
         seen = environment(refl @ rot.T)
         if bounce.hit.any():
             b = bounce.hit
@@ -359,9 +369,11 @@ def render_mls_cpu(cloud, camera, options, params: MlsParams, renderer) -> Rende
             bn *= np.where(np.sum(bn * bd, axis=1) > 0, -1.0, 1.0)[:, None]
             bounce_albedo = bounce.colors[b] if coloring is None else coloring.decode(bounce.colors[b])
             seen[b] = shade(options.surface_shading, bounce_albedo, bn, depth[idx][b], camera.near, camera.far)
-        shaded[idx] = (1 - reflectivity) * shaded[idx] + reflectivity * seen
+        shaded_hit = (1 - reflectivity) * shaded_hit + reflectivity * seen
         stats["reflected_hits"] = int(bounce.hit.sum())
+    shaded = np.zeros((h * w, 3), np.float32)  # misses: no coverage, their colour never shows
+    shaded[idx] = shaded_hit
     coverage = hit.astype(np.float32)
-    return RenderResult.from_samples(shaded.reshape(h, w, 3).astype(np.float32), coverage.reshape(h, w),
+    return RenderResult.from_samples(shaded.reshape(h, w, 3), coverage.reshape(h, w),
                                      depth.reshape(h, w), n_eye.reshape(h, w, 3), supersample=ss,
                                      options=options, stats=stats, indices=indices)

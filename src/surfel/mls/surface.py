@@ -1,32 +1,67 @@
 """The moving least squares (MLS) point set surface and its projection operator.
 
-Adamson & Alexa, "Ray tracing point set surfaces", SMI 2003 (survey section 2.3.1, Fig. 14).
+Adamson & Alexa, "Ray tracing point set surfaces", SMI 2003 (survey section 2.3.1, Fig. 14),
+with kernel widths that follow the local sampling and a weight on normal agreement.
 The surface S is the set of points that the projection operator maps onto themselves.
-Projecting a point r, with neighbours p_i within the support 2.5 h_i of r:
+Projecting a point r for the sheet facing a reference normal n_r, over the samples p_i (unit,
+oriented normals n_i) whose support |p_i - r| < 2.5 h_i holds r:
 
-    w_i  = exp(-|p_i - r|^2 / h_i^2)                      Gaussian weight, h_i = h_scale * s_i,
-                                                          s_i the smoothed local point spacing
+    w_i  = exp(-|p_i - r|^2 / h_i^2 - |n_i - n_r|^2 / sigma_n^2)
+    l    = sum w_i h_i / sum w_i                          local kernel width: the unit of the fit
     q    = sum w_i p_i / sum w_i                          origin of the reference plane H
     C    = sum w_i (p_i - q)(p_i - q)^T                   weighted covariance
-    n    = eigenvector of C with the smallest eigenvalue  normal of H (e1, e2 span H)
+    n    = eigenvector of C with the smallest eigenvalue, n . n_r >= 0   normal of H (e1, e2 span H)
     g    = argmin sum w_i (g(u_i, v_i) - f_i)^2           bivariate quadratic over H,
            g(u, v) = c0 + c1 u + c2 v + c3 u^2 + c4 u v + c5 v^2,
-           (u_i, v_i, f_i) = coordinates of p_i - q in (e1, e2, n)
-    P(r) = q + u_r e1 + v_r e2 + g(u_r, v_r) n            (u_r, v_r) = coordinates of r - q in H
+           (u_i, v_i, f_i) = coordinates of (p_i - q) / l in (e1, e2, n)
+    P(r) = q + l (u_r e1 + v_r e2 + g(u_r, v_r) n)        (u_r, v_r) = coordinates of (r - q) / l in H
 
-`project` iterates r <- P(r) until |P(r) - r| < tolerance * spacing. A domain test keeps
-the surface from bridging holes and from running past the data's boundary: a fit is only
-valid where some sample lies within `domain * s_i` of the point being projected. Failures
-are statuses (FIT_*), never exceptions.
+A projection starts with the normal of the sample it starts from as n_r; the normal of the
+first REFERENCE_UPDATES fits' surfaces at their projected points becomes the next n_r, after
+which n_r is kept (so that the iteration converges to a fixed point of one operator).
 
-Everything is plain arrays so numba compiles it: neighbour search on a uniform grid whose
-cells are the largest support radius, points sorted by cell with cell start offsets.
-A fitted polynomial is a float64 row of POLY_SIZE values (see the P_* offsets).
+Kernel width (adaptive MLS): h_i = h_scale * s_i, s_i the local sample spacing: the mean
+distance to the k = 8 nearest neighbours (the k-nearest neighbourhood sizes the kernel as in
+Pauly, Gross & Kobbelt, "Efficient simplification of point-sampled surfaces", 2002, and the
+per-sample widths h_i = t r_i of Guennebaud & Gross, "Algebraic point set surfaces", 2007),
+then the median over the sample and those neighbours, so that an isolated outlier takes the
+spacing of the surface near it instead of spreading its weight far. Dense parts (a face) keep
+a narrow kernel and their detail, sparse parts (a body) a wide one and no holes. Where dense
+and sparse sampling meet, a narrow kernel next to a wide one would leave the gap between them
+to the wide kernels alone; so, as the feature-size-proportional widths of Dey & Sun ("An
+adaptive MLS surface for reconstruction with guarantees", 2005) are Lipschitz, the widths are
+limited in slope along a sheet: h_i >= h_j - WIDTH_SLOPE |p_i - p_j| for every sample j
+whose support reaches p_i and whose normal lies within 45 degrees of n_i.
+
+Normal weight (Oztireli, Guennebaud & Gross, "Feature preserving point set surfaces based on
+non-linear kernel regression", 2009): samples whose oriented normal disagrees with n_r --
+the other side of a finger or an ear rim thinner than the kernel, the facing side of a gap
+between two legs, the far face across a crease -- get little weight. Thin parts keep both
+their sides instead of collapsing onto a midsurface, gaps stay open, creases stay sharp.
+
+Domain. A fit needs MIN_NEIGHBOURS samples facing n_r (n_i . n_r > 0) in its support, and
+one of them within `domain * s_i` of r (Adamson & Alexa's domain test: no bridging of holes).
+A sheet that the normal weight separates from its neighbour would run on past the crease or
+rim where it ends, so where a projection converges the half-disc test of Bendels, Schnabel &
+Klein ("Detecting holes in point set surfaces", 2006) applies too: the mean of the samples,
+weighted by a_i exp(-|p_i - r|^2 / l^2 - |n_i - n_r|^2 / sigma_n^2) (a_i the area a sample
+stands for: its spacing before the slope limit, squared), may lie at most `boundary * l`
+from r across the tangent plane (at the edge of a half-plane it lies l / sqrt(pi) = 0.56 l
+away). The areas and the one width l keep a jump in sampling density from reading as an
+edge. Failures are statuses (FIT_*), never exceptions.
+
+Neighbour search: a bounding volume hierarchy over the supports. The samples are stored in
+Morton order; each leaf holds LEAF consecutive samples, each node the box of its samples'
+support boxes (an implicit complete binary tree in heap order). A query descends into the
+boxes that hold r and reads the leaves' samples from contiguous memory. The ray tracer builds
+its tree of bounding spheres over the same leaves. A fitted polynomial is a float64 row of
+polynomial.POLY_SIZE values (see the P_* offsets there).
 """
 
 from __future__ import annotations
 
 import math
+from collections import namedtuple
 from dataclasses import dataclass
 
 import numba
@@ -35,261 +70,399 @@ from scipy.spatial import cKDTree
 
 from ..cloud import PointCloud
 from ..options import Settings, positive, setting
+from ..preprocess import estimate_normals
+from .polynomial import (
+    P_C,
+    P_COLOR,
+    P_E1,
+    P_E2,
+    P_N,
+    P_Q,
+    P_SCALE,
+    POLY_SIZE,
+    poly_project,
+    smallest_eigenvector,
+    solve_spd,
+    tangent_frame,
+)
 
 # Fit statuses.
 FIT_OK = 0
-FIT_TOO_FEW = 1        # fewer than MIN_NEIGHBOURS samples in the support
+FIT_TOO_FEW = 1        # fewer than MIN_NEIGHBOURS samples facing n_r in the support
 FIT_DEGENERATE = 2     # the covariance has no unique smallest eigenvector, or the system is singular
 FIT_OUTSIDE = 3        # the domain test failed: no sample near enough (a hole or past the boundary)
 FIT_NOT_CONVERGED = 4  # projection did not reach the tolerance in the allowed iterations
-STATUS_NAMES = ("ok", "too_few_neighbours", "degenerate", "outside_domain", "not_converged")
 
 MIN_NEIGHBOURS = 6     # a bivariate quadratic has 6 coefficients
 SUPPORT = 2.5          # Gaussian truncated at SUPPORT * h (weight exp(-6.25) = 0.002)
 MAX_NEIGHBOURS = 512   # neighbour buffer of one fit (a support holds ~50 on even sampling)
-SPACING_K = 8          # spacing s_i = mean distance to the 8 nearest neighbours, smoothed
-
-# Layout of one fitted polynomial row.
-P_Q, P_N, P_E1, P_E2, P_C, P_COLOR, P_SCALE = 0, 3, 6, 9, 12, 18, 21
-POLY_SIZE = 22
+CACHE = 2048           # candidate cache of a thread's fits (see `gather`)
+CACHE_REACH = 0.5      # ... valid within this many median kernel widths of where it was filled
+BLOCK = 256            # queries of one thread in a row: samples, or rays of one image row
+SPACING_K = 8          # spacing: mean distance to the 8 nearest neighbours, median-smoothed
+WIDTH_SLOPE = 0.5      # kernel widths fall by at most this per unit distance along a sheet
+WIDTH_SHEET_COS = 0.7  # ... a sheet: samples whose normals lie within 45 degrees
+WIDTH_PASSES = 2       # passes of that limit (each reaches one support further)
+REFERENCE_UPDATES = 2  # fits whose normal becomes the next fit's reference normal; later fits keep it
+LEAF = 8               # samples per leaf of the hierarchies
+STACK = 64             # traversal stack: twice the depth of any tree that fits in memory
+EMPTY = 1e30           # bounds of an empty box (finite: fastmath assumes no infinities)
 
 
 @dataclass(frozen=True)
 class MlsKernel(Settings):
     """The surface's definition, shared by the `mls` and `mls-gpu` parameters."""
 
-    h_scale: float = setting(1.5, positive)  # kernel width h_i = h_scale * local spacing s_i
+    h_scale: float = setting(1.2, positive)  # kernel width h_i = h_scale * local spacing s_i
     domain: float = setting(2.0, positive)  # domain test (and bounding sphere) radius, in units of s_i
+    normal_sigma: float = setting(0.6, positive)  # width sigma_n of the normal-agreement weight
+    boundary: float = setting(0.7, positive)  # half-disc test: tangential offset of the mean, in l (edge: 0.56)
 
 
 DEFAULT_KERNEL = MlsKernel()
 
+# What the compiled kernels read, in Morton order (numba takes a namedtuple of arrays whole):
+# points (N, 3), normals (N, 3) unit and oriented, h (N,) kernel widths, spacing (N,) s_i,
+# area (N,) the surface each sample stands for (its unlimited spacing squared, relative),
+# colors (N, 3), boxes (2L - 1, 2, 3) support boxes of the tree's nodes, domain, normal_weight
+# (1 / sigma_n^2), boundary (the half-disc bound), reach (of the candidate cache, CACHE_REACH h).
+Samples = namedtuple("Samples", "points normals h spacing area colors boxes domain normal_weight boundary reach")
+# One thread's scratch for `fit`: nb (MAX_NEIGHBOURS, 6) neighbour rows (found[0] of them
+# written by the last fit), stack (STACK,) of the
+# traversal, cache (CACHE + 1,) candidate count then indices, centre (4,) where the cache was
+# filled and how far from there it holds (0: empty), work (7, 7) the normal equations.
+Scratch = namedtuple("Scratch", "nb found stack cache centre work")
+
 
 @dataclass(frozen=True, eq=False)
 class MLSSurface:
-    """A point set prepared for MLS projection (positions relative to `origin`).
-
-    points (N,3) f64, spacing (N,) s_i, h (N,) kernel widths, colors (N,3) f64 (white if
-    none), domain factor; grid: cell size, lower corner, dims (3,), order (N,) point indices
-    sorted by cell, starts (cells+1,) offsets into order.
-    """
+    """A point set prepared for MLS projection (positions relative to `origin`, in Morton
+    order: `order[k]` is the cloud's index of sample k)."""
 
     origin: np.ndarray
-    points: np.ndarray
-    spacing: np.ndarray
-    h: np.ndarray
-    colors: np.ndarray
-    domain: float
-    cell: float
-    lower: np.ndarray
-    dims: np.ndarray
     order: np.ndarray
-    starts: np.ndarray
+    samples: Samples
+
+    @property
+    def points(self) -> np.ndarray:
+        return self.samples.points
+
+    @property
+    def normals(self) -> np.ndarray:
+        return self.samples.normals
+
+    @property
+    def spacing(self) -> np.ndarray:
+        return self.samples.spacing
+
+    @property
+    def h(self) -> np.ndarray:
+        return self.samples.h
+
+    @property
+    def colors(self) -> np.ndarray:
+        return self.samples.colors
+
+    @property
+    def domain(self) -> float:
+        return self.samples.domain
 
     @property
     def scale(self) -> float:
-        """Typical kernel width: the unit of the local polynomial coordinates and of tolerances."""
-        return float(np.median(self.h))
+        """Typical kernel width (the median): a unit for tolerances reported in stats."""
+        return float(np.median(self.samples.h))
 
 
 def local_spacing(points: np.ndarray, k: int = SPACING_K) -> np.ndarray:
-    """Mean distance to the k nearest neighbours, averaged once more over those neighbours
-    (smooths scan noise), clamped to [0.5, 2] x the median so one outlier cannot blow up the grid."""
+    """Mean distance to the k nearest neighbours, then the median of that over the point and
+    its neighbours (robust: an isolated outlier takes its neighbourhood's spacing)."""
     k = min(k, len(points) - 1)
     if k < 1:
         return np.ones(len(points))
     dist, idx = cKDTree(points).query(points, k + 1)
-    raw = dist[:, 1:].mean(axis=1)
-    smooth = raw[idx].mean(axis=1)
-    med = float(np.median(smooth)) or 1.0
-    return np.clip(smooth, 0.5 * med, 2.0 * med)
+    spacing = np.median(dist[:, 1:].mean(axis=1)[idx], axis=1)
+    positive_spacing = spacing[spacing > 0]
+    floor = 1e-6 * float(np.median(positive_spacing)) if positive_spacing.size else 1.0
+    return np.maximum(spacing, floor)  # duplicates: no zero-width kernel
+
+
+def morton_order(points: np.ndarray) -> np.ndarray:
+    """Indices sorting the points along a 30-bit Morton curve of their bounding box."""
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    q = ((points - lo) / np.maximum(hi - lo, 1e-30) * 1023).astype(np.uint64)
+    code = np.zeros(len(points), np.uint64)
+    for bit in range(10):
+        for axis in range(3):
+            code |= ((q[:, axis] >> np.uint64(bit)) & np.uint64(1)) << np.uint64(3 * bit + axis)
+    return np.argsort(code, kind="stable")
+
+
+def leaf_tree(centers: np.ndarray, radius: np.ndarray) -> np.ndarray:
+    """(2L - 1, 2, 3) boxes of the implicit complete binary tree whose leaves hold LEAF
+    consecutive spheres (centres in Morton order): each node bounds its spheres."""
+    n = len(centers)
+    leaves = 1 << max(0, math.ceil(math.log2(max(1, math.ceil(n / LEAF)))))
+    lo = np.full((leaves * LEAF, 3), EMPTY)
+    hi = np.full((leaves * LEAF, 3), -EMPTY)
+    lo[:n] = centers - radius[:, None]
+    hi[:n] = centers + radius[:, None]
+    level_lo = lo.reshape(leaves, LEAF, 3).min(axis=1)
+    level_hi = hi.reshape(leaves, LEAF, 3).max(axis=1)
+    boxes = np.empty((2 * leaves - 1, 2, 3))
+    first = leaves - 1
+    while True:
+        boxes[first: first + len(level_lo), 0] = level_lo
+        boxes[first: first + len(level_lo), 1] = level_hi
+        if first == 0:
+            return boxes
+        level_lo = np.minimum(level_lo[0::2], level_lo[1::2])
+        level_hi = np.maximum(level_hi[0::2], level_hi[1::2])
+        first = (first - 1) // 2
+
+
+def oriented_normals(cloud: PointCloud) -> np.ndarray:
+    """The cloud's unit normals, estimated (and oriented) where it has none."""
+    if cloud.normals is not None:
+        normals = cloud.normals.astype(np.float64)
+    else:
+        normals = np.asarray(estimate_normals(cloud.positions)[0], np.float64)
+    length = np.linalg.norm(normals, axis=1, keepdims=True)
+    return np.where(length > 0, normals / np.maximum(length, 1e-300), 0.0)
 
 
 def build_surface(cloud: PointCloud, kernel: MlsKernel = DEFAULT_KERNEL) -> MLSSurface:
-    """Spacing, kernel widths and the neighbour grid of `cloud` (h_i = h_scale * s_i)."""
+    """Spacing, kernel widths, Morton order and the support hierarchy of `cloud`."""
     origin = cloud.local_origin
-    points = np.ascontiguousarray(cloud.positions - origin)
-    spacing = local_spacing(points)
-    h = kernel.h_scale * spacing
-    colors = np.ones((len(points), 3)) if cloud.colors is None else cloud.colors.astype(np.float64)
-    cell = float(SUPPORT * h.max())
-    lower = points.min(axis=0) - 1e-9
-    extent = points.max(axis=0) - lower
-    # Keep the dense cell table under 2^24 entries for sparse, wide scenes.
-    while np.prod(np.floor(extent / cell) + 1) > 2**24:
-        cell *= 1.5
-    dims = (np.floor(extent / cell) + 1).astype(np.int64)
-    ijk = np.minimum(((points - lower) / cell).astype(np.int64), dims - 1)
-    keys = (ijk[:, 2] * dims[1] + ijk[:, 1]) * dims[0] + ijk[:, 0]
-    order = np.argsort(keys, kind="stable").astype(np.int64)
-    starts = np.searchsorted(keys[order], np.arange(int(np.prod(dims)) + 1)).astype(np.int64)
-    return MLSSurface(origin, points, spacing, h, np.ascontiguousarray(colors), float(kernel.domain), cell,
-                      lower, dims, order, starts)
+    order = morton_order(cloud.positions)
+    points = np.ascontiguousarray(cloud.positions[order] - origin)
+    normals = np.ascontiguousarray(oriented_normals(cloud)[order])
+    sampled = local_spacing(points)
+    area = (sampled / np.median(sampled)) ** 2
+    h = kernel.h_scale * sampled
+    unit = np.ones((len(points), 3))
+    for _ in range(WIDTH_PASSES):
+        provisional = Samples(points, normals, h, h / kernel.h_scale, area, unit, leaf_tree(points, SUPPORT * h), 0.0,
+                              0.0, 0.0, CACHE_REACH * float(np.median(h)))
+        h = limited_widths(provisional, WIDTH_SLOPE)
+    spacing = h / kernel.h_scale
+    colors = np.ones((len(points), 3)) if cloud.colors is None else cloud.colors[order].astype(np.float64)
+    boxes = leaf_tree(points, SUPPORT * h)
+    samples = Samples(points, normals, h, spacing, area, np.ascontiguousarray(colors), boxes, float(kernel.domain),
+                      1.0 / kernel.normal_sigma**2, float(kernel.boundary), CACHE_REACH * float(np.median(h)))
+    return MLSSurface(origin, order, samples)
+
+
+@numba.njit(cache=True)
+def new_scratch():
+    """One thread's `Scratch`, its candidate cache empty."""
+    return Scratch(np.empty((MAX_NEIGHBOURS, 6)), np.zeros(1, np.int64), np.empty(STACK, np.int64),
+                   np.zeros(CACHE + 1, np.int64),
+                   np.zeros(4), np.empty((7, 7)))
 
 
 @numba.njit(cache=True, fastmath=True)
-def smallest_eigenvector(c00, c01, c02, c11, c12, c22, out):
-    """Unit eigenvector of the symmetric 3x3 matrix for its smallest eigenvalue (analytic:
-    trigonometric eigenvalues, then the largest cross product of two rows of C - l I).
-    Returns False when it is not unique (isotropic or line-like data)."""
-    p1 = c01 * c01 + c02 * c02 + c12 * c12
-    q = (c00 + c11 + c22) / 3.0
-    p2 = (c00 - q) ** 2 + (c11 - q) ** 2 + (c22 - q) ** 2 + 2.0 * p1
-    if p2 <= 1e-30 * (q * q + 1e-300):
-        return False
-    p = math.sqrt(p2 / 6.0)
-    b00, b11, b22 = (c00 - q) / p, (c11 - q) / p, (c22 - q) / p
-    b01, b02, b12 = c01 / p, c02 / p, c12 / p
-    r = 0.5 * (b00 * (b11 * b22 - b12 * b12) - b01 * (b01 * b22 - b12 * b02) + b02 * (b01 * b12 - b11 * b02))
-    r = min(1.0, max(-1.0, r))
-    phi = math.acos(r) / 3.0
-    lam = q + 2.0 * p * math.cos(phi + 2.0 * math.pi / 3.0)
-    a00, a11, a22 = c00 - lam, c11 - lam, c22 - lam
-    # rows (a00 c01 c02), (c01 a11 c12), (c02 c12 a22); the null vector is orthogonal to all
-    x0, y0, z0 = c01 * c12 - c02 * a11, c02 * c01 - a00 * c12, a00 * a11 - c01 * c01
-    x1, y1, z1 = c01 * a22 - c02 * c12, c02 * c02 - a00 * a22, a00 * c12 - c01 * c02
-    x2, y2, z2 = a11 * a22 - c12 * c12, c12 * c02 - c01 * a22, c01 * c12 - a11 * c02
-    n0, n1, n2 = x0 * x0 + y0 * y0 + z0 * z0, x1 * x1 + y1 * y1 + z1 * z1, x2 * x2 + y2 * y2 + z2 * z2
-    if n0 >= n1 and n0 >= n2:
-        x, y, z, nn = x0, y0, z0, n0
-    elif n1 >= n2:
-        x, y, z, nn = x1, y1, z1, n1
-    else:
-        x, y, z, nn = x2, y2, z2, n2
-    # Unique only if the second-smallest eigenvalue is well separated from the smallest.
-    if nn <= 1e-20 * (p * p) ** 2:
-        return False
-    inv = 1.0 / math.sqrt(nn)
-    out[0], out[1], out[2] = x * inv, y * inv, z * inv
-    return True
-
-
-@numba.njit(cache=True, fastmath=True)
-def tangent_frame(n, e1, e2):
-    """A deterministic orthonormal basis (e1, e2) of the plane with normal n (also in gpu.glsl)."""
-    if abs(n[0]) < 0.6:
-        ax, ay, az = 1.0, 0.0, 0.0
-    else:
-        ax, ay, az = 0.0, 1.0, 0.0
-    x, y, z = ay * n[2] - az * n[1], az * n[0] - ax * n[2], ax * n[1] - ay * n[0]
-    inv = 1.0 / math.sqrt(x * x + y * y + z * z)
-    e1[0], e1[1], e1[2] = x * inv, y * inv, z * inv
-    e2[0] = n[1] * e1[2] - n[2] * e1[1]
-    e2[1] = n[2] * e1[0] - n[0] * e1[2]
-    e2[2] = n[0] * e1[1] - n[1] * e1[0]
-
-
-@numba.njit(cache=True, fastmath=True)
-def solve_spd(a, b, n):
-    """Solve a x = b in place (b <- x) for the leading n x n block by Cholesky; False if singular."""
-    for j in range(n):
-        d = a[j, j]
-        for k in range(j):
-            d -= a[j, k] * a[j, k]
-        if d <= 1e-12 * (a[0, 0] + 1e-300):
-            return False
-        d = math.sqrt(d)
-        a[j, j] = d
-        for i in range(j + 1, n):
-            s = a[i, j]
-            for k in range(j):
-                s -= a[i, k] * a[j, k]
-            a[i, j] = s / d
-    for i in range(n):
-        s = b[i]
-        for k in range(i):
-            s -= a[i, k] * b[k]
-        b[i] = s / a[i, i]
-    for i in range(n - 1, -1, -1):
-        s = b[i]
-        for k in range(i + 1, n):
-            s -= a[k, i] * b[k]
-        b[i] = s / a[i, i]
-    return True
-
-
-@numba.njit(cache=True, fastmath=True)
-def fit(x, points, spacing, h, colors, domain, cell, lower, dims, order, starts, scale, poly, work, nb):
-    """Fit the local MLS polynomial at x into `poly` (POLY_SIZE); returns a FIT_* status.
-
-    `work` is a scratch (7, 7) array, `nb` a scratch (MAX_NEIGHBOURS, 4) array holding the
-    neighbours found by the one grid scan (offset from x, weight). Coordinates over H are
-    divided by `scale` so that the normal equations stay well conditioned in any units.
-    """
-    c0 = int((x[0] - lower[0]) / cell)
-    c1 = int((x[1] - lower[1]) / cell)
-    c2 = int((x[2] - lower[2]) / cell)
-    sw = 0.0
-    mx = my = mz = 0.0
-    cr = cg = cb = 0.0
+def collect(x, reach, samples, stack, cache):
+    """Through the support hierarchy, the samples whose support grown by `reach` holds x:
+    their indices into cache[1:], their count into cache[0]. False when more than CACHE."""
+    points, h, boxes = samples.points, samples.h, samples.boxes
+    n = points.shape[0]
+    first_leaf = (boxes.shape[0] + 1) // 2 - 1
+    x0, x1, x2 = x[0], x[1], x[2]
     count = 0
-    inside = False
-    # one grid scan: weights, weighted mean, colour, domain test
-    for kz in range(max(c2 - 1, 0), min(c2 + 2, dims[2])):
-        for ky in range(max(c1 - 1, 0), min(c1 + 2, dims[1])):
-            row = (kz * dims[1] + ky) * dims[0]
-            lo = starts[row + max(c0 - 1, 0)]
-            hi_ = starts[row + min(c0 + 2, dims[0])]
-            for s in range(lo, hi_):
-                i = order[s]
-                ddx, ddy, ddz = points[i, 0] - x[0], points[i, 1] - x[1], points[i, 2] - x[2]
-                d2 = ddx * ddx + ddy * ddy + ddz * ddz
-                hi = h[i]
-                if d2 >= (SUPPORT * hi) ** 2 or count >= MAX_NEIGHBOURS:
-                    continue
-                if d2 < (domain * spacing[i]) ** 2:
-                    inside = True
-                w = math.exp(-d2 / (hi * hi))
-                nb[count, 0], nb[count, 1], nb[count, 2], nb[count, 3] = ddx, ddy, ddz, w
-                sw += w
-                mx += w * ddx
-                my += w * ddy
-                mz += w * ddz
-                cr += w * colors[i, 0]
-                cg += w * colors[i, 1]
-                cb += w * colors[i, 2]
+    stack[0] = 0
+    top = 1
+    while top > 0:
+        top -= 1
+        node = stack[top]
+        if (x0 < boxes[node, 0, 0] - reach or x0 > boxes[node, 1, 0] + reach or x1 < boxes[node, 0, 1] - reach
+                or x1 > boxes[node, 1, 1] + reach or x2 < boxes[node, 0, 2] - reach
+                or x2 > boxes[node, 1, 2] + reach):
+            continue
+        if node < first_leaf:
+            stack[top] = 2 * node + 2
+            stack[top + 1] = 2 * node + 1
+            top += 2
+            continue
+        start = (node - first_leaf) * LEAF
+        for i in range(start, min(start + LEAF, n)):
+            dx, dy, dz = points[i, 0] - x0, points[i, 1] - x1, points[i, 2] - x2
+            grown = SUPPORT * h[i] + reach
+            if dx * dx + dy * dy + dz * dz < grown * grown:
+                if count == CACHE:
+                    cache[0] = count
+                    return False
                 count += 1
-    if count < MIN_NEIGHBOURS:
+                cache[count] = i
+    cache[0] = count
+    return True
+
+
+@numba.njit(cache=True, fastmath=True)
+def gather(x, nref, samples, scratch):
+    """The samples whose support holds x: rows of scratch.nb get (p_i - x, w_i, h_i, index).
+    Returns (count, facing, inside): the rows written, the samples facing nref, and whether
+    one of those passes the domain test.
+
+    Candidates come from a cache: the samples whose support grown by samples.reach holds the
+    cache's centre c include every sample whose support holds an x with |x - c| < reach
+    (triangle inequality). Successive queries nearby -- a ray's iterations, neighbouring rays,
+    consecutive samples in Morton order -- skip the hierarchy; the result is the same."""
+    points, normals, h, spacing = samples.points, samples.normals, samples.h, samples.spacing
+    normal_weight, domain2 = samples.normal_weight, samples.domain * samples.domain
+    nb, cache, centre = scratch.nb, scratch.cache, scratch.centre
+    x0, x1, x2 = x[0], x[1], x[2]
+    cx, cy, cz = x0 - centre[0], x1 - centre[1], x2 - centre[2]
+    if centre[3] <= 0.0 or cx * cx + cy * cy + cz * cz >= centre[3] * centre[3]:
+        centre[0], centre[1], centre[2], centre[3] = x0, x1, x2, samples.reach
+        if not collect(x, samples.reach, samples, scratch.stack, cache):
+            collect(x, 0.0, samples, scratch.stack, cache)  # crowded: exactly the supports holding x,
+            centre[3] = 0.0  # valid for x alone
+    count = 0
+    facing = 0
+    inside = False
+    for k in range(1, cache[0] + 1):
+        i = cache[k]
+        dx, dy, dz = points[i, 0] - x0, points[i, 1] - x1, points[i, 2] - x2
+        d2 = dx * dx + dy * dy + dz * dz
+        hi2 = h[i] * h[i]
+        if d2 >= SUPPORT * SUPPORT * hi2 or count >= nb.shape[0]:
+            continue
+        cos = normals[i, 0] * nref[0] + normals[i, 1] * nref[1] + normals[i, 2] * nref[2]
+        # |n_i - n_r|^2 = 2 (1 - cos) for unit normals
+        nb[count, 0], nb[count, 1], nb[count, 2] = dx, dy, dz
+        nb[count, 3] = math.exp(-d2 / hi2 - 2.0 * (1.0 - cos) * normal_weight)
+        nb[count, 4] = h[i]
+        nb[count, 5] = i
+        count += 1
+        if cos > 0.0:
+            facing += 1
+            if d2 < domain2 * spacing[i] * spacing[i]:
+                inside = True
+    return count, facing, inside
+
+
+@numba.njit(cache=True, parallel=True)
+def limited_widths(samples, slope):
+    """Kernel widths raised so that none falls faster than `slope` per unit distance from the
+    width of a sample of the same sheet whose support reaches it: h_i >= h_j - slope |p_i - p_j|."""
+    points, normals, h = samples.points, samples.normals, samples.h
+    out = h.copy()
+    n = points.shape[0]
+    for block in numba.prange((n + BLOCK - 1) // BLOCK):
+        scratch = new_scratch()  # per block of consecutive (nearby) samples: its cache is reused
+        nb = scratch.nb
+        for i in range(block * BLOCK, min(n, (block + 1) * BLOCK)):
+            count, _, _ = gather(points[i], normals[i], samples, scratch)
+            for k in range(count):
+                j = int(nb[k, 5])
+                cos = normals[i, 0] * normals[j, 0] + normals[i, 1] * normals[j, 1] + normals[i, 2] * normals[j, 2]
+                if cos > WIDTH_SHEET_COS:
+                    distance = math.sqrt(nb[k, 0] ** 2 + nb[k, 1] ** 2 + nb[k, 2] ** 2)
+                    out[i] = max(out[i], h[j] - slope * distance)
+    return out
+
+
+@numba.njit(cache=True, fastmath=True)
+def fit(x, nref, samples, poly, scratch):
+    """Fit the local MLS polynomial at x, for the sheet facing nref, into `poly` (POLY_SIZE);
+    returns a FIT_* status. `scratch` is the thread's `Scratch`.
+
+    Coordinates over H are in units of the local kernel width l so that the normal equations
+    stay well conditioned at any sampling density. Two passes over the neighbours: the
+    weighted sums and second moments about x (float64: the mean's offset from x is within a
+    support, so C = S2 - W m m^T loses nothing that matters), then the 15 moments w u^a v^b
+    (a + b <= 4) and 6 sums w f u^a v^b (a + b <= 2) that make the quadratic's normal
+    equations, as the GPU caster sums them.
+    """
+    count, facing, inside = gather(x, nref, samples, scratch)
+    if facing < MIN_NEIGHBOURS:
         return FIT_TOO_FEW
     if not inside:
         return FIT_OUTSIDE
+    scratch.found[0] = count
+    nb, work, colors = scratch.nb, scratch.work, samples.colors
+    sw = sh = mx = my = mz = cr = cg = cb = 0.0
+    sxx = sxy = sxz = syy = syz = szz = 0.0
+    for k in range(count):
+        w = nb[k, 3]
+        i = int(nb[k, 5])
+        dx, dy, dz = nb[k, 0], nb[k, 1], nb[k, 2]
+        sw += w
+        sh += w * nb[k, 4]
+        mx += w * dx
+        my += w * dy
+        mz += w * dz
+        sxx += w * dx * dx
+        sxy += w * dx * dy
+        sxz += w * dx * dz
+        syy += w * dy * dy
+        syz += w * dy * dz
+        szz += w * dz * dz
+        cr += w * colors[i, 0]
+        cg += w * colors[i, 1]
+        cb += w * colors[i, 2]
+    if sw <= 0.0:
+        return FIT_TOO_FEW
     mx /= sw
     my /= sw
     mz /= sw
-    # covariance about the weighted mean, in units of scale
+    scale = sh / sw
     inv_s = 1.0 / scale
-    c00 = c01 = c02 = c11 = c12 = c22 = 0.0
-    for k in range(count):
-        w = nb[k, 3]
-        px, py, pz = (nb[k, 0] - mx) * inv_s, (nb[k, 1] - my) * inv_s, (nb[k, 2] - mz) * inv_s
-        c00 += w * px * px
-        c01 += w * px * py
-        c02 += w * px * pz
-        c11 += w * py * py
-        c12 += w * py * pz
-        c22 += w * pz * pz
+    # covariance about the weighted mean, in units of the local width
+    inv_s2 = inv_s * inv_s
     nrm = poly[P_N:P_N + 3]
-    if not smallest_eigenvector(c00, c01, c02, c11, c12, c22, nrm):
+    if not smallest_eigenvector((sxx - sw * mx * mx) * inv_s2, (sxy - sw * mx * my) * inv_s2,
+                                (sxz - sw * mx * mz) * inv_s2, (syy - sw * my * my) * inv_s2,
+                                (syz - sw * my * mz) * inv_s2, (szz - sw * mz * mz) * inv_s2, nrm):
         return FIT_DEGENERATE
+    if nrm[0] * nref[0] + nrm[1] * nref[1] + nrm[2] * nref[2] < 0.0:
+        for a in range(3):
+            nrm[a] = -nrm[a]
     e1 = poly[P_E1:P_E1 + 3]
     e2 = poly[P_E2:P_E2 + 3]
     tangent_frame(nrm, e1, e2)
-    # weighted least squares quadratic over H: normal equations (lower triangle) and rhs in row 6
-    for a in range(7):
-        for b in range(7):
-            work[a, b] = 0.0
+    # frame axes scaled by 1 / l, so (u, v, f) come from p - x directly
+    e1x, e1y, e1z = e1[0] * inv_s, e1[1] * inv_s, e1[2] * inv_s
+    e2x, e2y, e2z = e2[0] * inv_s, e2[1] * inv_s, e2[2] * inv_s
+    nx, ny, nz = nrm[0] * inv_s, nrm[1] * inv_s, nrm[2] * inv_s
+    m10 = m01 = m20 = m11 = m02 = m30 = m21 = m12 = m03 = m40 = m31 = m22 = m13 = m04 = 0.0
+    f00 = f10 = f01 = f20 = f11 = f02 = 0.0
     for k in range(count):
         w = nb[k, 3]
-        px, py, pz = (nb[k, 0] - mx) * inv_s, (nb[k, 1] - my) * inv_s, (nb[k, 2] - mz) * inv_s
-        u = px * e1[0] + py * e1[1] + pz * e1[2]
-        v = px * e2[0] + py * e2[1] + pz * e2[2]
-        f = px * nrm[0] + py * nrm[1] + pz * nrm[2]
-        bs = (1.0, u, v, u * u, u * v, v * v)
-        for a in range(6):
-            wa = w * bs[a]
-            work[6, a] += wa * f
-            for b in range(a + 1):
-                work[a, b] += wa * bs[b]
+        px, py, pz = nb[k, 0] - mx, nb[k, 1] - my, nb[k, 2] - mz
+        u = px * e1x + py * e1y + pz * e1z
+        v = px * e2x + py * e2y + pz * e2z
+        wf = w * (px * nx + py * ny + pz * nz)
+        wu, wv = w * u, w * v
+        wuu, wuv, wvv = wu * u, wu * v, wv * v
+        m10 += wu
+        m01 += wv
+        m20 += wuu
+        m11 += wuv
+        m02 += wvv
+        m30 += wuu * u
+        m21 += wuu * v
+        m12 += wuv * v
+        m03 += wvv * v
+        m40 += wuu * u * u
+        m31 += wuu * u * v
+        m22 += wuu * v * v
+        m13 += wuv * v * v
+        m04 += wvv * v * v
+        f00 += wf
+        f10 += wf * u
+        f01 += wf * v
+        f20 += wf * u * u
+        f11 += wf * u * v
+        f02 += wf * v * v
+    # normal equations of the basis (1, u, v, u^2, u v, v^2): lower triangle, rhs in row 6
+    work[0, 0] = sw
+    work[1, 0], work[1, 1] = m10, m20
+    work[2, 0], work[2, 1], work[2, 2] = m01, m11, m02
+    work[3, 0], work[3, 1], work[3, 2], work[3, 3] = m20, m30, m21, m40
+    work[4, 0], work[4, 1], work[4, 2], work[4, 3], work[4, 4] = m11, m21, m12, m31, m22
+    work[5, 0], work[5, 1], work[5, 2], work[5, 3], work[5, 4], work[5, 5] = m02, m12, m03, m22, m13, m04
+    work[6, 0], work[6, 1], work[6, 2], work[6, 3], work[6, 4], work[6, 5] = f00, f10, f01, f20, f11, f02
     coef = work[6, :6]
     if not solve_spd(work, coef, 6):
         return FIT_DEGENERATE
@@ -306,126 +479,64 @@ def fit(x, points, spacing, h, colors, domain, cell, lower, dims, order, starts,
 
 
 @numba.njit(cache=True, fastmath=True)
-def poly_local(poly, x):
-    """x in the polynomial's scaled frame over H: (u, v) along e1, e2 and the height f along n."""
-    s = poly[P_SCALE]
-    rx, ry, rz = (x[0] - poly[P_Q]) / s, (x[1] - poly[P_Q + 1]) / s, (x[2] - poly[P_Q + 2]) / s
-    u = rx * poly[P_E1] + ry * poly[P_E1 + 1] + rz * poly[P_E1 + 2]
-    v = rx * poly[P_E2] + ry * poly[P_E2 + 1] + rz * poly[P_E2 + 2]
-    f = rx * poly[P_N] + ry * poly[P_N + 1] + rz * poly[P_N + 2]
-    return u, v, f
-
-
-@numba.njit(cache=True, fastmath=True)
-def poly_project(poly, x, out):
-    """P(x): x moved along n onto the polynomial over H; returns the squared step."""
-    s = poly[P_SCALE]
-    u, v, f = poly_local(poly, x)
-    c = poly[P_C:P_C + 6]
-    g = c[0] + c[1] * u + c[2] * v + c[3] * u * u + c[4] * u * v + c[5] * v * v
-    step = (g - f) * s
-    for a in range(3):
-        out[a] = x[a] + step * poly[P_N + a]
-    return step * step
-
-
-@numba.njit(cache=True, fastmath=True)
-def poly_normal(poly, x, out):
-    """Unit normal of the polynomial surface at (the foot point of) x: n - g_u e1 - g_v e2."""
-    u, v, _ = poly_local(poly, x)
-    c = poly[P_C:P_C + 6]
-    gu = c[1] + 2.0 * c[3] * u + c[4] * v
-    gv = c[2] + c[4] * u + 2.0 * c[5] * v
-    length = 0.0
-    for a in range(3):
-        out[a] = poly[P_N + a] - gu * poly[P_E1 + a] - gv * poly[P_E2 + a]
-        length += out[a] * out[a]
-    length = math.sqrt(length)
-    for a in range(3):
-        out[a] /= length
-
-
-@numba.njit(cache=True, fastmath=True)
-def poly_ray(poly, o, d, t_lo, t_hi):
-    """Smallest t in [t_lo, t_hi] where the ray o + t d meets the polynomial, or -1.
-
-    In the frame of H the ray is linear, (u, v, f)(t) = (u0, v0, f0) + t (du, dv, df), so
-    g(u(t), v(t)) - f(t) = 0 is a quadratic A t^2 + B t + C = 0.
-    """
-    s = poly[P_SCALE]
-    rx, ry, rz = (o[0] - poly[P_Q]) / s, (o[1] - poly[P_Q + 1]) / s, (o[2] - poly[P_Q + 2]) / s
-    u0 = rx * poly[P_E1] + ry * poly[P_E1 + 1] + rz * poly[P_E1 + 2]
-    v0 = rx * poly[P_E2] + ry * poly[P_E2 + 1] + rz * poly[P_E2 + 2]
-    f0 = rx * poly[P_N] + ry * poly[P_N + 1] + rz * poly[P_N + 2]
-    du = (d[0] * poly[P_E1] + d[1] * poly[P_E1 + 1] + d[2] * poly[P_E1 + 2]) / s
-    dv = (d[0] * poly[P_E2] + d[1] * poly[P_E2 + 1] + d[2] * poly[P_E2 + 2]) / s
-    df = (d[0] * poly[P_N] + d[1] * poly[P_N + 1] + d[2] * poly[P_N + 2]) / s
-    c = poly[P_C:P_C + 6]
-    qa = c[3] * du * du + c[4] * du * dv + c[5] * dv * dv
-    qb = c[1] * du + c[2] * dv + 2.0 * c[3] * u0 * du + c[4] * (u0 * dv + v0 * du) + 2.0 * c[5] * v0 * dv - df
-    qc = c[0] + c[1] * u0 + c[2] * v0 + c[3] * u0 * u0 + c[4] * u0 * v0 + c[5] * v0 * v0 - f0
-    if abs(qa) * (t_hi - t_lo) < 1e-9 * abs(qb):
-        if qb == 0.0:
-            return -1.0
-        t = -qc / qb
-        return t if t_lo <= t <= t_hi else -1.0
-    disc = qb * qb - 4.0 * qa * qc
-    if disc < 0.0:
-        return -1.0
-    sq = math.sqrt(disc)
-    # numerically stable pair of roots
-    k = -0.5 * (qb + (sq if qb >= 0.0 else -sq))
-    t1 = k / qa
-    t2 = qc / k if k != 0.0 else t1
-    if t1 > t2:
-        t1, t2 = t2, t1
-    if t_lo <= t1 <= t_hi:
-        return t1
-    if t_lo <= t2 <= t_hi:
-        return t2
-    return -1.0
+def past_edge(poly, samples, scratch):
+    """The half-disc test of the last fit (its neighbours still in `scratch`), made where a
+    projection converges: past the edge of a sheet the mean of the samples about x, each
+    counted for its area under one Gaussian of the local width, lies off to one side of x
+    (a jump in sampling density does not: the areas even it out)."""
+    nb, area = scratch.nb, samples.area
+    inv_l2 = 1.0 / (poly[P_SCALE] * poly[P_SCALE])
+    sa = ax = ay = az = 0.0
+    for k in range(scratch.found[0]):
+        dx, dy, dz = nb[k, 0], nb[k, 1], nb[k, 2]
+        # w with the sample's width h_i replaced by l: the normal-agreement factor stays
+        wa = area[int(nb[k, 5])] * nb[k, 3] * math.exp((dx * dx + dy * dy + dz * dz) * (1.0 / (nb[k, 4] * nb[k, 4])
+                                                                                        - inv_l2))
+        sa += wa
+        ax += wa * dx
+        ay += wa * dy
+        az += wa * dz
+    ax, ay, az = ax / sa, ay / sa, az / sa
+    along = ax * poly[P_N] + ay * poly[P_N + 1] + az * poly[P_N + 2]
+    return ax * ax + ay * ay + az * az - along * along > (samples.boundary * poly[P_SCALE]) ** 2
 
 
 @numba.njit(cache=True)
-def project_points(xs, points, spacing, h, colors, domain, cell, lower, dims, order, starts, scale,
-                   tolerance, max_iter, out, status, iterations):
-    """Iterate r <- P(r) for every row of xs until the step is below tolerance * scale."""
+def project_points(xs, nrefs, samples, tolerance, max_iter, out, status, iterations):
+    """Iterate r <- P(r) for every row of xs (reference normal: the row of nrefs, then each
+    fit's normal at the projected point) until the step is below tolerance * l."""
     poly = np.empty(POLY_SIZE)
-    work = np.empty((7, 7))
-    nb = np.empty((MAX_NEIGHBOURS, 4))
+    scratch = new_scratch()
     x = np.empty(3)
     y = np.empty(3)
+    nref = np.empty(3)
     for k in range(len(xs)):
         x[:] = xs[k]
+        nref[:] = nrefs[k]
         status[k] = FIT_NOT_CONVERGED
         for it in range(max_iter):
-            st = fit(x, points, spacing, h, colors, domain, cell, lower, dims, order, starts, scale, poly, work, nb)
+            st = fit(x, nref, samples, poly, scratch)
             iterations[k] = it + 1
             if st != FIT_OK:
                 status[k] = st
                 break
             step2 = poly_project(poly, x, y)
             x[:] = y
-            if step2 < (tolerance * scale) ** 2:
-                status[k] = FIT_OK
+            if step2 < (tolerance * poly[P_SCALE]) ** 2:
+                status[k] = FIT_OUTSIDE if past_edge(poly, samples, scratch) else FIT_OK
                 break
         out[k] = x
 
 
 @numba.njit(cache=True, parallel=True)
-def fit_points(points, spacing, h, colors, domain, cell, lower, dims, order, starts, scale, polys, status):
-    """The polynomial of every sample point (the per-point pre-pass of both ray tracers)."""
-    for k in numba.prange(len(points)):
-        work = np.empty((7, 7))
-        nb = np.empty((MAX_NEIGHBOURS, 4))
-        status[k] = fit(points[k], points, spacing, h, colors, domain, cell, lower, dims, order, starts,
-                        scale, polys[k], work, nb)
-
-
-def surface_args(surface: MLSSurface) -> tuple:
-    """The array arguments of `fit`, in order, after x."""
-    return (surface.points, surface.spacing, surface.h, surface.colors, surface.domain, surface.cell,
-            surface.lower, surface.dims, surface.order, surface.starts, surface.scale)
+def fit_points(samples, polys, status):
+    """The polynomial of every sample point, fitted for its own normal (the per-point pre-pass
+    of both ray tracers)."""
+    n = samples.points.shape[0]
+    for block in numba.prange((n + BLOCK - 1) // BLOCK):
+        scratch = new_scratch()  # per block of consecutive (nearby) samples: its cache is reused
+        for k in range(block * BLOCK, min(n, (block + 1) * BLOCK)):
+            status[k] = fit(samples.points[k], samples.normals[k], samples, polys[k], scratch)
 
 
 @dataclass(frozen=True)
@@ -437,20 +548,25 @@ class Projection:
     iterations: np.ndarray
 
 
-def project(surface: MLSSurface, xs: np.ndarray, tolerance: float = 1e-4, max_iter: int = 20) -> Projection:
-    """Project points (in the surface's local coordinates) onto the MLS surface."""
+def project(surface: MLSSurface, xs: np.ndarray, tolerance: float = 1e-4, max_iter: int = 20,
+            normals: np.ndarray | None = None) -> Projection:
+    """Project points (in the surface's local coordinates) onto the MLS surface: onto the
+    sheet facing `normals` (one per point), by default the normal of each point's nearest sample."""
     xs = np.ascontiguousarray(np.atleast_2d(xs), dtype=np.float64)
+    if normals is None:
+        normals = surface.normals[cKDTree(surface.points).query(xs)[1]]
+    nrefs = np.ascontiguousarray(np.broadcast_to(normals, xs.shape), dtype=np.float64)
     out = np.empty_like(xs)
     status = np.empty(len(xs), np.int64)
     iterations = np.zeros(len(xs), np.int64)
-    project_points(xs, *surface_args(surface), float(tolerance), int(max_iter), out, status, iterations)
+    project_points(xs, nrefs, surface.samples, float(tolerance), int(max_iter), out, status, iterations)
     return Projection(out, status, iterations)
 
 
 def point_polynomials(surface: MLSSurface) -> tuple[np.ndarray, np.ndarray]:
-    """(N, POLY_SIZE) polynomial of each sample point and its FIT_* status."""
+    """(N, POLY_SIZE) polynomial of each sample (in Morton order) and its FIT_* status."""
     n = len(surface.points)
     polys = np.zeros((n, POLY_SIZE))
     status = np.empty(n, np.int64)
-    fit_points(*surface_args(surface), polys, status)
+    fit_points(surface.samples, polys, status)
     return polys, status
