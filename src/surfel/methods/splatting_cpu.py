@@ -33,6 +33,12 @@ The passes, as in splatting.glsl (r_lp the low-pass radius in pixels, z_t = dept
    here, `gaussian` shaded each splat's colour before blending. A pixel whose four neighbours
    all received splats is whole (alpha 1), else its alpha is the coverage.
 
+Colour modes as on the GPU (surfel.colors): continuous attributes are splatted like colour and
+mapped through the colour map per pixel (per splat for `gaussian`); in a categorical mode a
+pixel shows the palette entry of its heaviest splat (the MAX of colors.category_pack over the
+attribute pass's fragments), shaded per pixel, never a blend. Eye-dome lighting and
+supersampling's box filter are RenderResult.from_samples', shared with every method.
+
 Speed (issue 18): the cloud is drawn in Morton order (made once per cloud by the Renderer), so
 a tile's splats lie together in memory; splats are binned into TILE x TILE screen tiles by
 all threads, and tiles are rasterized in parallel, each in its thread's cache-sized scratch,
@@ -49,6 +55,8 @@ from ..cloud import PointCloud
 from ..options import check_cpu_samples
 from ..result import RenderResult
 from ..shading import MODEL_IDS
+from . import splatting_kernels as k
+from . import splatting_tiles as t
 from .ewa import (
     ortho_scale,
     spatially_ordered,
@@ -71,19 +79,17 @@ def pack_splats(cloud: PointCloud, extras: bool) -> tuple[np.ndarray, np.ndarray
     64 bytes (centre relative to the local origin, as the GPU path uploads it; unit normal; the
     tangent axes; albedo, white without colours) and, with `extras`, (N, EXTRAS) rows of clip
     lines (inactive where the cloud has none) and Phong normal-field slopes (0 where none)."""
-    from . import splatting_kernels as k
-
     n = len(cloud)
-    packed = np.zeros((n, k.PACKED), np.float32)
-    packed[:, k.PX:k.PZ + 1] = cloud.positions - np.asarray(cloud.local_origin, np.float64)
-    packed[:, k.PNX:k.PNZ + 1] = cloud.normals
-    packed[:, k.PUX:k.PVZ + 1] = splat_axes(cloud).reshape(n, 6)
-    packed[:, k.PR:k.PB + 1] = splat_colors(cloud)
+    packed = np.zeros((n, t.PACKED), np.float32)
+    packed[:, t.PX:t.PZ + 1] = cloud.positions - np.asarray(cloud.local_origin, np.float64)
+    packed[:, t.PNX:t.PNZ + 1] = cloud.normals
+    packed[:, t.PUX:t.PVZ + 1] = splat_axes(cloud).reshape(n, 6)
+    packed[:, t.PR:t.PB + 1] = splat_colors(cloud)
     if not extras:
         return packed, None
-    rows = np.empty((n, k.EXTRAS), np.float32)
-    rows[:, k.EA0:k.EC1 + 1] = splat_clip_lines(cloud).reshape(-1, 6)
-    rows[:, k.EALPHA:k.EBETA + 1] = splat_fields(cloud)
+    rows = np.empty((n, t.EXTRAS), np.float32)
+    rows[:, t.EA0:t.EC1 + 1] = splat_clip_lines(cloud).reshape(-1, 6)
+    rows[:, t.EALPHA:t.EBETA + 1] = splat_fields(cloud)
     return packed, rows
 
 
@@ -103,8 +109,6 @@ class CpuSplatBuffers:
 
     def frame(self, width: int, height: int) -> None:
         """Fit the per-size and per-thread parts to this frame (allocating only on a change)."""
-        from . import splatting_kernels as k
-
         threads = numba.get_num_threads()
         if self.size == (width, height) and self.threads == threads:
             return
@@ -116,17 +120,15 @@ class CpuSplatBuffers:
         self.tile_start = np.empty(tiles, np.int64)
         self.tile_count = np.empty(tiles, np.int64)
         self.present = np.empty((height, width), np.uint8)
-        self.zbuf = np.empty((threads, k.STRIDE * k.STRIDE), np.float32)
-        self.cover = np.empty((threads, k.STRIDE * k.STRIDE), np.float32)
-        self.accum = np.empty((threads, k.LAYER, k.STRIDE * k.STRIDE), np.float32)
-        self.best = np.empty((threads, k.STRIDE * k.STRIDE), np.float32)
-        self.temp = np.empty((threads, k.TEMP_ROWS * k.BLOCK), np.float32)
+        self.zbuf = np.empty((threads, t.STRIDE * t.STRIDE), np.float32)
+        self.cover = np.empty((threads, t.STRIDE * t.STRIDE), np.float32)
+        self.accum = np.empty((threads, t.LAYER, t.STRIDE * t.STRIDE), np.float32)
+        self.best = np.empty((threads, t.STRIDE * t.STRIDE), np.float32)
+        self.temp = np.empty((threads, t.TEMP_ROWS * t.BLOCK), np.float32)
         self.capacity = 0
 
     def bin(self) -> None:
         """Sort this frame's splats into tiles; make each thread's table hold the largest tile."""
-        from . import splatting_kernels as k
-
         pairs, largest = k.bin_splats(self.box, self.tiles_x, self.tiles_y, self.counts, self.tile_start,
                                       self.tile_count, self.index)
         if pairs > len(self.index):  # more tile overlaps than ever before: grow, then place them
@@ -135,8 +137,8 @@ class CpuSplatBuffers:
                          self.index)
         if largest > self.capacity:
             self.capacity = largest + largest // 4
-            self.tables = np.zeros((self.threads, k.table_size(self.capacity)), np.float32)
-            self.boxes = np.zeros((self.threads, 4 * k.table_size(self.capacity) // k.TABLE_ROWS), np.int32)
+            self.tables = np.zeros((self.threads, t.table_size(self.capacity)), np.float32)
+            self.boxes = np.zeros((self.threads, 4 * t.table_size(self.capacity) // t.TABLE_ROWS), np.int32)
 
 
 def render_gaussian_cpu(cloud, camera, options, params: GaussianParams, renderer):
@@ -164,8 +166,6 @@ def _camera(camera, origin) -> np.ndarray:
 def _color_mode(options) -> tuple[int, np.ndarray, int]:
     """The kernels' colour mode (splatting_kernels.COLOR_*), its table (the colour map's LUT or
     the palette; one white entry for rgb) and the packed categories' code levels (0: none)."""
-    from . import splatting_kernels as k
-
     coloring = options.coloring
     if coloring is None or not (coloring.continuous or coloring.categorical):
         return k.COLOR_RGB, np.ones((1, 3), np.float32), 0
@@ -175,8 +175,6 @@ def _color_mode(options) -> tuple[int, np.ndarray, int]:
 
 
 def _render_cpu(cloud, camera, options, params, renderer, *, per_splat_shading: bool, normal_field: bool = False):
-    from . import splatting_kernels as k
-
     cloud = renderer.cached(cloud, "morton order", lambda: spatially_ordered(cloud))
     ss = options.supersample or DEFAULT_SUPERSAMPLE
     target = target_camera(camera, ss)
