@@ -82,7 +82,8 @@ def _timed(renderer, data, camera, name, backend, options, warmup, frames, size,
         if i >= warmup:
             times.append((time.perf_counter() - start) * 1000)
     ms = statistics.median(times)
-    row = {"method": name, "backend": result.stats["backend"], "renderer": result.stats["renderer"],
+    row = {"method": name, "backend": result.stats["backend"], "backend_choice": result.stats["backend_choice"],
+           "renderer": result.stats["renderer"],
            "points": len(data), "splats": result.stats["splats"], "width": size[0], "height": size[1],
            "ms": round(ms, 2), "msplats_per_s": round(len(data) / ms / 1000, 3), "frames": frames}
     if options.lod_error is not None:
@@ -112,9 +113,11 @@ def bench_command(input_path, points, methods: str, frames: int, values: dict, *
     rows = run(cloud, names, points=points, size=size, frames=frames, lod_error=lod_error, zoom=zoom)
     if as_json:
         return json.dumps(rows, indent=2)
-    lines = [f"{rows[0]['points']} points, {size[0]}x{size[1]}, renderer: {rows[0]['renderer']}"]
+    gl = [row["renderer"] for row in rows if row["backend"] == "gl"]
+    lines = [f"{rows[0]['points']} points, {size[0]}x{size[1]}, renderer: {gl[0] if gl else 'cpu'}"]
     for row in rows:
         lod = f" lod {row['lod']}px" if "lod" in row else ""
+        chosen = f"  [{row['backend_choice']}]" if row["backend_choice"] != "asked" else ""
         lines.append(f"{row['method'] + '@' + row['backend'] + lod:24s} {row['ms']:9.1f} ms  "
-                     f"{row['msplats_per_s']:7.2f} Msplats/s  ({row['splats']} splats)")
+                     f"{row['msplats_per_s']:7.2f} Msplats/s  ({row['splats']} splats){chosen}")
     return "\n".join(lines)
