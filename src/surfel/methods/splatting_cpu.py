@@ -128,13 +128,12 @@ class CpuSplatBuffers:
         self.capacity = 0
 
     def bin(self) -> None:
-        """Sort this frame's splats into tiles; make each thread's table hold the largest tile."""
-        pairs, largest = k.bin_splats(self.box, self.tiles_x, self.tiles_y, self.counts, self.tile_start,
-                                      self.tile_count, self.index)
-        if pairs > len(self.index):  # more tile overlaps than ever before: grow, then place them
+        """Sort this frame's splats into tiles (after k.bound_splats counted them); make each
+        thread's table hold the largest tile."""
+        pairs, largest = k.tile_offsets(self.counts, self.tile_start, self.tile_count)
+        if pairs > len(self.index):  # more tile overlaps than ever before
             self.index = np.empty(pairs + pairs // 4, np.int32)
-            k.bin_splats(self.box, self.tiles_x, self.tiles_y, self.counts, self.tile_start, self.tile_count,
-                         self.index)
+        k.place_splats(self.box, self.tiles_x, self.counts, self.index)
         if largest > self.capacity:
             self.capacity = largest + largest // 4
             self.tables = np.zeros((self.threads, t.table_size(self.capacity)), np.float32)
@@ -193,7 +192,7 @@ def _render_cpu(cloud, camera, options, params, renderer, *, per_splat_shading: 
     lowpass = np.float32(params.lowpass_radius * ss if params.ewa_filter else 0.0)
     m = _camera(target, cloud.local_origin)
     k.bound_splats(buffers.packed, buffers.extras, m, np.float32(params.radius_scale), lowpass,
-                   params.backface_culling, width, height, buffers.box)
+                   params.backface_culling, width, height, buffers.box, buffers.tiles_x, buffers.counts)
     buffers.bin()
     # one sample a pixel and no screen-space pass after it: the kernels write the final image
     composite = ss == 1 and not options.edl

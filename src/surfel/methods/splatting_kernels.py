@@ -1,11 +1,12 @@
 """Numba kernels of the CPU backends of `gaussian`, `deferred` and `phong` (splatting_cpu.py
 states the equations; splatting.glsl is the GPU program they reproduce).
 
-1. `bound_splats` (parallel over splats): each splat's pixel box, as the GPU's quad (the
-   projected corners of its disk's bounding square, and the low-pass disk), and culling;
-   conservative: the fragment tests decide which pixels it covers.
-2. `bin_splats` (parallel over chunks of splats): the splats meeting each TILE x TILE screen
-   tile, an index list per tile in draw order.
+1. `bound_splats` (parallel over chunks of splats): each splat's pixel box, as the GPU's quad
+   (the projected corners of its disk's bounding square, and the low-pass disk), and culling
+   (conservative: the fragment tests decide which pixels it covers); and how many splats of
+   the chunk meet each TILE x TILE screen tile.
+2. `tile_offsets` (serial over tiles) and `place_splats` (parallel over chunks): an index
+   list per tile of the splats meeting it, in draw order.
 3. `rasterize_tiles` (parallel over tiles): each tile owns its pixels, so threads never write
    the same memory. A tile copies its splats' packed inputs (one 64-byte row each) into its
    thread's table (splatting_tiles.py), then, in that table:
@@ -158,76 +159,77 @@ def _scalars(m):
 
 
 @nb.njit(parallel=True, fastmath=True, error_model="numpy", cache=True)
-def bound_splats(packed, extras, m, radius_scale, lowpass, backface, width, height, box):
+def bound_splats(packed, extras, m, radius_scale, lowpass, backface, width, height, box, tiles_x, counts):
     """Each splat's pixel box in `box` (N, 4) int32, as the GPU's quad (splatting.glsl): the
     pixel centres inside the projected corners of the disk's bounding square and, with the EWA
     filter, the low-pass disk of `lowpass` pixels around the projected centre (x0, x1, y0, y1
     inclusive; x0 > x1 marks a culled splat). A splat with a corner behind the near plane gets
-    the whole image. m: the frame's camera (splatting_cpu._camera)."""
+    the whole image. m: the frame's camera (splatting_cpu._camera). In the same pass, binning's
+    count: counts (chunks, tiles) gets how many splats of each chunk of the cloud (one thread
+    each) meet each TILE x TILE tile."""
     n = packed.shape[0]
     cam = _scalars(m)
     ortho, near = cam[16], cam[17]
     one = np.float32(1.0)
-    for i in nb.prange(n):
-        p = packed[i]
-        box[i, 0], box[i, 1], box[i, 2], box[i, 3] = 1, 0, 1, 0
-        if extras is not None:
-            if extras[i, EC0] < -1 or extras[i, EC1] < -1:
-                continue  # cut away whole (a point on a crease)
-        ex, ey, ez = _eye(cam, p[PX], p[PY], p[PZ])
-        nx, ny, nz = _turn(cam, p[PNX], p[PNY], p[PNZ])
-        if backface and (nz if ortho > 0 else -(nx * ex + ny * ey + nz * ez)) < 0:
-            continue
-        ux, uy, uz = _turn(cam, p[PUX] * radius_scale, p[PUY] * radius_scale, p[PUZ] * radius_scale)
-        vx, vy, vz = _turn(cam, p[PVX] * radius_scale, p[PVY] * radius_scale, p[PVZ] * radius_scale)
-        depth = -ez
-        reach = math.sqrt(ux * ux + uy * uy + uz * uz) + math.sqrt(vx * vx + vy * vy + vz * vz)
-        if ortho <= 0 and depth + reach < near:
-            continue  # wholly behind the near plane
-        if ortho <= 0 and depth - abs(uz) - abs(vz) < near:  # a corner behind it: the whole image
-            box[i, 0], box[i, 1], box[i, 2], box[i, 3] = 0, width - 1, 0, height - 1
-            continue
-        lo_x = lo_y = np.float32(1e30)
-        hi_x = hi_y = np.float32(-1e30)
-        for corner in range(4):
-            su = -one if corner & 1 == 0 else one
-            sv = -one if corner < 2 else one
-            sx, sy = _to_pixels(ex + su * ux + sv * vx, ey + su * uy + sv * vy, ez + su * uz + sv * vz, cam)
-            lo_x, lo_y, hi_x, hi_y = min(lo_x, sx), min(lo_y, sy), max(hi_x, sx), max(hi_y, sy)
-        if lowpass > 0:
-            mx, my = _to_pixels(ex, ey, ez, cam)
-            lo_x, lo_y = min(lo_x, mx - lowpass), min(lo_y, my - lowpass)
-            hi_x, hi_y = max(hi_x, mx + lowpass), max(hi_y, my + lowpass)
-        # pixel centres x + 0.5 in [lo, hi)
-        x0 = max(int(math.ceil(max(lo_x, -one) - np.float32(0.5))), 0)
-        x1 = min(int(math.ceil(min(hi_x, np.float32(width + 1)) - np.float32(0.5))) - 1, width - 1)
-        y0 = max(int(math.ceil(max(lo_y, -one) - np.float32(0.5))), 0)
-        y1 = min(int(math.ceil(min(hi_y, np.float32(height + 1)) - np.float32(0.5))) - 1, height - 1)
-        if x0 <= x1 and y0 <= y1:
-            box[i, 0], box[i, 1], box[i, 2], box[i, 3] = x0, x1, y0, y1
-
-
-@nb.njit(parallel=True, cache=True)
-def bin_splats(box, tiles_x, tiles_y, counts, tile_start, tile_count, index):
-    """The splats meeting each tile, tile after tile, in draw order: index[tile_start[t]:
-    tile_start[t] + tile_count[t]]. counts (chunks, tiles) is scratch: each chunk of splats is
-    counted and placed by one thread. Returns (pairs, largest tile count); when the pairs
-    exceed len(index), nothing is placed (grow it and call again)."""
-    n = box.shape[0]
-    chunks, tiles = counts.shape[0], tiles_x * tiles_y
+    chunks = counts.shape[0]
     step = (n + chunks - 1) // chunks
     for chunk in nb.prange(chunks):
         row = counts[chunk]
         row[:] = 0
         for i in range(chunk * step, min(chunk * step + step, n)):
-            if box[i, 0] > box[i, 1]:
+            # the packed row read element by element: a row view would bring reference counting,
+            # an atomic shared by every thread, into the loop
+            ex, ey, ez = _eye(cam, packed[i, PX], packed[i, PY], packed[i, PZ])
+            nx, ny, nz = _turn(cam, packed[i, PNX], packed[i, PNY], packed[i, PNZ])
+            ux, uy, uz = _turn(cam, packed[i, PUX] * radius_scale, packed[i, PUY] * radius_scale,
+                               packed[i, PUZ] * radius_scale)
+            vx, vy, vz = _turn(cam, packed[i, PVX] * radius_scale, packed[i, PVY] * radius_scale,
+                               packed[i, PVZ] * radius_scale)
+            depth = -ez
+            perspective = ortho <= 0
+            reach = math.sqrt(ux * ux + uy * uy + uz * uz) + math.sqrt(vx * vx + vy * vy + vz * vz)
+            culled = (backface & ((nz if ortho > 0 else -(nx * ex + ny * ey + nz * ez)) < 0)) \
+                | (perspective & (depth + reach < near))  # facing away, or wholly behind the near plane
+            if extras is not None:  # cut away whole (a point on a crease)
+                culled |= (extras[i, EC0] < -1) | (extras[i, EC1] < -1)
+            whole = perspective & (depth - abs(uz) - abs(vz) < near)  # a corner behind it: the whole image
+            lo_x = lo_y = np.float32(1e30)
+            hi_x = hi_y = np.float32(-1e30)
+            for corner in range(4):
+                su = -one if corner & 1 == 0 else one
+                sv = -one if corner < 2 else one
+                sx, sy = _to_pixels(ex + su * ux + sv * vx, ey + su * uy + sv * vy, ez + su * uz + sv * vz, cam)
+                lo_x, lo_y, hi_x, hi_y = min(lo_x, sx), min(lo_y, sy), max(hi_x, sx), max(hi_y, sy)
+            if lowpass > 0:
+                mx, my = _to_pixels(ex, ey, ez, cam)
+                lo_x, lo_y = min(lo_x, mx - lowpass), min(lo_y, my - lowpass)
+                hi_x, hi_y = max(hi_x, mx + lowpass), max(hi_y, my + lowpass)
+            # pixel centres x + 0.5 in [lo, hi)
+            x0 = max(int(math.ceil(max(lo_x, -one) - np.float32(0.5))), 0)
+            x1 = min(int(math.ceil(min(hi_x, np.float32(width + 1)) - np.float32(0.5))) - 1, width - 1)
+            y0 = max(int(math.ceil(max(lo_y, -one) - np.float32(0.5))), 0)
+            y1 = min(int(math.ceil(min(hi_y, np.float32(height + 1)) - np.float32(0.5))) - 1, height - 1)
+            x0, x1 = (0 if whole else x0), (width - 1 if whole else x1)
+            y0, y1 = (0 if whole else y0), (height - 1 if whole else y1)
+            empty = culled | (x0 > x1) | (y0 > y1)
+            if empty:
+                box[i, 0], box[i, 1], box[i, 2], box[i, 3] = 1, 0, 1, 0
                 continue
-            tx0, tx1 = box[i, 0] >> TILE_BITS, box[i, 1] >> TILE_BITS
-            for ty in range(box[i, 2] >> TILE_BITS, (box[i, 3] >> TILE_BITS) + 1):
-                for tx in range(tx0, tx1 + 1):
+            box[i, 0], box[i, 1], box[i, 2], box[i, 3] = x0, x1, y0, y1
+            for ty in range(y0 >> TILE_BITS, (y1 >> TILE_BITS) + 1):
+                for tx in range(x0 >> TILE_BITS, (x1 >> TILE_BITS) + 1):
                     row[ty * tiles_x + tx] += 1
+
+
+@nb.njit(cache=True)
+def tile_offsets(counts, tile_start, tile_count):
+    """Binning's prefix sum, tile-major and chunk-minor so that each tile's splats stay in draw
+    order: counts (chunks, tiles) becomes each chunk's first place in the index list of each
+    tile, tile t's list being index[tile_start[t]:tile_start[t] + tile_count[t]]. Returns
+    (tile-splat pairs, largest tile count)."""
+    chunks, tiles = counts.shape
     total, largest = 0, 0
-    for t in range(tiles):  # tile-major, chunk-minor: each tile's splats stay in draw order
+    for t in range(tiles):
         tile_start[t] = total
         for chunk in range(chunks):
             count = counts[chunk, t]
@@ -235,10 +237,18 @@ def bin_splats(box, tiles_x, tiles_y, counts, tile_start, tile_count, index):
             total += count
         tile_count[t] = total - tile_start[t]
         largest = max(largest, tile_count[t])
-    if total > index.shape[0]:
-        return total, largest
+    return total, largest
+
+
+@nb.njit(parallel=True, cache=True)
+def place_splats(box, tiles_x, places, index):
+    """Binning's scatter: each chunk's splats (one thread each) into the index lists of the
+    tiles they meet, from `places` (chunks, tiles), which tile_offsets made."""
+    n = box.shape[0]
+    chunks = places.shape[0]
+    step = (n + chunks - 1) // chunks
     for chunk in nb.prange(chunks):
-        row = counts[chunk]
+        row = places[chunk]
         for i in range(chunk * step, min(chunk * step + step, n)):
             if box[i, 0] > box[i, 1]:
                 continue
@@ -248,7 +258,6 @@ def bin_splats(box, tiles_x, tiles_y, counts, tile_start, tile_count, index):
                     t = ty * tiles_x + tx
                     index[row[t]] = i
                     row[t] += 1
-    return total, largest
 
 
 @nb.njit(inline="always", fastmath=True, error_model="numpy")
