@@ -101,7 +101,7 @@ METHODS: dict[str, Method] = {
                dump_passes=_GL_PASSES),
         Method("ewa", "Zwicker et al. 2001: software EWA surface splatting, the full resampling filter",
                {"cpu": "methods.ewa:render_ewa_cpu", "gl": "methods.ewa_gl:render_ewa_gl"}, "methods.ewa:EwaParams",
-               normal_field=True, dump_passes=_GL_PASSES),
+               normal_field=True, dump_passes=_GL_PASSES, cpu_beats_software_gl=True),
         Method("mls", "Adamson & Alexa 2003: ray tracing the MLS point set surface",
                {"cpu": "mls.raytrace:render_mls_cpu"}, "mls.raytrace:MlsParams", needs_radii=False),
         Method("mls-gpu", "Tejada et al. 2006: multi-pass GPU ray casting of the MLS surface",
