@@ -81,6 +81,14 @@ def test_orthographic_supersampled_and_culled_match_gl(dense_spot, method):
     assert_agree(cpu, gl)
 
 
+def test_level_of_detail_matches_gl(dense_spot):
+    """--lod-error: the CPU draws the cut the Renderer selects, GL the one its vertex stage keeps."""
+    camera = frame(dense_spot.center, dense_spot.bounding_radius, size=SIZE)
+    cpu, gl = both(dense_spot, camera, "deferred", shading="lambert", lod_error=1.0)
+    assert cpu.stats["splats"] == gl.stats["splats"] < len(dense_spot)
+    assert_agree(cpu, gl)
+
+
 @pytest.mark.parametrize("method", METHODS)
 @pytest.mark.parametrize("color,shading", [("elevation", "lambert"), ("intensity", "phong"),
                                            ("classification", "lambert"), ("rgb", "edl")])
