@@ -83,11 +83,6 @@ def choose_backend(method_name: str, backend: str | None, *, dump_passes: bool =
     return next(iter(method.backends)), "auto: the method's only backend"
 
 
-def resolve_backend(method_name: str, backend: str | None) -> str:
-    """The backend `choose_backend` picks (None: auto)."""
-    return choose_backend(method_name, backend)[0]
-
-
 # eps of a lazy source rendered without --lod-error: it cannot be drawn at full detail
 SOURCE_DEFAULT_LOD_ERROR = 1.0
 
@@ -372,5 +367,5 @@ def render(cloud, camera: Camera | None = None, method: str = "deferred", **kwar
     return default_renderer.render(cloud, camera, method, **kwargs)
 
 
-__all__ = ["render", "Renderer", "default_renderer", "default_camera", "choose_backend", "resolve_backend",
-           "is_software_renderer", "split_options"]
+__all__ = ["render", "Renderer", "default_renderer", "default_camera", "choose_backend", "is_software_renderer",
+           "split_options"]
