@@ -72,7 +72,7 @@ def test_categories_are_never_blended(classified, method, backend):
         result = surfel.render(classified, camera, method, backend=backend, color="classification",
                                shading="none", supersample=supersample)
         rgba = result.rgba8()
-        assert (rgba[..., 3] == 255).sum() > 2000
+        assert (rgba[..., 3] == 255).sum() > 1000  # splats bounded by the sampling: the canopy's are dots
         assert foreign_fraction(rgba, palette("classification", codes)) == 0.0, (method, supersample)
         full = rgba[rgba[..., 3] == 255][:, :3]
         assert len(np.unique(full, axis=0)) >= 4  # ground, vegetation and buildings all show
@@ -94,21 +94,23 @@ def test_a_mesh_shows_its_vertices_categories_unblended():
 
 @requires_gl
 @pytest.mark.parametrize("method,backend", [("deferred", None), ("points", None), ("ewa", "cpu"), ("mls-gpu", None)])
-def test_elevation_read_back_through_the_colour_map_follows_the_surface(autzen, method, backend):
-    """--color elevation --colormap viridis --shading none, top view: the elevation read back
-    through the map ranks like the surface's, taken from the depth buffer (judged >= 0.95)."""
-    camera = top_view(autzen, (256, 256))
-    result = surfel.render(autzen, camera, method, backend=backend, color="elevation", colormap="viridis",
+def test_elevation_read_back_through_the_colour_map_follows_the_surface(method, backend):
+    """--color elevation --colormap viridis --shading none, top view of the whole tile, as judged:
+    the elevation read back through the map ranks like the surface's, taken from the depth
+    buffer (judged >= 0.95)."""
+    tile = load(DATA / "autzen_trim.laz")
+    camera = top_view(tile, (256, 256))
+    result = surfel.render(tile, camera, method, backend=backend, color="elevation", colormap="viridis",
                            shading="none")
     lo, hi = result.stats["color_range"]
-    z = autzen.positions[:, 2]
+    z = tile.positions[:, 2]
     assert (lo, hi) == pytest.approx(tuple(np.percentile(z, [2, 98])))  # robust percentiles by default
     rgba = result.rgba8().astype(int)
     full = rgba[..., 3] == 255
     lut = np.round(colormap_table("viridis") * 255).astype(int)
     read_back = np.abs(rgba[full][:, None, :3] - lut[None]).sum(axis=2).argmin(axis=1)
     surface = camera.eye[2] - result.depth[full]  # looking straight down the +Z axis
-    assert full.mean() > 0.2  # the corner of the tile; EWA leaves soft edges
+    assert full.mean() > 0.15  # the tile fills half the image; EWA leaves soft edges
     assert spearmanr(read_back, surface).statistic >= 0.95
 
 

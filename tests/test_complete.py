@@ -61,7 +61,8 @@ def test_complete_gives_each_method_what_its_flags_ask():
     assert same is oriented and report == {}
     # splats: circular by default, fitted ellipses for an elliptical method, given normals kept
     circles, report = complete(oriented)
-    assert np.array_equal(circles.normals, oriented.normals) and set(report) == {"radii", "axes", "sharp_features"}
+    assert np.array_equal(circles.normals, oriented.normals)
+    assert set(report) == {"radii", "axes", "sharp_features", "splat_bound"}
     assert np.allclose(np.linalg.norm(circles.axes[:, 0], axis=1), circles.radii, rtol=1e-5)
     ellipses, report = complete(oriented, elliptical=True, normal_field=True)
     lengths = np.linalg.norm(ellipses.axes.astype(np.float64), axis=2)

@@ -399,6 +399,13 @@ def test_xyz_rgb_255_round_trip(tmp_path):
     assert cloud.normals is None
 
 
+@pytest.mark.parametrize("text", ["\n\n  \n", "# only a comment\n", "# x y z\n# 1 2 3\n"])
+def test_text_without_points_says_so(tmp_path, text):
+    path = tmp_path / "empty.xyz"
+    path.write_text(text)
+    assert str(raises_input_error(path)).endswith("no points")
+
+
 def test_text_layouts(tmp_path):
     (tmp_path / "s.pts").write_text("2\n1 2 3 -1200 255 0 0\n4 5 6 300 0 0 255\n")
     cloud = load(tmp_path / "s.pts")

@@ -473,6 +473,27 @@ def test_clouds_far_from_unit_scale_render_as_at_unit_scale(method):
         np.testing.assert_allclose(result.depth[covered], reference.depth[covered] * np.float32(scale), rtol=1e-5)
 
 
+@requires_gl
+@pytest.mark.parametrize("color_range", [None, (-0.2, 0.3)])
+def test_elevation_colours_do_not_change_with_scale(color_range):
+    """Elevation is a length: a range given in the cloud's units, or the default percentiles,
+    colour the same points the same at any scale, and the stats report the cloud's units."""
+    from surfel.rendering import Renderer, default_camera
+
+    reference = None
+    for scale in (1.0, 1e-25, 1e25):
+        cloud = spot_at(scale)
+        given = None if color_range is None else (color_range[0] * scale, color_range[1] * scale)
+        result = Renderer().render(cloud, default_camera(cloud, (64, 64)), "points", color="elevation",
+                                   color_range=given, shading="none")
+        lo, hi = result.stats["color_range"]
+        if reference is None:
+            reference, reference_range = result, (lo, hi)
+            continue
+        np.testing.assert_allclose((lo / scale, hi / scale), reference_range, rtol=1e-6)
+        np.testing.assert_allclose(result.color, reference.color, atol=2e-3, err_msg=f"{scale:g}")
+
+
 def test_clouds_beyond_float_range_are_refused_naming_the_file(tmp_path):
     from surfel.data import demo_cloud
 

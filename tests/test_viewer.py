@@ -69,3 +69,25 @@ def test_a_tile_opens_obliquely_across_the_window(tmp_path):
     rows = np.flatnonzero(drawn.any(axis=1))
     assert (columns[-1] - columns[0] + 1) / 400 > 0.7 and len(rows) > 30  # across the window, seen from above
     assert len(np.unique(image[20:165][drawn] // 32, axis=0)) > 8  # a colour ramp, not one colour
+
+
+@requires_gl
+def test_a_moving_camera_draws_coarser_until_it_stops():
+    """While the camera moves, frames are drawn at half resolution, and coarser while slower
+    than the motion budget; the still frame afterwards is whole again."""
+    from models import dense_spot
+
+    state = ViewState(dense_spot(), "points", "lambert", motion_frame_ms=1e-3)  # every frame is slow
+    still, _ = state.render((160, 120))
+    assert state.motion_error == 2.0  # a slow still frame: the next movement starts coarse
+    state.moving = True
+    first, _ = state.render((160, 120))
+    second, _ = state.render((160, 120))
+    assert first.alpha.shape == (60, 80)  # half the window's resolution while moving
+    assert first.stats["splats"] < still.stats["splats"] / 2
+    assert second.stats["splats"] < first.stats["splats"]  # still slow: coarser again
+    state.moving = False
+    again, _ = state.render((160, 120))
+    assert again.stats["splats"] == still.stats["splats"]
+    covered = still.alpha[::2, ::2] > 0.5
+    assert (first.alpha[covered] > 0.5).mean() > 0.9  # coarser, not full of holes

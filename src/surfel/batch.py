@@ -276,7 +276,7 @@ class Worker:
                 st = os.stat(request.input)
             except OSError as exc:  # a remote worker that does not share the driver's files
                 raise InputError(request.input, f"not readable on this worker ({exc.strerror})") from None
-            key = (request.input, st.st_size, st.st_mtime_ns)
+            key = (request.input, st.st_size, st.st_mtime_ns, request.sensor)
         if key in self.inputs:
             self.inputs.move_to_end(key)
             return self.inputs[key], False

@@ -10,7 +10,6 @@ import json
 import sys
 
 import click
-import numpy as np
 
 from .errors import SurfelError
 from .request import (
@@ -192,6 +191,7 @@ def info(input, as_json):
             "bounds_min": lo.tolist(), "bounds_max": hi.tolist(), "local_origin": cloud.local_origin.tolist(),
             "attributes": cloud.attribute_names(), "schema": summarize(cloud.attributes, cloud.schema),
             "would_estimate": estimate, "geospatial": cloud.geospatial,
+            "sensors": None if cloud.sensors is None else cloud.sensors.tolist(),
             "opengl": renderer_string() if gl_available() else None,
         }
     if as_json:
@@ -250,24 +250,24 @@ def compare(mesh, output, as_json, every, **values):
 @click.option("--normal-field", is_flag=True, help="Fit Phong splatting's linear normal fields.")
 @click.option("--sharp-features/--no-sharp-features", default=True, show_default=True,
               help="Cut splats at creases with clip lines (stored as clip_lines).")
-@table_options("viewpoint")
-def prepare(input, output, neighbors, viewpoint, elliptical, normal_field, sharp_features):
+@table_options("sensor")
+def prepare(input, output, neighbors, sensor, elliptical, normal_field, sharp_features):
     """Estimate normals, splat radii and tangent frames; write a PLY.
 
     \b
     Example:
-      surfel prepare scan.xyz -o scan.ply --viewpoint 0,0,10
+      surfel prepare scan.xyz -o scan.ply --sensor 0,0,10
     """
     from .files import check_output
     from .io import load, write_ply
+    from .lod.source import with_sensor
     from .preprocess import prepare as do_prepare
     from .request import parse_values
 
-    view = parse_values({"viewpoint": viewpoint}, ("viewpoint",)).get("viewpoint")
+    position = parse_values({"sensor": sensor}, ("sensor",)).get("sensor")
     check_output(output, "--output")
-    cloud = load(input)
+    cloud = with_sensor(load(input), position)
     prepared, report = do_prepare(cloud.with_(radii=None, axes=None) if elliptical else cloud, k_normals=neighbors,
-                                  viewpoint=None if view is None else np.array(view),
                                   elliptical=elliptical, normal_field=normal_field, sharp_features=sharp_features)
     write_ply(prepared, output)
     click.echo(f"{output}: {len(prepared)} points; " + ", ".join(f"{k}: {v}" for k, v in report.items()), err=True)

@@ -108,6 +108,10 @@ class PointCloud:
                 names the cloud does not hold are dropped.
     geospatial: True for LAS/LAZ-like data, whose up axis is +Z
     source    : file the cloud came from, for messages
+    sensors   : (S, 3) float64 positions of the scanners that measured the points (E57 poses,
+                --sensor), or None. With one, every point's; with several, point i's is
+                sensors[attributes["scan"][i]]. Estimated normals face them, and the spacing
+                bound grows with the range from them (surfel.preprocess).
     """
 
     positions: np.ndarray
@@ -120,6 +124,7 @@ class PointCloud:
     kinds: dict[str, str] = field(default_factory=dict)
     geospatial: bool = False
     source: str | None = None
+    sensors: np.ndarray | None = None
 
     def __post_init__(self):
         src = self.source
@@ -194,11 +199,21 @@ class PointCloud:
                 raise InputError(src, f"attribute '{name}': kind {kind!r} is not one of {', '.join(KINDS)}")
             if name in DERIVED and kind != CONTINUOUS:
                 raise InputError(src, f"attribute '{name}' is derived, hence continuous, not {kind}")
-        for array in (pos, normals, colors, radii, axes, faces, *attributes.values()):
+        sensors = self.sensors
+        if sensors is not None:
+            sensors = _contiguous(sensors, np.float64)
+            if sensors.ndim != 2 or sensors.shape[1] != 3 or not len(sensors) or not np.isfinite(sensors).all():
+                raise InputError(src, f"sensors must be finite positions of shape (S, 3), got {sensors.shape}")
+            scan = attributes.get("scan")
+            if len(sensors) > 1 and (scan is None or scan.ndim != 1 or scan.dtype.kind not in "iu"
+                                     or scan.min() < 0 or scan.max() >= len(sensors)):
+                raise InputError(src, f"{len(sensors)} sensors need an integer attribute 'scan' indexing them")
+        for array in (pos, normals, colors, radii, axes, faces, sensors, *attributes.values()):
             if array is not None:
                 _read_only(array)
         for name, value in [("positions", pos), ("normals", normals), ("colors", colors), ("radii", radii),
-                            ("axes", axes), ("faces", faces), ("attributes", attributes), ("kinds", kinds)]:
+                            ("axes", axes), ("faces", faces), ("attributes", attributes), ("kinds", kinds),
+                            ("sensors", sensors)]:
             object.__setattr__(self, name, value)
         self._check_scale()
 
@@ -258,7 +273,16 @@ class PointCloud:
         return PointCloud(self.positions[index], normals=pick(self.normals), colors=pick(self.colors),
                           radii=pick(self.radii), axes=pick(self.axes),
                           attributes={name: value[index] for name, value in self.attributes.items()},
-                          kinds=self.schema.kinds, geospatial=self.geospatial, source=self.source)
+                          kinds=self.schema.kinds, geospatial=self.geospatial, source=self.source,
+                          sensors=self.sensors)
+
+    def sensor_positions(self) -> np.ndarray | None:
+        """(N, 3) float64: the sensor position of every point, or None when none is known."""
+        if self.sensors is None:
+            return None
+        if len(self.sensors) == 1:
+            return np.broadcast_to(self.sensors[0], self.positions.shape)
+        return self.sensors[self.attributes["scan"]]
 
     @cached_property
     def schema(self) -> Schema:

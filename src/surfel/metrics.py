@@ -7,6 +7,11 @@ All compare a method's render against the mesh render under the same camera:
                   leaves uncovered (alpha < 0.5).
 * spill         : fraction of pixels outside the silhouette (the complement of the dilated
                   silhouette, i.e. the background eroded by 1 pixel) that the method covers.
+
+A LiDAR tile has no mesh; its top orthographic view is judged against its returns
+(`top_view_footprint`, issue 14): the share of covered pixels farther than 4 median
+horizontal point spacings from every return (surface invented past the data), and the share
+of the footprint (pixels within 1.5 spacings of a return) left uncovered (holes).
 """
 
 from __future__ import annotations
@@ -78,3 +83,36 @@ def side_by_side(reference, result) -> bytes:
     buffer = io.BytesIO()
     Image.fromarray(np.round(strip * 255).astype(np.uint8)).save(buffer, format="PNG")
     return buffer.getvalue()
+
+
+def pixel_centres_xy(camera) -> np.ndarray:
+    """World x, y (H, W, 2) of the pixel centres of an orthographic top camera."""
+    j, i = np.meshgrid(np.arange(camera.width) + 0.5, np.arange(camera.height) + 0.5)
+    scale = camera.ortho_height / camera.height
+    inverse = np.linalg.inv(camera.world_to_eye)
+    right, up = ((j - camera.cx) * scale)[..., None], ((camera.cy - i) * scale)[..., None]
+    return (right * inverse[:3, 0] + up * inverse[:3, 1] + inverse[:3, 3])[..., :2]
+
+
+def top_view_footprint(result, camera, positions: np.ndarray, distinct: bool = False) -> tuple[float, float]:
+    """(far, uncovered) of a top orthographic view of a tile (module docstring). The spacing
+    is the median horizontal nearest-neighbour distance, or with `distinct` the distance to
+    the nearest return elsewhere (coincident returns would make it 0)."""
+    from scipy.spatial import cKDTree
+
+    xy = np.asarray(positions, np.float64)[:, :2]
+    tree = cKDTree(xy)
+    distances, _ = tree.query(xy, k=min(8, len(xy)))
+    distances = distances.reshape(len(xy), -1)
+    if distinct:
+        positive = distances > 0
+        rows = positive.any(axis=1)
+        spacing = float(np.median(distances[rows, positive[rows].argmax(axis=1)]))
+    else:
+        spacing = float(np.median(distances[:, 1]))
+    nearest, _ = tree.query(pixel_centres_xy(camera).reshape(-1, 2))
+    nearest = nearest.reshape(camera.height, camera.width)
+    covered = result.alpha > 0
+    far = (covered & (nearest > 4 * spacing)).sum() / max(covered.sum(), 1)
+    footprint = nearest <= 1.5 * spacing
+    return float(far), float((footprint & ~covered).sum() / max(footprint.sum(), 1))

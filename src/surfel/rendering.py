@@ -280,9 +280,19 @@ class Renderer:
             raise SurfelError(f"method {method!r} needs a mesh input (faces); {cloud.source or 'this cloud'} has none")
         self._release_gone()
         camera = camera or default_camera(cloud, size)
-        unit = render_unit(cloud.bounding_radius)
+        lo, hi = cloud.bounds
+        # coincident points have no extent to bring to unit scale (their framing radius is a
+        # fraction of their distance from the origin, which scaling does not change)
+        unit = render_unit(cloud.bounding_radius) if (hi > lo).any() else 1.0
         if unit != 1.0:
-            return self._render_at_unit_scale(cloud, camera, method, unit, backend=backend, options=options)
+            return self._render_at_unit_scale(cloud, camera, method, unit, backend=backend, options=options,
+                                              params=params)
+        return self._render_cloud(cloud, camera, method, backend=backend, options=options, params=params)
+
+    def _render_cloud(self, cloud: PointCloud, camera: Camera, method: str, *, backend: str | None,
+                      options: RenderOptions, params) -> RenderResult:
+        """`render` of a PointCloud at a scale the methods work at."""
+        m = get_method(method)
         input_points = len(cloud)
         backend, backend_choice = choose_backend(method, backend, dump_passes=options.dump_passes is not None)
         cloud, options = self.appearance(cloud, options)
@@ -326,14 +336,21 @@ class Renderer:
         return result
 
     def _render_at_unit_scale(self, cloud: PointCloud, camera: Camera, method: str, unit: float, *,
-                              backend: str | None, options: RenderOptions) -> RenderResult:
+                              backend: str | None, options: RenderOptions, params) -> RenderResult:
         """Render a cloud far from unit scale (1e-30 or 1e30 units across) divided by `unit`, a
         power of two, so that every method's float32 arithmetic and tolerances work as they do
-        at unit scale; the image is the same, eye depths are scaled back."""
+        at unit scale; the image is the same, eye depths are scaled back, and an elevation
+        colour range is the original's (elevation is a length: it scales with the cloud)."""
         scaled = self.cached(cloud, ("unit scale", unit), lambda: cloud.scaled(1 / unit))
-        result = self.render(scaled, camera.scaled(1 / unit), method, backend=backend, options=options)
+        coloring = self.appearance(cloud, options)[1].coloring
+        if coloring.name == colors.ELEVATION:
+            options = replace(options, color_range=(coloring.range[0] / unit, coloring.range[1] / unit))
+        result = self._render_cloud(scaled, camera.scaled(1 / unit), method, backend=backend, options=options,
+                                    params=params)
         result.depth = result.depth * np.float32(unit)
         result.stats.update(near=result.stats["near"] * unit, far=result.stats["far"] * unit, unit_scale=unit)
+        if coloring.name == colors.ELEVATION:
+            result.stats["color_range"] = list(coloring.range)
         return result
 
     def _render_source(self, source, camera: Camera | None, method: str, *, backend: str | None, size,
@@ -351,9 +368,12 @@ class Renderer:
         start = time.perf_counter()
         cut, selection = source.select(camera, epsilon, options.point_budget)
         select_ms = (time.perf_counter() - start) * 1000
-        # the cut is already at the requested detail: no second selection on it
+        # the cut is already at the requested detail: no second selection on it; its shading is
+        # the source's default (a COPC file without normals is shaded as such, though its cut's
+        # normals were estimated)
         result = self.render(cut, camera, method, backend=backend,
-                             options=replace(options, lod_error=None, point_budget=None))
+                             options=replace(options, lod_error=None, point_budget=None,
+                                             shading=options.shading or default_for(source)))
         result.stats.update({"points": source.total_points, "lod": epsilon, "select_ms": round(select_ms, 3),
                              **selection})
         return result

@@ -282,8 +282,10 @@ OPTIONS: dict[str, Option] = {o.name: o for o in [
            value=_normalization),
     Option("shadows", None, "Ray-traced shadows (mls).", "params", flag="--shadows"),
     Option("reflect", None, "One mirror bounce (mls).", "params", flag="--reflect"),
-    # `surfel prepare`
-    Option("viewpoint", numbers(3), "Sensor position to orient normals towards.", "prepare", metavar="X,Y,Z"),
+    # the input's acquisition
+    Option("sensor", numbers(3), "Position of the scanner that measured the input, in file coordinates: "
+           "estimated normals face it and splat sizes follow the range from it (terrestrial scans).", "input",
+           metavar="X,Y,Z"),
     # turntables
     Option("frames", integer_in(1, 3600), "Frames in the orbit.", "turntable", default=str(TURNTABLE_FRAMES),
            metavar="N"),
@@ -295,13 +297,13 @@ CAMERA = tuple(name for name, o in OPTIONS.items() if o.sets == "camera")
 RENDER = tuple(name for name, o in OPTIONS.items() if o.sets in ("options", "params"))
 OUTPUTS = ("output", "depth", "normals", "stats")
 # what `surfel render` takes, and hence a batch job; what `surfel turntable` takes
-RENDER_COMMAND = ("input", "demo", *OUTPUTS, "method", "backend", *CAMERA, *RENDER)
+RENDER_COMMAND = ("input", "demo", "sensor", *OUTPUTS, "method", "backend", *CAMERA, *RENDER)
 # what `surfel export-html` takes: render's options that the page honours
 PAGE_COMMAND = ("input", "demo", "output", "method", *CAMERA, "shading", "color", "colormap", "color_range",
                 "classes", "returns", "edl_strength", "edl_radius", "background", "supersample", "lod_error",
                 "point_budget", "radius_scale", "depth_offset", "backface_culling", "ewa_filter", "lowpass_radius")
 PAGE_MAX_SUPERSAMPLE = 4
-TURNTABLE_COMMAND = ("input", "output", "frames", "fps", "elevation", "size", "method", "backend", *RENDER)
+TURNTABLE_COMMAND = ("input", "sensor", "output", "frames", "fps", "elevation", "size", "method", "backend", *RENDER)
 
 
 def option_text(option: Option, value, where: str) -> str | bool:
@@ -502,14 +504,16 @@ class RenderRequest:
     options: RenderOptions
     outputs: Outputs
     argv: tuple[str, ...] = ()  # the `surfel render` arguments that make this request
+    sensor: tuple[float, float, float] | None = None  # --sensor
 
     def open_input(self):
         """The demo cloud, a lazy LOD source (a .lod directory, a COPC file) or the loaded cloud."""
         if self.demo:
             from .data import demo_cloud
+            from .lod.source import with_sensor
 
-            return demo_cloud()
-        return open_input(self.input)
+            return with_sensor(demo_cloud(), self.sensor)
+        return open_input(self.input, self.sensor)
 
     def render(self, renderer, cloud=None):
         """Render (the input, or `cloud` when the caller has it loaded) with `renderer`."""
@@ -539,12 +543,13 @@ class RenderRequest:
                        outputs=self.outputs.absolute(), options=options)
 
 
-def open_input(path):
-    """A lazy LOD source (a .lod directory, a COPC file) if PATH is one, else the loaded cloud."""
+def open_input(path, sensor: tuple[float, float, float] | None = None):
+    """A lazy LOD source (a .lod directory, a COPC file) if PATH is one, else the loaded cloud;
+    with `sensor`, the position of the scanner that measured it (`lod.source.with_sensor`)."""
     from .io import load
-    from .lod.source import open_source
+    from .lod.source import open_source, with_sensor
 
-    return open_source(path) or load(path)
+    return with_sensor(open_source(path) or load(path), sensor)
 
 
 def method_and_backend(parsed: dict, where: str = "") -> tuple[str, str | None]:
@@ -589,7 +594,8 @@ def parse_render(values: Mapping[str, object], *, where: str = "", require_outpu
     outputs.check_names(where)
     given = {k: v for k, v in values.items() if v is not None}
     return RenderRequest(parsed.get("input"), parsed.get("demo", False), method, backend,
-                         CameraSpec.from_parsed(parsed, where), options, outputs, argv_of(given))
+                         CameraSpec.from_parsed(parsed, where), options, outputs, argv_of(given),
+                         parsed.get("sensor"))
 
 
 __all__ = ["OPTIONS", "Option", "CameraSpec", "Outputs", "RenderRequest", "default", "method_and_backend",

@@ -102,6 +102,7 @@ class TurntableRequest:
     method: str
     backend: str | None
     options: RenderOptions
+    sensor: tuple[float, float, float] | None = None
 
 
 def parse_turntable(values: dict) -> TurntableRequest:
@@ -112,14 +113,14 @@ def parse_turntable(values: dict) -> TurntableRequest:
     check_animation(parsed["output"])
     return TurntableRequest(parsed["input"], parsed["output"], default("frames", parsed), default("fps", parsed),
                             parsed.get("elevation", TURNTABLE_ELEVATION), parsed.get("size", TURNTABLE_SIZE),
-                            method, backend, options_from(parsed, method))
+                            method, backend, options_from(parsed, method), parsed.get("sensor"))
 
 
 def turntable_command(values: dict) -> TurntableRequest:
     """`surfel turntable`: the request parsed, then rendered and written."""
     request = parse_turntable(values)
     with Renderer() as renderer:
-        turntable(open_input(request.input), request.output, frames=request.frames, method=request.method,
-                  size=request.size, elevation=request.elevation, fps=request.fps, backend=request.backend,
-                  renderer=renderer, options=request.options)
+        turntable(open_input(request.input, request.sensor), request.output, frames=request.frames,
+                  method=request.method, size=request.size, elevation=request.elevation, fps=request.fps,
+                  backend=request.backend, renderer=renderer, options=request.options)
     return request

@@ -9,6 +9,13 @@ start at the data's defaults (surfel.colors, surfel.shading). A geospatial tile 
 oblique view (OBLIQUE_ELEVATION degrees) framed by its extent, and keeps that distance as the
 camera orbits.
 
+While the camera moves, frames are drawn at half the window's resolution (each pixel shown
+2x2), at MOVING_LOD_FACTOR times the LOD error the keys chose, and, while they take longer than
+MOTION_FRAME_MS, at a coarser level of detail still (the sequential point tree's
+projected-error cut, doubled per slow frame and halved per fast one); once it stops, the view
+is drawn again in full, at the detail the keys chose. The notebook widget moves the same way. So a
+million-point tile stays interactive on a software rasterizer without giving up its still frame.
+
     mouse: left drag orbits, right drag pans, wheel zooms
     1-9  : choose the method (the order of `surfel methods`)    e: EWA filter on/off
     + -  : LOD error x2 / /2 (0 = full detail)                  s: next shading model
@@ -36,6 +43,10 @@ from .shading import DEFAULT as DEFAULT_SHADING
 from .shading import EDL, MODELS, default_for
 
 OBLIQUE_ELEVATION = 35.0  # degrees: how a geospatial tile opens
+MOVING_LOD_FACTOR = 4.0  # a moving frame's LOD error / the still frame's (when that is not 0)
+MOTION_FRAME_MS = 150.0  # a moving frame: coarser detail until it takes no longer (7 frames a second)
+MAX_MOTION_ERROR = 8.0  # pixels: coarser cuts turn a canopy into blobs
+MOTION_SETTLE_S = 0.25  # the camera counts as stopped after this long without a drag or a wheel step
 HELP = [line.strip() for line in __doc__.split("\n\n")[2].splitlines() if line.strip()]
 VERTEX = """#version 330
 out vec2 uv;
@@ -55,7 +66,8 @@ class ViewState:
     """What the keys and the mouse change; everything a frame needs to render."""
 
     def __init__(self, cloud, method: str, shading: str | None = None, renderer: Renderer | None = None, *,
-                 color: str | None = None, colormap: str = colors.DEFAULT_COLORMAP):
+                 color: str | None = None, colormap: str = colors.DEFAULT_COLORMAP,
+                 motion_frame_ms: float = MOTION_FRAME_MS):
         self.cloud = cloud
         self.methods = [m.name for m in METHODS.values() if m.name != "mesh" or getattr(cloud, "is_mesh", False)]
         self.method = method
@@ -71,6 +83,9 @@ class ViewState:
         self.distance: tuple | None = None  # (size, distance) of a geospatial tile's framing
         self.ewa_filter: bool | None = None  # None: the method's own default
         self.lod_error = 0.0
+        self.motion_frame_ms = motion_frame_ms
+        self.moving = False
+        self.motion_error = 0.0  # the extra projected error (pixels) while moving, adapted per frame
         self.backface_culling = False
         self.show_help = True
         self.reset()
@@ -130,14 +145,36 @@ class ViewState:
             return None
         return m.make_params().ewa_filter if self.ewa_filter is None else self.ewa_filter
 
+    def frame_lod_error(self) -> float:
+        """The level of detail of the next frame: the keys' choice, coarser while moving."""
+        if not self.moving:
+            return self.lod_error
+        return max(self.lod_error * MOVING_LOD_FACTOR, self.motion_error)
+
     def render(self, size):
+        """The next frame for a window of `size`: at half its resolution while moving."""
+        if self.moving:
+            size = (max(1, size[0] // 2), max(1, size[1] // 2))
         values = {"shading": self.shading, "color": self.color, "colormap": self.colormap,
                   "backface_culling": self.backface_culling, "ewa_filter": self.ewa_filter,
-                  "lod_error": self.lod_error or None}
+                  "lod_error": self.frame_lod_error() or None}
         options = render_options(self.method, values, strict=False)
         start = time.perf_counter()
         result = self.renderer.render(self.cloud, self.camera(size), self.method, options=options)
-        return result, (time.perf_counter() - start) * 1000
+        ms = (time.perf_counter() - start) * 1000
+        self.adapt_motion_detail(ms)
+        return result, ms
+
+    def adapt_motion_detail(self, ms: float) -> None:
+        """Coarser while frames are slow, finer while fast. A slow still frame starts the next
+        movement coarse, so its first dragged frame does not stall."""
+        if not self.moving:
+            if ms > self.motion_frame_ms and self.motion_error == 0:
+                self.motion_error = 2.0
+        elif ms > self.motion_frame_ms:
+            self.motion_error = min(MAX_MOTION_ERROR, max(1.0, self.motion_error * 2))
+        elif ms < self.motion_frame_ms / 3:
+            self.motion_error = 0.0 if self.motion_error <= 1.0 else self.motion_error / 2
 
 
 def color_status(stats: dict) -> str:
@@ -154,7 +191,8 @@ def annotate(rgb: np.ndarray, state: ViewState, result, ms: float) -> np.ndarray
 
     image = Image.fromarray(rgb)
     draw = ImageDraw.Draw(image)
-    lod = f"  lod {state.lod_error:g}px" if state.lod_error else ""
+    error = state.frame_lod_error()
+    lod = f"  lod {error:g}px" if error else ""
     ewa = state.ewa_filter_on()
     ewa = "" if ewa is None else f"  ewa filter {'on' if ewa else 'off'}"
     status = (f"{state.method}@{result.stats['backend']}  {ms:.0f} ms  {result.stats['splats']} splats"
@@ -221,6 +259,10 @@ def view(cloud, *, method: str = "deferred", shading: str | None = None, color: 
         state = ViewState(cloud, method, shading, Renderer(), color=color, colormap=colormap)
         drag = {"button": None, "x": 0.0, "y": 0.0}
         dirty = [True]
+        last_motion = [0.0]
+
+        def moved():
+            state.moving, last_motion[0], dirty[0] = True, time.monotonic(), True
 
         def on_key(_w, key, _scancode, action, _mods):
             if action != glfw.PRESS:
@@ -248,11 +290,11 @@ def view(cloud, *, method: str = "deferred", shading: str | None = None, color: 
                 scale = 2 * cloud.bounding_radius * state.zoom / size[1]
                 right, up = cam.world_to_eye[0, :3], cam.world_to_eye[1, :3]
                 state.pan += scale * (-dx * right + dy * up)
-            dirty[0] = True
+            moved()
 
         def on_scroll(_w, _dx, dy):
             state.zoom *= math.pow(0.9, dy)
-            dirty[0] = True
+            moved()
 
         glfw.set_key_callback(window, on_key)
         glfw.set_mouse_button_callback(window, on_button)
@@ -260,11 +302,16 @@ def view(cloud, *, method: str = "deferred", shading: str | None = None, color: 
         glfw.set_scroll_callback(window, on_scroll)
         texture = None
         while not glfw.window_should_close(window):
+            if (state.moving and drag["button"] is None
+                    and time.monotonic() - last_motion[0] > MOTION_SETTLE_S):
+                state.moving, dirty[0] = False, True  # stopped: the still frame at full detail
             if dirty[0]:
                 width, height = glfw.get_framebuffer_size(window)
                 result, ms = state.render((width, height))
                 glfw.make_context_current(window)  # rendering used the headless context
-                rgb = annotate(np.round(np.clip(result.color, 0, 1) * 255).astype(np.uint8), state, result, ms)
+                rgb = np.round(np.clip(result.color, 0, 1) * 255).astype(np.uint8)
+                rows = np.arange(height) * rgb.shape[0] // height  # a moving frame's pixels, shown 2x2
+                rgb = annotate(rgb[rows][:, np.arange(width) * rgb.shape[1] // width], state, result, ms)
                 if texture is None or texture.size != (width, height):
                     texture = ctx.texture((width, height), 3)
                 texture.write(np.ascontiguousarray(rgb).tobytes())

@@ -5,9 +5,9 @@ kernel renders each frame with surfel.render (every method, .lod hierarchies and
 read lazily as far as the view needs) and the widget sends it to the browser, JPEG while the
 camera moves and a lossless PNG when it rests; the browser sends back mouse events. Left drag
 orbits, right drag pans, the wheel zooms (surfel.viewer.ViewState, the desktop viewer's
-camera). While the camera moves, frames are rendered at half resolution and, for large
-clouds and hierarchies, at MOVING_LOD_FACTOR times the LOD error, so they come at
-interactive rates; SETTLE_S after the last event a full frame replaces them. ipywidgets
+camera). While the camera moves, frames are rendered as the desktop viewer renders them
+(ViewState: half resolution, a coarser LOD, coarser still while frames are slow), so they
+come at interactive rates; SETTLE_S after the last event a full frame replaces them. ipywidgets
 controls pick the method, colour mode (surfel.colors: every method colours by attribute
 itself, categories never blended), colour map, shading model (eye-dome lighting included)
 and LOD error; the status line reports each frame's time, splat count, colour mode and range.
@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import asyncio
 import threading
-import time
 
 from . import colors
 from .cloud import PointCloud
@@ -27,10 +26,7 @@ from .methods import METHODS
 from .shading import MODELS
 from .viewer import ViewState, color_status
 
-MOVING_LOD_FACTOR = 4
-MOVING_DOWNSAMPLE = 2
 SETTLE_S = 0.3
-LARGE_CLOUD = 300_000  # above this many points, moving frames use a coarser LOD too
 WIDGET_COLORMAPS = ("viridis", "turbo", "inferno", "cividis", "terrain", "gray")  # the map menu
 
 
@@ -119,19 +115,13 @@ def make_view(cloud, *, method: str = "deferred", shading: str | None = None, si
                 self.send_frame(frame)
 
         def render_frame(self):
-            scale = MOVING_DOWNSAMPLE if self.moving else 1
-            frame_size = (max(self.size[0] // scale, 8), max(self.size[1] // scale, 8))
-            if self.moving and coarse:
-                state.lod_error = max(lod_box.value, 1.0) * MOVING_LOD_FACTOR
-            else:
-                state.lod_error = lod_box.value
-            start = time.perf_counter()
+            state.moving, state.lod_error = self.moving, lod_box.value
             try:
-                result, _ = state.render(frame_size)
+                result, ms = state.render(self.size)
             except SurfelError as exc:
                 status.value = f"surfel: {exc}"
                 return None
-            ms = (time.perf_counter() - start) * 1000
+            frame_size = (result.color.shape[1], result.color.shape[0])
             self.last_stats = {**result.stats, "frame_ms": ms, "moving": self.moving}
             status.value = (f"{ms:.0f} ms · {result.stats['splats']:,} of {result.stats['points']:,} splats · "
                             f"{frame_size[0]}x{frame_size[1]}{' (moving)' if self.moving else ''} · "
@@ -140,7 +130,6 @@ def make_view(cloud, *, method: str = "deferred", shading: str | None = None, si
             return result.rgba8()[..., :3]
 
     is_source = not isinstance(cloud, PointCloud)
-    coarse = is_source or len(cloud) > LARGE_CLOUD
     if color is not None and not is_source:
         colors.resolve(cloud, color)  # an attribute the cloud lacks fails before the widget is built
     state = ViewState(cloud, method, shading, color=color, colormap=colormap)

@@ -44,6 +44,21 @@ bool faces_away(vec3 p, vec3 n) {
     return dot(n, u_ortho > 0.0 ? vec3(0.0, 0.0, 1.0) : -p) < 0.0;
 }
 
+// A splat packed with a zero normal has no orientation (surfel.preprocess.structure: a point on
+// no surface, or without a tangent plane): it faces the camera. Its disk is turned perpendicular
+// to the viewing ray through its centre c (eye space), its axes keeping their lengths, and its
+// normal is the direction to the eye, so that it is shaded as a surface seen head-on. Returns
+// whether it does; n (eye space, unnormalised) and the axes are changed only then.
+bool face_camera(vec3 c, inout vec3 n, inout vec3 au, inout vec3 av) {
+    if (dot(n, n) > 0.25) return false;
+    n = u_ortho > 0.0 ? vec3(0.0, 0.0, 1.0) : normalize(-c);
+    vec3 right = cross(vec3(0.0, 1.0, 0.0), n);  // zero only for a centre behind the camera
+    right = dot(right, right) > 1e-12 ? normalize(right) : vec3(1.0, 0.0, 0.0);
+    au = right * length(au);
+    av = cross(n, right) * length(av);
+    return true;
+}
+
 // The pixel centre's signed distance in pixels to a splat's edge, where its kernel distance
 // rho is 1 (positive inside), from rho's screen-space gradient; 0.5 + it is the pixel's
 // coverage, for anti-aliased silhouettes. Call before any discard, while the whole 2x2

@@ -1,6 +1,6 @@
 // The per-splat vertex attributes packed by gl/splats.py (one vertex, or one instance, a splat).
 in vec3 in_center;   // position relative to the cloud's local origin
-in vec3 in_normal;   // unit normal
+in vec3 in_normal;   // unit normal; zero: the splat faces the camera (common.glsl face_camera)
 in vec3 in_color;    // albedo
 in vec3 in_axis_u;   // tangent axes scaled to the ellipse's semi-axes
 in vec3 in_axis_v;

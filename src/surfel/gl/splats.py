@@ -2,7 +2,7 @@
 
 Every splat method reads the same layout (see splat_common.glsl):
     in_center (3) position relative to the cloud's local origin (float32 safe for LiDAR)
-    in_normal (3) unit normal
+    in_normal (3) unit normal; zero for a splat that faces the camera (preprocess.structure)
     in_color  (3) RGB albedo
     in_axis_u (3), in_axis_v (3) tangent axes scaled to the ellipse semi-axes
     in_field  (2) Phong splatting's normal-field slopes (alpha, beta), 0 when absent
@@ -21,7 +21,7 @@ import weakref
 import numpy as np
 
 from ..cloud import PointCloud
-from ..preprocess import INACTIVE_CLIP
+from ..preprocess import INACTIVE_CLIP, drawn_normals
 from .context import get_context
 
 CHUNK = 2_000_000
@@ -38,7 +38,7 @@ def pack(cloud: PointCloud, start: int = 0, stop: int | None = None) -> np.ndarr
     n = stop - start
     out = np.empty((n, FLOATS), np.float32)
     out[:, 0:3] = cloud.positions[start:stop] - cloud.local_origin
-    out[:, 3:6] = cloud.normals[start:stop] if cloud.normals is not None else (0, 0, 1)
+    out[:, 3:6] = drawn_normals(cloud, start, stop) if cloud.normals is not None else (0, 0, 1)
     out[:, 6:9] = cloud.colors[start:stop] if cloud.colors is not None else 1.0
     if cloud.axes is not None:
         out[:, 9:15] = cloud.axes[start:stop].reshape(n, 6)

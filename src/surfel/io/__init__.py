@@ -5,6 +5,7 @@
 - ``.ply``: `surfel.io.ply` (ascii and binary, points or meshes)
 - ``.obj``: `surfel.io.obj` (meshes, or bare vertex lists)
 - ``.las``, ``.laz``: `surfel.io.las` (LiDAR; the cloud is marked geospatial)
+- ``.e57``: `surfel.io.e57` (terrestrial scans, merged by their poses; geospatial)
 - ``.xyz``, ``.pts``, ``.txt``: `surfel.io.text` (one point per line)
 - ``.npz``: `surfel.io.npz` (arrays by name; never unpickles)
 
@@ -22,6 +23,7 @@ import numpy as np
 
 from ..cloud import PointCloud
 from ..errors import InputError
+from .e57 import read_e57
 from .las import read_las
 from .mesh import area_weighted_vertex_normals
 from .npz import read_npz
@@ -32,7 +34,7 @@ from .text import read_text
 __all__ = ["load", "write_ply", "area_weighted_vertex_normals", "FORMATS"]
 
 _READERS: dict[str, Callable[[str], PointCloud]] = {
-    "ply": read_ply, "obj": read_obj, "las": read_las, "laz": read_las,
+    "ply": read_ply, "obj": read_obj, "las": read_las, "laz": read_las, "e57": read_e57,
     "xyz": read_text, "pts": read_text, "txt": read_text, "npz": read_npz,
 }
 FORMATS = tuple(_READERS)  # the accepted extensions and `format` names

@@ -43,6 +43,8 @@ def numbers_by_line(text: bytes, dtype: npt.DTypeLike, path: str) -> Numbers:
     line_ends = np.flatnonzero(codes == _NEWLINE)
     tokens_before_line_end = np.searchsorted(token_starts, line_ends)
     per_line = np.diff(tokens_before_line_end, prepend=0, append=len(token_starts))
+    if not len(token_starts):  # blank (or comments only): fromstring refuses an empty text
+        return Numbers(np.empty(0, dtype), per_line, token_starts)
     with warnings.catch_warnings():
         # Older numpy only warns (newer raises) when it meets a token it cannot parse.
         warnings.simplefilter("error", DeprecationWarning)

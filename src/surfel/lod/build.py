@@ -47,6 +47,15 @@ no class: the parent takes the value of its heaviest child (the largest w_i, the
 normal is aligned with), which by induction is the value of one leaf below it, its
 representative. Derived arrays are not aggregated: the leaves keep their clip lines and inner
 nodes cut nothing; the Phong slopes are dropped, since an inner node is a new disk.
+
+Screen-facing splats (surfel.preprocess.structure: points on no surface, drawn as round disks
+facing the camera) reach r_i from their centre in every direction: as children they enter the
+rule above with the slab [-r_i, r_i]. A parent is screen-facing when most of its children's
+area is (sum over the screen-facing children of w_i >= sum w_i / 2), so an inner node of
+screen-facing children is screen-facing; its disk then faces the camera too, and must enclose
+its children whichever way it is seen: its radius is at least the sphere bound
+max_i |d_i| + sqrt(R_i^2 + a_i^2), and the slab it shows its own parent is [-R, R] (its e_p
+stays its children's spread, e_t its overhang at that radius).
 """
 
 from __future__ import annotations
@@ -81,6 +90,8 @@ class LodTree:
     root), child_start (M + 1,) int64 and children (M - 1,) int64: the children of node j
     are children[child_start[j]:child_start[j + 1]]. clip_lines (M, 2, 3) float32 or None:
     the leaves' clip lines at sharp features (surfel.preprocess); inner nodes' cut nothing.
+    screen_facing (M,) float32 or None: 1 for the nodes drawn facing the camera (module
+    docstring).
     attributes: the input's scanner attributes (M, ...) in their dtypes, aggregated for inner
     nodes (module docstring); kinds: their kinds.
     """
@@ -100,6 +111,7 @@ class LodTree:
     point_index: np.ndarray
     geospatial: bool = False
     clip_lines: np.ndarray | None = None
+    screen_facing: np.ndarray | None = None
     attributes: dict[str, np.ndarray] = field(default_factory=dict)
     kinds: dict[str, str] = field(default_factory=dict)
 
@@ -247,9 +259,11 @@ def _reach(dx, dy, dz, nx, ny, nz, ux, uy, uz, radius, slab):  # pragma: no cove
 
 @numba.njit(parallel=True, cache=True)
 def _merge_cells(starts, counts, members, first, pos, nrm, col, rad, axes, weight, lo, hi,
-                 e_p, e_t, e_g, parent, d_parent, representative, with_color):  # pragma: no cover - compiled
+                 e_p, e_t, e_g, parent, d_parent, representative, with_color, facing):  # pragma: no cover - compiled
     """Create node first + g from the children members[starts[g]:starts[g] + counts[g]];
-    its representative leaf is that of its heaviest child."""
+    its representative leaf is that of its heaviest child. `facing` (M,) marks the
+    screen-facing nodes (empty: none), which a new node joins when most of its children's
+    area faces the camera."""
     for g in numba.prange(len(starts)):
         s = starts[g]
         e = s + counts[g]
@@ -300,10 +314,16 @@ def _merge_cells(starts, counts, members, first, pos, nrm, col, rad, axes, weigh
         slo = np.inf
         shi = -np.inf
         child_err = 0.0
+        sphere = 0.0  # the sphere about c that holds every child's reach
+        facing_weight = 0.0
         for j in range(s, e):
             i = members[j]
             dx, dy, dz = pos[i, 0] - cx, pos[i, 1] - cy, pos[i, 2] - cz
             d_parent[i] = np.sqrt(dx * dx + dy * dy + dz * dz)
+            if len(facing):
+                slab = max(abs(lo[i]), abs(hi[i]))
+                sphere = max(sphere, d_parent[i] + np.sqrt(rad[i] * rad[i] + slab * slab))
+                facing_weight += weight[i] * facing[i]
             dn = dx * nx + dy * ny + dz * nz
             px, py, pz = dx - dn * nx, dy - dn * ny, dz - dn * nz
             n0, n1, n2 = nrm[i, 0], nrm[i, 1], nrm[i, 2]
@@ -326,9 +346,14 @@ def _merge_cells(starts, counts, members, first, pos, nrm, col, rad, axes, weigh
             du, reach = _reach(dx, dy, dz, n0, n1, n2, dx2, dy2, dz2, ri, a)
             p3, m3 = max(p3, du + reach), max(m3, reach - du)
             parent[i] = out
+        ep = shi - slo
+        if len(facing):
+            facing[out] = 1.0 if 2.0 * facing_weight >= wsum else 0.0
+            if facing[out] > 0.0:  # a disk facing the camera reaches its radius every way
+                radius = max(radius, sphere)
+                slo, shi = min(slo, -radius), max(shi, radius)
         extent = min(min(p0, p1, p2, p3), min(m0, m1, m2, m3))
         overhang = max(0.0, radius - extent)
-        ep = shi - slo
         pos[out, 0], pos[out, 1], pos[out, 2] = cx, cy, cz
         nrm[out, 0], nrm[out, 1], nrm[out, 2] = nx, ny, nz
         if with_color:
@@ -379,6 +404,11 @@ def build_lod(cloud: PointCloud, *, progress: bool | None = None) -> LodTree:
     # slab bounds are build-time state only; float64 keeps the induction exact
     lo = np.zeros(capacity, np.float64)
     hi = np.zeros(capacity, np.float64)
+    facing = np.zeros(capacity if "screen_facing" in cloud.attributes else 0, np.float32)
+    if len(facing):
+        facing[:n] = cloud.attributes["screen_facing"][point_index]
+        round_leaves = np.flatnonzero(facing[:n] > 0.5)
+        lo[round_leaves], hi[round_leaves] = -rad[round_leaves], rad[round_leaves]  # they reach r every way
     e_p = np.zeros(capacity, np.float32)
     e_t = np.zeros(capacity, np.float32)
     e_g = np.zeros(capacity, np.float32)
@@ -395,7 +425,7 @@ def build_lod(cloud: PointCloud, *, progress: bool | None = None) -> LodTree:
         next_active, active_codes, starts, sizes, children = _next_level(active, active_codes, count)
         if len(starts):
             _merge_cells(starts, sizes, active, count, pos, nrm, col, rad, axes, weight,
-                         lo, hi, e_p, e_t, e_g, parent, d_parent, representative, with_color)
+                         lo, hi, e_p, e_t, e_g, parent, d_parent, representative, with_color, facing)
             child_lists.append(children)
             child_counts.append(sizes)
             count += len(starts)
@@ -422,7 +452,8 @@ def build_lod(cloud: PointCloud, *, progress: bool | None = None) -> LodTree:
         clip_lines[n:] = INACTIVE_CLIP
     return LodTree(pos, nrm, col if with_color else None, rad, axes, e_p, e_t, e_g, parent,
                    d_parent, child_start, children, point_index, cloud.geospatial, clip_lines,
-                   attributes, {spec.name: spec.kind for spec in scanner})
+                   facing[:m].copy() if len(facing) else None, attributes,
+                   {spec.name: spec.kind for spec in scanner})
 
 
 def aggregate_attributes(leaves: dict[str, np.ndarray], kinds: dict[str, str], child_start: np.ndarray,

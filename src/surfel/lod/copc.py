@@ -30,9 +30,26 @@ within sqrt(3) s_D of one (within sqrt(2) s_D on a horizontal surface). The spla
 
     r = max(r_own, COVER * s_D)    (s_D = 0 where the file holds no finer points there),
 
-r_own the stored radius (extra-bytes dimension "radius") or, for files without one, the
-covering radius `surfel.preprocess` estimates on the selected points. Normals come from the
-extra-bytes dimensions normal_x/y/z when present, else PCA on the selection, facing up (+Z).
+r_own the stored radius (extra-bytes dimension "radius"), for files that have one. Normals
+come from the extra-bytes dimensions normal_x/y/z when present.
+
+Files without them are estimated (`surfel.preprocess.complete`: PCA normals facing up (+Z), or
+the sensor given by `sensors`; screen-facing points; covering radii bounded by the sampling),
+node by node, and what a view estimated is kept in the source, so that later views (an orbit, a
+batch) estimate only the nodes they load for the first time. A node of depth d is estimated on
+the sample of its level: its points with the loaded points of depth <= d within
+CONTEXT_SPACINGS node spacings s_d of them, never the deeper ones. That sample is the cut
+wherever the node is the finest loaded, in any view, so there its points keep their own
+radius; a point whose location holds a finer loaded node Y takes Y's typical radius (the median
+of its points', estimated on Y's level, which includes that point), the size of the sample it
+is drawn in. The sampling bound's reference spacing (spacing.py) is, for a node the hierarchy
+lists no children of (its level's sample is the full one), the survey's (`survey_spacing`: the
+median horizontal nearest-neighbour distance among the points of the deepest nodes the
+hierarchy lists, SURVEY_NODES of them with their ancestors' points in their cubes, read once per
+source); for a node with children, whose level is a subsample, the median horizontal
+nearest-neighbour distance of its level's sample. A node's nominal s_d would not do: one that
+holds all the points left in its cube is as dense as the survey, one over water sparser, and
+some writers state spacings far finer than their points.
 Colours: RGB (16-bit fields; divided by 255 when no value exceeds 255), else intensity as grey.
 Every other dimension of the loaded nodes is decoded and becomes an attribute, as
 `surfel.io.las` reads a LAS file (the surfel VLR's schema when the file has one); kinds that
@@ -52,6 +69,7 @@ from dataclasses import dataclass
 import laspy
 import lazrs
 import numpy as np
+from scipy.spatial import cKDTree
 
 from ..camera import Camera
 from ..cloud import PointCloud, framing_sphere
@@ -63,16 +81,34 @@ EVLR_HEADER = struct.Struct("<H16sHQ32s")
 INFO = struct.Struct("<3dddQQdd88x")         # centre, halfsize, spacing, root page offset/size, gps
 ENTRY = struct.Struct("<4iQii")              # key d, x, y, z; offset; byte size; point count
 COVER = math.sqrt(3)                         # splat radius / spacing that covers a cell's diagonal
+CONTEXT_SPACINGS = 4.0                       # node spacings around new nodes whose loaded points join
+                                             # their estimation (a 16-neighbourhood reaches about 2.3)
+SURVEY_NODES = 3                             # deepest nodes whose points give the survey's spacing
 INACTIVE_CLIP = (0.0, 0.0, 1.0)              # a u + b v <= 1 cuts nothing (surfel.preprocess)
 # every field is an attribute of the cut, so every layer of LAZ 1.4 is decoded
 _DECODE = lazrs.DecompressionSelection(lazrs.SELECTIVE_DECOMPRESS_ALL)
 _KEY_BITS = 20                               # per coordinate in the packed key codes: depth <= 20
+_CHILD_BITS = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0],   # a child's offsets in its parent
+                        [0, 0, 1], [1, 0, 1], [0, 1, 1], [1, 1, 1]], np.int64)
 
 
 def key_code(d: np.ndarray | int, x, y, z) -> np.ndarray:
     """Pack octree keys into int64 codes (depth in the top bits) for set lookups."""
     d, x, y, z = (np.asarray(v, np.int64) for v in (d, x, y, z))
     return (d << (3 * _KEY_BITS)) | (x << (2 * _KEY_BITS)) | (y << _KEY_BITS) | z
+
+
+@dataclass(frozen=True)
+class NodeEstimate:
+    """What `surfel.preprocess.complete` estimated for one node's points, in their file order."""
+    normals: np.ndarray      # (n, 3) float32
+    radii: np.ndarray        # (n,) float32, bounded by the sampling
+    derived: dict[str, np.ndarray]  # the derived attributes estimated with them (screen_facing, clip_lines)
+
+    @property
+    def typical_radius(self) -> float:
+        """The median radius: the size of the node's level's sample, for shallower points there."""
+        return float(np.median(self.radii))
 
 
 @dataclass(frozen=True)
@@ -128,6 +164,9 @@ class CopcSource:
         self._rgb_scale: float | None = None      # 255 or 65535, fixed by the first cut
         self._intensity_scale: float | None = None
         self._kinds: dict[str, str] | None = None  # the attributes' kinds, fixed by the first cut
+        self._estimates: dict[int, NodeEstimate] = {}  # by key code: what earlier views estimated
+        self._survey_spacing: float | None = None  # read once, when first estimating
+        self.sensors: np.ndarray | None = None     # (S, 3) scanner positions, for the estimation
 
     # ---- opening --------------------------------------------------------------------------
     def _read_header(self, file: _CountingFile) -> None:
@@ -207,8 +246,7 @@ class CopcSource:
         stats = {"nodes_loaded": len(nodes), "bytes_read": bytes_read, "file_bytes": self.size,
                  "points_selected": len(cloud), "epsilon_used": epsilon_used,
                  "depth_loaded": int(keys[:, 0].max())}
-        if estimated:
-            stats["estimated"] = estimated
+        stats.update(estimated)
         return cloud, stats
 
     def _cut(self, file: _CountingFile, camera: Camera, epsilon: float, budget: int | None
@@ -274,13 +312,17 @@ class CopcSource:
                                             f"does not describe that node")
         return entry
 
+    def _leaves(self, keys: np.ndarray) -> np.ndarray:
+        """(M,) bool: the nodes of `keys` (M, 4) the hierarchy lists no children of."""
+        child = (keys[:, None, 1:] * 2 + _CHILD_BITS[None]).reshape(-1, 3)
+        codes = key_code(np.repeat(keys[:, 0] + 1, 8), *child.T)
+        return ~self._exists(codes).reshape(len(keys), 8).any(axis=1)
+
     def _existing_children(self, parents: np.ndarray) -> np.ndarray:
         """The children (M, 4) of `parents` that the hierarchy lists."""
         if not len(parents):
             return parents
-        bits = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0],
-                         [0, 0, 1], [1, 0, 1], [0, 1, 1], [1, 1, 1]], np.int64)
-        xyz = (parents[:, None, 1:] * 2 + bits[None]).reshape(-1, 3)
+        xyz = (parents[:, None, 1:] * 2 + _CHILD_BITS[None]).reshape(-1, 3)
         children = np.column_stack([np.full(len(xyz), parents[0, 0] + 1), xyz])
         return children[self._exists(key_code(*children.T))]
 
@@ -332,7 +374,6 @@ class CopcSource:
         if not np.isfinite(positions).all():
             raise InputError(self.path, "COPC points have non-finite coordinates")
         colors = self._colors(record)
-        region = self._region_spacing(positions, keys, counts)
         normals, radii, attributes = layout_values(record, self.layout)
         if normals is not None and (not np.isfinite(normals).all() or (np.linalg.norm(normals, axis=1) < 1e-6).any()):
             raise InputError(self.path, "COPC normals (extra bytes) are zero or not finite")
@@ -340,20 +381,22 @@ class CopcSource:
             raise InputError(self.path, "COPC radii (extra bytes) are not positive numbers")
         cloud = PointCloud(positions, normals=normals, colors=colors, radii=radii, attributes=attributes,
                            kinds=self.layout.kinds if self._kinds is None else self._kinds,
-                           geospatial=self.geospatial, source=self.path)
+                           geospatial=self.geospatial, source=self.path, sensors=self.sensors)
         self._kinds = self._kinds or cloud.schema.kinds
         estimated: dict = {}
-        if normals is None or radii is None:  # with both, the axes follow the grown radii below
-            from ..preprocess import complete  # numba kernels: loaded only when needed
-
-            cloud, estimated = complete(cloud, progress=False)
+        if radii is None:
+            cloud, estimated = self._estimated(cloud, keys, counts)
+            radii = self._level_radii(cloud, keys, counts)
+        else:  # the file's radii are for its full detail: grown to cover a coarser cut
+            if normals is None:
+                cloud, estimated = self._estimated(cloud, keys, counts)
+            radii = np.maximum(cloud.radii, (COVER * self._region_spacing(positions, keys, counts)).astype(np.float32))
         own = cloud.radii
-        radii = np.maximum(own, (COVER * region).astype(np.float32))
         extras = dict(cloud.attributes)
         if "clip_lines" in extras:
-            # Clip lines cut a full-detail splat at a crease; a splat grown to cover the gaps
+            # Clip lines cut a full-detail splat at a crease; a splat resized to cover the gaps
             # of a coarse sample must not be cut by them.
-            extras["clip_lines"] = np.where((radii > own)[:, None, None], np.float32(INACTIVE_CLIP),
+            extras["clip_lines"] = np.where((radii != own)[:, None, None], np.float32(INACTIVE_CLIP),
                                             extras["clip_lines"])
         from ..preprocess import (
             tangent_frames,  # (numba module: imported when first needed)
@@ -361,11 +404,107 @@ class CopcSource:
 
         return cloud.with_(radii=radii, axes=tangent_frames(cloud.normals, radii), attributes=extras), estimated
 
+    def _estimated(self, cloud: PointCloud, keys: np.ndarray, counts: np.ndarray) -> tuple[PointCloud, dict]:
+        """The cut with normals, radii and their derived attributes, estimated for the nodes no
+        earlier view loaded, each on its level's sample, and taken from the earlier estimates for
+        the others (module docstring); and the stats of this view's estimation."""
+        from ..preprocess import complete  # numba kernels: loaded only when needed
+        from ..preprocess.spacing import horizontal_spacing
+
+        codes = key_code(*keys.T).tolist()
+        starts = np.concatenate([[0], np.cumsum(counts)])
+        new = np.array([i for i, code in enumerate(codes) if code not in self._estimates], np.int64)
+        stats: dict = {"estimated_points": int(counts[new].sum()), "reused_points": int(len(cloud) - counts[new].sum())}
+        depth = np.repeat(keys[:, 0], counts)
+        survey = self.survey_spacing() if self.geospatial and len(new) else None
+        leaves = np.repeat(self._leaves(keys), counts)
+        for level in np.unique(keys[new, 0]):
+            nodes = new[keys[new, 0] == level]
+            fresh = np.concatenate([np.arange(starts[i], starts[i + 1]) for i in nodes])
+            sample = np.flatnonzero(depth <= level)
+            reach = CONTEXT_SPACINGS * self.spacing / 2.0 ** level
+            context = np.concatenate([fresh, _nearby(cloud.positions, fresh, np.setdiff1d(sample, fresh), reach)])
+            reference = None
+            if survey is not None:  # the full sample's spacing for leaves, the level's for the others
+                level_spacing = horizontal_spacing(cloud.positions[context]) or survey
+                reference = np.where(leaves[context], survey, max(level_spacing, survey))
+            completed, stats["estimated"] = complete(cloud.take(context), progress=False,
+                                                     reference_spacing=reference)
+            derived = [name for name in completed.schema if completed.schema[name].derived]
+            row = 0
+            for i in nodes:
+                rows = slice(row, row + int(counts[i]))
+                self._estimates[codes[i]] = NodeEstimate(completed.normals[rows], completed.radii[rows],
+                                                         {name: completed.attributes[name][rows] for name in derived})
+                row = rows.stop
+        estimates = [self._estimates[code] for code in codes]
+        attributes = dict(cloud.attributes)
+        for name in estimates[0].derived:
+            attributes[name] = np.concatenate([estimate.derived[name] for estimate in estimates])
+        return cloud.with_(normals=np.concatenate([estimate.normals for estimate in estimates]),
+                           radii=np.concatenate([estimate.radii for estimate in estimates]),
+                           attributes=attributes), stats
+
+    def _level_radii(self, cloud: PointCloud, keys: np.ndarray, counts: np.ndarray) -> np.ndarray:
+        """Each point's own estimated radius where its node is the finest loaded at its
+        location, else the typical radius of the finest loaded node there (module docstring)."""
+        deepest = self._deepest_loaded(cloud.positions, keys, counts)
+        own_depth = np.repeat(keys[:, 0], counts)
+        radii = cloud.radii.copy()
+        shallower = np.flatnonzero(deepest > own_depth)
+        if len(shallower):
+            unit = (cloud.positions[shallower] - (self.octree_center - self.halfsize)) / (2 * self.halfsize)
+            level = deepest[shallower]
+            cell = np.clip(np.floor(unit * (2.0 ** level)[:, None]), 0, (2 ** level - 1)[:, None]).astype(np.int64)
+            finest = key_code(level, *cell.T)
+            typical = {code: self._estimates[code].typical_radius for code in np.unique(finest).tolist()}
+            radii[shallower] = np.array([typical[code] for code in finest.tolist()], np.float32)
+        return radii
+
+    def survey_spacing(self) -> float | None:
+        """The horizontal point spacing of the full sample (module docstring), read once; None
+        if those points have no distinct horizontal neighbours."""
+        if self._survey_spacing is None:
+            from ..preprocess.spacing import horizontal_spacing
+
+            with _CountingFile(self.path) as file:
+                listed = [(code, entry) for code, entry in self._entries.items() if entry.point_count > 0]
+                deepest = max(code >> (3 * _KEY_BITS) for code, _ in listed)
+                chosen = sorted((entry.point_count, code) for code, entry in listed
+                                if code >> (3 * _KEY_BITS) == deepest)[-SURVEY_NODES:]
+                spacings = []
+                for _, code in chosen:
+                    key = np.array(_decode(code))
+                    chain = [(tuple(int(v) for v in ancestor), self._entry(file, ancestor))
+                             for ancestor in (np.r_[d, key[1:] >> (key[0] - d)] for d in range(key[0] + 1))]
+                    chain = [(k, e) for k, e in chain if e.point_count > 0]
+                    _, _, record = self._read_points(file, chain)
+                    scales, offsets = self.header.scales, self.header.offsets
+                    xyz = np.column_stack([record[axis] * scales[a] + offsets[a] for a, axis in enumerate("XYZ")])
+                    side = 2 * self.halfsize / 2.0 ** key[0]
+                    lo = self.octree_center - self.halfsize + key[1:] * side
+                    inside = ((xyz >= lo) & (xyz <= lo + side)).all(axis=1)
+                    spacing = horizontal_spacing(xyz[inside]) if inside.sum() > 1 else None
+                    if spacing is not None:
+                        spacings.append(spacing)
+            self.bytes_read += file.bytes_read
+            self._survey_spacing = float(np.median(spacings)) if spacings else math.nan
+        return None if math.isnan(self._survey_spacing) else self._survey_spacing
+
     def _region_spacing(self, positions: np.ndarray, keys: np.ndarray, counts: np.ndarray) -> np.ndarray:
         """s_D of each point's deepest loaded node D, 0 where the file has nothing finer there.
 
         keys (M, 4), counts (M,): the loaded nodes, whose points follow each other in that order.
         """
+        deepest = self._deepest_loaded(positions, keys, counts)
+        unit = (positions - (self.octree_center - self.halfsize)) / (2 * self.halfsize)
+        child = np.clip(np.floor(unit * (2.0 ** (deepest + 1))[:, None]), 0,
+                        (2 ** (deepest + 1) - 1)[:, None]).astype(np.int64)
+        finer = self._exists(key_code(deepest + 1, *child.T))
+        return np.where(finer, self.spacing / 2.0 ** deepest, 0.0)
+
+    def _deepest_loaded(self, positions: np.ndarray, keys: np.ndarray, counts: np.ndarray) -> np.ndarray:
+        """The depth (N,) of the deepest loaded node at each point's location (as _region_spacing)."""
         loaded = np.sort(key_code(*keys.T))
         top = int(keys[:, 0].max())
         # only points of nodes with a loaded descendant can lie in a deeper loaded node
@@ -380,10 +519,7 @@ class CopcSource:
             todo = walk[deepest[walk] < depth]
             cell = np.clip(np.floor(unit[todo] * 2 ** depth), 0, 2 ** depth - 1).astype(np.int64)
             deepest[todo[_member(key_code(depth, *cell.T), loaded)]] = depth
-        child = np.clip(np.floor(unit * (2.0 ** (deepest + 1))[:, None]), 0,
-                        (2 ** (deepest + 1) - 1)[:, None]).astype(np.int64)
-        finer = self._exists(key_code(deepest + 1, *child.T))
-        return np.where(finer, self.spacing / 2.0 ** deepest, 0.0)
+        return deepest
 
     def _colors(self, record: laspy.PackedPointRecord) -> np.ndarray | None:
         names = set(self.point_format.dimension_names)
@@ -425,6 +561,17 @@ def _frustum(camera: Camera, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray
     # a box around the eye (or straddling its plane) has nearest depth 0: always refined
     z_min = np.where((depth > 0).all(axis=1), depth.min(axis=1), 0.0)
     return ahead & ~outside, z_min
+
+
+def _nearby(positions: np.ndarray, fresh: np.ndarray, candidates: np.ndarray, reach: float) -> np.ndarray:
+    """The `candidates` within `reach` of a `fresh` point: the neighbours their estimation needs."""
+    group = positions[fresh]
+    inside = candidates[((positions[candidates] >= group.min(axis=0) - reach)
+                         & (positions[candidates] <= group.max(axis=0) + reach)).all(axis=1)]
+    if not len(inside):
+        return inside
+    distance, _ = cKDTree(group).query(positions[inside], distance_upper_bound=reach, workers=-1)
+    return inside[np.isfinite(distance)]
 
 
 def _decode(code: int) -> tuple[int, int, int, int]:

@@ -409,6 +409,8 @@ def _root_summary(tree) -> dict:
     dn = d @ n
     r = tree.radii[leaves].astype(np.float64)
     s = np.linalg.norm(np.cross(tree.normals[leaves].astype(np.float64), n), axis=1)
+    if tree.screen_facing is not None:  # a disk facing the camera reaches r every way
+        s = np.where(tree.screen_facing[leaves] > 0.5, 1.0, s)
     radial = np.linalg.norm(d - dn[:, None] * n, axis=1)
     axes = tree.axes[leaves].astype(np.float64)
     weight = float((np.linalg.norm(axes[:, 0], axis=1) * np.linalg.norm(axes[:, 1], axis=1)).sum())
@@ -422,13 +424,18 @@ def _top_tree(partial: Path, parts: list[dict], has_colors: bool, stored: Schema
     """Build the top levels over the partition roots, write them (top/*.npy, sequential
     order) and give each partition root its r_max and d_parent. Returns the top node count.
     The top nodes' attributes are aggregated from the roots' as in build_lod; their clip
-    lines cut nothing."""
+    lines cut nothing, and they face the camera by build_lod's rule."""
     p = len(parts)
     top_dir = partial / "top"
     shutil.rmtree(top_dir, ignore_errors=True)
     if p == 1:
         _patch_root(partial / parts[0]["name"], ROOT_PARENT_ERROR, 0.0)
         return 0
+
+    def root_values(index: int) -> np.ndarray:  # row 0 of each partition: its root
+        return np.stack([np.load(partial / part["name"] / f"{attribute_key(index)}.npy", mmap_mode="r")[0]
+                         for part in parts])
+
     capacity = 2 * p - 1
     pos = np.zeros((capacity, 3))
     nrm = np.zeros((capacity, 3), np.float32)
@@ -444,6 +451,9 @@ def _top_tree(partial: Path, parts: list[dict], has_colors: bool, stored: Schema
     parent = np.full(capacity, -1, np.int64)
     d_parent = np.zeros(capacity, np.float32)
     representative = np.arange(capacity)
+    facing = np.zeros(capacity if "screen_facing" in stored else 0, np.float32)
+    if len(facing):
+        facing[:p] = root_values(list(stored).index("screen_facing"))
     for i, part in enumerate(parts):
         pos[i], nrm[i], rad[i] = part["center"], part["normal"], part["enclosing"]
         weight[i], (lo[i], hi[i]), e_g[i] = part["weight"], part["slab"], part["e_g"]
@@ -458,7 +468,7 @@ def _top_tree(partial: Path, parts: list[dict], has_colors: bool, stored: Schema
         next_active, active_codes, starts, sizes, children = _next_level(active, active_codes, count)
         if len(starts):
             _merge_cells(starts, sizes, active, count, pos, nrm, col, rad, axes, weight, lo, hi,
-                         e_p, e_t, e_g, parent, d_parent, representative, has_colors)
+                         e_p, e_t, e_g, parent, d_parent, representative, has_colors, facing)
             child_lists.append(children)
             child_counts.append(sizes)
             count += len(starts)
@@ -466,16 +476,13 @@ def _top_tree(partial: Path, parts: list[dict], has_colors: bool, stored: Schema
     child_start = np.zeros(count + 1, np.int64)
     child_start[p + 1:] = np.cumsum(np.concatenate(child_counts))
     scanner = {i: spec for i, spec in enumerate(stored.values()) if not spec.derived}
-
-    def root_values(index: int) -> np.ndarray:  # row 0 of each partition: its root
-        return np.stack([np.load(partial / part["name"] / f"{attribute_key(index)}.npy", mmap_mode="r")[0]
-                         for part in parts])
-
     roots = {spec.name: root_values(i) for i, spec in scanner.items()}
     attributes = aggregate_attributes(roots, {spec.name: spec.kind for spec in scanner.values()}, child_start,
                                       np.concatenate(child_lists), weight[:count], representative[:count])
     if "clip_lines" in stored:
         attributes["clip_lines"] = np.broadcast_to(np.float32(INACTIVE_CLIP), (count, *stored["clip_lines"].shape))
+    if len(facing):
+        attributes["screen_facing"] = facing[:count]
     for i, part in enumerate(parts):
         _patch_root(partial / part["name"], float(e_g[parent[i]]), float(d_parent[i]))
     inner = np.arange(p, count)

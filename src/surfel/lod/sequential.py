@@ -125,6 +125,8 @@ def to_sequential_cloud(tree: LodTree) -> PointCloud:
     attributes.update(lod_emin=emin, lod_emax=emax, lod_dparent=dparent, lod_dsuffix=dsuffix)
     if tree.clip_lines is not None:
         attributes["clip_lines"] = tree.clip_lines[order]
+    if tree.screen_facing is not None:
+        attributes["screen_facing"] = tree.screen_facing[order]
     return PointCloud(pos, normals=nrm, colors=col if tree.colors is not None else None, radii=rad, axes=axes,
                       attributes=attributes, kinds=tree.kinds, geospatial=tree.geospatial)
 

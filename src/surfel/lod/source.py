@@ -53,3 +53,17 @@ def open_source(path: str | os.PathLike) -> LodSource | None:
 
         return CopcSource(name)
     return None
+
+
+def with_sensor(cloud: PointCloud | LodSource, sensor: tuple[float, float, float] | None):
+    """The cloud, or LOD source, with `sensor` as the position of the scanner of all its points
+    (None: as it is). A source passes it to the clouds it selects when it estimates them (COPC);
+    a .lod hierarchy was estimated when it was built."""
+    if sensor is None:
+        return cloud
+    sensors = np.array([sensor], np.float64)
+    if isinstance(cloud, PointCloud):
+        return cloud.with_(sensors=sensors)
+    if hasattr(cloud, "sensors"):
+        cloud.sensors = sensors
+    return cloud

@@ -67,7 +67,7 @@ import numpy as np
 from ..camera import Camera
 from ..cloud import PointCloud
 from ..options import RenderOptions, check_cpu_samples, non_negative, open_unit_interval, positive, setting
-from ..preprocess import INACTIVE_CLIP
+from ..preprocess import INACTIVE_CLIP, drawn_normals
 from ..result import RenderResult
 from ..shading import shade
 from .params import SplatParams
@@ -225,7 +225,7 @@ def render_ewa_cpu(cloud: PointCloud, camera: Camera, options: RenderOptions, pa
     intr = np.array([target.fx, target.fy, target.cx, target.cy], np.float64)
     clip_lines = splat_clip_lines(cloud)
     splats, extra, box = k.setup_splats(cloud.positions, np.asarray(cloud.local_origin, np.float64),
-                                 np.asarray(target.world_to_eye, np.float64), cloud.normals, splat_colors(cloud),
+                                 np.asarray(target.world_to_eye, np.float64), drawn_normals(cloud), splat_colors(cloud),
                                  splat_axes(cloud), clip_lines, splat_fields(cloud), intr,
                                  ortho_scale(target), float(target.near),
                                  np.float32(params.radius_scale), np.float32(params.sigma ** 2),

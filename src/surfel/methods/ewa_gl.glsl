@@ -63,6 +63,9 @@ void main() {
     if (in_clip0.z < -1.0 || in_clip1.z < -1.0) { cull(); return; }  // clipped away whole (on a crease)
     mat3 rot = mat3(u_view);
     vec3 n = rot * in_normal;
+    vec3 u = u_radius_scale * (rot * in_axis_u);
+    vec3 v = u_radius_scale * (rot * in_axis_v);
+    face_camera(e, n, u, v);  // as ewa_kernels.setup_splats
     float facing = u_ortho > 0.0 ? n.z : -dot(n, e);
     float flip = 1.0;
     if (facing < 0.0) {
@@ -70,8 +73,6 @@ void main() {
         n = -n;
         flip = -1.0;  // the normal field turns with the normal
     }
-    vec3 u = u_radius_scale * (rot * in_axis_u);
-    vec3 v = u_radius_scale * (rot * in_axis_v);
     // J = dproject/deye (2x3) times [u v] (3x2): local tangent coordinates -> pixels.
     vec2 m;
     float j00, j01, j10, j11;

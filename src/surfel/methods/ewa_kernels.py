@@ -55,7 +55,8 @@ def setup_splats(positions, origin, view, normals, colors, axes, clip_lines, fie
     normal fields (N, EXTRA_FIELDS) float32 (one unused row when the cloud has neither) and
     pixel boxes (N, 4) int32 (x0, x1, y0, y1 inclusive; x0 > x1 marks a culled splat).
 
-    positions (N,3) f64, origin (3,) f64, view (4,4) f64 world-to-eye, normals (N,3) f32,
+    positions (N,3) f64, origin (3,) f64, view (4,4) f64 world-to-eye, normals (N,3) f32 (zero rows:
+    splats facing the camera, surfel.preprocess.structure),
     colors (N,3) f32 or (1,3) for a constant colour, axes (N,2,3) f32, clip_lines (N,2,3)
     f32 or (1,2,3) for none (a u + b v <= c in the splat's unscaled local coordinates),
     fields (N,2) f32 Phong normal-field slopes (alpha, beta) or (1,2) zeros,
@@ -91,6 +92,26 @@ def setup_splats(positions, origin, view, normals, colors, axes, clip_lines, fie
         nx = rot[0, 0] * normals[i, 0] + rot[0, 1] * normals[i, 1] + rot[0, 2] * normals[i, 2]
         ny = rot[1, 0] * normals[i, 0] + rot[1, 1] * normals[i, 1] + rot[1, 2] * normals[i, 2]
         nz = rot[2, 0] * normals[i, 0] + rot[2, 1] * normals[i, 1] + rot[2, 2] * normals[i, 2]
+        ux = radius_scale * (rot[0, 0] * axes[i, 0, 0] + rot[0, 1] * axes[i, 0, 1] + rot[0, 2] * axes[i, 0, 2])
+        uy = radius_scale * (rot[1, 0] * axes[i, 0, 0] + rot[1, 1] * axes[i, 0, 1] + rot[1, 2] * axes[i, 0, 2])
+        uz = radius_scale * (rot[2, 0] * axes[i, 0, 0] + rot[2, 1] * axes[i, 0, 1] + rot[2, 2] * axes[i, 0, 2])
+        vx = radius_scale * (rot[0, 0] * axes[i, 1, 0] + rot[0, 1] * axes[i, 1, 1] + rot[0, 2] * axes[i, 1, 2])
+        vy = radius_scale * (rot[1, 0] * axes[i, 1, 0] + rot[1, 1] * axes[i, 1, 1] + rot[1, 2] * axes[i, 1, 2])
+        vz = radius_scale * (rot[2, 0] * axes[i, 1, 0] + rot[2, 1] * axes[i, 1, 1] + rot[2, 2] * axes[i, 1, 2])
+        if nx * nx + ny * ny + nz * nz <= 0.25:
+            # No orientation (a zero normal, surfel.preprocess.structure): the disk faces the
+            # camera, as common.glsl's face_camera: perpendicular to the ray through its centre.
+            nx, ny, nz = _to_eye(ex, ey, ez, ortho)
+            rx, rz = nz, -nx  # (0, 1, 0) x n
+            length = math.sqrt(rx * rx + rz * rz)
+            if length * length > 1e-12:
+                rx, rz = rx / length, rz / length
+            else:
+                rx, rz = np.float32(1.0), np.float32(0.0)
+            lu = math.sqrt(ux * ux + uy * uy + uz * uz)
+            lv = math.sqrt(vx * vx + vy * vy + vz * vz)
+            ux, uy, uz = rx * lu, np.float32(0.0), rz * lu
+            vx, vy, vz = ny * rz * lv, (nz * rx - nx * rz) * lv, -ny * rx * lv  # n x right
         facing = nz if ortho > 0 else -(nx * ex + ny * ey + nz * ez)
         flip = np.float32(1.0)
         if facing < 0:
@@ -98,12 +119,6 @@ def setup_splats(positions, origin, view, normals, colors, axes, clip_lines, fie
                 continue
             nx, ny, nz = -nx, -ny, -nz
             flip = np.float32(-1.0)  # the normal field turns with the normal
-        ux = radius_scale * (rot[0, 0] * axes[i, 0, 0] + rot[0, 1] * axes[i, 0, 1] + rot[0, 2] * axes[i, 0, 2])
-        uy = radius_scale * (rot[1, 0] * axes[i, 0, 0] + rot[1, 1] * axes[i, 0, 1] + rot[1, 2] * axes[i, 0, 2])
-        uz = radius_scale * (rot[2, 0] * axes[i, 0, 0] + rot[2, 1] * axes[i, 0, 1] + rot[2, 2] * axes[i, 0, 2])
-        vx = radius_scale * (rot[0, 0] * axes[i, 1, 0] + rot[0, 1] * axes[i, 1, 1] + rot[0, 2] * axes[i, 1, 2])
-        vy = radius_scale * (rot[1, 0] * axes[i, 1, 0] + rot[1, 1] * axes[i, 1, 1] + rot[1, 2] * axes[i, 1, 2])
-        vz = radius_scale * (rot[2, 0] * axes[i, 1, 0] + rot[2, 1] * axes[i, 1, 1] + rot[2, 2] * axes[i, 1, 2])
         # J = dproject/deye (2x3) times [u v] (3x2): local tangent coordinates -> pixels.
         if ortho > 0:
             mx, my = cx + ortho * ex, cy - ortho * ey
@@ -181,12 +196,17 @@ def setup_splats(positions, origin, view, normals, colors, axes, clip_lines, fie
         e[FUX], e[FUY], e[FUZ] = alpha * ux, alpha * uy, alpha * uz
         e[FVX], e[FVY], e[FVZ] = beta * vx, beta * vy, beta * vz
         # the direction to the eye, for the field's normals (_field_normal)
-        if ortho > 0:
-            e[EX], e[EY], e[EZ] = 0, 0, 1
-        else:
-            inv_d = np.float32(1.0) / math.sqrt(ex * ex + ey * ey + ez * ez)
-            e[EX], e[EY], e[EZ] = -ex * inv_d, -ey * inv_d, -ez * inv_d
+        e[EX], e[EY], e[EZ] = _to_eye(ex, ey, ez, ortho)
     return out, extra, box
+
+
+@nb.njit(inline="always", fastmath=True)
+def _to_eye(ex, ey, ez, ortho):
+    """The unit direction from eye point (ex, ey, ez) to the eye (the view axis if orthographic)."""
+    if ortho > 0:
+        return np.float32(0.0), np.float32(0.0), np.float32(1.0)
+    inv_d = np.float32(1.0) / math.sqrt(ex * ex + ey * ey + ez * ez)
+    return -ex * inv_d, -ey * inv_d, -ez * inv_d
 
 
 @nb.njit(cache=True)

@@ -57,9 +57,10 @@ void main() {
     const vec2 corners[4] = vec2[4](vec2(0.0, 0.0), vec2(1.0, 0.0), vec2(0.0, 1.0), vec2(1.0, 1.0));
     vec2 v = corners[gl_VertexID];
     vec3 c = (u_view * vec4(in_center, 1.0)).xyz;
-    vec3 n = normalize(mat3(u_view) * in_normal);
+    vec3 n = mat3(u_view) * in_normal;
     vec3 au = mat3(u_view) * in_axis_u * u_radius_scale;
     vec3 av = mat3(u_view) * in_axis_v * u_radius_scale;
+    if (!face_camera(c, n, au, av)) n = normalize(n);
     bool back = faces_away(c, n);
     if (back) n = -n;
     float radius = max(length(au), length(av));

@@ -16,9 +16,11 @@ flat out float v_category;
 void main() {
     vec4 eye = u_view * vec4(in_center, 1.0);
     if (!lod_visible(eye.xyz, in_lod.x, in_lod.y, in_lod.z)) { gl_Position = LOD_CULLED; return; }
-    vec3 n = normalize(mat3(u_view) * in_normal);
+    vec3 n = mat3(u_view) * in_normal;
+    vec3 au = in_axis_u, av = in_axis_v;  // the sprite is screen-aligned: only their lengths matter
+    if (!face_camera(eye.xyz, n, au, av)) n = normalize(n);
     if (faces_away(eye.xyz, n)) n = -n;
-    float radius = u_radius_scale * max(length(in_axis_u), length(in_axis_v));
+    float radius = u_radius_scale * max(length(au), length(av));
     // eq. 6: size_win = r * n / z_eye * h / (t - b), i.e. r * fy / z_eye pixels.
     float pixels = u_ortho > 0.0 ? radius * u_ortho : radius * u_intrinsics.y / max(-eye.z, 1e-9);
     gl_PointSize = max(2.0 * pixels, 1.0);

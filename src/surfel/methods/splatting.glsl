@@ -18,6 +18,7 @@
 #include "passes.glsl"
 
 #define DEPTH_CLAMP 32.0  // splat radii: how far the plane's depth may stray from the centre's
+#define BACK_SPLAT_WEIGHT (1.0 / 256.0)  // a back-facing splat's weight beside front-facing ones
 
 uniform float u_radius_scale;
 uniform float u_depth_offset;    // z_t as a fraction of the splat radius
@@ -54,9 +55,10 @@ void main() {
     const vec2 corners[4] = vec2[4](vec2(0.0, 0.0), vec2(1.0, 0.0), vec2(0.0, 1.0), vec2(1.0, 1.0));
     vec3 c = (u_view * vec4(in_center, 1.0)).xyz;
     if (!lod_visible(c, in_lod.x, in_lod.y, in_lod.z)) { gl_Position = LOD_CULLED; return; }
-    vec3 n = normalize(mat3(u_view) * in_normal);
+    vec3 n = mat3(u_view) * in_normal;
     vec3 au = mat3(u_view) * in_axis_u * u_radius_scale;
     vec3 av = mat3(u_view) * in_axis_v * u_radius_scale;
+    if (!face_camera(c, n, au, av)) n = normalize(n);
     bool back = faces_away(c, n);
     if (back) n = -n;
     // the normal field turns with the normal when the splat is seen from its back
@@ -97,6 +99,15 @@ void main() {
     v_weight = crosses_near ? 1.0 : sqrt(det_s / (det_s + r2 * trace_s + r2 * r2));
 #else
     v_weight = 1.0;
+#endif
+#ifndef PER_SPLAT_SHADING
+    // Two-sided splats: one seen from its back is flipped to face the camera. At a closed
+    // surface's silhouette the front's and the back's splats meet within z_t, and their
+    // normals, both turned to the camera, would average to one facing it: a bright rim
+    // (shading each splat first, `gaussian`, has no such average). So a back splat weighs
+    // little where front splats cover the pixel, and fully, after the normalization, where
+    // only back splats do (a sheet seen from behind).
+    if (back) v_weight *= BACK_SPLAT_WEIGHT;
 #endif
 #ifdef POINT_SPRITES
     // One vertex per splat: a square sprite around the box, on a render target with a guard

@@ -9,6 +9,10 @@ One module per estimation, each citing its source, with its tuning constants at 
                      2004), cut at creases, and the splats' clip lines there
   sharp_features.py  flat points and crease points (Zwicker et al. 2002, Pauly et al. 2003)
   normal_field.py    Phong splatting's linear normal fields (Botsch et al. 2004)
+  structure.py       points on no surface (vegetation, wires, noise; Demantké et al. 2011) and
+                     points without a tangent plane: round splats facing the camera
+  spacing.py         the sampling bound: splats no larger than the local and the acquisition's
+                     point spacing warrant
   complete.py        `prepare`: fill in what a cloud lacks; `complete`: the one policy for what
                      a method gets estimated
 
@@ -25,6 +29,7 @@ from .complete import complete, prepare
 from .frames import tangent_frames
 from .normal_field import fit_normal_field
 from .normals import estimate_normals
+from .structure import drawn_normals, facing_mask
 
-__all__ = ["CLIP_LINES", "INACTIVE_CLIP", "clipped_away", "complete", "estimate_normals", "estimate_radii",
-           "fit_ellipses", "fit_normal_field", "prepare", "tangent_frames"]
+__all__ = ["CLIP_LINES", "INACTIVE_CLIP", "clipped_away", "complete", "drawn_normals", "estimate_normals",
+           "estimate_radii", "facing_mask", "fit_ellipses", "fit_normal_field", "prepare", "tangent_frames"]

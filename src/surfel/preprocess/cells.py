@@ -485,11 +485,21 @@ def _margin_and_cap(raw: np.ndarray, index: np.ndarray) -> np.ndarray:
     if index.shape[1] == 1:
         return np.full(len(raw), RADIUS_MARGIN)
 
-    def cap(start: int, stop: int) -> np.ndarray:
-        typical = np.median(raw[index[start:stop, 1:]], axis=1)
-        return np.minimum(1.0, ISOLATED_FACTOR * typical / raw[start:stop])
+    return RADIUS_MARGIN * map_chunks(lambda start, stop: _outlier_cap(raw, index[start:stop], start), len(raw))
 
-    return RADIUS_MARGIN * map_chunks(cap, len(raw))
+
+@numba.njit(parallel=True, cache=True)
+def _outlier_cap(raw, index, start):  # pragma: no cover - compiled
+    """min(1, ISOLATED_FACTOR x the median raw radius of the neighbours / the point's own), for
+    each point start + i."""
+    m, k = index.shape
+    cap = np.empty(m)
+    for i in numba.prange(m):
+        neighbours = np.empty(k - 1)
+        for j in range(1, k):
+            neighbours[j - 1] = raw[index[i, j]]
+        cap[i] = min(1.0, ISOLATED_FACTOR * np.median(neighbours) / raw[start + i])
+    return cap
 
 
 def covering_radii(nbh: Neighbourhood, normals: np.ndarray, progress: bool | None,

@@ -4,13 +4,18 @@
 command): one k-nearest-neighbour search, k = max(k_normals, RADIUS_NEIGHBOURS,
 FIELD_NEIGHBOURS), serves every estimation, in this order, each using the ones before:
 
-  1. normals (`normals.py`): u x v of given axes, else PCA oriented towards a viewpoint, +Z for
-     geospatial clouds (aerial scans, seen from above), or by propagation and outward;
-  2. sharp features (`sharp_features.py`), when both radii and axes are estimated;
-  3. radii (`cells.py`): covering radii of the tangent-plane Voronoi cells;
-  4. axes: fitted ellipses (`cells.py`) or circular tangent frames of the radii (`frames.py`);
-  5. clip lines at the sharp features (`cells.py`);
-  6. Phong splatting's normal fields (`normal_field.py`).
+  1. normals (`normals.py`): u x v of given axes, else PCA oriented towards the sensor when its
+     position is known (`sensor`, or the cloud's `sensors`), +Z for geospatial clouds (aerial
+     scans, seen from above), or by propagation and outward; with them, from the same PCA, the
+     points drawn facing the camera (`structure.py`);
+  2. the sampling spacing (`spacing.py`), when radii or axes are estimated;
+  3. sharp features (`sharp_features.py`), when both radii and axes are estimated;
+  4. radii (`cells.py`): covering radii of the tangent-plane Voronoi cells;
+  5. axes: fitted ellipses (`cells.py`) or circular tangent frames of the radii (`frames.py`);
+  6. the sampling bound on both (`spacing.py`), and the radii of the screen-facing splats
+     (`structure.py`);
+  7. clip lines at the sharp features (`cells.py`), none on screen-facing splats;
+  8. Phong splatting's normal fields (`normal_field.py`), flat on screen-facing splats.
 
 Given attributes are kept as they are.
 
@@ -24,16 +29,19 @@ from __future__ import annotations
 import numpy as np
 
 from ..cloud import PointCloud
-from .cells import RADIUS_MARGIN, RADIUS_NEIGHBOURS, clip_lines, covering_ellipses, covering_radii
+from .cells import INACTIVE_CLIP, RADIUS_MARGIN, RADIUS_NEIGHBOURS, clip_lines, covering_ellipses, covering_radii
 from .frames import tangent_frames, unit
 from .neighbourhood import Neighbourhood
 from .normal_field import FIELD_NEIGHBOURS, field_slopes
 from .normals import NORMAL_NEIGHBOURS, oriented_normals
 from .sharp_features import SHARP_ANGLE, find_sharp_features
+from .spacing import BOUND_FACTOR, bound_semi_axes, sampling_spacing
+from .structure import round_radii, screen_facing
 
 
 def complete(cloud: PointCloud, *, needs_radii: bool = True, elliptical: bool = False,
-             normal_field: bool = False, progress: bool | None = None) -> tuple[PointCloud, dict]:
+             normal_field: bool = False, progress: bool | None = None,
+             reference_spacing: np.ndarray | None = None) -> tuple[PointCloud, dict]:
     """The cloud with what a method needs, and the report of what was estimated ({} if nothing).
 
     The method's capability flags say what it needs: every method needs normals;
@@ -41,29 +49,36 @@ def complete(cloud: PointCloud, *, needs_radii: bool = True, elliptical: bool = 
     when the axes are estimated; `normal_field`: Phong splatting's normal fields. A cloud that
     lacks any of them is prepared (`prepare`, its defaults), which estimates normals, radii and
     axes alike whichever was missing, so that one completed cloud serves every method.
+    `reference_spacing`: as `prepare`'s.
     """
     missing = cloud.normals is None or (needs_radii and (cloud.radii is None or cloud.axes is None))
     missing = missing or (normal_field and "phong_alpha" not in cloud.attributes)
     if not missing:
         return cloud, {}
-    return prepare(cloud, elliptical=elliptical, normal_field=normal_field, progress=progress)
+    return prepare(cloud, elliptical=elliptical, normal_field=normal_field, progress=progress,
+                   reference_spacing=reference_spacing)
 
 
-def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, viewpoint: np.ndarray | None = None,
+def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np.ndarray | None = None,
             elliptical: bool = False, normal_field: bool = False, sharp_features: bool = True,
-            progress: bool | None = None) -> tuple[PointCloud, dict]:
+            progress: bool | None = None, reference_spacing: np.ndarray | None = None) -> tuple[PointCloud, dict]:
     """Fill in what `cloud` lacks for splatting; returns (cloud, report).
 
-    normals: estimated if None: towards `viewpoint` if given; geospatial clouds (aerial scans,
-    seen from above) face +Z; otherwise propagated and outward. A cloud with axes but no
-    normals gets u x v, the orientation its splats already have.
+    normals: estimated if None: towards the sensor (`sensor` (3,), else the cloud's own
+    `sensors`) if known; geospatial clouds (aerial scans, seen from above) face +Z; otherwise
+    propagated and outward. A cloud with axes but no normals gets u x v, the orientation its
+    splats already have. With estimated normals, attributes["screen_facing"] marks the points
+    drawn as round splats facing the camera (`structure.py`).
     radii: estimated if None (covering radii of the tangent-plane Voronoi cells).
     axes: if None, fitted ellipses when `elliptical`, else circular frames of the radii.
+    Estimated radii and axes are bounded by the sampling (`spacing.py`), whose reference spacing
+    is `reference_spacing` (N,) when the caller knows it (a COPC node's), else its model's.
     normal_field: also fit attributes["phong_alpha"], attributes["phong_beta"] if missing.
     sharp_features: when radii and axes are estimated, cells end at creases and
     attributes["clip_lines"] (N, CLIP_LINES, 3) cut the splats there (`cells.py`).
     Given attributes are kept as they are. The report names every estimated attribute and
-    how, plus "ambiguous_normals" when normals were estimated.
+    how, plus "ambiguous_normals" when normals were estimated, "screen_facing" (how many
+    points face the camera) and "splat_bound" (the spacing model and how many splats it capped).
     """
     report: dict = {}
     need_field = normal_field and not {"phong_alpha", "phong_beta"} <= set(cloud.attributes)
@@ -73,51 +88,83 @@ def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, viewpoint:
     nbh = Neighbourhood.build(cloud.positions, k, -1, progress)
     given = {name: None if getattr(cloud, name) is None else nbh.sort(getattr(cloud, name))
              for name in ("normals", "radii", "axes")}
+    sensors = cloud.sensor_positions() if sensor is None else np.broadcast_to(sensor, cloud.positions.shape)
+    towards_sensor = None if sensors is None else nbh.sort(sensors - cloud.positions)
     estimated: dict = {}
+    attributes = dict(cloud.attributes)
     normals = given["normals"]
+    facing = None
     if normals is None and given["axes"] is not None:
         axes64 = given["axes"].astype(np.float64)
         normals = estimated["normals"] = unit(np.cross(axes64[:, 0], axes64[:, 1]))
         report["normals"] = "from the splat axes (u x v)"
     elif normals is None:
-        if viewpoint is not None:
-            towards = nbh.sort(np.asarray(viewpoint, np.float64) - cloud.positions)
-            how = "facing the viewpoint"
+        if towards_sensor is not None:
+            towards, how = towards_sensor, "facing the sensor"
         elif cloud.geospatial:
             towards, how = np.array([0.0, 0.0, 1.0]), "facing up (+Z)"
         else:
             towards, how = None, "oriented by MST propagation, outward"
-        normals, ambiguous = oriented_normals(nbh, k_normals, towards, progress)
+        normals, ambiguous, eigenvalues = oriented_normals(nbh, k_normals, towards, progress)
         estimated["normals"] = normals
         report["normals"] = f"estimated (PCA, k={k_normals}, {how})"
         report["ambiguous_normals"] = int(ambiguous.sum())
-    radii = given["radii"]
+        facing = screen_facing(eigenvalues, raw_scan=cloud.geospatial or sensors is not None)
+        attributes["screen_facing"] = nbh.unsort(facing.astype(np.float32))
+        report["screen_facing"] = int(facing.sum())
+    radii, axes = given["radii"], given["axes"]
+    # what is estimated from the positions is bounded by their sampling (circles of given radii keep them)
+    bound_radii = radii is None
+    bound_axes = axes is None and (bound_radii or elliptical)
+    spacing = None
+    if bound_radii or bound_axes:
+        ranges = None if towards_sensor is None else np.linalg.norm(towards_sensor, axis=1)
+        spacing, spacing_report = sampling_spacing(
+            nbh, geospatial=cloud.geospatial, ranges=ranges, framing_radius=cloud.bounding_radius,
+            reference=None if reference_spacing is None else nbh.sort(reference_spacing), progress=progress)
     features = None
-    if sharp_features and radii is None and given["axes"] is None:
+    if sharp_features and radii is None and axes is None:
         features = find_sharp_features(nbh, normals, RADIUS_NEIGHBOURS)
     if radii is None:
         radii = estimated["radii"] = covering_radii(nbh, normals, progress, features)
         report["radii"] = (f"estimated (Voronoi covering radius, k={RADIUS_NEIGHBOURS}, "
                            f"x{RADIUS_MARGIN}, mean {float(np.mean(radii)):.4g})")
-    axes = given["axes"]
     if axes is None and elliptical:
         axes = covering_ellipses(nbh, normals, progress, features)
         report["axes"] = f"fitted ellipses (k={RADIUS_NEIGHBOURS})"
     elif axes is None:
         axes = tangent_frames(normals, radii)
         report["axes"] = "circular (tangent frames of the radii)"
+    if spacing is not None:
+        bounded_axes, bounded_radii, capped = bound_semi_axes(axes.astype(np.float64), radii, spacing)
+        if bound_axes:
+            axes = bounded_axes
+        if bound_radii:
+            radii = estimated["radii"] = bounded_radii
+        report["splat_bound"] = {"factor": BOUND_FACTOR, "median_spacing": float(np.median(spacing)),
+                                 **spacing_report, "capped": int(capped.sum())}
+    if facing is not None and facing.any():
+        round = round_radii(eigenvalues[facing], spacing[facing]) if bound_radii else radii[facing]
+        if bound_radii:
+            radii[facing] = round
+        if given["axes"] is None:
+            axes[facing] = tangent_frames(normals[facing], round)
     if given["axes"] is None:
         estimated["axes"] = axes
     changes = {name: nbh.unsort(np.asarray(value, np.float32)) for name, value in estimated.items()}
-    attributes = dict(cloud.attributes)
     if features is not None:
         lines = clip_lines(nbh, normals, axes, features, progress)
+        if facing is not None:
+            lines[facing] = INACTIVE_CLIP  # a disk facing the camera has no crease to end at
         attributes["clip_lines"] = nbh.unsort(lines)
         report["sharp_features"] = (f"{float(np.mean(lines[:, 0, 2] < 1)):.1%} of splats end at creases "
                                     f"(normals > {SHARP_ANGLE:g} degrees apart), "
                                     f"{int(features.crease.sum())} crease points dropped")
     if need_field:
         alpha, beta = field_slopes(nbh, normals, axes, progress)
+        flat = facing if "screen_facing" not in cloud.attributes else nbh.sort(cloud.attributes["screen_facing"] > 0.5)
+        if flat is not None:
+            alpha[flat] = beta[flat] = 0.0  # facing the camera: flat, lit head-on
         attributes.update(phong_alpha=nbh.unsort(alpha), phong_beta=nbh.unsort(beta))
         report["normal_field"] = f"fitted (least squares, k={FIELD_NEIGHBOURS})"
     if attributes.keys() != cloud.attributes.keys():

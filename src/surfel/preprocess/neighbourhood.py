@@ -49,7 +49,7 @@ class Neighbourhood:
         centred = centred - centred.mean(axis=0)
         n = len(centred)
         k = max(1, min(k, n))
-        tree = cKDTree(centred)
+        tree = cKDTree(centred, balanced_tree=False)  # sliding midpoint: 3x faster to build, faster queries
         order = tree.indices
         rank = np.empty(n, np.int32 if n < 2**31 else np.int64)
         rank[order] = np.arange(n)

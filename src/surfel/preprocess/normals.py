@@ -2,7 +2,8 @@
 
 Direction: the eigenvector of the smallest eigenvalue of the neighbourhood covariance
 C = 1/k sum_j (q_j - p)(q_j - p)^T - s s^T / k^2, s = sum_j (q_j - p) (the one-pass formula on
-offsets to the point itself, so that it subtracts small numbers).
+offsets to the point itself, so that it subtracts small numbers), diagonalised by cyclic Jacobi
+rotations (Press et al., Numerical Recipes, 3rd ed., section 11.1) in the kernel that sums it.
 
 Orientation: towards a viewpoint when the sensor position is known; otherwise consistently by
 propagation (Hoppe, DeRose, Duchamp, McDonald & Stuetzle 1992, "Surface reconstruction from
@@ -27,6 +28,8 @@ scans, and does not hinge on one seed point's normal.
 
 from __future__ import annotations
 
+import math
+
 import numba
 import numpy as np
 from scipy import sparse
@@ -40,31 +43,71 @@ AMBIGUOUS_COS = 0.1      # |cos| below which a sign decision is a guess
 DEGENERATE_RATIO = 0.5   # lambda_0 > this x lambda_1: no dominant normal direction
 ORIENT_NEIGHBOURS = 8    # edges per point of the propagation graph: half the MST time of 15,
                          # the same orientations on the bunny
+JACOBI_SWEEPS = 16       # cyclic Jacobi sweeps at most (a 3 x 3 converges in about 4 to 6)
 
 
 @numba.njit(parallel=True, cache=True)
-def _covariances(points, index, start):  # pragma: no cover - compiled
-    """Covariance (m, 3, 3) of the neighbourhood of each point start + i (no gathered
-    (m, k, 3) array)."""
+def _pca(points, index, start):  # pragma: no cover - compiled
+    """Eigenvalues (m, 3), ascending, of the neighbourhood covariance of each point start + i,
+    and the unit eigenvector (m, 3) of the smallest: the covariance from offsets to the point
+    itself, diagonalised by cyclic Jacobi rotations (no gathered (m, k, 3) array, no LAPACK
+    call per point)."""
     m, k = index.shape
-    cov = np.empty((m, 3, 3))
+    values = np.empty((m, 3))
+    vectors = np.empty((m, 3))
     for i in numba.prange(m):
         p = start + i
         s = np.zeros(3)
-        ss = np.zeros((3, 3))
+        a = np.zeros((3, 3))
         for j in range(k):
             q = index[i, j]
-            for a in range(3):
-                da = points[q, a] - points[p, a]
-                s[a] += da
-                for b in range(a + 1):
-                    ss[a, b] += da * (points[q, b] - points[p, b])
-        for a in range(3):
-            for b in range(a + 1):
-                c = ss[a, b] / k - s[a] * s[b] / (k * k)
-                cov[i, a, b] = c
-                cov[i, b, a] = c
-    return cov
+            for r in range(3):
+                dr = points[q, r] - points[p, r]
+                s[r] += dr
+                for c in range(r + 1):
+                    a[r, c] += dr * (points[q, c] - points[p, c])
+        for r in range(3):
+            for c in range(r + 1):
+                a[r, c] = a[r, c] / k - s[r] * s[c] / (k * k)
+                a[c, r] = a[r, c]
+        v = np.eye(3)
+        for _ in range(JACOBI_SWEEPS):
+            off = a[0, 1] * a[0, 1] + a[0, 2] * a[0, 2] + a[1, 2] * a[1, 2]
+            if off <= 1e-32 * (a[0, 0] * a[0, 0] + a[1, 1] * a[1, 1] + a[2, 2] * a[2, 2]):
+                break
+            for pair in range(3):
+                r, c = (0, 1) if pair == 0 else (0, 2) if pair == 1 else (1, 2)
+                if a[r, c] == 0.0:
+                    continue
+                # the rotation in the (r, c) plane that zeroes a[r, c] (Numerical Recipes 11.1)
+                theta = (a[c, c] - a[r, r]) / (2.0 * a[r, c])
+                t = 1.0 / (abs(theta) + math.sqrt(theta * theta + 1.0))
+                if theta < 0.0:
+                    t = -t
+                cos = 1.0 / math.sqrt(t * t + 1.0)
+                sin = t * cos
+                for x in range(3):
+                    ar, ac = a[x, r], a[x, c]
+                    a[x, r], a[x, c] = cos * ar - sin * ac, sin * ar + cos * ac
+                for x in range(3):
+                    ar, ac = a[r, x], a[c, x]
+                    a[r, x], a[c, x] = cos * ar - sin * ac, sin * ar + cos * ac
+                for x in range(3):
+                    vr, vc = v[x, r], v[x, c]
+                    v[x, r], v[x, c] = cos * vr - sin * vc, sin * vr + cos * vc
+        low = 0  # the diagonal, sorted
+        if a[1, 1] < a[low, low]:
+            low = 1
+        if a[2, 2] < a[low, low]:
+            low = 2
+        high = 2 if low != 2 else 1
+        middle = 3 - low - high
+        if a[middle, middle] > a[high, high]:
+            high, middle = middle, high
+        values[i, 0], values[i, 1], values[i, 2] = a[low, low], a[middle, middle], a[high, high]
+        for x in range(3):
+            vectors[i, x] = v[x, low]
+    return values, vectors
 
 
 @numba.njit(cache=True)
@@ -79,16 +122,18 @@ def _cumulative_sign(order, parent, relative):  # pragma: no cover - compiled
     return sign
 
 
-def pca_normals(nbh: Neighbourhood, k: int, progress: bool | None) -> tuple[np.ndarray, np.ndarray]:
-    """Unoriented unit normals (N, 3) float64 and the degenerate-neighbourhood mask."""
+def pca_normals(nbh: Neighbourhood, k: int, progress: bool | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Unoriented unit normals (N, 3) float64, the degenerate-neighbourhood mask, and the
+    covariance eigenvalues (N, 3) float64, ascending (what `structure.py` reads the shape of a
+    neighbourhood from)."""
     index = nbh.first(k)
 
-    def pca(start: int, stop: int) -> tuple[np.ndarray, np.ndarray]:
-        values, vectors = np.linalg.eigh(_covariances(nbh.points, index[start:stop], start))
+    def pca(start: int, stop: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        values, vectors = _pca(nbh.points, index[start:stop], start)
         # No tangent plane: the two smallest spreads alike (line with noise, blob, crossing
         # surfaces), or the neighbourhood is a line or a point (both nearly zero).
         degenerate = (values[:, 0] > DEGENERATE_RATIO * values[:, 1]) | (values[:, 1] <= 1e-12 * values[:, 2])
-        return vectors[:, :, 0], degenerate  # eigenvalues ascending: the normal direction first
+        return vectors, degenerate, values
 
     return map_chunks(pca, len(nbh.points), progress, "normals")
 
@@ -159,15 +204,15 @@ def orient_by_propagation(nbh: Neighbourhood, normals: np.ndarray) -> np.ndarray
 
 
 def oriented_normals(nbh: Neighbourhood, k: int, towards: np.ndarray | None,
-                     progress: bool | None) -> tuple[np.ndarray, np.ndarray]:
+                     progress: bool | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Unit normals (N, 3) float64 facing `towards` ((3,) or (N, 3), in the sorted order), or
-    propagated and outward if None; and the ambiguous mask."""
-    normals, ambiguous = pca_normals(nbh, k, progress)
+    propagated and outward if None; the ambiguous mask; the covariance eigenvalues (N, 3)."""
+    normals, ambiguous, eigenvalues = pca_normals(nbh, k, progress)
     if towards is not None:
         ambiguous |= orient_towards(normals, towards)
     else:
         ambiguous |= orient_by_propagation(nbh, normals)
-    return normals, ambiguous
+    return normals, ambiguous, eigenvalues
 
 
 def estimate_normals(positions: np.ndarray, k: int = NORMAL_NEIGHBOURS, viewpoint: np.ndarray | None = None,
@@ -183,5 +228,5 @@ def estimate_normals(positions: np.ndarray, k: int = NORMAL_NEIGHBOURS, viewpoin
     pts = as_points(positions)
     nbh = Neighbourhood.build(pts, k, workers, progress)
     towards = None if viewpoint is None else nbh.sort(np.asarray(viewpoint, np.float64) - pts)
-    normals, ambiguous = oriented_normals(nbh, k, towards, progress)
+    normals, ambiguous, _ = oriented_normals(nbh, k, towards, progress)
     return nbh.unsort(normals.astype(np.float32)), int(ambiguous.sum())

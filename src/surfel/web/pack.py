@@ -15,9 +15,11 @@ the decoded normal (Duff et al. 2017, "Building an orthonormal basis, revisited"
 
 (web/splat_attributes.glsl decodes the same way). Where the cloud's axis_v points the other
 way, the clip lines' v coefficients change sign instead, so that splats still end where they
-did. Sequential point tree errors (e_g, the parent's e_g, the distance to the parent) are
-half floats in the same unit, rounded outwards (e_g down, the others up), so the page's
-vertex test passes a superset of surfel.lod's selection: overlaps, never holes. Attributes:
+did. A splat that faces the camera (surfel.preprocess.structure) has its first radius negated:
+the page gives it the zero normal the desktop's splat buffers give it. Sequential point tree
+errors (e_g, the parent's e_g, the distance to the parent) are half floats in the same unit,
+rounded outwards (e_g down, the others up), so the page's vertex test passes a superset of
+surfel.lod's selection: overlaps, never holes. Attributes:
 16-bit codes (categorical) or 16-bit steps over their range (continuous).
 """
 
@@ -26,6 +28,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..cloud import PointCloud
+from ..preprocess import facing_mask
 
 POSITION_STEPS = 65535
 LOD_SEARCH_STRIDE = 64  # the CPU's prefix search reads every 64th node's bounds
@@ -97,6 +100,9 @@ def pack_cloud(cloud: PointCloud, values: dict[str, np.ndarray]) -> tuple[dict, 
     columns["angle"] = np.round(np.mod(phi / (2 * np.pi), 1.0) * 65535).astype(np.uint16)
     unit = float(size.max())
     lengths = np.stack([np.linalg.norm(u, axis=1), np.linalg.norm(v, axis=1)], axis=1)
+    facing = facing_mask(cloud)
+    if facing is not None:  # the flag of a splat that faces the camera: a negative first radius
+        lengths[facing, 0] *= -1
     columns["radii"] = (lengths / unit).astype(np.float16)
     if cloud.colors is not None:
         columns["color"] = np.round(cloud.colors * 255).astype(np.uint8)

@@ -9,7 +9,7 @@
 // decodes in splatting.glsl's passes exactly as on the desktop.
 in vec3 a_position;  // [0, 1] over the bounding box
 in vec2 a_normal;    // octahedral, [0, 1]
-in vec2 a_radii;     // |axis_u|, |axis_v| in length units
+in vec2 a_radii;     // |axis_u|, |axis_v| in length units; |axis_u| negated: the splat faces the camera
 in float a_angle;    // angle of axis_u in tangent_frame(normal), [0, 1) of a turn
 in vec3 a_color;     // rgb albedo
 in float a_value;    // the attribute the colour mode shows: 16-bit steps (normalized) or a palette index
@@ -51,7 +51,7 @@ vec3 splat_axis(bool second) {
     tangent_frame(oct_decode(a_normal), t1, t2);
     float phi = 6.283185307179586 * a_angle;
     vec3 u = cos(phi) * t1 + sin(phi) * t2;
-    vec2 radii = a_radii * u_length_unit;
+    vec2 radii = abs(a_radii) * u_length_unit;
     return second ? radii.y * (cos(phi) * t2 - sin(phi) * t1) : radii.x * u;
 }
 
@@ -67,7 +67,7 @@ vec3 page_color() {
 }
 
 #define in_center (u_box_lo + a_position * u_box_size)
-#define in_normal oct_decode(a_normal)
+#define in_normal (a_radii.x < 0.0 ? vec3(0.0) : oct_decode(a_normal))  // zero: common.glsl face_camera
 #define in_color page_color()
 #define in_axis_u splat_axis(false)
 #define in_axis_v splat_axis(true)

@@ -265,7 +265,7 @@
     for (let i = 0; i < n; i++) {
       out.emin[i] = HALF[lod[3 * i]] * unit; out.emax[i] = HALF[lod[3 * i + 1]] * unit;
       out.dparent[i] = HALF[lod[3 * i + 2]] * unit;
-      out.radius[i] = Math.max(HALF[radii[2 * i]], HALF[radii[2 * i + 1]]) * unit;
+      out.radius[i] = Math.max(Math.abs(HALF[radii[2 * i]]), HALF[radii[2 * i + 1]]) * unit;  // negated: faces the camera
     }
     return out;
   }

@@ -1,0 +1,147 @@
+"""The sampling bound: no splat reaches farther than the sampling around it warrants.
+
+A covering radius (cells.py) is what a surface needs to be hole-free, but it trusts the cell:
+at the edge of a sparse region (the few returns over water, a wire, a bird, the fringe of a
+scan) the cell is open or huge, and its disk invents surface far past the data. So every
+estimated semi-axis is capped at
+
+    BOUND_FACTOR x s,    s = min(s_local, s_ref)
+
+  s_local  the local spacing: the median distance to the point's LOCAL_NEIGHBOURS nearest
+           distinct neighbours (coincident returns, common in quantised LAS files, do not
+           count);
+  s_ref    the reference spacing of the acquisition, where it has one:
+           * given by the caller: a COPC file's octree spacing at each point's level (lod/copc.py);
+           * a known sensor position (terrestrial scans: E57 poses, --sensor): the spacing of
+             a scan grows with the range r from its sensor, s_ref = alpha r, with alpha the
+             scan's angular step, the median of s_local / r over the scan;
+           * otherwise a geospatial cloud (an airborne tile, sampled evenly by design): the
+             median horizontal nearest-neighbour distance over the tile (of REFERENCE_SAMPLE
+             points spread over it), the point spacing of the survey;
+           * none for other clouds (points sampled from a surface, whose sampling may vary
+             legitimately): the local spacing alone bounds them.
+
+On a regular surface (ground, roofs, facades) the covering radius is 0.6 to 1.2 spacings,
+inside the bound: it stays hole-free. Where the sampling warrants no surface, splats stay dots
+of at most BOUND_FACTOR spacings. The screen-facing splats of structure.py take their radius
+from the same s.
+
+Points without any distinct neighbour (a single point, or only coincident ones) take s_ref,
+else the median spacing of the others, else LONE_POINT_FRACTION of the cloud's framing
+radius: a lone point is a dot, not a disk that fills the view.
+
+The kernel reads the neighbour lists of neighbourhood.py chunk by chunk (chunked.py).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .chunked import map_chunks
+from .neighbourhood import Neighbourhood
+
+BOUND_FACTOR = 2.5          # semi-axes at most this x the spacing: past the 1.2 covering radius
+                            # of scan-line sampling up to about 4 times as sparse across the lines
+LOCAL_NEIGHBOURS = 4        # distinct neighbours whose median distance is the local spacing
+REFERENCE_SAMPLE = 20_000   # points whose horizontal nearest neighbour gives the tile's spacing
+REFERENCE_NEIGHBOURS = 8    # neighbours searched for the nearest distinct one (duplicates)
+LONE_POINT_FRACTION = 0.2   # spacing of a cloud without two distinct points / its framing radius
+
+
+@numba.njit(parallel=True, cache=True)
+def _local_spacing(points, index, start, count):  # pragma: no cover - compiled
+    """Median distance from each point start + i to its `count` nearest distinct neighbours
+    (neighbours come nearest first); NaN where it has none."""
+    m, k = index.shape
+    out = np.full(m, np.nan)
+    for i in numba.prange(m):
+        p = start + i
+        distances = np.empty(count)
+        found = 0
+        for j in range(k):
+            q = index[i, j]
+            d2 = 0.0
+            for a in range(3):
+                offset = points[q, a] - points[p, a]
+                d2 += offset * offset
+            if d2 > 0.0:
+                distances[found] = math.sqrt(d2)
+                found += 1
+                if found == count:
+                    break
+        if found > 0:  # ascending: the median is the middle one or two
+            out[i] = 0.5 * (distances[(found - 1) // 2] + distances[found // 2])
+    return out
+
+
+def local_spacing(nbh: Neighbourhood, progress: bool | None = None) -> np.ndarray:
+    """s_local (N,) float64 in the neighbourhood's order; NaN for points without a distinct
+    neighbour."""
+    index = nbh.index
+    return map_chunks(lambda start, stop: _local_spacing(nbh.points, index[start:stop], start, LOCAL_NEIGHBOURS),
+                      len(nbh.points), progress, "spacing")
+
+
+def horizontal_spacing(points: np.ndarray) -> float | None:
+    """The median horizontal distance to the nearest distinct neighbour, over REFERENCE_SAMPLE
+    points spread evenly over `points` (N, 3); None if no point has one."""
+    xy = np.ascontiguousarray(points[:, :2])
+    tree = cKDTree(xy, balanced_tree=False, compact_nodes=False)
+    sample = np.unique(np.linspace(0, len(xy) - 1, min(len(xy), REFERENCE_SAMPLE)).astype(np.int64))
+    distances, _ = tree.query(xy[sample], k=min(REFERENCE_NEIGHBOURS, len(xy)), workers=-1)
+    distances = distances.reshape(len(sample), -1)
+    positive = distances > 0
+    has = positive.any(axis=1)
+    if not has.any():
+        return None
+    nearest = distances[has, positive[has].argmax(axis=1)]
+    return float(np.median(nearest))
+
+
+def sampling_spacing(nbh: Neighbourhood, *, geospatial: bool, ranges: np.ndarray | None,
+                     framing_radius: float, reference: np.ndarray | None = None,
+                     progress: bool | None = None) -> tuple[np.ndarray, dict]:
+    """s = min(s_local, s_ref) (N,) float64 in the neighbourhood's order (module docstring),
+    and its report: the reference model and its value.
+
+    ranges: each point's distance to its sensor (sorted order), or None when no sensor is known.
+    reference: s_ref (N,) (sorted order) when the caller knows it (a COPC node's spacing).
+    """
+    local = local_spacing(nbh, progress)
+    report: dict = {"local": f"median distance to {LOCAL_NEIGHBOURS} nearest distinct neighbours"}
+    if reference is not None:
+        report["reference"] = "given (the spacing of each point's level of detail)"
+    elif ranges is not None:
+        usable = np.isfinite(local) & (ranges > 0)
+        if usable.any():
+            step = float(np.median(local[usable] / ranges[usable]))
+            reference = step * ranges
+            report["reference"] = f"{step:.4g} x range from the sensor (the scan's angular step)"
+            report["angular_step"] = step
+    elif geospatial:
+        horizontal = horizontal_spacing(nbh.points)
+        if horizontal is not None:
+            reference = np.full(len(local), horizontal)
+            report["reference"] = "median horizontal nearest-neighbour distance of the tile"
+            report["reference_spacing"] = horizontal
+    spacing = local if reference is None else np.fmin(local, reference)
+    missing = ~np.isfinite(spacing)
+    if missing.any():
+        known = spacing[~missing]
+        spacing[missing] = np.median(known) if len(known) else LONE_POINT_FRACTION * framing_radius
+    return spacing, report
+
+
+def bound_semi_axes(axes: np.ndarray, radii: np.ndarray, spacing: np.ndarray) -> tuple[np.ndarray, np.ndarray,
+                                                                                       np.ndarray]:
+    """Axes (N, 2, 3) and radii (N,) with every semi-axis at most BOUND_FACTOR x spacing (N,),
+    float64, and the (N,) mask of the splats that were capped."""
+    bound = BOUND_FACTOR * spacing
+    lengths = np.linalg.norm(axes, axis=2)
+    scale = np.minimum(1.0, bound[:, None] / np.maximum(lengths, 1e-300))
+    capped = (scale < 1.0).any(axis=1) | (radii > bound)
+    return axes * scale[:, :, None], np.minimum(radii, bound), capped
