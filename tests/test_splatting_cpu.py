@@ -36,11 +36,11 @@ def both(cloud, camera, method, **options):
             renderer.render(cloud, camera, method, backend="gl", **options))
 
 
-def assert_agree(cpu, gl, least=MIN_PSNR):
+def assert_agree(cpu, gl, least=MIN_PSNR, covered=0.05):
     """The same picture: PSNR, and the same pixels covered (alpha within a few levels)."""
     metrics = compare_results(cpu, gl)
     assert metrics["psnr"] >= least, metrics
-    assert gl.alpha.sum() > 0.05 * gl.alpha.size  # the model is there
+    assert gl.alpha.sum() > covered * gl.alpha.size  # the model is there
     assert np.abs(cpu.alpha - gl.alpha).mean() < 0.004
     assert ((cpu.alpha > 0) != (gl.alpha > 0)).mean() < 0.002
 
@@ -79,6 +79,17 @@ def test_orthographic_supersampled_and_culled_match_gl(dense_spot, method):
     cpu, gl = both(dense_spot, camera, method, shading="lambert", supersample=2, backface_culling=True)
     assert cpu.color.shape == (128, 128, 3)
     assert_agree(cpu, gl)
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_screen_facing_splats_match_gl(method):
+    """Splats without orientation (preprocess.drawn_normals) face the camera on both backends."""
+    from test_lidar import facing_cloud
+
+    cloud = facing_cloud()
+    for view in ("front", "top"):
+        camera = frame(cloud.center, cloud.bounding_radius, view=view, size=(128, 128))  # perspective
+        assert_agree(*both(cloud, camera, method, shading="lambert"), covered=0.01)  # eight small disks
 
 
 def test_level_of_detail_matches_gl(dense_spot):

@@ -33,6 +33,10 @@ The passes, as in splatting.glsl (r_lp the low-pass radius in pixels, z_t = dept
    here, `gaussian` shaded each splat's colour before blending. A pixel whose four neighbours
    all received splats is whole (alpha 1), else its alpha is the coverage.
 
+As on the GPU, a splat with a zero normal (no orientation, preprocess.drawn_normals) faces the
+camera, and in `deferred` and `phong` a splat seen from its back weighs 1/256 where front
+splats cover the pixel too (splatting.glsl BACK_SPLAT_WEIGHT).
+
 Colour modes as on the GPU (surfel.colors): continuous attributes are splatted like colour and
 mapped through the colour map per pixel (per splat for `gaussian`); in a categorical mode a
 pixel shows the palette entry of its heaviest splat (the MAX of colors.category_pack over the
@@ -53,6 +57,7 @@ import numpy as np
 
 from ..cloud import PointCloud
 from ..options import check_cpu_samples
+from ..preprocess import drawn_normals
 from ..result import RenderResult
 from ..shading import MODEL_IDS
 from . import splatting_kernels as k
@@ -76,13 +81,14 @@ BIN_CHUNKS_PER_THREAD = 4
 
 def pack_splats(cloud: PointCloud, extras: bool) -> tuple[np.ndarray, np.ndarray | None]:
     """A cloud's splats as the kernels read them, made once per cloud: (N, PACKED) float32 rows of
-    64 bytes (centre relative to the local origin, as the GPU path uploads it; unit normal; the
-    tangent axes; albedo, white without colours) and, with `extras`, (N, EXTRAS) rows of clip
+    64 bytes (centre relative to the local origin, as the GPU path uploads it; unit normal, zero
+    for a splat that faces the camera (preprocess.drawn_normals); the tangent axes; albedo,
+    white without colours) and, with `extras`, (N, EXTRAS) rows of clip
     lines (inactive where the cloud has none) and Phong normal-field slopes (0 where none)."""
     n = len(cloud)
     packed = np.zeros((n, t.PACKED), np.float32)
     packed[:, t.PX:t.PZ + 1] = cloud.positions - np.asarray(cloud.local_origin, np.float64)
-    packed[:, t.PNX:t.PNZ + 1] = cloud.normals
+    packed[:, t.PNX:t.PNZ + 1] = drawn_normals(cloud)
     packed[:, t.PUX:t.PVZ + 1] = splat_axes(cloud).reshape(n, 6)
     packed[:, t.PR:t.PB + 1] = splat_colors(cloud)
     if not extras:

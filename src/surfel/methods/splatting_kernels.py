@@ -125,6 +125,7 @@ from .splatting_tiles import (
 )
 
 COLOR_RGB, COLOR_CONTINUOUS, COLOR_CATEGORICAL = 0, 1, 2  # gl/colors.glsl's colour modes
+BACK_SPLAT_WEIGHT = np.float32(1.0 / 256.0)  # splatting.glsl's: a back-facing splat's weight beside front ones
 
 
 @nb.njit(inline="always", fastmath=True, error_model="numpy")
@@ -138,6 +139,30 @@ def _eye(m, x, y, z):
 def _turn(m, x, y, z):
     """Rotate only (m[0..8] row-major)."""
     return m[0] * x + m[1] * y + m[2] * z, m[3] * x + m[4] * y + m[5] * z, m[6] * x + m[7] * y + m[8] * z
+
+
+@nb.njit(inline="always", fastmath=True, error_model="numpy")
+def _face_camera(ex, ey, ez, nx, ny, nz, ux, uy, uz, vx, vy, vz, ortho):
+    """gl/common.glsl face_camera without branches: a splat packed with a zero normal (no
+    orientation, surfel.preprocess.structure) gets the direction to the eye as its normal and
+    its axes, their lengths kept, turned perpendicular to it (u along (0, 1, 0) x n); the
+    eye-space (normal, u, v), unchanged for every other splat."""
+    one, zero = np.float32(1.0), np.float32(0.0)
+    unoriented = nx * nx + ny * ny + nz * nz <= np.float32(0.25)
+    inv_d = one / max(math.sqrt(ex * ex + ey * ey + ez * ez), np.float32(1e-30))
+    tx, ty, tz = (zero if ortho > 0 else -ex * inv_d), (zero if ortho > 0 else -ey * inv_d), \
+        (one if ortho > 0 else -ez * inv_d)
+    rx, rz = tz, -tx  # (0, 1, 0) x n: zero only for a centre on the eye's vertical
+    length2 = rx * rx + rz * rz
+    inv_r = one / math.sqrt(max(length2, np.float32(1e-30)))
+    turned = length2 > np.float32(1e-12)
+    rx, rz = (rx * inv_r if turned else one), (rz * inv_r if turned else zero)
+    lu, lv = math.sqrt(ux * ux + uy * uy + uz * uz), math.sqrt(vx * vx + vy * vy + vz * vz)
+    su = (rx * lu, zero, rz * lu)
+    sv = (ty * rz * lv, (tz * rx - tx * rz) * lv, -ty * rx * lv)  # n x right
+    if unoriented:
+        return tx, ty, tz, su[0], su[1], su[2], sv[0], sv[1], sv[2]
+    return nx, ny, nz, ux, uy, uz, vx, vy, vz
 
 
 @nb.njit(inline="always", fastmath=True, error_model="numpy")
@@ -185,6 +210,7 @@ def bound_splats(packed, extras, m, radius_scale, lowpass, backface, width, heig
                                packed[i, PUZ] * radius_scale)
             vx, vy, vz = _turn(cam, packed[i, PVX] * radius_scale, packed[i, PVY] * radius_scale,
                                packed[i, PVZ] * radius_scale)
+            nx, ny, nz, ux, uy, uz, vx, vy, vz = _face_camera(ex, ey, ez, nx, ny, nz, ux, uy, uz, vx, vy, vz, ortho)
             depth = -ez
             perspective = ortho <= 0
             reach = math.sqrt(ux * ux + uy * uy + uz * uz) + math.sqrt(vx * vx + vy * vy + vz * vz)
@@ -261,20 +287,22 @@ def place_splats(box, tiles_x, places, index):
 
 
 @nb.njit(inline="always", fastmath=True, error_model="numpy")
-def _setup(p, e, m, radius_scale, lowpass2, ewa_filter, curved):
+def _setup(p, e, m, radius_scale, lowpass2, ewa_filter, curved, back_light):
     """The record of one splat from its staged inputs p (PACKED values) and extras e (EXTRAS
     values), without branches (the vertex stage of splatting.glsl): (record values MX..NZ, field
-    values KU..EZ, its normal flip)."""
+    values KU..EZ). `back_light`: a back-facing splat weighs BACK_SPLAT_WEIGHT (the methods
+    that blend normals, not shaded colours)."""
     one, zero, tiny = np.float32(1.0), np.float32(0.0), np.float32(1e-30)
     fx, fy, cx, cy, ortho, near = m[12], m[13], m[14], m[15], m[16], m[17]
     ex, ey, ez = _eye(m, p[PX], p[PY], p[PZ])
     nx, ny, nz = _turn(m, p[PNX], p[PNY], p[PNZ])
+    ux, uy, uz = _turn(m, p[PUX] * radius_scale, p[PUY] * radius_scale, p[PUZ] * radius_scale)
+    vx, vy, vz = _turn(m, p[PVX] * radius_scale, p[PVY] * radius_scale, p[PVZ] * radius_scale)
+    nx, ny, nz, ux, uy, uz, vx, vy, vz = _face_camera(ex, ey, ez, nx, ny, nz, ux, uy, uz, vx, vy, vz, ortho)
     inv_n = one / max(math.sqrt(nx * nx + ny * ny + nz * nz), tiny)
     facing = nz if ortho > 0 else -(nx * ex + ny * ey + nz * ez)
     flip = -one if facing < 0 else one  # every method shows the side that faces the camera
     nx, ny, nz = nx * inv_n * flip, ny * inv_n * flip, nz * inv_n * flip
-    ux, uy, uz = _turn(m, p[PUX] * radius_scale, p[PUY] * radius_scale, p[PUZ] * radius_scale)
-    vx, vy, vz = _turn(m, p[PVX] * radius_scale, p[PVY] * radius_scale, p[PVZ] * radius_scale)
     lu, lv = math.sqrt(ux * ux + uy * uy + uz * uz), math.sqrt(vx * vx + vy * vy + vz * vz)
     depth = -ez
     perspective = ortho <= 0
@@ -294,6 +322,10 @@ def _setup(p, e, m, radius_scale, lowpass2, ewa_filter, curved):
     trace_s = jux * jux + juy * juy + jvx * jvx + jvy * jvy
     weight = math.sqrt(det_s / max(det_s + lowpass2 * trace_s + lowpass2 * lowpass2, tiny))
     weight = weight if ewa_filter and not crosses_near else one
+    # Two-sided splats (splatting.glsl): where a closed surface's outline blends front and
+    # back splats, a back one's normal, turned to the camera, would brighten the rim; it
+    # weighs BACK_SPLAT_WEIGHT there, fully where it alone covers a pixel (the normalization)
+    weight = weight * (BACK_SPLAT_WEIGHT if back_light and flip < 0 else one)
     # The ray through the pixel at offset (dx, dy): d = d_ref + (dx / fx, -dy / fy, 0) from the eye
     # (perspective), or o = o_ref + (dx, -dy) / ortho along (0, 0, -1). With W = d.n it meets the
     # plane at eye depth ((c - o).n) / W and local coordinates u = ((q - c).u_j) / |u_j|^2.
@@ -361,7 +393,8 @@ def _staged(table, j):
 
 
 @nb.njit(fastmath=True, error_model="numpy")
-def _setup_tile(table, ibox, count, ox, oy, m, radius_scale, lowpass2, ewa_filter, clip_src, field_src):
+def _setup_tile(table, ibox, count, ox, oy, m, radius_scale, lowpass2, ewa_filter, clip_src, field_src,
+                back_light):
     """The records of a tile's `count` staged splats, block by block (SIMD), with each box made
     tile-local and clipped to the tile. `clip_src`, `field_src`: the extras, or None where the
     cloud has no clip lines or no normal field is drawn (then their rows are left alone)."""
@@ -374,7 +407,7 @@ def _setup_tile(table, ibox, count, ox, oy, m, radius_scale, lowpass2, ewa_filte
         for q in range(min(BLOCK, count - first)):
             j, jb = base + np.uint64(q), box_base + np.uint64(q)
             p, e = _staged(table, j)
-            record, field = _setup(p, e, cam, radius_scale, lowpass2, ewa_filter, curved)
+            record, field = _setup(p, e, cam, radius_scale, lowpass2, ewa_filter, curved, back_light)
             (table[j + ROW[MX]], table[j + ROW[MY]], table[j + ROW[W0]], table[j + ROW[WX]], table[j + ROW[WY]],
              table[j + ROW[Z0]], table[j + ROW[ZX]], table[j + ROW[ZY]], table[j + ROW[U0]], table[j + ROW[UX]],
              table[j + ROW[UY]], table[j + ROW[V0]], table[j + ROW[VX]], table[j + ROW[VY]], table[j + ROW[CZ]],
@@ -493,7 +526,8 @@ def rasterize_tiles(packed, extras, box, index, tile_start, tile_count, order, t
                     table[j + np.uint64((PACKED + col) * BLOCK)] = extras[i, col]
             for col in range(4):
                 ibox[jb + np.uint64(col * BLOCK)] = box[i, col]
-        _setup_tile(table, ibox, count, ox, oy, m, radius_scale, lowpass2, ewa_filter, clip_src, field_src)
+        _setup_tile(table, ibox, count, ox, oy, m, radius_scale, lowpass2, ewa_filter, clip_src, field_src,
+                    per_splat_model < 0)
         if per_splat_model >= 0:  # Botsch & Kobbelt 2003: each splat's colour shaded, then blended
             for slot in range(count):
                 j = table_slot(slot, TABLE_ROWS)
