@@ -558,9 +558,7 @@ def method_and_backend(parsed: dict, where: str = "") -> tuple[str, str | None]:
         m = get_method(method)
     except SurfelError as exc:
         raise SurfelError(f"{where}{exc}") from None
-    backend = parsed.get("backend")
-    if backend == "auto":
-        backend = None
+    backend = None if parsed.get("backend") == "auto" else parsed.get("backend")
     if backend is not None and backend not in m.backends:
         raise SurfelError(f"{where}--backend: method {method!r} has no {backend!r} backend; "
                           f"it has {', '.join(m.backends)}")

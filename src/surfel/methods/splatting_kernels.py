@@ -120,6 +120,7 @@ from .splatting_tiles import (
     G,
     R,
     attribute_tile,
+    face_camera,
     table_slot,
     visibility_tile,
 )
@@ -139,30 +140,6 @@ def _eye(m, x, y, z):
 def _turn(m, x, y, z):
     """Rotate only (m[0..8] row-major)."""
     return m[0] * x + m[1] * y + m[2] * z, m[3] * x + m[4] * y + m[5] * z, m[6] * x + m[7] * y + m[8] * z
-
-
-@nb.njit(inline="always", fastmath=True, error_model="numpy")
-def _face_camera(ex, ey, ez, nx, ny, nz, ux, uy, uz, vx, vy, vz, ortho):
-    """gl/common.glsl face_camera without branches: a splat packed with a zero normal (no
-    orientation, surfel.preprocess.structure) gets the direction to the eye as its normal and
-    its axes, their lengths kept, turned perpendicular to it (u along (0, 1, 0) x n); the
-    eye-space (normal, u, v), unchanged for every other splat."""
-    one, zero = np.float32(1.0), np.float32(0.0)
-    unoriented = nx * nx + ny * ny + nz * nz <= np.float32(0.25)
-    inv_d = one / max(math.sqrt(ex * ex + ey * ey + ez * ez), np.float32(1e-30))
-    tx, ty, tz = (zero if ortho > 0 else -ex * inv_d), (zero if ortho > 0 else -ey * inv_d), \
-        (one if ortho > 0 else -ez * inv_d)
-    rx, rz = tz, -tx  # (0, 1, 0) x n: zero only for a centre on the eye's vertical
-    length2 = rx * rx + rz * rz
-    inv_r = one / math.sqrt(max(length2, np.float32(1e-30)))
-    turned = length2 > np.float32(1e-12)
-    rx, rz = (rx * inv_r if turned else one), (rz * inv_r if turned else zero)
-    lu, lv = math.sqrt(ux * ux + uy * uy + uz * uz), math.sqrt(vx * vx + vy * vy + vz * vz)
-    su = (rx * lu, zero, rz * lu)
-    sv = (ty * rz * lv, (tz * rx - tx * rz) * lv, -ty * rx * lv)  # n x right
-    if unoriented:
-        return tx, ty, tz, su[0], su[1], su[2], sv[0], sv[1], sv[2]
-    return nx, ny, nz, ux, uy, uz, vx, vy, vz
 
 
 @nb.njit(inline="always", fastmath=True, error_model="numpy")
@@ -210,7 +187,7 @@ def bound_splats(packed, extras, m, radius_scale, lowpass, backface, width, heig
                                packed[i, PUZ] * radius_scale)
             vx, vy, vz = _turn(cam, packed[i, PVX] * radius_scale, packed[i, PVY] * radius_scale,
                                packed[i, PVZ] * radius_scale)
-            nx, ny, nz, ux, uy, uz, vx, vy, vz = _face_camera(ex, ey, ez, nx, ny, nz, ux, uy, uz, vx, vy, vz, ortho)
+            nx, ny, nz, ux, uy, uz, vx, vy, vz = face_camera(ex, ey, ez, nx, ny, nz, ux, uy, uz, vx, vy, vz, ortho)
             depth = -ez
             perspective = ortho <= 0
             reach = math.sqrt(ux * ux + uy * uy + uz * uz) + math.sqrt(vx * vx + vy * vy + vz * vz)
@@ -298,7 +275,7 @@ def _setup(p, e, m, radius_scale, lowpass2, ewa_filter, curved, back_light):
     nx, ny, nz = _turn(m, p[PNX], p[PNY], p[PNZ])
     ux, uy, uz = _turn(m, p[PUX] * radius_scale, p[PUY] * radius_scale, p[PUZ] * radius_scale)
     vx, vy, vz = _turn(m, p[PVX] * radius_scale, p[PVY] * radius_scale, p[PVZ] * radius_scale)
-    nx, ny, nz, ux, uy, uz, vx, vy, vz = _face_camera(ex, ey, ez, nx, ny, nz, ux, uy, uz, vx, vy, vz, ortho)
+    nx, ny, nz, ux, uy, uz, vx, vy, vz = face_camera(ex, ey, ez, nx, ny, nz, ux, uy, uz, vx, vy, vz, ortho)
     inv_n = one / max(math.sqrt(nx * nx + ny * ny + nz * nz), tiny)
     facing = nz if ortho > 0 else -(nx * ex + ny * ey + nz * ez)
     flip = -one if facing < 0 else one  # every method shows the side that faces the camera

@@ -75,6 +75,30 @@ EXP_POLY = tuple(np.float32(c) for c in chebyshev.cheb2poly(chebyshev.chebinterp
     lambda s: np.exp(-0.5 * GAUSSIAN_SHARPNESS * (s + 1)), 9)))
 
 
+@nb.njit(inline="always", fastmath=True, error_model="numpy")
+def face_camera(ex, ey, ez, nx, ny, nz, ux, uy, uz, vx, vy, vz, ortho):
+    """gl/common.glsl face_camera without branches: a splat packed with a zero normal (no
+    orientation, surfel.preprocess.structure) gets the direction to the eye as its normal and
+    its axes, their lengths kept, turned perpendicular to it (u along (0, 1, 0) x n); the
+    eye-space (normal, u, v), unchanged for every other splat."""
+    one, zero = np.float32(1.0), np.float32(0.0)
+    unoriented = nx * nx + ny * ny + nz * nz <= np.float32(0.25)
+    inv_d = one / max(math.sqrt(ex * ex + ey * ey + ez * ez), np.float32(1e-30))
+    tx, ty, tz = (zero if ortho > 0 else -ex * inv_d), (zero if ortho > 0 else -ey * inv_d), \
+        (one if ortho > 0 else -ez * inv_d)
+    rx, rz = tz, -tx  # (0, 1, 0) x n: zero only for a centre on the eye's vertical
+    length2 = rx * rx + rz * rz
+    inv_r = one / math.sqrt(max(length2, np.float32(1e-30)))
+    turned = length2 > np.float32(1e-12)
+    rx, rz = (rx * inv_r if turned else one), (rz * inv_r if turned else zero)
+    lu, lv = math.sqrt(ux * ux + uy * uy + uz * uz), math.sqrt(vx * vx + vy * vy + vz * vz)
+    su = (rx * lu, zero, rz * lu)
+    sv = (ty * rz * lv, (tz * rx - tx * rz) * lv, -ty * rx * lv)  # n x right
+    if unoriented:
+        return tx, ty, tz, su[0], su[1], su[2], sv[0], sv[1], sv[2]
+    return nx, ny, nz, ux, uy, uz, vx, vy, vz
+
+
 def table_size(count: int) -> int:
     """Entries of a table for `count` splats (whole blocks)."""
     return -(-count // BLOCK) * BLOCK * TABLE_ROWS
