@@ -1,6 +1,6 @@
 """Frame time of the exported page in headless Chromium beside the GL path, same cloud and view.
 
-    python benchmarks/page_frame_time.py [--points 1000000] [--size 1024] [--frames 5]
+    python benchmarks/page_frame_time.py [--points 1000000] [--size 1024] [--frames 5] [--json]
 
 The cloud is `surfel bench`'s (the demo model replicated and jittered to --points); the page
 is exported with the default camera and opens with its point tree at 1 pixel of LOD error,
@@ -12,6 +12,7 @@ readback); Chromium runs WebGL2 on SwiftShader here, the GL path on Mesa's llvmp
 from __future__ import annotations
 
 import argparse
+import json
 import statistics
 import tempfile
 import time
@@ -34,6 +35,7 @@ def main():
     parser.add_argument("--points", type=int, default=1_000_000)
     parser.add_argument("--size", type=int, default=1024)
     parser.add_argument("--frames", type=int, default=5)
+    parser.add_argument("--json", action="store_true", help="print the measurements as one JSON object")
     args = parser.parse_args()
     size = (args.size, args.size)
     cloud = replicate(demo_cloud(), args.points)
@@ -59,6 +61,14 @@ def main():
             moving = page.evaluate("({...surfelStats, history: undefined})")
             browser.close()
     gl = run(cloud, ["deferred"], size=size, frames=args.frames, lod_error=1.0)
+    if args.json:  # benchmarks/readme_numbers.py reads this
+        print(json.dumps({"points": len(cloud), "size": size, "page_nodes": report["points"],
+                          "page_bytes": report["bytes"], "export_s": export_s, "load_s": load_s,
+                          "page_renderer": stats["renderer"], "rest_ms": statistics.median(times),
+                          "rest_splats": stats["drawn"], "rest_lod": stats["lodError"],
+                          "moving_ms": statistics.median(coarse), "moving_splats": moving["drawn"],
+                          "moving_lod": moving["lodError"], "gl": gl}))
+        return
     print(f"{len(cloud)} points, {size[0]}x{size[1]}; page: {report['points']} nodes, "
           f"{report['bytes'] / 1e6:.1f} MB, exported in {export_s:.1f} s, opened in {load_s:.1f} s")
     print(f"page  {stats['renderer']}: {statistics.median(times):7.1f} ms/frame at rest "

@@ -1,9 +1,10 @@
-"""Regenerate the gallery: the survey's figures reproduced on the shared models, and a table of
-every method's PSNR, holes and speed against the mesh.
+"""Regenerate the gallery: the survey's figures reproduced on the shared models, and the
+README's table of every method's PSNR, holes and speed against the mesh.
 
-    python docs/gallery/make_gallery.py [--data ../shared/data] [--quick]
+    python docs/gallery/make_gallery.py [--data ../shared/data] [--no-table]
 
-Writes docs/gallery/fig*.png and docs/gallery/methods.md (the README shows them).
+Writes docs/gallery/fig*.png, then the README's quality block (the `quality` section of
+benchmarks/readme_numbers.py, which measures it).
 """
 
 from __future__ import annotations
@@ -18,13 +19,14 @@ from PIL import Image
 
 import surfel
 from surfel.camera import frame
-from surfel.methods import METHODS
-from surfel.metrics import compare_results
 from surfel.preprocess import complete
 from surfel.rendering import render
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parents[1] / "tests"))
+sys.path.insert(0, str(HERE.parents[1] / "benchmarks"))
+from readme_numbers import regenerate  # noqa: E402  (the README's measured blocks)
+
 from scenes import checker_plane, grazing_camera  # noqa: E402  (the minification scene of the tests)
 
 
@@ -113,33 +115,10 @@ def figure16(bunny):
          ["MLS surface, ray traced", "with shadows"])
 
 
-def method_table(models: dict, quick: bool) -> None:
-    rows = ["| method | backend | " + " | ".join(f"{m} PSNR / holes" for m in models) + " | ms (bunny) |",
-            "|---|---|" + "---|" * len(models) + "---|"]
-    for method in METHODS.values():
-        if method.name == "mesh":
-            continue
-        for backend in method.backends:
-            cells, ms = [], ""
-            for name, (cloud, cam, ref) in models.items():
-                if quick and method.name in ("mls", "mls-gpu") and name != "bunny":
-                    cells.append("-")
-                    continue
-                result = render(cloud, cam, method.name, backend=backend, shading="lambert")
-                metrics = compare_results(ref, result)
-                cells.append(f"{metrics['psnr']:.1f} dB / {100 * metrics['holes']:.3f}%")
-                if name == "bunny":  # a second frame: the first one compiles shaders and uploads the splats
-                    again = render(cloud, cam, method.name, backend=backend, shading="lambert")
-                    ms = f"{again.stats['ms']:.0f}"
-            rows.append(f"| `{method.name}` | {backend} | " + " | ".join(cells) + f" | {ms} |")
-            print(rows[-1])
-    (HERE / "methods.md").write_text("\n".join(rows) + "\n")
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", default=str(HERE.parents[2] / "shared" / "data"))
-    parser.add_argument("--quick", action="store_true", help="the ray tracers on the bunny only")
+    parser.add_argument("--no-table", action="store_true", help="the figures only, not the README's quality table")
     args = parser.parse_args()
     data = Path(args.data)
     bunny = complete(surfel.load(data / "stanford-bunny.obj"))[0]
@@ -149,13 +128,8 @@ def main() -> None:
     figure10()
     figure13(bunny)
     figure16(bunny)
-    models = {}
-    for name, file in (("bunny", "stanford-bunny.obj"), ("spot", "spot.obj"), ("fandisk", "fandisk.obj")):
-        mesh = surfel.load(data / file)
-        cam = frame(mesh.center, mesh.bounding_radius, size=(512, 512))
-        # its vertices as `surfel compare` splats them: each method estimates what it needs
-        models[name] = (mesh.with_(faces=None), cam, render(mesh, cam, "mesh", shading="lambert"))
-    method_table(models, args.quick)
+    if not args.no_table:
+        regenerate(["quality"], data)
 
 
 if __name__ == "__main__":
