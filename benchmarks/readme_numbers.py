@@ -336,6 +336,19 @@ def section_batch(ctx: Context) -> str:
             f"{sameness} {frames} `surfel render` calls ({single_s:.1f} s).")
 
 
+def section_scans(ctx: Context) -> str:
+    """Range scans of the shared models by `surfel scan`'s scanner, against their meshes."""
+    models = [ctx.model(name) for name in MODELS]
+    rows = ["| scan | deferred | phong |", "|---|---|---|"]
+    for label, extra in (("as rendered (normals of noisy scans select their neighbourhood size)", ()),
+                         ("`--smooth` (positions projected onto their MLS surface first)", ("--smooth",))):
+        result = json.loads(ctx.script("scan_fidelity.py", *models, *extra, "--json"))
+        cells = [f"{result['median_psnr'][m]:.1f} dB, {result['max_holes_percent'][m]:.2f}%"
+                 for m in ("deferred", "phong")]
+        rows.append(f"| {label} | " + " | ".join(cells) + " |")
+    return "\n".join(rows)
+
+
 def section_copc(ctx: Context) -> str:
     copc, stats = ctx.scratch / "autzen.copc.laz", ctx.scratch / "far.json"
     ctx.surfel("lod", "build", ctx.data / "autzen_trim.laz", "-o", copc)
@@ -394,6 +407,7 @@ SECTIONS = {
     "page": Section(section_page, "6 min", f"the exported page's frame time, {RUNS} runs"),
     "page-match": Section(section_page_match, "30 s", "the page's picture against surfel render"),
     "batch": Section(section_batch, "2 min", "24 turntable frames: surfel batch against surfel render"),
+    "scans": Section(section_scans, "2 min", "range scans of the shared models: median PSNR, worst holes"),
     "copc": Section(section_copc, "30 s", "bytes a far COPC view reads"),
     "build100m": Section(section_build100m, "20 min, 2.4 GB disk (expensive)", "the 100M-point out-of-core build"),
 }

@@ -77,3 +77,17 @@ def test_georeferenced_coordinates_keep_precision():
     n1, _ = estimate_normals(local + offset, viewpoint=offset + [25, 25, 100])
     assert np.allclose(n0, n1, atol=1e-4)
     assert np.allclose(estimate_radii(local), estimate_radii(local + offset), rtol=1e-4)
+
+
+def test_scale_selection_on_a_noisy_sphere():
+    """Range noise of 0.4% of the radius (about a third of the spacing): each point's scale
+    (Mitra & Nguyen's bound) gives normals well within those of the fixed k = 16; a clean
+    sphere is not noisy and keeps k = 16 exactly."""
+    p = sphere(20_000, noise=0.004)
+    plain, _ = estimate_normals(p)
+    selected, _ = estimate_normals(p, select_scale=True)
+    plain_error, selected_error = angles(plain, p, oriented=False), angles(selected, p, oriented=False)
+    assert selected_error.mean() < 0.6 * plain_error.mean()
+    assert np.percentile(selected_error, 95) < 4
+    clean = sphere(20_000)
+    assert np.array_equal(estimate_normals(clean)[0], estimate_normals(clean, select_scale=True)[0])

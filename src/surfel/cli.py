@@ -18,6 +18,7 @@ from .request import (
     PAGE_COMMAND,
     RENDER,
     RENDER_COMMAND,
+    SCAN,
     TURNTABLE_COMMAND,
     TURNTABLE_ELEVATION,
     TURNTABLE_SIZE,
@@ -250,13 +251,16 @@ def compare(mesh, output, as_json, every, **values):
 @click.option("--normal-field", is_flag=True, help="Fit Phong splatting's linear normal fields.")
 @click.option("--sharp-features/--no-sharp-features", default=True, show_default=True,
               help="Cut splats at creases with clip lines (stored as clip_lines).")
+@click.option("--smooth", is_flag=True, help="Denoise the positions first: move them onto the points' MLS surface "
+              "(raw scans).")
 @table_options("sensor")
-def prepare(input, output, neighbors, sensor, elliptical, normal_field, sharp_features):
+def prepare(input, output, neighbors, sensor, elliptical, normal_field, sharp_features, smooth):
     """Estimate normals, splat radii and tangent frames; write a PLY.
 
     \b
     Example:
       surfel prepare scan.xyz -o scan.ply --sensor 0,0,10
+      surfel prepare scan.ply -o smooth.ply --smooth
     """
     from .files import check_output
     from .io import load, write_ply
@@ -268,9 +272,29 @@ def prepare(input, output, neighbors, sensor, elliptical, normal_field, sharp_fe
     check_output(output, "--output")
     cloud = with_sensor(load(input), position)
     prepared, report = do_prepare(cloud.with_(radii=None, axes=None) if elliptical else cloud, k_normals=neighbors,
-                                  elliptical=elliptical, normal_field=normal_field, sharp_features=sharp_features)
+                                  elliptical=elliptical, normal_field=normal_field, sharp_features=sharp_features,
+                                  smooth=smooth)
     write_ply(prepared, output)
     click.echo(f"{output}: {len(prepared)} points; " + ", ".join(f"{k}: {v}" for k, v in report.items()), err=True)
+
+
+@main.command(context_settings=CONTEXT)
+@click.argument("mesh", type=click.Path(dir_okay=False))
+@click.option("-o", "--output", required=True, help="PLY to write: positions, the scan index, sensor positions.")
+@table_options(*SCAN)
+def scan(mesh, output, **values):
+    """Scan MESH with a virtual range scanner: depth images from several views, samples lost at
+    grazing angles, range noise along each ray, each view misregistered; no normals.
+
+    \b
+    Example:
+      surfel scan bunny.obj -o bunny-scan.ply --views 6 --noise 0.001 --misalignment 0.0005
+      surfel render bunny-scan.ply -o bunny-scan.png --method phong
+    """
+    from .scan import scan_command
+
+    cloud = scan_command(mesh, output, values)
+    click.echo(f"{output}: {len(cloud)} points from {len(cloud.sensors)} views", err=True)
 
 
 @main.command(context_settings=CONTEXT)

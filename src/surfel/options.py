@@ -210,6 +210,8 @@ class RenderOptions(Settings):
                    same methods, and only for such a source
     dump_passes  : folder to write the intermediate passes to as images; the methods that
                    draw with the three-pass targets, on the backends of `Method.dump_passes`
+    smooth       : denoise the positions first (preprocess/smoothing.py, MLS projection; raw
+                   scans); every method, for clouds loaded whole
     params       : the method's parameters (its `Method.params` dataclass), None for its
                    defaults
     """
@@ -227,6 +229,7 @@ class RenderOptions(Settings):
     lod_error: float | None = setting(None, positive)
     point_budget: int | None = setting(None, at_least(1))
     dump_passes: str | None = None
+    smooth: bool = setting(False)
     params: Settings | None = None
     coloring: Coloring | None = None  # `color` resolved for the cloud drawn (by the Renderer); None: rgb
 

@@ -223,14 +223,15 @@ class Renderer:
         return self.cached(cloud, "colored", lambda: cloud.with_(colors=coloring.encode(cloud)), version=coloring)
 
     def complete(self, cloud: PointCloud, *, needs_radii: bool = True, elliptical: bool = False,
-                 normal_field: bool = False) -> tuple[PointCloud, dict]:
-        """`preprocess.complete` (what a method with these capability flags needs), once per
-        cloud and setting (turntables and benchmarks estimate once)."""
+                 normal_field: bool = False, smooth: bool = False) -> tuple[PointCloud, dict]:
+        """`preprocess.complete` (what a method with these capability flags needs; smooth: the
+        positions denoised first), once per cloud and setting (turntables and benchmarks
+        estimate once)."""
         from . import preprocess  # numba kernels: loaded when first needed
 
-        return self.cached(cloud, ("completed", needs_radii, elliptical, normal_field),
+        return self.cached(cloud, ("completed", needs_radii, elliptical, normal_field, smooth),
                            lambda: preprocess.complete(cloud, needs_radii=needs_radii, elliptical=elliptical,
-                                                       normal_field=normal_field))
+                                                       normal_field=normal_field, smooth=smooth))
 
     def close(self) -> None:
         """Release every GL object this Renderer holds; it can render again afterwards."""
@@ -298,7 +299,7 @@ class Renderer:
         cloud, options = self.appearance(cloud, options)
         selected = len(cloud)
         cloud, estimated = self.complete(cloud, needs_radii=m.needs_radii, elliptical=m.elliptical,
-                                         normal_field=m.normal_field)
+                                         normal_field=m.normal_field, smooth=options.smooth)
         if options.lod_error is not None:
             from .lod import as_sequential, lod_subset
 
@@ -362,6 +363,8 @@ class Renderer:
             raise TypeError(f"render needs a PointCloud or a LodSource, got {type(source).__name__}")
         if not get_method(method).needs_radii:
             raise SurfelError(f"method {method!r} cannot render a level-of-detail source (it needs splats)")
+        if options.smooth:
+            raise SurfelError("smoothing applies to clouds loaded whole, not to a .lod hierarchy or COPC file")
         camera = camera or frame(source.center, source.bounding_radius, geospatial=source.geospatial, size=size,
                                  bounds=source.bounds)
         epsilon = options.lod_error if options.lod_error is not None else SOURCE_DEFAULT_LOD_ERROR

@@ -21,7 +21,6 @@ that contradict each other; and every output location (`files.check_output`).
 
 from __future__ import annotations
 
-import math
 import os
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, fields, replace
@@ -34,6 +33,21 @@ from .files import check_folder, check_output
 from .methods import METHODS, get_method
 from .methods.params import SplatParams
 from .options import RenderOptions, SettingError
+from .parsers import (
+    choice,
+    direction,
+    field_of_view,
+    integer,
+    integer_in,
+    integers,
+    number,
+    numbers,
+    ortho_height,
+    positive_number,
+    size,
+    text,
+    words,
+)
 from .shading import DEFAULT_HELP as DEFAULT_SHADING_HELP
 from .shading import MODELS
 
@@ -44,113 +58,6 @@ TURNTABLE_ELEVATION = 15.0
 TURNTABLE_SIZE = (512, 512)
 VIEW_SIZE = (800, 800)  # `surfel view`'s window
 IMAGE_FORMATS = (".png", "")  # colour images are PNG; a name without extension gets PNG too
-MAX_PIXELS = 16384 * 16384
-
-
-# ---------------------------------------------------------------------------------------------
-# Parsers: the text of one option to its value, or ValueError(the problem)
-
-
-def number(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise ValueError(f"needs a number, got {text!r}") from None
-    if not math.isfinite(value):
-        raise ValueError(f"needs a finite number, got {text!r}")
-    return value
-
-
-def positive_number(text: str) -> float:
-    value = number(text)
-    if value <= 0:
-        raise ValueError(f"must be positive, got {text!r}")
-    return value
-
-
-def integer(text: str) -> int:
-    try:
-        return int(text)
-    except ValueError:
-        raise ValueError(f"needs an integer, got {text!r}") from None
-
-
-def integer_in(low: int, high: int) -> Callable[[str], int]:
-    def parse(text: str) -> int:
-        value = integer(text)
-        if not low <= value <= high:
-            raise ValueError(f"must be in {low}..{high}, got {text!r}")
-        return value
-
-    return parse
-
-
-def numbers(count: int) -> Callable[[str], tuple[float, ...]]:
-    def parse(text: str) -> tuple[float, ...]:
-        try:
-            values = tuple(float(v) for v in text.split(","))
-        except ValueError:
-            raise ValueError(f"needs {count} comma-separated numbers, got {text!r}") from None
-        if len(values) != count or not all(map(math.isfinite, values)):
-            raise ValueError(f"needs {count} comma-separated finite numbers, got {text!r}")
-        return values
-
-    return parse
-
-
-def direction(text: str) -> tuple[float, float, float]:
-    values = numbers(3)(text)
-    if not any(values):
-        raise ValueError("must not be the zero vector")
-    return values
-
-
-def size(text: str) -> tuple[int, int]:
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise ValueError(f"must look like 512x512, got {text!r}") from None
-    if w <= 0 or h <= 0 or w * h > MAX_PIXELS:
-        raise ValueError(f"{text!r} is out of range (each side positive, at most {MAX_PIXELS} pixels)")
-    return w, h
-
-
-def choice(*values: str) -> Callable[[str], str]:
-    def parse(text: str) -> str:
-        if text not in values:
-            raise ValueError(f"must be one of {', '.join(values)}, got {text!r}")
-        return text
-
-    return parse
-
-
-def text(value: str) -> str:
-    if not value:
-        raise ValueError("must not be empty")
-    return value
-
-
-def integers(text: str) -> tuple[int, ...]:
-    try:
-        return tuple(int(v) for v in text.split(","))
-    except ValueError:
-        raise ValueError(f"needs comma-separated integers, got {text!r}") from None
-
-
-def words(text: str) -> tuple[str, ...]:
-    return tuple(v.strip().lower() for v in text.split(","))
-
-
-def ortho_height(text: str) -> float | str:
-    """--ortho: a view height in world units, or `auto` (the auto-framing's extent)."""
-    return "auto" if text == "auto" else positive_number(text)
-
-
-def field_of_view(text: str) -> float:
-    value = number(text)
-    if not 0 < value < 180:
-        raise ValueError(f"must be in (0, 180) degrees, got {text!r}")
-    return value
 
 
 # ---------------------------------------------------------------------------------------------
@@ -162,7 +69,7 @@ class Option:
     """One option: `parse` turns its text into its value (None: an on/off flag, given as a bool).
 
     sets: "input", "camera", "options" (a RenderOptions field), "params" (a parameter of the
-    method), "output", "method" (the method and backend) or "turntable". `field`: the
+    method), "output", "method" (the method and backend), "turntable" or "scan". `field`: the
     RenderOptions field or parameter it sets, when not `name`; `value` maps a flag's bool to it.
     `default`: text parsed like a given value, for the options whose default is not that of
     the dataclass they set (CameraSpec, RenderOptions, the method's parameters); else None.
@@ -264,6 +171,8 @@ OPTIONS: dict[str, Option] = {o.name: o for o in [
            "options", metavar="PX"),
     Option("point_budget", integer, "Most points drawn from a .lod hierarchy or COPC file (its LOD error is "
            "raised to fit).", "options", metavar="N"),
+    Option("smooth", None, "Denoise the positions first: move them onto the points' MLS surface, as `surfel "
+           "prepare --smooth` does (raw scans) [default: off].", "options"),
     Option("dump_passes", text, "Write the intermediate passes to this folder as images (gaussian, deferred, "
            "phong, object-space, ewa on gl).", "options", metavar="FOLDER"),
     # method parameters (methods/params.py and each method's dataclass)
@@ -291,6 +200,17 @@ OPTIONS: dict[str, Option] = {o.name: o for o in [
            metavar="N"),
     Option("fps", positive_number, "Frames per second of the animation.", "turntable", default=f"{TURNTABLE_FPS:g}",
            metavar="RATE"),
+    # the virtual range scanner (`surfel scan`; scan.ScanSettings checks the ranges)
+    Option("views", integer, "Views around the model.", "scan", metavar="N", shown="6"),
+    Option("resolution", integer, "Samples per side of each view's depth image.", "scan", metavar="PX", shown="256"),
+    Option("noise", number, "Range noise (standard deviation) along each ray, a fraction of the model's size.",
+           "scan", metavar="FRACTION", shown="0.001"),
+    Option("misalignment", number, "Registration error of each view (rotation and translation), a fraction of the "
+           "model's size.", "scan", metavar="FRACTION", shown="0.0005"),
+    Option("grazing", number, "Incidence angle past which no sample returns; fewer return from half of it.",
+           "scan", metavar="DEG", shown="80"),
+    Option("seed", integer, "Random seed of the noise, the lost samples and the misregistration.", "scan",
+           metavar="N", shown="0"),
 ]}
 
 CAMERA = tuple(name for name, o in OPTIONS.items() if o.sets == "camera")
@@ -303,6 +223,7 @@ PAGE_COMMAND = ("input", "demo", "output", "method", *CAMERA, "shading", "color"
                 "classes", "returns", "edl_strength", "edl_radius", "background", "supersample", "lod_error",
                 "point_budget", "radius_scale", "depth_offset", "backface_culling", "ewa_filter", "lowpass_radius")
 PAGE_MAX_SUPERSAMPLE = 4
+SCAN = tuple(name for name, o in OPTIONS.items() if o.sets == "scan")
 TURNTABLE_COMMAND = ("input", "sensor", "output", "frames", "fps", "elevation", "size", "method", "backend", *RENDER)
 
 
@@ -596,5 +517,5 @@ def parse_render(values: Mapping[str, object], *, where: str = "", require_outpu
                          parsed.get("sensor"))
 
 
-__all__ = ["OPTIONS", "Option", "CameraSpec", "Outputs", "RenderRequest", "default", "method_and_backend",
+__all__ = ["OPTIONS", "SCAN", "Option", "CameraSpec", "Outputs", "RenderRequest", "default", "method_and_backend",
            "open_input", "options_from", "parse_render", "parse_values", "render_options"]

@@ -25,7 +25,8 @@ A ``face`` element with a list property ``vertex_indices`` (or ``vertex_index``)
 file a mesh: polygons are fan-triangulated, only the vertices the faces reference are kept,
 and vertex normals are area-weighted from the faces unless the file has its own. Other
 elements (edges, materials, ...) are skipped. A ``comment surfel_geospatial`` header line
-marks the cloud geospatial (up axis +Z).
+marks the cloud geospatial (up axis +Z); each ``comment surfel_sensor X Y Z`` line is one of
+the cloud's `sensors`, in order (the integer attribute ``scan`` says whose each point is).
 
 Elements are decoded whole, with no per-point Python loop: binary ones through numpy
 structured dtypes over a memory map of the file, ascii ones through one vectorised
@@ -42,7 +43,8 @@ ux uy uz vx vy vz (float), each only when the cloud has it, and every attribute 
 type of its dtype (bool as uchar; 64-bit integers, which PLY lacks, as double when every
 value is exact there), an (N,) array as NAME, an (N, k) one as NAME_0 .. NAME_{k-1}, higher
 ranks flattened likewise, each declared by a surfel_attribute comment; and the faces as
-``vertex_indices`` lists of 3 ints. The geospatial flag becomes a surfel_geospatial comment.
+``vertex_indices`` lists of 3 ints. The geospatial flag becomes a surfel_geospatial comment,
+each sensor position a surfel_sensor comment.
 """
 
 from __future__ import annotations
@@ -81,6 +83,7 @@ _FACE_LISTS = ("vertex_indices", "vertex_index")
 _ATTRIBUTE_COMMENT = "surfel_attribute"
 _EXTRA_COMMENT = "surfel_extra"  # older writers' NAME [D1 ...]: float32, continuous
 _GEOSPATIAL_COMMENT = "surfel_geospatial"
+_SENSOR_COMMENT = "surfel_sensor"
 _POSITION = ("x", "y", "z")
 _NORMAL = ("nx", "ny", "nz")
 _COLOR = ("red", "green", "blue")
@@ -116,6 +119,7 @@ class Header:
     declared: dict[str, AttributeSpec]  # the surfel_attribute comments, by name
     geospatial: bool
     body_offset: int
+    sensors: list[tuple[float, float, float]] = field(default_factory=list)
 
 
 @dataclass(frozen=True)
@@ -175,6 +179,7 @@ def parse_header(data: mmap.mmap | bytes, path: str) -> Header:
     elements: list[Element] = []
     declared: dict[str, AttributeSpec] = {}
     geospatial = False
+    sensors: list[tuple[float, float, float]] = []
     for line in data[:end].decode("latin-1").splitlines()[1:]:
         words = line.split()
         if not words or words[0] == "obj_info":
@@ -183,6 +188,13 @@ def parse_header(data: mmap.mmap | bytes, path: str) -> Header:
         if keyword == "comment":
             if words[1:2] == [_GEOSPATIAL_COMMENT]:
                 geospatial = True
+            elif words[1:2] == [_SENSOR_COMMENT]:
+                try:
+                    sensors.append(tuple(float(w) for w in words[2:]))
+                except ValueError:
+                    raise _bad_line(line, path) from None
+                if len(sensors[-1]) != 3:
+                    raise _bad_line(line, path)
             elif words[1:2] == [_ATTRIBUTE_COMMENT]:
                 if len(words) < 5 or words[4] not in KINDS or not all(_COUNT.fullmatch(w) for w in words[5:]):
                     raise _bad_line(line, path)
@@ -220,7 +232,7 @@ def parse_header(data: mmap.mmap | bytes, path: str) -> Header:
         raise InputError(path, "PLY header has no format line")
     if not any(element.name == "vertex" for element in elements):
         raise InputError(path, "PLY file has no vertex element")
-    return Header(fmt, elements, declared, geospatial, body)
+    return Header(fmt, elements, declared, geospatial, body, sensors)
 
 
 def _parse_property(words: list[str], line: str, path: str) -> Property:
@@ -440,7 +452,8 @@ def _cloud(header: Header, found: dict[str, _Columns], path: str) -> PointCloud:
     return PointCloud(positions=positions, normals=normals, colors=colors, radii=radii, axes=axes,
                       faces=faces, attributes=attributes,
                       kinds={a.spec.name: a.spec.kind for a in layout if a.stated},
-                      geospatial=header.geospatial, source=path)
+                      geospatial=header.geospatial, source=path,
+                      sensors=np.array(header.sensors) if header.sensors else None)
 
 
 def vertex_layout(header: Header, path: str) -> list[VertexAttribute]:
@@ -525,6 +538,8 @@ def write_ply(cloud: PointCloud, path: str | os.PathLike, *, binary: bool = True
     comments = ["written by surfel"]
     if cloud.geospatial:
         comments.append(_GEOSPATIAL_COMMENT)
+    comments += [f"{_SENSOR_COMMENT} {x:.17g} {y:.17g} {z:.17g}" for x, y, z in
+                 (() if cloud.sensors is None else cloud.sensors)]
     for spec in cloud.schema.values():
         name, value = spec.name, cloud.attributes[spec.name]
         if not re.fullmatch(r"[!-~]+", name) or name in _RESERVED:

@@ -11,6 +11,7 @@ One module per estimation, each citing its source, with its tuning constants at 
   normal_field.py    Phong splatting's linear normal fields (Botsch et al. 2004)
   structure.py       points on no surface (vegetation, wires, noise; Demantké et al. 2011) and
                      points without a tangent plane: round splats facing the camera
+  smoothing.py       denoised positions: projection onto the MLS surface (Adamson & Alexa 2003)
   spacing.py         the sampling bound: splats no larger than the local and the acquisition's
                      point spacing warrant
   complete.py        `prepare`: fill in what a cloud lacks; `complete`: the one policy for what

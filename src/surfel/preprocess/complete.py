@@ -4,10 +4,12 @@
 command): one k-nearest-neighbour search, k = max(k_normals, RADIUS_NEIGHBOURS,
 FIELD_NEIGHBOURS), serves every estimation, in this order, each using the ones before:
 
-  1. normals (`normals.py`): u x v of given axes, else PCA oriented towards the sensor when its
-     position is known (`sensor`, or the cloud's `sensors`), +Z for geospatial clouds (aerial
-     scans, seen from above), or by propagation and outward; with them, from the same PCA, the
-     points drawn facing the camera (`structure.py`);
+  1. normals (`normals.py`): u x v of given axes, else PCA (each point's neighbourhood size
+     selected when the cloud is noisy and not geospatial, and k_normals is the default),
+     oriented towards the sensor when its position is known (`sensor`, or the cloud's
+     `sensors`), +Z for geospatial clouds (aerial scans, seen from above), or by propagation
+     and outward; with them, from the same PCA, the points drawn facing the camera
+     (`structure.py`);
   2. the sampling spacing (`spacing.py`), when radii or axes are estimated;
   3. sharp features (`sharp_features.py`), when both radii and axes are estimated;
   4. radii (`cells.py`): covering radii of the tangent-plane Voronoi cells;
@@ -26,6 +28,8 @@ flags and prepares the cloud with the defaults when it lacks what the method nee
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from ..cloud import PointCloud
@@ -33,15 +37,16 @@ from .cells import INACTIVE_CLIP, RADIUS_MARGIN, RADIUS_NEIGHBOURS, clip_lines, 
 from .frames import tangent_frames, unit
 from .neighbourhood import Neighbourhood
 from .normal_field import FIELD_NEIGHBOURS, field_slopes
-from .normals import NORMAL_NEIGHBOURS, oriented_normals
+from .normals import NORMAL_NEIGHBOURS, SCALES, oriented_normals
 from .sharp_features import SHARP_ANGLE, find_sharp_features
+from .smoothing import SMOOTH_NEIGHBOURS, smoothed_points
 from .spacing import BOUND_FACTOR, bound_semi_axes, sampling_spacing
-from .structure import round_radii, screen_facing
+from .structure import round_radii, scans_surroundings, screen_facing
 
 
 def complete(cloud: PointCloud, *, needs_radii: bool = True, elliptical: bool = False,
              normal_field: bool = False, progress: bool | None = None,
-             reference_spacing: np.ndarray | None = None) -> tuple[PointCloud, dict]:
+             reference_spacing: np.ndarray | None = None, smooth: bool = False) -> tuple[PointCloud, dict]:
     """The cloud with what a method needs, and the report of what was estimated ({} if nothing).
 
     The method's capability flags say what it needs: every method needs normals;
@@ -49,20 +54,24 @@ def complete(cloud: PointCloud, *, needs_radii: bool = True, elliptical: bool = 
     when the axes are estimated; `normal_field`: Phong splatting's normal fields. A cloud that
     lacks any of them is prepared (`prepare`, its defaults), which estimates normals, radii and
     axes alike whichever was missing, so that one completed cloud serves every method.
-    `reference_spacing`: as `prepare`'s.
+    `reference_spacing`, `smooth`: as `prepare`'s (smooth: always prepared).
     """
     missing = cloud.normals is None or (needs_radii and (cloud.radii is None or cloud.axes is None))
     missing = missing or (normal_field and "phong_alpha" not in cloud.attributes)
-    if not missing:
+    if not missing and not smooth:
         return cloud, {}
     return prepare(cloud, elliptical=elliptical, normal_field=normal_field, progress=progress,
-                   reference_spacing=reference_spacing)
+                   reference_spacing=reference_spacing, smooth=smooth)
 
 
 def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np.ndarray | None = None,
             elliptical: bool = False, normal_field: bool = False, sharp_features: bool = True,
-            progress: bool | None = None, reference_spacing: np.ndarray | None = None) -> tuple[PointCloud, dict]:
+            progress: bool | None = None, reference_spacing: np.ndarray | None = None,
+            smooth: bool = False) -> tuple[PointCloud, dict]:
     """Fill in what `cloud` lacks for splatting; returns (cloud, report).
+
+    smooth: first move the positions onto the MLS surface of the points (`smoothing.py`),
+    guided by the given normals, else by normals estimated as below, then estimate from them.
 
     normals: estimated if None: towards the sensor (`sensor` (3,), else the cloud's own
     `sensors`) if known; geospatial clouds (aerial scans, seen from above) face +Z; otherwise
@@ -82,34 +91,50 @@ def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np
     """
     report: dict = {}
     need_field = normal_field and not {"phong_alpha", "phong_beta"} <= set(cloud.attributes)
-    if cloud.normals is not None and cloud.radii is not None and cloud.axes is not None and not need_field:
+    complete = cloud.normals is not None and cloud.radii is not None and cloud.axes is not None
+    if complete and not need_field and not smooth:
         return cloud, report
-    k = max(k_normals, RADIUS_NEIGHBOURS, FIELD_NEIGHBOURS if need_field else 1)
+    k = max(k_normals, RADIUS_NEIGHBOURS, FIELD_NEIGHBOURS if need_field else 1, SMOOTH_NEIGHBOURS if smooth else 1)
     nbh = Neighbourhood.build(cloud.positions, k, -1, progress)
     given = {name: None if getattr(cloud, name) is None else nbh.sort(getattr(cloud, name))
              for name in ("normals", "radii", "axes")}
     sensors = cloud.sensor_positions() if sensor is None else np.broadcast_to(sensor, cloud.positions.shape)
     towards_sensor = None if sensors is None else nbh.sort(sensors - cloud.positions)
+    if towards_sensor is not None:
+        towards, how = towards_sensor, "facing the sensor"
+    elif cloud.geospatial:
+        towards, how = np.array([0.0, 0.0, 1.0]), "facing up (+Z)"
+    else:
+        towards, how = None, "oriented by MST propagation, outward"
+    # geospatial tiles keep one scale: millions of points, and aerial noise is not an object's
+    select = not cloud.geospatial and k_normals == NORMAL_NEIGHBOURS
     estimated: dict = {}
     attributes = dict(cloud.attributes)
     normals = given["normals"]
+    if given["axes"] is not None:
+        axes64 = given["axes"].astype(np.float64)
+        from_axes = unit(np.cross(axes64[:, 0], axes64[:, 1]))
+    positions = None
+    if smooth:
+        guide = normals if normals is not None else from_axes if given["axes"] is not None else \
+            oriented_normals(nbh, k_normals, towards, progress, select)[0]
+        moved = smoothed_points(nbh, guide, progress)
+        positions = cloud.positions + nbh.unsort(moved - nbh.points)
+        report["smooth"] = (f"MLS projection (k={SMOOTH_NEIGHBOURS}), mean move "
+                            f"{float(np.mean(np.linalg.norm(moved - nbh.points, axis=1))):.4g}")
+        nbh = replace(nbh, points=moved)  # the same neighbours, moved by about the noise
     facing = None
     if normals is None and given["axes"] is not None:
-        axes64 = given["axes"].astype(np.float64)
-        normals = estimated["normals"] = unit(np.cross(axes64[:, 0], axes64[:, 1]))
+        normals = estimated["normals"] = from_axes
         report["normals"] = "from the splat axes (u x v)"
     elif normals is None:
-        if towards_sensor is not None:
-            towards, how = towards_sensor, "facing the sensor"
-        elif cloud.geospatial:
-            towards, how = np.array([0.0, 0.0, 1.0]), "facing up (+Z)"
-        else:
-            towards, how = None, "oriented by MST propagation, outward"
-        normals, ambiguous, eigenvalues = oriented_normals(nbh, k_normals, towards, progress)
+        normals, ambiguous, eigenvalues, selected = oriented_normals(nbh, k_normals, towards, progress, select)
         estimated["normals"] = normals
-        report["normals"] = f"estimated (PCA, k={k_normals}, {how})"
+        scale = f"k per point in {SCALES[0]}..{SCALES[-1]} (noisy)" if selected else f"k={k_normals}"
+        report["normals"] = f"estimated (PCA, {scale}, {how})"
         report["ambiguous_normals"] = int(ambiguous.sum())
-        facing = screen_facing(eigenvalues, raw_scan=cloud.geospatial or sensors is not None)
+        located = cloud if sensor is None else cloud.with_(sensors=np.asarray(sensor, np.float64).reshape(1, 3))
+        facing = screen_facing(eigenvalues, raw_scan=scans_surroundings(located))
         attributes["screen_facing"] = nbh.unsort(facing.astype(np.float32))
         report["screen_facing"] = int(facing.sum())
     radii, axes = given["radii"], given["axes"]
@@ -169,4 +194,6 @@ def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np
         report["normal_field"] = f"fitted (least squares, k={FIELD_NEIGHBOURS})"
     if attributes.keys() != cloud.attributes.keys():
         changes["attributes"] = attributes
+    if positions is not None:
+        changes["positions"] = positions
     return cloud.with_(**changes), report

@@ -13,7 +13,7 @@ chunks (`chunked.map_chunks`).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -60,6 +60,21 @@ class Neighbourhood:
             return rank[found.reshape(stop - start, k)]
 
         return cls(points, map_chunks(query, n, progress, "neighbours"), order)
+
+    def widened(self, k: int, workers: int = -1, progress: bool | None = None) -> Neighbourhood:
+        """The same points, in the same order, with their k nearest neighbours (self if it has
+        as many already)."""
+        n = len(self.points)
+        k = max(1, min(k, n))
+        if k <= self.index.shape[1]:
+            return self
+        tree = cKDTree(self.points, balanced_tree=False)  # on the sorted points: indices are sorted ones
+
+        def query(start: int, stop: int) -> np.ndarray:
+            _, found = tree.query(self.points[start:stop], k=k, workers=workers)
+            return found.reshape(stop - start, k).astype(self.index.dtype)
+
+        return replace(self, index=map_chunks(query, n, progress, "neighbours"))
 
     def first(self, k: int) -> np.ndarray:
         """The k nearest neighbours of each point (all of them if there are fewer)."""

@@ -5,6 +5,26 @@ C = 1/k sum_j (q_j - p)(q_j - p)^T - s s^T / k^2, s = sum_j (q_j - p) (the one-p
 offsets to the point itself, so that it subtracts small numbers), diagonalised by cyclic Jacobi
 rotations (Press et al., Numerical Recipes, 3rd ed., section 11.1) in the kernel that sums it.
 
+Scale (noisy clouds): the angle error of a PCA normal over a neighbourhood of radius r that
+holds k points has a curvature term that grows with r and a noise term that shrinks with it
+(Mitra & Nguyen 2003, "Estimating surface normals in noisy point cloud data", Proc. 19th
+Symposium on Computational Geometry, 322-328, whose optimal r grows as (sigma / kappa)^(1/3)):
+
+    E_j = a kappa r_j + 2 sigma / (r_j sqrt(k_j)),   a = CURVATURE_WEIGHT,
+
+the second term the tilt of a plane fitted to k points of tangent spread lambda_t = r^2 / 4
+with range noise sigma. sigma and kappa are estimated per point from its PCA at each candidate
+scale k_j of SCALES: a quadratic patch of curvature kappa with noise sigma, sampled uniformly
+over a disk of radius r_j (r_j^2 = 2 (lambda1 + lambda2)), has
+
+    lambda0(k_j) = sigma^2 + kappa^2 r_j^4 / 48,
+
+fitted by least squares over the scales (sigma^2, kappa^2 >= 0). Each point takes the normal,
+eigenvalues and degeneracy of its scale of least E_j. A cloud is noisy when the median
+scattering lambda0 / lambda2 at k = NORMAL_NEIGHBOURS exceeds NOISE_SCATTERING (vertices of a
+smooth mesh: about 0.004; a range scan with 0.1% noise: 0.025); only then are the wider
+neighbourhoods searched.
+
 Orientation: towards a viewpoint when the sensor position is known; otherwise consistently by
 propagation (Hoppe, DeRose, Duchamp, McDonald & Stuetzle 1992, "Surface reconstruction from
 unorganized points"): a minimum spanning tree of the kNN graph (ORIENT_NEIGHBOURS per point;
@@ -44,6 +64,9 @@ DEGENERATE_RATIO = 0.5   # lambda_0 > this x lambda_1: no dominant normal direct
 ORIENT_NEIGHBOURS = 8    # edges per point of the propagation graph: half the MST time of 15,
                          # the same orientations on the bunny
 JACOBI_SWEEPS = 16       # cyclic Jacobi sweeps at most (a 3 x 3 converges in about 4 to 6)
+SCALES = (16, 24, 32, 48)  # candidate neighbourhood sizes of the scale selection
+CURVATURE_WEIGHT = 0.15  # a of E_j: the least mean error over the scans of benchmarks/scan_fidelity.py
+NOISE_SCATTERING = 0.01  # median lambda0 / lambda2 above which a cloud's normals select their scale
 
 
 @numba.njit(parallel=True, cache=True)
@@ -138,6 +161,36 @@ def pca_normals(nbh: Neighbourhood, k: int, progress: bool | None) -> tuple[np.n
     return map_chunks(pca, len(nbh.points), progress, "normals")
 
 
+def is_noisy(eigenvalues: np.ndarray) -> bool:
+    """Whether the median scattering lambda0 / lambda2 of these eigenvalues (N, 3) is a noisy cloud's."""
+    return float(np.median(eigenvalues[:, 0] / np.maximum(eigenvalues[:, 2], 1e-300))) > NOISE_SCATTERING
+
+
+def scale_selected_normals(nbh: Neighbourhood, progress: bool | None,
+                           scales: tuple[int, ...] = SCALES) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """pca_normals at each point's scale of least expected error (module docstring): unoriented
+    normals (N, 3), the degenerate mask, the eigenvalues (N, 3) of the chosen scales."""
+    wide = nbh.widened(max(scales), progress=progress)
+    fits = [pca_normals(wide, k, progress) for k in scales]
+    values = np.stack([f[2] for f in fits])                   # (S, N, 3)
+    r2 = 2.0 * (values[:, :, 1] + values[:, :, 2])            # r_j^2
+    quartic = r2 * r2 / 48.0
+    # least squares of lambda0 = sigma^2 + kappa^2 r^4 / 48 over the scales, per point
+    a11, a12, a22 = len(scales), quartic.sum(0), (quartic * quartic).sum(0)
+    b1, b2 = values[:, :, 0].sum(0), (quartic * values[:, :, 0]).sum(0)
+    det = np.maximum(a11 * a22 - a12 * a12, 1e-300)
+    noise2 = np.maximum((a22 * b1 - a12 * b2) / det, 0.0)
+    curvature2 = np.maximum((a11 * b2 - a12 * b1) / det, 0.0)
+    radius = np.sqrt(r2)
+    counts = np.array([min(k, len(nbh.points)) for k in scales], np.float64)[:, None]
+    error = CURVATURE_WEIGHT * np.sqrt(curvature2) * radius + 2.0 * np.sqrt(noise2) / (
+        np.maximum(radius, 1e-300) * np.sqrt(counts))
+    best = np.argmin(error, axis=0)
+    rows = np.arange(len(best))
+    return (np.stack([f[0] for f in fits])[best, rows], np.stack([f[1] for f in fits])[best, rows],
+            values[best, rows])
+
+
 def orient_towards(normals: np.ndarray, towards: np.ndarray) -> np.ndarray:
     """Flip normals (in place) to face `towards` ((3,) or (N, 3)); returns the ambiguous mask."""
     towards = np.broadcast_to(towards, normals.shape)
@@ -204,29 +257,38 @@ def orient_by_propagation(nbh: Neighbourhood, normals: np.ndarray) -> np.ndarray
 
 
 def oriented_normals(nbh: Neighbourhood, k: int, towards: np.ndarray | None,
-                     progress: bool | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                     progress: bool | None, select_scale: bool = False
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool]:
     """Unit normals (N, 3) float64 facing `towards` ((3,) or (N, 3), in the sorted order), or
-    propagated and outward if None; the ambiguous mask; the covariance eigenvalues (N, 3)."""
+    propagated and outward if None; the ambiguous mask; the covariance eigenvalues (N, 3);
+    whether the scale was selected. select_scale: a noisy cloud's normals take each point's
+    scale (module docstring), else k."""
     normals, ambiguous, eigenvalues = pca_normals(nbh, k, progress)
+    selected = select_scale and is_noisy(eigenvalues)
+    if selected:
+        normals, ambiguous, eigenvalues = scale_selected_normals(nbh, progress)
     if towards is not None:
         ambiguous |= orient_towards(normals, towards)
     else:
         ambiguous |= orient_by_propagation(nbh, normals)
-    return normals, ambiguous, eigenvalues
+    return normals, ambiguous, eigenvalues, selected
 
 
 def estimate_normals(positions: np.ndarray, k: int = NORMAL_NEIGHBOURS, viewpoint: np.ndarray | None = None,
-                     workers: int = -1, progress: bool | None = None) -> tuple[np.ndarray, int]:
+                     workers: int = -1, progress: bool | None = None,
+                     select_scale: bool = False) -> tuple[np.ndarray, int]:
     """PCA normals over the k nearest neighbours, oriented: (normals (N, 3) float32, ambiguous).
 
     viewpoint: sensor position (3,) or per-point sensor positions (N, 3) to face; None orients
     consistently by minimum-spanning-tree propagation, each component facing outward.
     ambiguous: the number of points whose orientation is a guess (see the module docstring).
+    select_scale: if the cloud is noisy, each point's neighbourhood size is chosen from SCALES
+    (Mitra & Nguyen's error bound, see the module docstring) instead of k.
     progress: None shows a progress bar above chunked.PROGRESS_MIN_POINTS points; True/False
     force it.
     """
     pts = as_points(positions)
     nbh = Neighbourhood.build(pts, k, workers, progress)
     towards = None if viewpoint is None else nbh.sort(np.asarray(viewpoint, np.float64) - pts)
-    normals, ambiguous, _ = oriented_normals(nbh, k, towards, progress)
+    normals, ambiguous, _, _ = oriented_normals(nbh, k, towards, progress, select_scale)
     return nbh.unsort(normals.astype(np.float32)), int(ambiguous.sum())

@@ -11,10 +11,12 @@ Archives XXXVIII-5/W12):
     scattering  S = lambda0 / lambda2             a volume (foliage, noise):    S > SCATTERING_LIMIT
     linearity   L = (lambda2 - lambda1) / lambda2  a line (a wire, a branch):    L > LINEARITY_LIMIT
 
-A point with either lies on no surface. Only raw scans are judged so: geospatial clouds
-(airborne and terrestrial LiDAR) and clouds whose sensor position is known. A cloud sampled
-from a surface (a mesh's vertices, an object's scan) is surface throughout; its creases and fine
-detail, whose neighbourhoods scatter too, are drawn by the cells of cells.py, cut at creases.
+A point with either lies on no surface. Only scans of surroundings are judged so
+(`scans_surroundings`): geospatial clouds (airborne and terrestrial LiDAR) and clouds with a
+sensor inside their bounds (a scanner standing in the scene it measures). A cloud sampled from
+a surface (a mesh's vertices, an object scanned from around it, its sensors outside its
+bounds) is surface throughout; its creases, fine detail and noisy or misregistered overlaps,
+whose neighbourhoods scatter too, are drawn by the cells of cells.py, cut at creases.
 
 Whatever the cloud, a point without a tangent plane, lambda1 <= PLANE_EPSILON lambda2 (its
 neighbours all on one line: two points, collinear points) or lambda2 = 0 (one point, or only
@@ -55,6 +57,17 @@ def not_on_surface(eigenvalues: np.ndarray) -> np.ndarray:
     scattering = eigenvalues[:, 0] / largest
     linearity = (eigenvalues[:, 2] - eigenvalues[:, 1]) / largest
     return (scattering > SCATTERING_LIMIT) | (linearity > LINEARITY_LIMIT) | no_tangent_plane(eigenvalues)
+
+
+def scans_surroundings(cloud: PointCloud) -> bool:
+    """Whether `cloud` is a scan of surroundings, where points may lie on no surface: geospatial,
+    or one of its sensors inside its bounds (an object scanned from around has them outside)."""
+    if cloud.geospatial:
+        return True
+    if cloud.sensors is None:
+        return False
+    lo, hi = cloud.bounds
+    return bool(((cloud.sensors >= lo) & (cloud.sensors <= hi)).all(axis=1).any())
 
 
 def screen_facing(eigenvalues: np.ndarray, raw_scan: bool) -> np.ndarray:

@@ -1,0 +1,74 @@
+"""MLS smoothing of positions (preprocess/smoothing.py, `surfel prepare --smooth`): noise
+removed against an analytic surface, creases and thin sheets kept, the command's output."""
+
+from __future__ import annotations
+
+import numpy as np
+from click.testing import CliRunner
+
+from samples import sphere
+from surfel.cli import main
+from surfel.cloud import PointCloud
+from surfel.io import load, write_ply
+from surfel.preprocess import prepare
+
+
+def test_smoothing_brings_a_noisy_sphere_closer_to_the_sphere():
+    noisy = sphere(20_000, noise=0.004)
+    smoothed, report = prepare(PointCloud(noisy), smooth=True)
+    before = np.sqrt(np.mean((np.linalg.norm(noisy, axis=1) - 1) ** 2))
+    after = np.sqrt(np.mean((np.linalg.norm(smoothed.positions, axis=1) - 1) ** 2))
+    assert after < 0.4 * before
+    assert "MLS projection" in report["smooth"]
+    # the radius is kept: the sphere neither shrinks nor swells by more than a fraction of the noise
+    assert abs(np.mean(np.linalg.norm(smoothed.positions, axis=1)) - 1) < 0.001
+
+
+def test_a_crease_stays_sharp():
+    """A noisy 90-degree wedge (the planes y = 0 and x = 0 for x, y >= 0): points near the edge
+    come closer to their own plane, not rounded off towards the corner's bisector."""
+    rng = np.random.default_rng(1)
+    n = 10_000
+    u, z = rng.uniform(0, 1, n), rng.uniform(0, 1, n)
+    floor = np.c_[u, np.zeros(n), z]
+    wall = np.c_[np.zeros(n), u, z]
+    points = np.concatenate([floor, wall])
+    noisy = points + rng.normal(0, 0.002, points.shape)
+    on_floor = np.r_[np.ones(n, bool), np.zeros(n, bool)]
+    smoothed, _ = prepare(PointCloud(noisy), smooth=True)
+
+    def off_plane(p):
+        return np.where(on_floor, np.abs(p[:, 1]), np.abs(p[:, 0]))
+
+    near_edge = np.where(on_floor, noisy[:, 0], noisy[:, 1]) < 0.03
+    assert np.mean(off_plane(smoothed.positions)[near_edge]) < 0.8 * np.mean(off_plane(noisy)[near_edge])
+    assert np.mean(off_plane(smoothed.positions)) < 0.6 * np.mean(off_plane(noisy))
+
+
+def test_a_thin_sheet_keeps_its_two_sides():
+    """Two sides of a plate 0.01 apart (about the point spacing), each seen from its own side:
+    smoothing does not pull them together."""
+    rng = np.random.default_rng(2)
+    n = 10_000
+    xy = rng.uniform(0, 1, (2 * n, 2))
+    z = np.r_[np.full(n, 0.005), np.full(n, -0.005)]
+    points = np.c_[xy, z + rng.normal(0, 0.0005, 2 * n)]
+    sensors = np.array([[0.5, 0.5, 3.0], [0.5, 0.5, -3.0]])
+    scan = np.r_[np.zeros(n, np.int8), np.ones(n, np.int8)]
+    cloud = PointCloud(points, sensors=sensors, attributes={"scan": scan})
+    smoothed, _ = prepare(cloud, smooth=True)
+    top, bottom = smoothed.positions[:n, 2], smoothed.positions[n:, 2]
+    assert np.median(top) > 0.004 and np.median(bottom) < -0.004
+
+
+def test_prepare_smooth_command(tmp_path):
+    noisy = sphere(20_000, noise=0.004)
+    source, out = tmp_path / "noisy.ply", tmp_path / "smooth.ply"
+    write_ply(PointCloud(noisy), source)
+    result = CliRunner().invoke(main, ["prepare", str(source), "-o", str(out), "--smooth"])
+    assert result.exit_code == 0, result.output
+    smoothed = load(str(out))
+    error = np.abs(np.linalg.norm(smoothed.positions, axis=1) - 1).mean()
+    assert error < 0.5 * np.abs(np.linalg.norm(noisy, axis=1) - 1).mean()
+    assert smoothed.normals is not None and smoothed.radii is not None
+    assert "smooth: MLS projection" in result.output
