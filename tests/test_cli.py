@@ -58,6 +58,7 @@ def test_bench_json_rows(tmp_path):
     assert proc.returncode == 0, proc.stderr
     rows = json.loads(proc.stdout)
     assert [r["method"] for r in rows] == ["points", "deferred"]
+    assert rows[0]["backend_choice"].startswith("auto") and rows[1]["backend_choice"] == "asked"
     for r in rows:
         assert {"method", "backend", "points", "width", "height", "ms", "msplats_per_s"} <= set(r)
         assert r["points"] == 20000 and r["ms"] > 0

@@ -25,8 +25,8 @@ from surfel.request import CameraSpec
 from surfel.result import RenderResult
 
 DATA = Path(__file__).parent / "data"
-SPLAT_METHODS = [("points", None), ("gaussian", None), ("deferred", None), ("phong", None), ("object-space", None),
-                 ("ewa", "gl"), ("ewa", "cpu")]
+SPLAT_METHODS = [("points", None), ("gaussian", "gl"), ("deferred", "gl"), ("phong", "gl"), ("object-space", None),
+                 ("ewa", "gl"), ("ewa", "cpu"), ("gaussian", "cpu"), ("deferred", "cpu"), ("phong", "cpu")]
 EVERY_METHOD = SPLAT_METHODS + [("mls-gpu", None), ("mls", None)]
 
 

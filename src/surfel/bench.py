@@ -3,7 +3,8 @@
 The input is replicated with jitter to the requested point count; radii shrink by
 1/sqrt(copies) so that the splats keep their overlap, as a denser scan of the same surface
 would. Each frame is one full `render()` call (all passes, ctx.finish(), readback), timed
-after warm-up frames; the median over the frames is reported. The benchmark holds its own
+after warm-up frames; the median over the frames is reported. The methods take turns, one
+frame each, so that on a shared machine they all meet the same load and their ratios hold. The benchmark holds its own
 Renderer, so its caches (GPU buffers, programs, targets) live exactly as long as the run.
 """
 
@@ -54,13 +55,20 @@ def run(cloud: PointCloud, methods: list[str], *, points: int | None = None, siz
     specs = [parse_method(spec, lod_error) for spec in methods]
     data = replicate(cloud, points) if points else complete(cloud)[0]
     camera = default_camera(data, size, zoom=zoom)
-    rows = []
+    runs = [(name, backend, RenderOptions(shading=shading, lod_error=lod)) for name, backend in specs
+            for lod in ([None] if lod_error is None else [None, lod_error])]
+    times: list[list[float]] = [[] for _ in runs]
+    results = [None] * len(runs)
     with Renderer() as renderer:
-        for name, backend in specs:
-            for lod in [None] if lod_error is None else [None, lod_error]:
-                options = RenderOptions(shading=shading, lod_error=lod)
-                rows.append(_timed(renderer, data, camera, name, backend, options, warmup, frames, size, zoom))
-    return rows
+        # round robin, one frame of each method in turn: on a machine shared with other work,
+        # every method meets the same load, so their ratios hold whatever it does meanwhile
+        for frame_number in range(warmup + frames):
+            for k, (name, backend, options) in enumerate(runs):
+                start = time.perf_counter()
+                results[k] = renderer.render(data, camera, name, backend=backend, options=options)
+                if frame_number >= warmup:
+                    times[k].append((time.perf_counter() - start) * 1000)
+    return [_row(data, name, options, results[k], times[k], size, zoom) for k, (name, _, options) in enumerate(runs)]
 
 
 def parse_method(spec: str, lod_error: float | None) -> tuple[str, str | None]:
@@ -74,17 +82,12 @@ def parse_method(spec: str, lod_error: float | None) -> tuple[str, str | None]:
     return name, backend or None
 
 
-def _timed(renderer, data, camera, name, backend, options, warmup, frames, size, zoom) -> dict:
-    times, result = [], None
-    for i in range(warmup + frames):
-        start = time.perf_counter()
-        result = renderer.render(data, camera, name, backend=backend, options=options)
-        if i >= warmup:
-            times.append((time.perf_counter() - start) * 1000)
+def _row(data, name, options, result, times, size, zoom) -> dict:
     ms = statistics.median(times)
-    row = {"method": name, "backend": result.stats["backend"], "renderer": result.stats["renderer"],
+    row = {"method": name, "backend": result.stats["backend"], "backend_choice": result.stats["backend_choice"],
+           "renderer": result.stats["renderer"],
            "points": len(data), "splats": result.stats["splats"], "width": size[0], "height": size[1],
-           "ms": round(ms, 2), "msplats_per_s": round(len(data) / ms / 1000, 3), "frames": frames}
+           "ms": round(ms, 2), "msplats_per_s": round(len(data) / ms / 1000, 3), "frames": len(times)}
     if options.lod_error is not None:
         row["lod"] = options.lod_error
     if zoom != 1.0:
@@ -112,9 +115,11 @@ def bench_command(input_path, points, methods: str, frames: int, values: dict, *
     rows = run(cloud, names, points=points, size=size, frames=frames, lod_error=lod_error, zoom=zoom)
     if as_json:
         return json.dumps(rows, indent=2)
-    lines = [f"{rows[0]['points']} points, {size[0]}x{size[1]}, renderer: {rows[0]['renderer']}"]
+    gl = [row["renderer"] for row in rows if row["backend"] == "gl"]
+    lines = [f"{rows[0]['points']} points, {size[0]}x{size[1]}, renderer: {gl[0] if gl else 'cpu'}"]
     for row in rows:
         lod = f" lod {row['lod']}px" if "lod" in row else ""
+        chosen = f"  [{row['backend_choice']}]" if row["backend_choice"] != "asked" else ""
         lines.append(f"{row['method'] + '@' + row['backend'] + lod:24s} {row['ms']:9.1f} ms  "
-                     f"{row['msplats_per_s']:7.2f} Msplats/s  ({row['splats']} splats)")
+                     f"{row['msplats_per_s']:7.2f} Msplats/s  ({row['splats']} splats){chosen}")
     return "\n".join(lines)

@@ -144,6 +144,24 @@ def category_pack(weight, index, levels):  # pragma: no cover - compiled
     return np.float32(level * levels + index)
 
 
+_NEUTRAL = tuple(np.float32(c) for c in NEUTRAL)
+
+
+@numba.njit(inline="always", fastmath=True)
+def continuous_pixel(t, valid, table):  # pragma: no cover - compiled
+    """`Coloring.decode` of one encoded continuous colour (t, valid) for numba kernels (gl/colors.glsl
+    `continuous_albedo`): the albedo (r, g, b) from the colour map's LUT `table` (LUT_SIZE, 3)."""
+    valid = min(valid, np.float32(1.0))
+    if valid <= 0:
+        return _NEUTRAL
+    t = min(max(t / valid, np.float32(0.0)), np.float32(1.0))
+    entry = table[int(math.floor(t * np.float32(LUT_SIZE - 1) + np.float32(0.5)))]
+    if valid >= 1:
+        return entry[0], entry[1], entry[2]
+    return (_NEUTRAL[0] + (entry[0] - _NEUTRAL[0]) * valid, _NEUTRAL[1] + (entry[1] - _NEUTRAL[1]) * valid,
+            _NEUTRAL[2] + (entry[2] - _NEUTRAL[2]) * valid)
+
+
 def category_unpack(packed: np.ndarray, levels: int) -> np.ndarray:
     """Palette indices (int32, -1 where nothing was packed) of packed category values."""
     packed = np.asarray(packed)
@@ -383,5 +401,5 @@ def surface_albedo(cloud, camera, depth: np.ndarray, coloring: Coloring, tree=No
 
 
 __all__ = ["Coloring", "resolve", "offered", "selection", "default_color", "colormap_table", "palette", "NAMED",
-           "DEFAULT_COLORMAP", "NEUTRAL", "CODE_SCALE", "category_pack", "category_unpack", "shade_samples",
-           "surface_albedo", "up_axis"]
+           "DEFAULT_COLORMAP", "NEUTRAL", "CODE_SCALE", "category_pack", "category_unpack", "continuous_pixel",
+           "shade_samples", "surface_albedo", "up_axis"]

@@ -49,22 +49,39 @@ def default_camera(cloud: PointCloud, size=(1024, 1024), **framing) -> Camera:
                  **framing)
 
 
-def resolve_backend(method_name: str, backend: str | None) -> str:
-    """The backend to use: as asked, else OpenGL, else the CPU with a one-line notice."""
+# GL_RENDERER names of software rasterizers (Mesa's llvmpipe and softpipe, SwiftShader, the
+# old swrast): where OpenGL runs on the CPU anyway, a rasterizer written for the CPU is faster.
+SOFTWARE_RENDERERS = ("llvmpipe", "softpipe", "swiftshader", "software rasterizer", "swrast")
+
+
+def is_software_renderer(renderer: str) -> bool:
+    """Whether a GL_RENDERER string names a software rasterizer."""
+    return any(name in renderer.lower() for name in SOFTWARE_RENDERERS)
+
+
+def choose_backend(method_name: str, backend: str | None, *, dump_passes: bool = False) -> tuple[str, str]:
+    """The backend to use and why. As asked; else (auto) the CPU where the method's CPU path
+    beats the GL renderer because that is a software rasterizer (`Method.cpu_beats_software_gl`,
+    measured with `surfel bench`) and no GL-only option (--dump-passes) is set; else OpenGL;
+    else the CPU with a one-line notice."""
     method = get_method(method_name)
     if backend is not None:
         method.function(backend)  # validates
-        return backend
+        return backend, "asked"
     if "gl" in method.backends:
-        from .gl.context import get_context, gl_available
+        from .gl.context import get_context, gl_available, renderer_string
 
         if gl_available():
-            return "gl"
+            renderer = renderer_string()
+            if "cpu" in method.backends and method.cpu_beats_software_gl and is_software_renderer(renderer) \
+                    and not (dump_passes and "cpu" not in method.dump_passes):
+                return "cpu", f"auto: the GL renderer is a software rasterizer ({renderer}); the CPU path is faster"
+            return "gl", f"auto: {renderer}"
         if "cpu" in method.backends:
             print(f"surfel: no OpenGL context, rendering {method_name} on the CPU", file=sys.stderr)
-            return "cpu"
+            return "cpu", "auto: no OpenGL context"
         get_context()  # raises NoOpenGLError with the install hint
-    return next(iter(method.backends))
+    return next(iter(method.backends)), "auto: the method's only backend"
 
 
 # eps of a lazy source rendered without --lod-error: it cannot be drawn at full detail
@@ -264,10 +281,12 @@ class Renderer:
                backend: str | None = None, size=(1024, 1024), options: RenderOptions | None = None,
                **values) -> RenderResult:
         """Render `cloud` (a PointCloud, or a lazy LodSource whose cut for the camera is selected
-        first) with `method`. Options as a RenderOptions (its `params` the method's parameter
-        dataclass, None for the defaults), and/or as keywords: RenderOptions fields and the
+        first) with `method` on `backend` ("gl", "cpu", or None or "auto": `choose_backend`).
+        Options as a RenderOptions (its `params` the method's parameter dataclass, None for the
+        defaults), and/or as keywords: RenderOptions fields and the
         method's parameters (`surfel.render(cloud, method="phong", radius_scale=1.2)`)."""
         m = get_method(method)
+        backend = None if backend == "auto" else backend
         options = split_options(method, values, options)
         m.check_options(options, backend)
         params = options.params if options.params is not None else m.make_params()
@@ -291,7 +310,7 @@ class Renderer:
         """`render` of a PointCloud at a scale the methods work at."""
         m = get_method(method)
         input_points = len(cloud)
-        backend = resolve_backend(method, backend)
+        backend, backend_choice = choose_backend(method, backend, dump_passes=options.dump_passes is not None)
         cloud, options = self.appearance(cloud, options)
         selected = len(cloud)
         cloud, estimated = self.complete(cloud, needs_radii=m.needs_radii, elliptical=m.elliptical,
@@ -319,7 +338,8 @@ class Renderer:
             renderer = renderer_string()
         else:
             renderer = "cpu"
-        stats = {"method": method, "backend": backend, "renderer": renderer, "points": input_points,
+        stats = {"method": method, "backend": backend, "backend_choice": backend_choice, "renderer": renderer,
+                 "points": input_points,
                  "splats": len(cloud), "width": camera.width, "height": camera.height, "ms": round(ms, 3),
                  "shading": options.shading, "near": camera.near, "far": camera.far,
                  **options.coloring.describe()}
@@ -385,4 +405,5 @@ def render(cloud, camera: Camera | None = None, method: str = "deferred", **kwar
     return default_renderer.render(cloud, camera, method, **kwargs)
 
 
-__all__ = ["render", "Renderer", "default_renderer", "default_camera", "resolve_backend", "split_options"]
+__all__ = ["render", "Renderer", "default_renderer", "default_camera", "choose_backend", "is_software_renderer",
+           "split_options"]

@@ -127,8 +127,9 @@ OPTIONS: dict[str, Option] = {o.name: o for o in [
     Option("stats", text, "Write render statistics (.json).", "output", metavar="FILE"),
     Option("method", text, "Rendering method (see `surfel methods`).", "method", default="deferred", short="-m",
            metavar="NAME"),
-    Option("backend", choice("gl", "cpu"), "Default: gl, else cpu where the method has one.", "method",
-           metavar="[gl|cpu]"),
+    Option("backend", choice("auto", "gl", "cpu"),
+           "Default auto: cpu where OpenGL is a software rasterizer (llvmpipe) and the method's CPU path is "
+           "faster there, else gl, else cpu.", "method", metavar="[auto|gl|cpu]"),
     # the camera (docs/conventions.md)
     Option("size", size, "Image size in pixels.", "camera", metavar="WxH"),
     Option("view", choice(*VIEWS), "Auto-framing direction (default front).", "camera",
@@ -478,7 +479,7 @@ def method_and_backend(parsed: dict, where: str = "") -> tuple[str, str | None]:
         m = get_method(method)
     except SurfelError as exc:
         raise SurfelError(f"{where}{exc}") from None
-    backend = parsed.get("backend")
+    backend = None if parsed.get("backend") == "auto" else parsed.get("backend")
     if backend is not None and backend not in m.backends:
         raise SurfelError(f"{where}--backend: method {method!r} has no {backend!r} backend; "
                           f"it has {', '.join(m.backends)}")

@@ -13,10 +13,13 @@ edl     : eye-dome lighting (surfel.edl): the unlit albedo times a screen-space 
 The default (`default_for`) depends on the data: edl for a geospatial cloud without normals
 (a raw LiDAR tile, whose estimated normals are those of a neighbourhood that is often not a
 surface), else phong.
+
+`shade` works on arrays; `shade_pixel` is the same for one pixel inside a numba kernel.
 """
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 
 from .errors import SurfelError
@@ -63,3 +66,31 @@ def shade(model: str, albedo: np.ndarray, normals: np.ndarray, depth: np.ndarray
         t = np.clip((np.asarray(depth, np.float32) - near) / max(far - near, 1e-12), 0, 1)
         return np.repeat((1 - t)[..., None], 3, axis=-1).astype(np.float32)
     return albedo
+
+
+_KEY = tuple(np.float32(c) for c in KEY_LIGHT)  # float32 constants: the kernels compute in float32
+_HALF = tuple(np.float32(c) for c in _HALFWAY)
+
+
+@numba.njit(inline="always", fastmath=True)
+def shade_pixel(model: int, r, g, b, nx, ny, nz, depth, near, far):  # pragma: no cover - compiled
+    """`shade` of one albedo (r, g, b), unit eye normal and eye depth, for numba kernels:
+    `model` is a MODEL_IDS value. Returns the shaded (r, g, b)."""
+    if model == 0:  # lambert
+        k = np.float32(0.2) + np.float32(0.8) * abs(nz)
+        return r * k, g * k, b * k
+    if model == 1:  # phong: two-sided
+        if nz < 0:
+            nx, ny, nz = -nx, -ny, -nz
+        lit = max(nx * _KEY[0] + ny * _KEY[1] + nz * _KEY[2], np.float32(0.0))
+        highlight = max(nx * _HALF[0] + ny * _HALF[1] + nz * _HALF[2], np.float32(0.0))
+        diffuse = np.float32(0.25) + np.float32(0.75) * lit
+        specular = np.float32(0.3) * highlight ** 40
+        return r * diffuse + specular, g * diffuse + specular, b * diffuse + specular
+    if model == 3:  # normals
+        return np.float32(0.5) * nx + np.float32(0.5), np.float32(0.5) * ny + np.float32(0.5), \
+            np.float32(0.5) * nz + np.float32(0.5)
+    if model == 4:  # depth
+        t = min(max((depth - near) / max(far - near, np.float32(1e-12)), np.float32(0.0)), np.float32(1.0))
+        return np.float32(1.0) - t, np.float32(1.0) - t, np.float32(1.0) - t
+    return r, g, b  # none

@@ -35,6 +35,9 @@ class Method:
     elliptical: bool = False  # fitted elliptical splats when the cloud has no axes
     normal_field: bool = False  # shades with Phong splatting's linear normal fields (fitted if missing)
     dump_passes: tuple[str, ...] = ()  # the backends that can write their intermediate passes
+    # --backend auto picks its CPU backend over a software GL rasterizer (llvmpipe): measured
+    # faster there with `surfel bench` (README, issue 18)
+    cpu_beats_software_gl: bool = False
 
     def function(self, backend: str):
         if backend not in self.backends:
@@ -82,20 +85,23 @@ METHODS: dict[str, Method] = {
                "naive: screen-aligned disks of the projected radius, z-buffer, flat shading (survey Fig. 6 left)",
                {"gl": "methods.points:render_points"}, "methods.params:RadiusParams", shader_lod=True),
         Method("gaussian", "Botsch & Kobbelt 2003: three-pass Gaussian splatting, per-splat shading (Fig. 6 middle)",
-               {"gl": "methods.splatting:render_gaussian"}, "methods.splatting:GaussianParams", shader_lod=True,
+               {"gl": "methods.splatting:render_gaussian", "cpu": "methods.splatting_cpu:render_gaussian_cpu"},
+               "methods.splatting:GaussianParams", shader_lod=True, cpu_beats_software_gl=True,
                dump_passes=_GL_PASSES),
         Method("deferred", "Botsch et al. 2005: deferred shading with the EWA filter approximation",
-               {"gl": "methods.splatting:render_deferred"}, "methods.splatting:DeferredParams", shader_lod=True,
+               {"gl": "methods.splatting:render_deferred", "cpu": "methods.splatting_cpu:render_deferred_cpu"},
+               "methods.splatting:DeferredParams", shader_lod=True, cpu_beats_software_gl=True,
                dump_passes=_GL_PASSES),
         Method("phong", "Botsch et al. 2004: Phong splatting, elliptical splats with linear normal fields",
-               {"gl": "methods.splatting:render_phong"}, "methods.splatting:PhongParams", shader_lod=True,
+               {"gl": "methods.splatting:render_phong", "cpu": "methods.splatting_cpu:render_phong_cpu"},
+               "methods.splatting:PhongParams", shader_lod=True, cpu_beats_software_gl=True,
                elliptical=True, normal_field=True, dump_passes=_GL_PASSES),
         Method("object-space", "Ren, Pfister & Zwicker 2002: object-space EWA splatting with textured quads",
                {"gl": "methods.object_space:render_object_space"}, "methods.object_space:ObjectSpaceParams",
                dump_passes=_GL_PASSES),
         Method("ewa", "Zwicker et al. 2001: software EWA surface splatting, the full resampling filter",
                {"cpu": "methods.ewa:render_ewa_cpu", "gl": "methods.ewa_gl:render_ewa_gl"}, "methods.ewa:EwaParams",
-               normal_field=True, dump_passes=_GL_PASSES),
+               normal_field=True, dump_passes=_GL_PASSES, cpu_beats_software_gl=True),
         Method("mls", "Adamson & Alexa 2003: ray tracing the MLS point set surface",
                {"cpu": "mls.raytrace:render_mls_cpu"}, "mls.raytrace:MlsParams", needs_radii=False),
         Method("mls-gpu", "Tejada et al. 2006: multi-pass GPU ray casting of the MLS surface",

@@ -1,0 +1,392 @@
+"""The per-tile passes of the CPU backends of `gaussian`, `deferred` and `phong`
+(splatting_kernels.py drives them; splatting_cpu.py states the equations, splatting.glsl is
+the GPU program they reproduce): the layout of a tile's splat table, and what one fragment
+of a splat computes in the visibility pass and in the attribute pass (splatting.glsl
+splat_distance, filter_distance, PASS_VISIBILITY and PASS_ATTRIBUTE), per table block.
+
+The table holds BLOCK splats at a time, row after row (an array of structures of arrays): a
+row of a block is contiguous and the rows lie at fixed distances, so that a loop over a
+block's splats loads and stores each row as a vector, with no aliasing check for the compiler
+to add. `visibility_tile` and `attribute_tile` compute the 2x2 pixels at the top-left of each
+splat's box (all of a splat smaller than the low-pass, the common case of a dense cloud) for
+a whole block in one loop without branches, which the compiler turns into SIMD code, blend
+the results into the tile one splat after another, and follow with the rest of a larger box
+pixel by pixel. Per-fragment arithmetic is float32 under fastmath, with error_model="numpy"
+(no division checks, which would keep the loops scalar); masked lanes select finite values,
+so no infinity or NaN is computed ("no depth yet" is the finite FAR). Helpers called inside
+the SIMD loops take scalars only: an array argument brings reference counting into the loop,
+which keeps it scalar.
+
+A categorical colour mode keeps per pixel the packed (weight level, palette index) of the
+heaviest fragment (colors.category_pack, MAX as the GPU's PASS_CATEGORY blending).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba as nb
+import numpy as np
+from numpy.polynomial import chebyshev
+
+from ..colors import CODE_SCALE, category_pack
+from .ewa_kernels import FAR, TILE
+from .splatting import GAUSSIAN_SHARPNESS, KERNEL_SIZE
+
+# Columns of a cloud's packed inputs (splatting_cpu.pack_splats): one 64-byte row per splat.
+(PX, PY, PZ, PNX, PNY, PNZ, PUX, PUY, PUZ, PVX, PVY, PVZ, PR, PG, PB) = range(15)
+PACKED = 16
+# Columns of its extras: two clip lines a u + b v <= c (surfel.preprocess) and the normal
+# field's slopes alpha, beta (Phong splatting).
+(EA0, EB0, EC0, EA1, EB1, EC1, EALPHA, EBETA) = range(8)
+EXTRAS = 8
+# Rows of a tile's table. The first PACKED + EXTRAS rows are the staged inputs. Then the
+# setup's record: the projected centre (MX, MY); with (dx, dy) a pixel centre's offset from
+# it, W = W0 + WX dx + WY dy, depth W = Z0 + ZX dx + ZY dy, u W = U0 + UX dx + UY dy and
+# v W likewise; the centre's eye depth CZ; the largest semi-axis RAD; the EWA weight WT; the
+# albedo (or per-splat shaded colour); the eye normal, turned to face the camera.
+STAGED = PACKED + EXTRAS
+(MX, MY, W0, WX, WY, Z0, ZX, ZY, U0, UX, UY, V0, VX, VY, CZ, RAD, WT, R, G, B, NX, NY, NZ) = range(STAGED,
+                                                                                                 STAGED + 23)
+# The clip lines (c over radius_scale: the scaled splat's coordinates).
+(C0A, C0B, C0C, C1A, C1B, C1C) = range(NZ + 1, NZ + 7)
+# Phong splatting's normal field: the curvatures KU = alpha / |u_j|, KV; the semi-axes LU, LV;
+# d.e_u = A10 + A1X dx + A1Y dy and d.e_v (B1*) along the unit axes; the field's eye-space
+# slopes alpha e_u (FU*) and beta e_v (FV*); the unit direction to the eye (E*).
+(KU, KV, LU, LV, A10, A1X, A1Y, B10, B1X, B1Y, FUX, FUY, FUZ, FVX, FVY, FVZ, EX, EY, EZ) = range(C1C + 1,
+                                                                                                 C1C + 20)
+TABLE_ROWS = EZ + 1
+BLOCK_BITS = 6
+BLOCK = 1 << BLOCK_BITS
+ROW = tuple(np.uint64(row * BLOCK) for row in range(TABLE_ROWS))  # a row's offset inside a block
+TILE_BITS = TILE.bit_length() - 1  # TILE is a power of two: a pixel's tile is pixel >> TILE_BITS
+STRIDE = TILE + 2  # row stride of the tile scratch: a splat's 2x2 block may reach one past the tile
+LAYER = 8  # accumulator planes, the GL attribute pass's two targets: w r, w g, w b, w, w n, w depth
+TEMP_ROWS = 20  # block results: 4 lanes each of depth and coverage, or of w, depth and 3 normal components
+TEMP = tuple(np.uint64(row * BLOCK) for row in range(TEMP_ROWS))
+MISS = np.float32(1e30)  # the squared kernel distance of a ray that misses the splat
+NO_CLIP = np.float32(-1e30)
+NO_LOWPASS = np.float32(2.0)  # added to the low-pass distance when the EWA filter is off: never <= 1
+INACTIVE_LINES = tuple(np.float32(c) for c in (0, 0, 1, 0, 0, 1))  # clip lines that cut nothing
+FLAT_FIELD = tuple(np.float32(0) for _ in range(19))  # no normal field
+# exp(-t) on [0, GAUSSIAN_SHARPNESS] as a polynomial in s = 2 t / GAUSSIAN_SHARPNESS - 1 (Chebyshev
+# interpolation, relative error below 1e-6): the weight in SIMD code, where math.exp stays scalar
+EXP_POLY = tuple(np.float32(c) for c in chebyshev.cheb2poly(chebyshev.chebinterpolate(
+    lambda s: np.exp(-0.5 * GAUSSIAN_SHARPNESS * (s + 1)), 9)))
+
+
+@nb.njit(inline="always", fastmath=True, error_model="numpy")
+def face_camera(ex, ey, ez, nx, ny, nz, ux, uy, uz, vx, vy, vz, ortho):
+    """gl/common.glsl face_camera without branches: a splat packed with a zero normal (no
+    orientation, surfel.preprocess.structure) gets the direction to the eye as its normal and
+    its axes, their lengths kept, turned perpendicular to it (u along (0, 1, 0) x n); the
+    eye-space (normal, u, v), unchanged for every other splat."""
+    one, zero = np.float32(1.0), np.float32(0.0)
+    unoriented = nx * nx + ny * ny + nz * nz <= np.float32(0.25)
+    inv_d = one / max(math.sqrt(ex * ex + ey * ey + ez * ez), np.float32(1e-30))
+    tx, ty, tz = (zero if ortho > 0 else -ex * inv_d), (zero if ortho > 0 else -ey * inv_d), \
+        (one if ortho > 0 else -ez * inv_d)
+    rx, rz = tz, -tx  # (0, 1, 0) x n: zero only for a centre on the eye's vertical
+    length2 = rx * rx + rz * rz
+    inv_r = one / math.sqrt(max(length2, np.float32(1e-30)))
+    turned = length2 > np.float32(1e-12)
+    rx, rz = (rx * inv_r if turned else one), (rz * inv_r if turned else zero)
+    lu, lv = math.sqrt(ux * ux + uy * uy + uz * uz), math.sqrt(vx * vx + vy * vy + vz * vz)
+    su = (rx * lu, zero, rz * lu)
+    sv = (ty * rz * lv, (tz * rx - tx * rz) * lv, -ty * rx * lv)  # n x right
+    if unoriented:
+        return tx, ty, tz, su[0], su[1], su[2], sv[0], sv[1], sv[2]
+    return nx, ny, nz, ux, uy, uz, vx, vy, vz
+
+
+def table_size(count: int) -> int:
+    """Entries of a table for `count` splats (whole blocks)."""
+    return -(-count // BLOCK) * BLOCK * TABLE_ROWS
+
+
+@nb.njit(inline="always")
+def table_slot(k, rows):
+    """Where the splat at slot k lies in a table of `rows` rows (unsigned: no negative-index
+    wrap, which would keep loads from being vectors)."""
+    return np.uint64((k >> BLOCK_BITS) * (rows * BLOCK) + (k & (BLOCK - 1)))
+
+
+@nb.njit(inline="always")
+def splat_geometry(table, j):
+    """The rows MX..WT of the splat at table slot j: what every fragment of it needs."""
+    return (table[j + ROW[MX]], table[j + ROW[MY]], table[j + ROW[W0]], table[j + ROW[WX]], table[j + ROW[WY]],
+            table[j + ROW[Z0]], table[j + ROW[ZX]], table[j + ROW[ZY]], table[j + ROW[U0]], table[j + ROW[UX]],
+            table[j + ROW[UY]], table[j + ROW[V0]], table[j + ROW[VX]], table[j + ROW[VY]], table[j + ROW[CZ]],
+            table[j + ROW[RAD]], table[j + ROW[WT]])
+
+
+@nb.njit(inline="always")
+def splat_extras(table, clip_src, field_src, j):
+    """The clip lines and normal field of the splat at table slot j, or inactive stand-ins of the
+    same types (`clip_src is None` is known when a kernel is compiled: their arithmetic is then
+    left out)."""
+    if clip_src is not None:
+        c = (table[j + ROW[C0A]], table[j + ROW[C0B]], table[j + ROW[C0C]], table[j + ROW[C1A]],
+             table[j + ROW[C1B]], table[j + ROW[C1C]])
+    else:
+        c = INACTIVE_LINES
+    if field_src is not None:
+        f = (table[j + ROW[KU]], table[j + ROW[KV]], table[j + ROW[LU]], table[j + ROW[LV]], table[j + ROW[A10]],
+             table[j + ROW[A1X]], table[j + ROW[A1Y]], table[j + ROW[B10]], table[j + ROW[B1X]],
+             table[j + ROW[B1Y]], table[j + ROW[FUX]], table[j + ROW[FUY]], table[j + ROW[FUZ]],
+             table[j + ROW[FVX]], table[j + ROW[FVY]], table[j + ROW[FVZ]], table[j + ROW[EX]], table[j + ROW[EY]],
+             table[j + ROW[EZ]])
+    else:
+        f = FLAT_FIELD
+    return c, f
+
+
+@nb.njit(inline="always", fastmath=True, error_model="numpy")
+def fragment(s, c, f, clipping, curved, dx, dy, params):
+    """Where the ray of the pixel at offset (dx, dy) meets the splat of geometry s, clip lines c
+    and normal field f (splatting.glsl splat_distance and filter_distance), without branches:
+    (kept, kernel distance², clamped eye depth, u, v, u² + v², clip excess, hit, 1/W). A ray
+    that misses (parallel to the plane, or past the contour of a curved splat) has
+    u² + v² = MISS and the centre's depth; `kept` is the test of both passes (inside the filter
+    and the clip lines)."""
+    mx, my, w0, wx, wy, z0, zx, zy, u0, ux, uy, v0, vx, vy, cz, radius, weight = s
+    inv_lowpass2, no_lowpass, depth_clamp, depth_offset = params
+    one = np.float32(1.0)
+    w = w0 + wx * dx + wy * dy
+    hit = abs(w) > np.float32(1e-12)
+    iw = one / (w if hit else one)
+    u = (u0 + ux * dx + uy * dy) * iw
+    v = (v0 + vx * dx + vy * dy) * iw
+    z = (z0 + zx * dx + zy * dy) * iw
+    if curved:
+        # Phong splatting's curved splat: the root of the ray-surface quadratic nearest the
+        # plane's hit (splatting.glsl curved_splat_hit), moving t, u, v and the depth along d.
+        ku, kv, lu, lv, a10, a1x, a1y, b10, b1x, b1y = f[0], f[1], f[2], f[3], f[4], f[5], f[6], f[7], f[8], f[9]
+        a1, b1 = a10 + a1x * dx + a1y * dy, b10 + b1x * dx + b1y * dy
+        a0, b0 = u * lu, v * lv
+        half = np.float32(0.5)
+        qa = half * (ku * a1 * a1 + kv * b1 * b1)
+        qb = w + ku * a0 * a1 + kv * b0 * b1
+        qc = half * (ku * a0 * a0 + kv * b0 * b0)
+        disc = qb * qb - np.float32(4.0) * qa * qc
+        hit = hit and disc >= 0
+        root = math.sqrt(max(disc, np.float32(0.0)))
+        h = -half * (qb + (-root if qb < 0 else root))
+        dt = qc / (h if h != 0 else one) * np.float32(h != 0)  # no select of a division: LLVM makes it a branch
+        u += a1 / max(lu, np.float32(1e-30)) * dt
+        v += b1 / max(lv, np.float32(1e-30)) * dt
+        z += dt
+    extent = depth_clamp * radius
+    z = min(max(z if hit else cz, cz - extent), cz + extent)
+    u = u if hit else np.float32(0.0)
+    v = v if hit else np.float32(0.0)
+    rho2 = u * u + v * v if hit else MISS
+    clipped = NO_CLIP
+    if clipping:
+        excess = max(c[0] * u + c[1] * v - c[2], c[3] * u + c[4] * v - c[5])
+        clipped = excess if hit else NO_CLIP
+    kernel2 = min(rho2, (dx * dx + dy * dy) * inv_lowpass2 + no_lowpass)
+    kept = kernel2 <= 1 and clipped <= 0
+    return kept, kernel2, z, u, v, rho2, clipped, hit, iw
+
+
+@nb.njit(inline="always", fastmath=True, error_model="numpy")
+def visibility_fragment(s, c, f, clipping, curved, dx, dy, params):
+    """A fragment's visibility-pass output (splatting.glsl PASS_VISIBILITY): its depth + z_t
+    (FAR when discarded) and its coverage of the pixel (0 when discarded), 0.5 + the signed
+    distance in pixels to the splat's edge, where rho = max(|(u, v)|, 1 + clip excess) is 1,
+    from rho's screen-space gradient (analytic here, a quad's differences on the GPU), and at
+    least the footprint of a pixel-wide disk at the projected centre (sub-pixel splats)."""
+    kept, kernel2, z, u, v, rho2, clipped, hit, iw = fragment(s, c, f, clipping, curved, dx, dy, params)
+    mx, my, w0, wx, wy, z0, zx, zy, u0, ux, uy, v0, vx, vy, cz, radius, weight = s
+    depth_offset = params[3]
+    one, tiny = np.float32(1.0), np.float32(1e-6)
+    # d(u, v)/d(dx, dy) of u = (u W) / W: the plane's, also for a curved splat
+    dux, duy = (ux - u * wx) * iw, (uy - u * wy) * iw
+    dvx, dvy = (vx - v * wx) * iw, (vy - v * wy) * iw
+    rho = math.sqrt(rho2 if hit else one)
+    # grad rho = (u grad u + v grad v) / rho (bounded at the centre, where the edge is far anyway)
+    inv_rho = one / max(rho, np.float32(1e-12))
+    gx, gy = (u * dux + v * dvx) * inv_rho, (u * duy + v * dvy) * inv_rho
+    distance, gradient = one - rho, math.sqrt(gx * gx + gy * gy)
+    if clipping:  # past a clip line, rho is 1 + its excess: the gradient of that line
+        first = c[0] * u + c[1] * v - c[2] >= c[3] * u + c[4] * v - c[5]
+        a, b = (c[0] if first else c[3]), (c[1] if first else c[4])
+        lx, ly = a * dux + b * dvx, a * duy + b * dvy
+        cut = one + clipped > rho
+        distance = -clipped if cut else distance
+        gradient = math.sqrt(lx * lx + ly * ly) if cut else gradient
+    edge = distance / max(gradient, tiny)  # one division of selected operands: SIMD-safe
+    edge = max(edge if hit else np.float32(-1e30), np.float32(0.5) - math.sqrt(dx * dx + dy * dy))
+    coverage = min(max(np.float32(0.5) + edge, np.float32(0.0)), one)
+    # a low-pass fragment off the disk hides nothing nearer than the disk's far end
+    z = max(z, cz + radius) if hit and rho2 > 1 else z
+    return (z + depth_offset * radius if kept else FAR), (coverage if kept else np.float32(0.0))
+
+
+@nb.njit(inline="always", fastmath=True, error_model="numpy")
+def gaussian_weight(kernel2):
+    """The Gaussian weight exp(-GAUSSIAN_SHARPNESS kernel2) of splatting.py's lookup table,
+    sampled at its texel centres (kernel2 clamped to the first and last)."""
+    lo, hi = np.float32(0.5 / KERNEL_SIZE), np.float32(1.0 - 0.5 / KERNEL_SIZE)
+    s = np.float32(2.0) * min(max(kernel2, lo), hi) - np.float32(1.0)
+    acc = EXP_POLY[9]
+    for k in range(8, -1, -1):
+        acc = acc * s + EXP_POLY[k]
+    return acc
+
+
+@nb.njit(inline="always", fastmath=True, error_model="numpy")
+def attribute_fragment(s, c, f, clipping, curved, dx, dy, params, nx, ny, nz):
+    """A fragment's attribute-pass output before its depth test: weight (0 when discarded), eye
+    depth and normal: the splat's (nx, ny, nz), or with a normal field Phong splatting's
+    N(u, v) = n + u alpha e_u + v beta e_v (eq. 8), unit and turned no further than edge-on
+    (gl/common.glsl field_normal)."""
+    kept, kernel2, z, u, v, rho2, clipped, hit, iw = fragment(s, c, f, clipping, curved, dx, dy, params)
+    w = s[16] * gaussian_weight(kernel2)
+    if curved:
+        fux, fuy, fuz, fvx, fvy, fvz, ex, ey, ez = f[10], f[11], f[12], f[13], f[14], f[15], f[16], f[17], f[18]
+        nx, ny, nz = nx + u * fux + v * fvx, ny + u * fuy + v * fvy, nz + u * fuz + v * fvz
+        away = min(nx * ex + ny * ey + nz * ez, np.float32(0.0))
+        nx, ny, nz = nx - away * ex, ny - away * ey, nz - away * ez
+        inv = np.float32(1.0) / max(math.sqrt(nx * nx + ny * ny + nz * nz), np.float32(1e-30))
+        nx, ny, nz = nx * inv, ny * inv, nz * inv
+    return (w if kept else np.float32(0.0)), z, nx, ny, nz
+
+
+@nb.njit(inline="always", fastmath=True, error_model="numpy")
+def blend(acc, p, w, z, r, g, b, nx, ny, nz):
+    """The attribute pass's additive blend of one fragment of weight w into pixel p: the place
+    where a further channel (a scalar, or a categorical winner) would join."""
+    acc[0, p] += w * r
+    acc[1, p] += w * g
+    acc[2, p] += w * b
+    acc[3, p] += w
+    acc[4, p] += w * nx
+    acc[5, p] += w * ny
+    acc[6, p] += w * nz
+    acc[7, p] += w * z
+
+
+@nb.njit(fastmath=True, error_model="numpy")
+def visibility_tile(table, ibox, count, ox, oy, params, clip_src, field_src, tmp, zb, cov):
+    """The visibility pass of a tile's `count` splats into zb (MIN of depth + z_t) and cov (MAX of
+    coverage): per table block, the 2x2 blocks at the top-left of the boxes in one SIMD loop,
+    blended one splat after another (a block's splats may overlap), then the rest of the larger
+    boxes pixel by pixel."""
+    clipping, curved = clip_src is not None, field_src is not None
+    half, one, zero = np.float32(0.5), np.float32(1.0), np.float32(0.0)
+    for first in range(0, count, BLOCK):
+        size = min(BLOCK, count - first)
+        base, box_base = table_slot(first, TABLE_ROWS), table_slot(first, 4)
+        for q in range(size):
+            uq = np.uint64(q)
+            j, jb = base + uq, box_base + uq
+            s = splat_geometry(table, j)
+            c, f = splat_extras(table, clip_src, field_src, j)
+            x0, y0 = ibox[jb + TEMP[0]], ibox[jb + TEMP[2]]
+            wide, tall = ibox[jb + TEMP[1]] > x0, ibox[jb + TEMP[3]] > y0
+            dx, dy = np.float32(x0 + ox) + half - s[0], np.float32(y0 + oy) + half - s[1]
+            z, cover = visibility_fragment(s, c, f, clipping, curved, dx, dy, params)
+            tmp[TEMP[0] + uq], tmp[TEMP[4] + uq] = z, cover
+            z, cover = visibility_fragment(s, c, f, clipping, curved, dx + one, dy, params)
+            tmp[TEMP[1] + uq], tmp[TEMP[5] + uq] = (z if wide else FAR), (cover if wide else zero)
+            z, cover = visibility_fragment(s, c, f, clipping, curved, dx, dy + one, params)
+            tmp[TEMP[2] + uq], tmp[TEMP[6] + uq] = (z if tall else FAR), (cover if tall else zero)
+            z, cover = visibility_fragment(s, c, f, clipping, curved, dx + one, dy + one, params)
+            corner = wide and tall
+            tmp[TEMP[3] + uq], tmp[TEMP[7] + uq] = (z if corner else FAR), (cover if corner else zero)
+        for q in range(size):
+            uq = np.uint64(q)
+            jb = box_base + uq
+            x0, x1, y0, y1 = ibox[jb + TEMP[0]], ibox[jb + TEMP[1]], ibox[jb + TEMP[2]], ibox[jb + TEMP[3]]
+            p = y0 * STRIDE + x0
+            for lane in range(4):
+                pl = p + (lane >> 1) * STRIDE + (lane & 1)
+                zb[pl] = min(zb[pl], tmp[TEMP[lane] + uq])
+                cov[pl] = max(cov[pl], tmp[TEMP[4 + lane] + uq])
+            if x1 - x0 < 2 and y1 - y0 < 2:
+                continue
+            j = base + uq
+            s = splat_geometry(table, j)
+            c, f = splat_extras(table, clip_src, field_src, j)
+            for y in range(y0, y1 + 1):
+                dy = np.float32(y + oy) + half - s[1]
+                for x in range(x0 + 2 if y < y0 + 2 else x0, x1 + 1):
+                    z, cover = visibility_fragment(s, c, f, clipping, curved, np.float32(x + ox) + half - s[0], dy,
+                                                   params)
+                    pl = y * STRIDE + x
+                    zb[pl] = min(zb[pl], z)
+                    cov[pl] = max(cov[pl], cover)
+
+
+@nb.njit(fastmath=True, error_model="numpy")
+def attribute_tile(table, ibox, count, ox, oy, params, clip_src, field_src, tmp, zb, acc, levels, best):
+    """The attribute pass of a tile's `count` splats: the weighted sums of the fragments no
+    farther than zb into acc, block by block as `visibility_tile`. With `levels` > 0 (a
+    categorical colour mode, whose splats carry their palette index k as k / CODE_SCALE in
+    red), `best` keeps per pixel the MAX of category_pack(w, k): the heaviest splat's category
+    (splatting.glsl PASS_CATEGORY), never a blend."""
+    clipping, curved = clip_src is not None, field_src is not None
+    half, one, zero = np.float32(0.5), np.float32(1.0), np.float32(0.0)
+    for first in range(0, count, BLOCK):
+        size = min(BLOCK, count - first)
+        base, box_base = table_slot(first, TABLE_ROWS), table_slot(first, 4)
+        for q in range(size):
+            uq = np.uint64(q)
+            j, jb = base + uq, box_base + uq
+            s = splat_geometry(table, j)
+            c, f = splat_extras(table, clip_src, field_src, j)
+            nx, ny, nz = table[j + ROW[NX]], table[j + ROW[NY]], table[j + ROW[NZ]]
+            x0, y0 = ibox[jb + TEMP[0]], ibox[jb + TEMP[2]]
+            wide, tall = ibox[jb + TEMP[1]] > x0, ibox[jb + TEMP[3]] > y0
+            dx, dy = np.float32(x0 + ox) + half - s[0], np.float32(y0 + oy) + half - s[1]
+            w, z, fx, fy, fz = attribute_fragment(s, c, f, clipping, curved, dx, dy, params, nx, ny, nz)
+            tmp[TEMP[0] + uq], tmp[TEMP[4] + uq] = w, z
+            if curved:
+                tmp[TEMP[8] + uq], tmp[TEMP[12] + uq], tmp[TEMP[16] + uq] = fx, fy, fz
+            w, z, fx, fy, fz = attribute_fragment(s, c, f, clipping, curved, dx + one, dy, params, nx, ny, nz)
+            tmp[TEMP[1] + uq], tmp[TEMP[5] + uq] = (w if wide else zero), z
+            if curved:
+                tmp[TEMP[9] + uq], tmp[TEMP[13] + uq], tmp[TEMP[17] + uq] = fx, fy, fz
+            w, z, fx, fy, fz = attribute_fragment(s, c, f, clipping, curved, dx, dy + one, params, nx, ny, nz)
+            tmp[TEMP[2] + uq], tmp[TEMP[6] + uq] = (w if tall else zero), z
+            if curved:
+                tmp[TEMP[10] + uq], tmp[TEMP[14] + uq], tmp[TEMP[18] + uq] = fx, fy, fz
+            w, z, fx, fy, fz = attribute_fragment(s, c, f, clipping, curved, dx + one, dy + one, params, nx, ny, nz)
+            tmp[TEMP[3] + uq], tmp[TEMP[7] + uq] = (w if wide and tall else zero), z
+            if curved:
+                tmp[TEMP[11] + uq], tmp[TEMP[15] + uq], tmp[TEMP[19] + uq] = fx, fy, fz
+        for q in range(size):
+            uq = np.uint64(q)
+            j, jb = base + uq, box_base + uq
+            x0, x1, y0, y1 = ibox[jb + TEMP[0]], ibox[jb + TEMP[1]], ibox[jb + TEMP[2]], ibox[jb + TEMP[3]]
+            r, g, b = table[j + ROW[R]], table[j + ROW[G]], table[j + ROW[B]]
+            nx, ny, nz = table[j + ROW[NX]], table[j + ROW[NY]], table[j + ROW[NZ]]
+            code = math.floor(r * np.float32(CODE_SCALE) + np.float32(0.5))
+            p = y0 * STRIDE + x0
+            for lane in range(4):
+                pl = p + (lane >> 1) * STRIDE + (lane & 1)
+                w, z = tmp[TEMP[lane] + uq], tmp[TEMP[4 + lane] + uq]
+                if w > 0 and z <= zb[pl]:
+                    if levels > 0:
+                        best[pl] = max(best[pl], category_pack(w, code, levels))
+                    if curved:
+                        blend(acc, pl, w, z, r, g, b, tmp[TEMP[8 + lane] + uq], tmp[TEMP[12 + lane] + uq],
+                               tmp[TEMP[16 + lane] + uq])
+                    else:
+                        blend(acc, pl, w, z, r, g, b, nx, ny, nz)
+            if x1 - x0 < 2 and y1 - y0 < 2:
+                continue
+            s = splat_geometry(table, j)
+            c, f = splat_extras(table, clip_src, field_src, j)
+            for y in range(y0, y1 + 1):
+                dy = np.float32(y + oy) + half - s[1]
+                for x in range(x0 + 2 if y < y0 + 2 else x0, x1 + 1):
+                    w, z, fx, fy, fz = attribute_fragment(s, c, f, clipping, curved,
+                                                          np.float32(x + ox) + half - s[0], dy, params, nx, ny, nz)
+                    pl = y * STRIDE + x
+                    if w > 0 and z <= zb[pl]:
+                        if levels > 0:
+                            best[pl] = max(best[pl], category_pack(w, code, levels))
+                        blend(acc, pl, w, z, r, g, b, fx, fy, fz)

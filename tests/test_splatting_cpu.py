@@ -1,0 +1,172 @@
+"""The CPU backends of gaussian, deferred and phong (methods/splatting_cpu.py) against their GL
+programs (splatting.glsl), and how `--backend auto` chooses between them."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import surfel
+from conftest import requires_gl
+from surfel.camera import frame
+from surfel.io import load
+from surfel.metrics import compare_results
+from surfel.rendering import Renderer, choose_backend, is_software_renderer
+from surfel.request import CameraSpec
+
+pytestmark = requires_gl
+
+DATA = Path(__file__).parent / "data"
+METHODS = ("gaussian", "deferred", "phong")
+MIN_PSNR = 40.0  # dB between the two backends' images
+# A LiDAR tile's tree crowns: phong's curved splats of noisy normal fields, whose ray-surface
+# roots are ill-conditioned there, differ at isolated pixels (0.3% by more than 5%).
+MIN_PSNR_LIDAR = 38.0
+SIZE = (192, 192)
+
+
+def both(cloud, camera, method, **options):
+    """The CPU and GL renders of one view, through one Renderer (as bench and the viewer do)."""
+    renderer = Renderer()
+    return (renderer.render(cloud, camera, method, backend="cpu", **options),
+            renderer.render(cloud, camera, method, backend="gl", **options))
+
+
+def assert_agree(cpu, gl, least=MIN_PSNR, covered=0.05):
+    """The same picture: PSNR, and the same pixels covered (alpha within a few levels)."""
+    metrics = compare_results(cpu, gl)
+    assert metrics["psnr"] >= least, metrics
+    assert gl.alpha.sum() > covered * gl.alpha.size  # the model is there
+    assert np.abs(cpu.alpha - gl.alpha).mean() < 0.004
+    assert ((cpu.alpha > 0) != (gl.alpha > 0)).mean() < 0.002
+
+
+@pytest.fixture(scope="module")
+def autzen():
+    """A corner of the Autzen tile (RGB, intensity, classes 1 and 2), as test_colors uses it."""
+    cloud = load(DATA / "autzen_trim.laz")
+    lo = cloud.bounds[0]
+    return cloud.take((cloud.positions[:, 0] < lo[0] + 300) & (cloud.positions[:, 1] > lo[1] + 150))
+
+
+@pytest.mark.parametrize("method", METHODS)
+@pytest.mark.parametrize("view,shading", [("front", "lambert"), ("right", "phong")])
+def test_cpu_matches_gl_on_dense_spot(dense_spot, method, view, shading):
+    camera = frame(dense_spot.center, dense_spot.bounding_radius, view=view, size=SIZE)
+    assert_agree(*both(dense_spot, camera, method, shading=shading))
+
+
+@pytest.mark.parametrize("method", ["deferred", "phong"])
+def test_clip_lines_and_normal_fields_match_gl(turned_part, method):
+    """A CAD part: splats cut at its creases, and phong's curved splats with normal fields."""
+    from surfel.preprocess import complete
+
+    cloud = complete(turned_part.with_(faces=None), normal_field=True)[0]
+    assert (cloud.attributes["clip_lines"][:, 0, 2] < 1).mean() > 0.1
+    for view in ("front", "right"):
+        camera = frame(cloud.center, cloud.bounding_radius, view=view, size=SIZE)
+        assert_agree(*both(cloud, camera, method, shading="lambert"))
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_orthographic_supersampled_and_culled_match_gl(dense_spot, method):
+    camera = frame(dense_spot.center, dense_spot.bounding_radius, view="right", size=(128, 128),
+                   ortho_height=2.2 * dense_spot.bounding_radius)
+    cpu, gl = both(dense_spot, camera, method, shading="lambert", supersample=2, backface_culling=True)
+    assert cpu.color.shape == (128, 128, 3)
+    assert_agree(cpu, gl)
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_screen_facing_splats_match_gl(method):
+    """Splats without orientation (preprocess.drawn_normals) face the camera on both backends."""
+    from test_lidar import facing_cloud
+
+    cloud = facing_cloud()
+    for view in ("front", "top"):
+        camera = frame(cloud.center, cloud.bounding_radius, view=view, size=(128, 128))  # perspective
+        assert_agree(*both(cloud, camera, method, shading="lambert"), covered=0.01)  # eight small disks
+
+
+def test_level_of_detail_matches_gl(dense_spot):
+    """--lod-error: the CPU draws the cut the Renderer selects, GL the one its vertex stage keeps."""
+    camera = frame(dense_spot.center, dense_spot.bounding_radius, size=SIZE)
+    cpu, gl = both(dense_spot, camera, "deferred", shading="lambert", lod_error=1.0)
+    assert cpu.stats["splats"] == gl.stats["splats"] < len(dense_spot)
+    assert_agree(cpu, gl)
+
+
+@pytest.mark.parametrize("method", METHODS)
+@pytest.mark.parametrize("color,shading", [("elevation", "lambert"), ("intensity", "phong"),
+                                           ("classification", "lambert"), ("rgb", "edl")])
+def test_colour_modes_and_eye_dome_lighting_match_gl(autzen, method, color, shading):
+    """Continuous attributes splatted like colour and mapped per pixel (per splat for
+    gaussian), categories the heaviest splat's, eye-dome lighting on the samples."""
+    camera = CameraSpec(size=(160, 160), view="iso").camera(autzen)
+    cpu, gl = both(autzen, camera, method, color=color, shading=shading)
+    assert_agree(cpu, gl, MIN_PSNR_LIDAR)
+    assert cpu.stats["color"] == color and cpu.stats["backend"] == "cpu"
+
+
+def test_categories_are_never_blended_on_the_cpu():
+    """Two interleaved classes, a palette entry each: every covered pixel shows one of the two
+    entries exactly, supersampled or not, and both show, in the same places as on the GPU."""
+    from surfel.cloud import PointCloud
+    from surfel.colors import palette
+
+    g = np.arange(-1, 1, 0.02)
+    x, y = np.meshgrid(g, g)
+    positions = np.c_[x.ravel(), y.ravel(), np.zeros(x.size)]
+    classes = ((np.floor(x * 4) + np.floor(y * 4)) % 2).astype(np.uint8).ravel() + 2  # a checkerboard
+    cloud = PointCloud(positions, normals=np.tile([0.0, 0.0, 1.0], (len(positions), 1)),
+                       attributes={"classification": classes})
+    entries = np.round(palette("classification", np.array([2, 3])) * 255).astype(int)
+    camera = frame(cloud.center, cloud.bounding_radius, view="front", size=(96, 96))
+    for method in METHODS:
+        for supersample in (None, 3):
+            cpu, gl = both(cloud, camera, method, color="classification", shading="none", supersample=supersample)
+            rgba = cpu.rgba8().astype(int)
+            full = rgba[..., 3] == 255
+            assert full.mean() > 0.3
+            distance = np.abs(rgba[full][:, None, :3] - entries[None]).max(axis=2)
+            assert (distance.min(axis=1) <= 1).all(), (method, supersample)
+            shown = distance.argmin(axis=1)
+            assert 0.3 < shown.mean() < 0.7
+            gl_shown = np.abs(gl.rgba8().astype(int)[full][:, None, :3] - entries[None]).max(axis=2).argmin(axis=1)
+            assert (shown == gl_shown).mean() > 0.99
+
+
+def test_auto_picks_the_cpu_over_a_software_rasterizer_and_reports_it(dense_spot):
+    from surfel.gl.context import renderer_string
+
+    software = is_software_renderer(renderer_string())
+    backend, why = choose_backend("deferred", None)
+    assert backend == ("cpu" if software else "gl") and why.startswith("auto")
+    assert choose_backend("points", None)[0] == "gl"  # no CPU backend
+    assert choose_backend("deferred", "gl") == ("gl", "asked")
+    assert choose_backend("deferred", None, dump_passes=True)[0] == "gl"  # only GL writes its passes
+    assert is_software_renderer("llvmpipe (LLVM 15.0.6, 256 bits)")
+    assert not is_software_renderer("NVIDIA GeForce RTX 4090/PCIe/SSE2")
+    camera = frame(dense_spot.center, dense_spot.bounding_radius, size=(64, 64))
+    stats = surfel.render(dense_spot, camera, "phong", backend="auto").stats
+    assert stats["backend"] == backend and stats["backend_choice"] == why
+
+
+def test_backend_options_on_the_command_line(tmp_path):
+    def run(*args):
+        return subprocess.run([sys.executable, "-m", "surfel.cli", "render", "--demo", "--size", "32x32", *args],
+                              capture_output=True, text=True, timeout=600)
+
+    out = tmp_path / "a.png"
+    done = run("-o", out, "--backend", "auto", "--method", "gaussian")
+    assert done.returncode == 0 and out.exists(), done.stderr
+    bad = run("-o", tmp_path / "b.png", "--backend", "cpu", "--method", "deferred", "--dump-passes", tmp_path)
+    assert bad.returncode == 2 and bad.stderr.count("\n") == 1 and "--dump-passes" in bad.stderr
+    assert "cpu backend" in bad.stderr and not (tmp_path / "b.png").exists()
+    bad = run("-o", tmp_path / "c.png", "--backend", "cpu", "--method", "points")
+    assert bad.returncode == 2 and bad.stderr.count("\n") == 1 and "no 'cpu' backend" in bad.stderr
+    assert "Traceback" not in bad.stderr
