@@ -67,7 +67,9 @@ import re
 import shutil
 import sys
 import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, replace
+from multiprocessing import get_context
 from pathlib import Path
 
 import numpy as np
@@ -78,6 +80,7 @@ from ..cloud import PointCloud, file_normals, framing_sphere
 from ..errors import SurfelError
 from ..files import write_atomically, write_json
 from ..preprocess import INACTIVE_CLIP
+from .binning import fine_cells, group_by, halo_pairs
 from .build import ROOT_PARENT_ERROR, _merge_cells, _next_level, aggregate_attributes, build_lod, morton_codes
 from .sequential import EXTRAS, r_max_bucket, to_sequential_cloud
 from .streaming import KindVote, StreamInput, all_chunks, open_inputs
@@ -93,7 +96,16 @@ BYTES_PER_POINT = 500
 # ... plus this many copies of each point's attributes (the input, up to 2n tree nodes,
 # their sequential copy)
 ATTRIBUTE_COPIES = 5
+# memory of each worker process besides its partition (interpreter, numpy/numba/scipy)
+WORKER_OVERHEAD = 400 << 20
+# inputs of at least this many points are built by a pool of worker processes
+PARALLEL_MIN_POINTS = 1_000_000
 HISTOGRAM_BITS = 7
+# halo width: this many sample spacings (two hops of 16 nearest neighbours, about 2.3 spacings
+# each on an evenly sampled surface, and a margin: radii depend on the neighbours' own
+# neighbourhoods through the outlier cap and the sharp features), at most this many fine cells
+HALO_SPACINGS = 8.0
+HALO_MAX_CELLS = 4.0
 _SIZE = re.compile(r"^\s*([0-9]*\.?[0-9]+)\s*([kmgt]?)(i?b)?\s*$", re.IGNORECASE)
 
 
@@ -130,8 +142,7 @@ class Plan:
 
     def fine_cells(self, positions: np.ndarray) -> np.ndarray:
         res = 1 << HISTOGRAM_BITS
-        q = np.clip(((positions - self.lo) * (res / self.size)).astype(np.int64), 0, res - 1)
-        return (q[:, 0] * res + q[:, 1]) * res + q[:, 2]
+        return fine_cells(positions, self.lo, res / self.size, res)
 
 
 def _plan(histogram: np.ndarray, lo: np.ndarray, size: float, cap: int) -> Plan:
@@ -158,15 +169,31 @@ def _plan(histogram: np.ndarray, lo: np.ndarray, size: float, cap: int) -> Plan:
     return Plan(lo, size, cells, counts)
 
 
-def partition_capacity(memory: int, attribute_bytes: int = 0) -> int:
+def partition_capacity(memory: int, attribute_bytes: int = 0, workers: int = 1) -> int:
     """Points one partition may hold under the memory budget, with `attribute_bytes` of
-    attributes per point."""
+    attributes per point, while `workers` processes build one partition each (more than one:
+    each is a process of its own, WORKER_OVERHEAD more)."""
     per_point = BYTES_PER_POINT + ATTRIBUTE_COPIES * attribute_bytes
-    cap = (memory - MEMORY_OVERHEAD) // per_point
+    overhead = MEMORY_OVERHEAD + (workers * WORKER_OVERHEAD if workers > 1 else 0)
+    cap = (memory - overhead) // (workers * per_point)
     if cap < 10_000:
         raise SurfelError(f"--memory {memory >> 20} MB is too small (need at least "
-                          f"{(MEMORY_OVERHEAD + 10_000 * per_point) >> 20} MB)")
+                          f"{(overhead + 10_000 * workers * per_point) >> 20} MB)")
     return int(cap)
+
+
+def worker_count(points: int, memory: int, attribute_bytes: int = 0) -> int:
+    """The partitions built at once: one per core when the input is large enough to pay for
+    starting the worker processes (PARALLEL_MIN_POINTS) and the budget holds them."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    workers = cores if points >= PARALLEL_MIN_POINTS else 1
+    while workers > 1:
+        try:
+            partition_capacity(memory, attribute_bytes, workers)
+            return workers
+        except SurfelError:
+            workers -= 1
+    return 1
 
 
 # --------------------------------------------------------------------------------------------
@@ -196,15 +223,16 @@ def attribute_key(index: int) -> str:
     return f"attribute-{index}"
 
 
-def _input_signature(inputs: list[StreamInput], memory: int) -> dict:
+def _input_signature(inputs: list[StreamInput], memory: int, workers: int) -> dict:
     return {"files": [[i.path, os.path.getsize(i.path), os.path.getmtime(i.path)] for i in inputs],
-            "memory": memory}
+            "memory": memory, "workers": workers}
 
 
 def build_outofcore(in_path: str | os.PathLike, out_path: str | os.PathLike, *, memory: int = 4 << 30,
                     resume: bool = False, progress: bool | None = None,
-                    stats_path: str | os.PathLike | None = None) -> dict:
-    """Build the hierarchy directory `out_path` from `in_path` within `memory` bytes.
+                    stats_path: str | os.PathLike | None = None, workers: int | None = None) -> dict:
+    """Build the hierarchy directory `out_path` from `in_path` within `memory` bytes, building
+    `workers` partitions at once (None: `worker_count`).
 
     Stats: points, nodes, partitions, top_nodes, ms (wall time of the whole build),
     points_per_s, resumed_partitions.
@@ -217,12 +245,15 @@ def build_outofcore(in_path: str | os.PathLike, out_path: str | os.PathLike, *, 
     if out.exists() and not (out / MANIFEST).is_file():
         raise SurfelError(f"{out}: exists and is not a surfel LOD directory; not replacing it")
     inputs = open_inputs(in_path)
-    cap = partition_capacity(memory, sum(spec.dtype.itemsize * spec.components for spec in inputs[0].specs))
-    signature = _input_signature(inputs, memory)
+    attribute_bytes = sum(spec.dtype.itemsize * spec.components for spec in inputs[0].specs)
+    if workers is None:
+        workers = worker_count(sum(i.count for i in inputs), memory, attribute_bytes)
+    cap = partition_capacity(memory, attribute_bytes, workers)
+    signature = _input_signature(inputs, memory, workers)
     plan_file = partial / "plan.json"
     saved = json.loads(plan_file.read_text()) if resume and plan_file.exists() else None
     if saved is not None and saved["signature"] != signature:
-        raise SurfelError(f"{partial}: the input or --memory changed since the interrupted build; "
+        raise SurfelError(f"{partial}: the input, --memory or the core count changed since the interrupted build; "
                           "rerun without --resume")
     if saved is None:
         if partial.exists():
@@ -240,19 +271,8 @@ def build_outofcore(in_path: str | os.PathLike, out_path: str | os.PathLike, *, 
     dtype = _record_dtype(has_normals, has_colors, schema)
     geospatial = saved["geospatial"]
 
-    from .format import warm_up
-
-    warm_up()
-    parts, resumed = [], 0
-    with _bar(total, "lod build", progress) as bar:
-        for index, count in enumerate(saved["counts"]):
-            name = f"part-{index:05d}"
-            if (partial / name / "root.json").exists():
-                resumed += 1
-            else:
-                _build_partition(partial, name, dtype, schema, geospatial)
-            parts.append(json.loads((partial / name / "root.json").read_text()))
-            bar.update(count)
+    parts = _build_partitions(partial, saved["counts"], dtype, schema, geospatial, workers, progress)
+    resumed = sum(part.pop("resumed") for part in parts)
     stored = parts[0]["attributes"]
     if any(part["attributes"] != stored for part in parts):
         raise SurfelError(f"{partial}: partitions hold different attributes")
@@ -272,10 +292,51 @@ def build_outofcore(in_path: str | os.PathLike, out_path: str | os.PathLike, *, 
     ms = (time.perf_counter() - start) * 1000
     stats = {"points": total, "nodes": nodes, "partitions": len(parts), "top_nodes": top,
              "ms": round(ms, 3), "points_per_s": round(total / max(ms / 1000, 1e-9)),
-             "resumed_partitions": resumed, "memory": memory, "partition_cap": cap}
+             "resumed_partitions": resumed, "memory": memory, "partition_cap": cap, "workers": workers}
     if stats_path is not None:
         write_json(stats_path, stats)
     return stats
+
+
+def _build_partitions(partial: Path, counts: list[int], dtype: np.dtype, schema: Schema, geospatial: bool,
+                      workers: int, progress: bool | None) -> list[dict]:
+    """Build every partition not finished yet, `workers` at a time (module docstring); their
+    root summaries, in partition order, each with "resumed" telling whether it was finished."""
+    names = [f"part-{index:05d}" for index in range(len(counts))]
+    finished = [(partial / name / "root.json").exists() for name in names]
+    todo = [i for i in range(len(counts)) if not finished[i]]
+    with _bar(sum(counts), "lod build", progress) as bar:
+        bar.update(sum(c for c, done in zip(counts, finished, strict=True) if done))
+        if workers == 1 or len(todo) < 2:
+            from .format import warm_up
+
+            warm_up()
+            for i in todo:
+                _build_partition(partial, names[i], dtype, schema, geospatial)
+                bar.update(counts[i])
+        else:
+            # largest first: the last partitions to finish are small, so no core idles long
+            todo.sort(key=lambda i: -counts[i])
+            with ProcessPoolExecutor(min(workers, len(todo)), mp_context=get_context("spawn"),
+                                     initializer=_start_worker) as pool:
+                jobs = {pool.submit(_build_partition, partial, names[i], dtype, schema, geospatial): i
+                        for i in todo}
+                try:
+                    for job in as_completed(jobs):
+                        job.result()
+                        bar.update(counts[jobs[job]])
+                except BaseException:
+                    pool.shutdown(wait=True, cancel_futures=True)
+                    raise
+    return [{**json.loads((partial / name / "root.json").read_text()), "resumed": done}
+            for name, done in zip(names, finished, strict=True)]
+
+
+def _start_worker() -> None:
+    """A worker builds one partition on one core: the pool gives the parallelism."""
+    import numba
+
+    numba.set_num_threads(1)
 
 
 def _replace_dir(partial: Path, out: Path) -> None:
@@ -324,6 +385,7 @@ def _bin_input(inputs: list[StreamInput], partial: Path, cap: int, signature: di
             histogram += np.bincount(plan.fine_cells(chunk.positions), minlength=res ** 3)
             bar.update(len(chunk.positions))
     plan = _plan(histogram.reshape(res, res, res), lo, size, cap)
+    halo = halo_width(histogram)
     del histogram
     lookup = plan.lookup()
     has_normals, has_colors = inputs[0].has_normals and not placeholders, any(i.has_colors for i in inputs)
@@ -332,41 +394,74 @@ def _bin_input(inputs: list[StreamInput], partial: Path, cap: int, signature: di
     dtype = _record_dtype(has_normals, has_colors, schema)
     bins = partial / "bins"
     bins.mkdir()
+    groups = len(plan.cells)
+    scale = res / size
     with _bar(total, "partition", progress) as bar:
         for chunk in all_chunks(inputs):
-            part = lookup[plan.fine_cells(chunk.positions)]
-            order = np.argsort(part, kind="stable")
-            records = np.empty(len(order), dtype)
-            records["p"] = chunk.positions[order]
-            if has_normals:
-                records["n"] = chunk.normals[order]
-            if has_colors:
-                records["c"] = chunk.colors[order] if chunk.colors is not None else 1.0
-            for i, name in enumerate(schema):
-                records[f"a{i}"] = chunk.attributes[name][order]
-            sorted_part = part[order]
-            bounds = np.flatnonzero(np.diff(sorted_part)) + 1
-            for run in np.split(np.arange(len(order)), bounds):
-                # appended chunk by chunk, so not through write_atomically: scratch files in
-                # the build's own NAME.partial/, which is published only by its final rename
-                with open(bins / f"part-{sorted_part[run[0]]:05d}.bin", "ab") as file:
-                    records[run[0]:run[-1] + 1].tofile(file)
+            part = lookup[fine_cells(chunk.positions, lo, scale, res)]
+            order, starts = group_by(part, groups)
+            _append_runs(bins, "bin", _records(chunk, order, dtype, has_normals, has_colors, schema), starts)
+            if groups > 1:
+                points, owners = halo_pairs(chunk.positions, lo, scale, res, lookup, part, halo)
+                order, starts = group_by(owners, groups)
+                _append_runs(bins, "halo", _records(chunk, points[order], dtype, has_normals, has_colors, schema),
+                             starts)
             bar.update(len(order))
     return {"signature": signature, "lo": lo.tolist(), "size": size, "cells": plan.cells,
-            "counts": plan.counts, "has_normals": has_normals, "has_colors": has_colors,
+            "counts": plan.counts, "halo": halo, "has_normals": has_normals, "has_colors": has_colors,
             "schema": schema.to_list(), "geospatial": any(i.geospatial for i in inputs)}
 
 
+def halo_width(histogram: np.ndarray) -> float:
+    """The halo width h in fine-cell widths (module docstring): HALO_SPACINGS sample spacings,
+    the spacing estimated from the median count m of the occupied fine cells as of a surface
+    sampled evenly, cell / sqrt(m); at most HALO_MAX_CELLS cells."""
+    occupied = histogram[histogram > 0]
+    return float(min(HALO_MAX_CELLS, HALO_SPACINGS / np.sqrt(np.median(occupied))))
+
+
+def _records(chunk, rows: np.ndarray, dtype: np.dtype, has_normals: bool, has_colors: bool,
+             schema: Schema) -> np.ndarray:
+    """The binned records (_record_dtype) of the chunk's points `rows`, in that order."""
+    records = np.empty(len(rows), dtype)
+    records["p"] = chunk.positions[rows]
+    if has_normals:
+        records["n"] = chunk.normals[rows]
+    if has_colors:
+        records["c"] = chunk.colors[rows] if chunk.colors is not None else 1.0
+    for i, name in enumerate(schema):
+        records[f"a{i}"] = chunk.attributes[name][rows]
+    return records
+
+
+def _append_runs(bins: Path, suffix: str, records: np.ndarray, starts: np.ndarray) -> None:
+    """Append run g = records[starts[g]:starts[g + 1]] to partition g's file part-g.suffix."""
+    for group in np.flatnonzero(np.diff(starts)):
+        # appended chunk by chunk, so not through write_atomically: scratch files in
+        # the build's own NAME.partial/, which is published only by its final rename
+        with open(bins / f"part-{group:05d}.{suffix}", "ab") as file:
+            records[starts[group]:starts[group + 1]].tofile(file)
+
+
 def _build_partition(partial: Path, name: str, dtype: np.dtype, schema: Schema, geospatial: bool) -> None:
-    """Complete, build, sequentialise and write one partition; its root summary last."""
+    """Complete, build, sequentialise and write one partition; its root summary last. The
+    partition's points are completed together with its halo (module docstring), which is
+    then dropped."""
     from ..preprocess import complete
 
-    records = np.fromfile(partial / "bins" / f"{name}.bin", dtype)
+    own = np.fromfile(partial / "bins" / f"{name}.bin", dtype)
+    halo_file = partial / "bins" / f"{name}.halo"
+    records = np.concatenate([own, np.fromfile(halo_file, dtype)]) if halo_file.exists() else own
+    count = len(own)
+    del own
     cloud = PointCloud(records["p"], normals=records["n"] if "n" in dtype.names else None,
                        colors=records["c"] if "c" in dtype.names else None, geospatial=geospatial,
                        attributes={spec.name: records[f"a{i}"] for i, spec in enumerate(schema.values())},
                        kinds=schema.kinds, source=name)
     del records
+    cloud, _ = complete(cloud, progress=False)
+    if len(cloud) > count:
+        cloud = cloud.take(slice(0, count))
     cloud, _ = complete(cloud, progress=False)
     points = len(cloud)
     lo, hi = cloud.bounds
@@ -393,6 +488,7 @@ def _build_partition(partial: Path, name: str, dtype: np.dtype, schema: Schema, 
     shutil.rmtree(final, ignore_errors=True)
     os.replace(work, final)
     (partial / "bins" / f"{name}.bin").unlink(missing_ok=True)
+    halo_file.unlink(missing_ok=True)
 
 
 def _save_array(path: Path, value: np.ndarray) -> None:
