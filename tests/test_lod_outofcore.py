@@ -149,11 +149,15 @@ def leaf_splats(lod: Path, cloud: PointCloud) -> tuple[np.ndarray, np.ndarray, n
 def test_partition_borders_match_in_memory(built, tmp_path, monkeypatch):
     """With its halo, every partition's points get the radii and axes of the in-memory build,
     at the borders too, whether the partitions are built one after the other or by a pool of
-    worker processes; without the halo, border points lose neighbours and their radii differ."""
+    worker processes, planned from every point or from a sample; without the halo, border
+    points lose neighbours and their radii differ."""
     ply, cloud, lod, _ = built
+    monkeypatch.setattr(outofcore, "HISTOGRAM_SAMPLE", POINTS // 5)  # planned from every fifth point
     two_workers = MEMORY_OVERHEAD + 2 * WORKER_OVERHEAD + 2 * 10_000 * BYTES_PER_POINT
     pooled = build_outofcore(ply, tmp_path / "pooled.lod", memory=two_workers, progress=False, workers=2)
-    assert pooled["workers"] == 2 and pooled["partitions"] >= 4
+    assert pooled["workers"] == 2 and pooled["partitions"] >= 4 and pooled["points"] == POINTS
+    manifest = json.loads((tmp_path / "pooled.lod" / "manifest.json").read_text())
+    assert max(p["points"] for p in manifest["partitions"]) <= pooled["partition_cap"]
     for built_lod in (lod, tmp_path / "pooled.lod"):
         index, radii, semi = leaf_splats(built_lod, cloud)
         # every point is a leaf, once, but crease points (clipped away whole: not stored)

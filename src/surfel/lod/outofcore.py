@@ -3,26 +3,36 @@ for clouds larger than memory: a hierarchy directory read lazily by `surfel.lod.
 
 The input (binary PLY read in chunks at file offsets, LAS/LAZ through laspy's chunk
 iterator, a directory of such tiles as one cloud; other formats are loaded whole: see
-streaming.py) is read three times and never held in memory:
+streaming.py) is read twice and never held in memory:
 
 1. scan: bounds, for LAS the colour range (8-bit values in 16-bit fields), the kinds of
-   the attributes (streaming.KindVote), and whether the normals hold zero placeholders (the
-   input then counts as having none, as every reader has it: `cloud.file_normals`);
-2. histogram: point counts of the 2^7 x 2^7 x 2^7 cells of the bounding cube; the cube is
-   split octree-wise, a cell being split while it holds more than `cap` points, into
-   partitions (the non-empty leaves of that octree), where
-       cap = (memory - MEMORY_OVERHEAD) / (BYTES_PER_POINT + ATTRIBUTE_COPIES * a)
-   (a: the bytes of one point's attributes) bounds the points one partition's processing
-   holds at once;
-3. binning: each chunk's points, with all their attributes, are appended to their
-   partition's file.
+   the attributes (streaming.KindVote), whether the normals hold zero placeholders (the
+   input then counts as having none, as every reader has it: `cloud.file_normals`), and an
+   even sample of HISTOGRAM_SAMPLE positions (every s-th point, s = ceil(N / HISTOGRAM_SAMPLE);
+   all of them in smaller inputs). The sample's point counts of the 2^7 x 2^7 x 2^7 cells of
+   the bounding cube, times N / (sample size), estimate the histogram; the cube is split
+   octree-wise, a cell being split while it holds more than `cap` points, into partitions
+   (the non-empty leaves of that octree), where
+       cap = (memory - MEMORY_OVERHEAD - w WORKER_OVERHEAD) / (w (BYTES_PER_POINT + ATTRIBUTE_COPIES * a))
+   (a: the bytes of one point's attributes; w: the partitions built at once, `worker_count`,
+   WORKER_OVERHEAD only when w > 1) bounds the points the w partitions' processing holds at
+   once. A sampled histogram is planned with cap (1 - 3 sqrt(s / cap)), three standard
+   errors of a sampled count, and cells where the sample has no point join the partition of
+   the nearest cell that has one;
+2. binning: each chunk's points, with all their attributes, are appended to their
+   partition's file, and to the halo files of the partitions within the halo width h of
+   them (binning.py): h = HALO_SPACINGS sample spacings, the spacing estimated from the
+   median count m of the occupied histogram cells as of an evenly sampled surface,
+   cell / sqrt(m), at most HALO_MAX_CELLS cells.
 
-Each partition is then loaded, completed (radii and tangent axes estimated as for any cloud,
-`preprocess.complete`; normals from the input when it has them), built (`build_lod`),
-sequentialised (`to_sequential_cloud`) and written as raw .npy arrays in sequential order.
-No halo is used: points at a partition border miss their neighbours across it, which only
-widens their covering radii (the Voronoi cell is unbounded on that side) and so cannot
-open holes; it costs some overlap along the seams.
+Each partition is then loaded with its halo, completed (radii and tangent axes estimated as
+for any cloud, `preprocess.complete`; normals from the input when it has them), stripped of
+its halo, built (`build_lod`), sequentialised (`to_sequential_cloud`) and written as raw .npy
+arrays in sequential order. With the halo, the neighbour queries of points at a partition
+border find the neighbours across it, so their radii, axes and clip lines are those of the
+in-memory build (where the halo reaches far enough: two hops of neighbours on an evenly
+sampled surface). Inputs of PARALLEL_MIN_POINTS or more are built by a pool of w worker
+processes, one partition each at a time on one core, largest first.
 
 Top levels: the partition roots become the leaves of a small tree built by the same merge
 rule (`build._merge_cells`, attributes by `build.aggregate_attributes` from the roots'), so
@@ -73,6 +83,7 @@ from multiprocessing import get_context
 from pathlib import Path
 
 import numpy as np
+from scipy.ndimage import distance_transform_edt
 from tqdm import tqdm
 
 from ..attributes import Schema
@@ -101,6 +112,8 @@ WORKER_OVERHEAD = 400 << 20
 # inputs of at least this many points are built by a pool of worker processes
 PARALLEL_MIN_POINTS = 1_000_000
 HISTOGRAM_BITS = 7
+# points of the input sampled evenly for the histogram (all of them in smaller inputs)
+HISTOGRAM_SAMPLE = 2_000_000
 # halo width: this many sample spacings (two hops of 16 nearest neighbours, about 2.3 spacings
 # each on an evenly sampled surface, and a margin: radii depend on the neighbours' own
 # neighbourhoods through the outlier cap and the sharp features), at most this many fine cells
@@ -131,13 +144,18 @@ class Plan:
     cells: list[tuple[int, int, int, int]]
     counts: list[int]
 
-    def lookup(self) -> np.ndarray:
-        """Partition index of each histogram cell (flattened x-major), -1 where empty."""
+    def lookup(self, complete: bool = False) -> np.ndarray:
+        """Partition index of each histogram cell (flattened x-major), -1 where empty; with
+        `complete`, empty cells take the partition of the nearest cell of a partition (the
+        plan of a sample: points may lie where the sample has none)."""
         res = 1 << HISTOGRAM_BITS
         table = np.full((res, res, res), -1, np.int32)
         for index, (level, x, y, z) in enumerate(self.cells):
             s = 1 << (HISTOGRAM_BITS - level)
             table[x * s:(x + 1) * s, y * s:(y + 1) * s, z * s:(z + 1) * s] = index
+        if complete:
+            nearest = distance_transform_edt(table < 0, return_distances=False, return_indices=True)
+            table = table[tuple(nearest)]
         return table.reshape(-1)
 
     def fine_cells(self, positions: np.ndarray) -> np.ndarray:
@@ -361,12 +379,15 @@ def _bin_input(inputs: list[StreamInput], partial: Path, cap: int, signature: di
     hi = np.full(3, -np.inf)
     vote = KindVote(inputs)
     placeholders = False  # zero normals: the input counts as having none (cloud.file_normals)
+    stride = max(1, -(-total // HISTOGRAM_SAMPLE))
+    samples = []
     for source in inputs:  # colour ranges of LAS files are needed before the colours are scaled
         color_max = 0.0
         with _bar(source.count, f"scan {os.path.basename(source.path)}", progress) as bar:
             for chunk in source.chunks():
                 lo = np.minimum(lo, chunk.positions.min(axis=0))
                 hi = np.maximum(hi, chunk.positions.max(axis=0))
+                samples.append(chunk.positions[::stride].copy())
                 vote.add(chunk)
                 placeholders = placeholders or (chunk.normals is not None and file_normals(chunk.normals) is None)
                 if chunk.colors is not None and source.kind == "las":
@@ -378,16 +399,18 @@ def _bin_input(inputs: list[StreamInput], partial: Path, cap: int, signature: di
             source.has_colors = color_max > 0
     size = (float((hi - lo).max()) or 2 * framing_sphere(lo, hi)[1]) * (1 + 1e-9)  # one point: its framing
     res = 1 << HISTOGRAM_BITS
-    plan = Plan(lo, size, [], [])
-    histogram = np.zeros(res ** 3, np.int64)
-    with _bar(total, "histogram", progress) as bar:
-        for chunk in all_chunks(inputs):
-            histogram += np.bincount(plan.fine_cells(chunk.positions), minlength=res ** 3)
-            bar.update(len(chunk.positions))
+    scale = res / size
+    sample = np.concatenate(samples)
+    del samples
+    histogram = np.bincount(fine_cells(sample, lo, scale, res), minlength=res ** 3)
+    if stride > 1:  # counts estimated from the sample, planned with a margin for its error
+        histogram = np.ceil(histogram * (total / len(sample))).astype(np.int64)
+        cap = max(cap // 2, int(cap * (1 - 3 * np.sqrt(stride / cap))))
+    del sample
     plan = _plan(histogram.reshape(res, res, res), lo, size, cap)
     halo = halo_width(histogram)
     del histogram
-    lookup = plan.lookup()
+    lookup = plan.lookup(complete=stride > 1)
     has_normals, has_colors = inputs[0].has_normals and not placeholders, any(i.has_colors for i in inputs)
     kinds = vote.kinds
     schema = Schema(replace(spec, kind=kinds[spec.name]) for spec in vote.specs)
@@ -395,11 +418,12 @@ def _bin_input(inputs: list[StreamInput], partial: Path, cap: int, signature: di
     bins = partial / "bins"
     bins.mkdir()
     groups = len(plan.cells)
-    scale = res / size
+    counts = np.zeros(groups, np.int64)
     with _bar(total, "partition", progress) as bar:
         for chunk in all_chunks(inputs):
             part = lookup[fine_cells(chunk.positions, lo, scale, res)]
             order, starts = group_by(part, groups)
+            counts += np.diff(starts)
             _append_runs(bins, "bin", _records(chunk, order, dtype, has_normals, has_colors, schema), starts)
             if groups > 1:
                 points, owners = halo_pairs(chunk.positions, lo, scale, res, lookup, part, halo)
@@ -408,14 +432,12 @@ def _bin_input(inputs: list[StreamInput], partial: Path, cap: int, signature: di
                              starts)
             bar.update(len(order))
     return {"signature": signature, "lo": lo.tolist(), "size": size, "cells": plan.cells,
-            "counts": plan.counts, "halo": halo, "has_normals": has_normals, "has_colors": has_colors,
+            "counts": counts.tolist(), "halo": halo, "has_normals": has_normals, "has_colors": has_colors,
             "schema": schema.to_list(), "geospatial": any(i.geospatial for i in inputs)}
 
 
 def halo_width(histogram: np.ndarray) -> float:
-    """The halo width h in fine-cell widths (module docstring): HALO_SPACINGS sample spacings,
-    the spacing estimated from the median count m of the occupied fine cells as of a surface
-    sampled evenly, cell / sqrt(m); at most HALO_MAX_CELLS cells."""
+    """The halo width h in fine-cell widths (module docstring, pass 2)."""
     occupied = histogram[histogram > 0]
     return float(min(HALO_MAX_CELLS, HALO_SPACINGS / np.sqrt(np.median(occupied))))
 
