@@ -78,6 +78,7 @@ import shutil
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
+from contextlib import ExitStack
 from dataclasses import dataclass, replace
 from multiprocessing import get_context
 from pathlib import Path
@@ -268,6 +269,50 @@ def build_outofcore(in_path: str | os.PathLike, out_path: str | os.PathLike, *, 
         workers = worker_count(sum(i.count for i in inputs), memory, attribute_bytes)
     cap = partition_capacity(memory, attribute_bytes, workers)
     signature = _input_signature(inputs, memory, workers)
+    with ExitStack() as stack:
+        pool = None
+        if workers > 1:  # started now, so that the workers load their kernels while the input is binned
+            pool = stack.enter_context(ProcessPoolExecutor(workers, mp_context=get_context("spawn"),
+                                                           initializer=_start_worker))
+            for _ in range(workers):
+                pool.submit(int)
+        saved = _plan_and_bin(inputs, partial, cap, signature, resume, progress)
+        has_normals, has_colors = saved["has_normals"], saved["has_colors"]
+        schema = Schema.from_json(saved["schema"])
+        dtype = _record_dtype(has_normals, has_colors, schema)
+        parts = _build_partitions(partial, saved["counts"], dtype, schema, saved["geospatial"], pool, progress)
+    total = sum(saved["counts"])
+    geospatial = saved["geospatial"]
+    resumed = sum(part.pop("resumed") for part in parts)
+    stored = parts[0]["attributes"]
+    if any(part["attributes"] != stored for part in parts):
+        raise SurfelError(f"{partial}: partitions hold different attributes")
+    top = _top_tree(partial, parts, has_colors, Schema.from_json(stored))
+    nodes = sum(p["nodes"] for p in parts) + top
+    lo = np.min([p["bounds"][0] for p in parts], axis=0)
+    hi = np.max([p["bounds"][1] for p in parts], axis=0)
+    manifest = {"format": DIR_FORMAT, "version": DIR_VERSION, "geospatial": geospatial,
+                "total_points": total, "nodes": nodes, "bounds": [lo.tolist(), hi.tolist()],
+                "colors": has_colors, "attributes": stored, "top_nodes": top,
+                "partitions": [{"name": p["name"], "points": p["points"], "nodes": p["nodes"],
+                                "bounds": p["bounds"], "max_radius": p["radius"]} for p in parts]}
+    shutil.rmtree(partial / "bins", ignore_errors=True)
+    (partial / "plan.json").unlink()
+    write_json(partial / MANIFEST, manifest)
+    _replace_dir(partial, out)
+    ms = (time.perf_counter() - start) * 1000
+    stats = {"points": total, "nodes": nodes, "partitions": len(parts), "top_nodes": top,
+             "ms": round(ms, 3), "points_per_s": round(total / max(ms / 1000, 1e-9)),
+             "resumed_partitions": resumed, "memory": memory, "partition_cap": cap, "workers": workers}
+    if stats_path is not None:
+        write_json(stats_path, stats)
+    return stats
+
+
+def _plan_and_bin(inputs: list[StreamInput], partial: Path, cap: int, signature: dict, resume: bool,
+                  progress: bool | None) -> dict:
+    """The plan (plan.json) of the build in `partial`: that of the interrupted build when
+    resuming, else planned and binned now (passes 1 and 2 of the module docstring)."""
     plan_file = partial / "plan.json"
     saved = json.loads(plan_file.read_text()) if resume and plan_file.exists() else None
     if saved is not None and saved["signature"] != signature:
@@ -283,49 +328,20 @@ def build_outofcore(in_path: str | os.PathLike, out_path: str | os.PathLike, *, 
             shutil.rmtree(partial, ignore_errors=True)
             raise
         write_json(plan_file, saved)
-    total = sum(saved["counts"])
-    has_normals, has_colors = saved["has_normals"], saved["has_colors"]
-    schema = Schema.from_json(saved["schema"])
-    dtype = _record_dtype(has_normals, has_colors, schema)
-    geospatial = saved["geospatial"]
-
-    parts = _build_partitions(partial, saved["counts"], dtype, schema, geospatial, workers, progress)
-    resumed = sum(part.pop("resumed") for part in parts)
-    stored = parts[0]["attributes"]
-    if any(part["attributes"] != stored for part in parts):
-        raise SurfelError(f"{partial}: partitions hold different attributes")
-    top = _top_tree(partial, parts, has_colors, Schema.from_json(stored))
-    nodes = sum(p["nodes"] for p in parts) + top
-    lo = np.min([p["bounds"][0] for p in parts], axis=0)
-    hi = np.max([p["bounds"][1] for p in parts], axis=0)
-    manifest = {"format": DIR_FORMAT, "version": DIR_VERSION, "geospatial": geospatial,
-                "total_points": total, "nodes": nodes, "bounds": [lo.tolist(), hi.tolist()],
-                "colors": has_colors, "attributes": stored, "top_nodes": top,
-                "partitions": [{"name": p["name"], "points": p["points"], "nodes": p["nodes"],
-                                "bounds": p["bounds"], "max_radius": p["radius"]} for p in parts]}
-    shutil.rmtree(partial / "bins", ignore_errors=True)
-    plan_file.unlink()
-    write_json(partial / MANIFEST, manifest)
-    _replace_dir(partial, out)
-    ms = (time.perf_counter() - start) * 1000
-    stats = {"points": total, "nodes": nodes, "partitions": len(parts), "top_nodes": top,
-             "ms": round(ms, 3), "points_per_s": round(total / max(ms / 1000, 1e-9)),
-             "resumed_partitions": resumed, "memory": memory, "partition_cap": cap, "workers": workers}
-    if stats_path is not None:
-        write_json(stats_path, stats)
-    return stats
+    return saved
 
 
 def _build_partitions(partial: Path, counts: list[int], dtype: np.dtype, schema: Schema, geospatial: bool,
-                      workers: int, progress: bool | None) -> list[dict]:
-    """Build every partition not finished yet, `workers` at a time (module docstring); their
-    root summaries, in partition order, each with "resumed" telling whether it was finished."""
+                      pool: ProcessPoolExecutor | None, progress: bool | None) -> list[dict]:
+    """Build every partition not finished yet, in this process or by the pool's workers
+    (module docstring); their root summaries, in partition order, each with "resumed"
+    telling whether it was finished."""
     names = [f"part-{index:05d}" for index in range(len(counts))]
     finished = [(partial / name / "root.json").exists() for name in names]
     todo = [i for i in range(len(counts)) if not finished[i]]
     with _bar(sum(counts), "lod build", progress) as bar:
         bar.update(sum(c for c, done in zip(counts, finished, strict=True) if done))
-        if workers == 1 or len(todo) < 2:
+        if pool is None:
             from .format import warm_up
 
             warm_up()
@@ -335,26 +351,31 @@ def _build_partitions(partial: Path, counts: list[int], dtype: np.dtype, schema:
         else:
             # largest first: the last partitions to finish are small, so no core idles long
             todo.sort(key=lambda i: -counts[i])
-            with ProcessPoolExecutor(min(workers, len(todo)), mp_context=get_context("spawn"),
-                                     initializer=_start_worker) as pool:
-                jobs = {pool.submit(_build_partition, partial, names[i], dtype, schema, geospatial): i
-                        for i in todo}
-                try:
-                    for job in as_completed(jobs):
-                        job.result()
-                        bar.update(counts[jobs[job]])
-                except BaseException:
-                    pool.shutdown(wait=True, cancel_futures=True)
-                    raise
+            jobs = {pool.submit(_build_partition, partial, names[i], dtype, schema, geospatial): i for i in todo}
+            try:
+                for job in as_completed(jobs):
+                    job.result()
+                    bar.update(counts[jobs[job]])
+            except BaseException:
+                pool.shutdown(wait=True, cancel_futures=True)
+                raise
     return [{**json.loads((partial / name / "root.json").read_text()), "resumed": done}
             for name, done in zip(names, finished, strict=True)]
 
 
 def _start_worker() -> None:
-    """A worker builds one partition on one core: the pool gives the parallelism."""
+    """A worker builds one partition at a time on one core (the pool gives the parallelism);
+    it loads its kernels first."""
     import numba
 
+    from ..preprocess import complete
+    from .format import warm_up
+
     numba.set_num_threads(1)
+    warm_up()
+    rng = np.random.default_rng(0)
+    sphere = rng.normal(size=(64, 3))
+    complete(PointCloud(sphere, normals=sphere), progress=False)
 
 
 def _replace_dir(partial: Path, out: Path) -> None:
