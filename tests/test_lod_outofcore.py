@@ -16,7 +16,7 @@ from surfel.cli import main
 from surfel.cloud import PointCloud
 from surfel.errors import InputError, SurfelError
 from surfel.io import load, write_ply
-from surfel.lod import outofcore
+from surfel.lod import binning, outofcore
 from surfel.lod.binning import fine_cells, halo_pairs
 from surfel.lod.lazy import LazyHierarchy
 from surfel.lod.outofcore import (
@@ -153,7 +153,7 @@ def test_partition_borders_match_in_memory(built, tmp_path, monkeypatch):
     worker processes, planned from every point or from a sample; without the halo, border
     points lose neighbours and their radii differ."""
     ply, cloud, lod, _ = built
-    monkeypatch.setattr(outofcore, "HISTOGRAM_SAMPLE", POINTS // 5)  # planned from every fifth point
+    monkeypatch.setattr(binning, "HISTOGRAM_SAMPLE", POINTS // 5)  # planned from every fifth point
     two_workers = MEMORY_OVERHEAD + 2 * WORKER_OVERHEAD + 2 * 10_000 * BYTES_PER_POINT
     pooled = build_outofcore(ply, tmp_path / "pooled.lod", memory=two_workers, progress=False, workers=2)
     assert pooled["workers"] == 2 and pooled["partitions"] >= 4 and pooled["points"] == POINTS
@@ -165,7 +165,7 @@ def test_partition_borders_match_in_memory(built, tmp_path, monkeypatch):
         assert len(np.unique(index)) == len(index) >= 0.999 * POINTS
         np.testing.assert_allclose(radii, cloud.radii[index], rtol=1e-4)
         np.testing.assert_allclose(semi, np.linalg.norm(cloud.axes[index], axis=2), rtol=1e-4, atol=1e-9)
-    monkeypatch.setattr(outofcore, "HALO_SPACINGS", 0.0)
+    monkeypatch.setattr(binning, "HALO_SPACINGS", 0.0)
     build_outofcore(ply, tmp_path / "no_halo.lod", memory=SMALL_MEMORY, progress=False)
     index, radii, _ = leaf_splats(tmp_path / "no_halo.lod", cloud)
     assert (np.abs(radii / cloud.radii[index] - 1) > 1e-3).sum() > 100
