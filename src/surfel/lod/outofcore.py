@@ -260,7 +260,7 @@ def _build_partitions(partial: Path, counts: list[int], dtype: np.dtype, schema:
     todo = [i for i in range(len(counts)) if not finished[i]]
     with progress_bar(sum(counts), "lod build", progress) as bar:
         bar.update(sum(c for c, done in zip(counts, finished, strict=True) if done))
-        if pool is None:
+        if pool is None or len(todo) < 2:  # one partition: this process, on every core
             from .format import warm_up
 
             warm_up()
