@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from scipy.spatial import cKDTree
 
 from models import SPOT
 from surfel.camera import frame
@@ -15,11 +16,13 @@ from surfel.cli import main
 from surfel.cloud import PointCloud
 from surfel.errors import InputError, SurfelError
 from surfel.io import load, write_ply
-from surfel.lod import outofcore
+from surfel.lod import binning, outofcore
+from surfel.lod.binning import fine_cells, halo_pairs
 from surfel.lod.lazy import LazyHierarchy
 from surfel.lod.outofcore import (
     BYTES_PER_POINT,
     MEMORY_OVERHEAD,
+    WORKER_OVERHEAD,
     build_outofcore,
     parse_size,
 )
@@ -127,6 +130,63 @@ def test_point_budget_raises_epsilon(built):
     assert len(cut) <= 3000 and stats["epsilon_used"] > 0.5
     unlimited, _ = source.select(camera, stats["epsilon_used"] * 0.9)
     assert len(unlimited) > 3000 * 0.8
+
+
+def leaf_splats(lod: Path, cloud: PointCloud) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(input index, radius, semi-axis lengths (m, 2)) of every leaf of the hierarchy directory:
+    the leaves are the nodes at the input's positions."""
+    manifest = json.loads((lod / "manifest.json").read_text())
+    index, radii, semi = [], [], []
+    tree = cKDTree(cloud.positions)
+    for part in manifest["partitions"]:
+        distance, nearest = tree.query(np.load(lod / part["name"] / "positions.npy"))
+        leaf = distance == 0
+        index.append(nearest[leaf])
+        radii.append(np.load(lod / part["name"] / "radii.npy")[leaf])
+        semi.append(np.linalg.norm(np.load(lod / part["name"] / "axes.npy")[leaf], axis=2))
+    return np.concatenate(index), np.concatenate(radii), np.concatenate(semi)
+
+
+def test_partition_borders_match_in_memory(built, tmp_path, monkeypatch):
+    """With its halo, every partition's points get the radii and axes of the in-memory build,
+    at the borders too, whether the partitions are built one after the other or by a pool of
+    worker processes, planned from every point or from a sample; without the halo, border
+    points lose neighbours and their radii differ."""
+    ply, cloud, lod, _ = built
+    monkeypatch.setattr(binning, "HISTOGRAM_SAMPLE", POINTS // 5)  # planned from every fifth point
+    two_workers = MEMORY_OVERHEAD + 2 * WORKER_OVERHEAD + 2 * 10_000 * BYTES_PER_POINT
+    pooled = build_outofcore(ply, tmp_path / "pooled.lod", memory=two_workers, progress=False, workers=2)
+    assert pooled["workers"] == 2 and pooled["partitions"] >= 4 and pooled["points"] == POINTS
+    manifest = json.loads((tmp_path / "pooled.lod" / "manifest.json").read_text())
+    assert max(p["points"] for p in manifest["partitions"]) <= pooled["partition_cap"]
+    for built_lod in (lod, tmp_path / "pooled.lod"):
+        index, radii, semi = leaf_splats(built_lod, cloud)
+        # every point is a leaf, once, but crease points (clipped away whole: not stored)
+        assert len(np.unique(index)) == len(index) >= 0.999 * POINTS
+        np.testing.assert_allclose(radii, cloud.radii[index], rtol=1e-4)
+        np.testing.assert_allclose(semi, np.linalg.norm(cloud.axes[index], axis=2), rtol=1e-4, atol=1e-9)
+    monkeypatch.setattr(binning, "HALO_SPACINGS", 0.0)
+    build_outofcore(ply, tmp_path / "no_halo.lod", memory=SMALL_MEMORY, progress=False)
+    index, radii, _ = leaf_splats(tmp_path / "no_halo.lod", cloud)
+    assert (np.abs(radii / cloud.radii[index] - 1) > 1e-3).sum() > 100
+
+
+@pytest.mark.parametrize("halo", [0.3, 1.5])
+def test_halo_pairs_match_their_definition(halo):
+    """A point joins the halo of every other partition with a cell within Chebyshev distance
+    h of it (binning.py), checked against every cell of a small grid."""
+    res = 6
+    rng = np.random.default_rng(1)
+    lookup = rng.integers(-1, 5, res ** 3).astype(np.int32)
+    points = rng.random((400, 3)) * res  # the cube [0, res]^3: cell widths of 1
+    own = lookup[fine_cells(points, np.zeros(3), 1.0, res)]
+    found = set(zip(*(a.tolist() for a in halo_pairs(points, np.zeros(3), 1.0, res, lookup, own, halo)),
+                    strict=True))
+    corner = np.stack(np.meshgrid(*[np.arange(res)] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
+    gap = np.maximum(np.maximum(corner[None] - points[:, None], points[:, None] - corner[None] - 1), 0).max(axis=2)
+    near = (gap <= halo) & (lookup[None] >= 0) & (lookup[None] != own[:, None])
+    expected = {(i, int(lookup[c])) for i, c in zip(*np.nonzero(near), strict=True)}
+    assert found == expected and len(expected) > 50
 
 
 def test_interrupted_build_leaves_no_output_and_resumes(built, tmp_path, monkeypatch):

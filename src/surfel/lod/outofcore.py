@@ -3,26 +3,36 @@ for clouds larger than memory: a hierarchy directory read lazily by `surfel.lod.
 
 The input (binary PLY read in chunks at file offsets, LAS/LAZ through laspy's chunk
 iterator, a directory of such tiles as one cloud; other formats are loaded whole: see
-streaming.py) is read three times and never held in memory:
+streaming.py) is read twice and never held in memory:
 
 1. scan: bounds, for LAS the colour range (8-bit values in 16-bit fields), the kinds of
-   the attributes (streaming.KindVote), and whether the normals hold zero placeholders (the
-   input then counts as having none, as every reader has it: `cloud.file_normals`);
-2. histogram: point counts of the 2^7 x 2^7 x 2^7 cells of the bounding cube; the cube is
-   split octree-wise, a cell being split while it holds more than `cap` points, into
-   partitions (the non-empty leaves of that octree), where
-       cap = (memory - MEMORY_OVERHEAD) / (BYTES_PER_POINT + ATTRIBUTE_COPIES * a)
-   (a: the bytes of one point's attributes) bounds the points one partition's processing
-   holds at once;
-3. binning: each chunk's points, with all their attributes, are appended to their
-   partition's file.
+   the attributes (streaming.KindVote), whether the normals hold zero placeholders (the
+   input then counts as having none, as every reader has it: `cloud.file_normals`), and an
+   even sample of HISTOGRAM_SAMPLE positions (every s-th point, s = ceil(N / HISTOGRAM_SAMPLE);
+   all of them in smaller inputs). The sample's point counts of the 2^7 x 2^7 x 2^7 cells of
+   the bounding cube, times N / (sample size), estimate the histogram; the cube is split
+   octree-wise, a cell being split while it holds more than `cap` points, into partitions
+   (the non-empty leaves of that octree), where
+       cap = (memory - MEMORY_OVERHEAD - w WORKER_OVERHEAD) / (w (BYTES_PER_POINT + ATTRIBUTE_COPIES * a))
+   (a: the bytes of one point's attributes; w: the partitions built at once, `worker_count`,
+   WORKER_OVERHEAD only when w > 1) bounds the points the w partitions' processing holds at
+   once. A sampled histogram is planned with cap (1 - 3 sqrt(s / cap)), three standard
+   errors of a sampled count, and cells where the sample has no point join the partition of
+   the nearest cell that has one;
+2. binning: each chunk's points, with all their attributes, are appended to their
+   partition's file, and to the halo files of the partitions within the halo width h of
+   them (binning.py): h = HALO_SPACINGS sample spacings, the spacing estimated from the
+   median count m of the occupied histogram cells as of an evenly sampled surface,
+   cell / sqrt(m), at most HALO_MAX_CELLS cells.
 
-Each partition is then loaded, completed (radii and tangent axes estimated as for any cloud,
-`preprocess.complete`; normals from the input when it has them), built (`build_lod`),
-sequentialised (`to_sequential_cloud`) and written as raw .npy arrays in sequential order.
-No halo is used: points at a partition border miss their neighbours across it, which only
-widens their covering radii (the Voronoi cell is unbounded on that side) and so cannot
-open holes; it costs some overlap along the seams.
+Each partition is then loaded with its halo, completed (radii and tangent axes estimated as
+for any cloud, `preprocess.complete`; normals from the input when it has them), stripped of
+its halo, built (`build_lod`), sequentialised (`to_sequential_cloud`) and written as raw .npy
+arrays in sequential order. With the halo, the neighbour queries of points at a partition
+border find the neighbours across it, so their radii, axes and clip lines are those of the
+in-memory build (where the halo reaches far enough: two hops of neighbours on an evenly
+sampled surface). Inputs of PARALLEL_MIN_POINTS or more are built by a pool of w worker
+processes, one partition each at a time on one core, largest first.
 
 Top levels: the partition roots become the leaves of a small tree built by the same merge
 rule (`build._merge_cells`, attributes by `build.aggregate_attributes` from the roots'), so
@@ -65,22 +75,23 @@ import json
 import os
 import re
 import shutil
-import sys
 import time
-from dataclasses import dataclass, replace
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from contextlib import ExitStack
+from multiprocessing import get_context
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
 from ..attributes import Schema
-from ..cloud import PointCloud, file_normals, framing_sphere
+from ..cloud import PointCloud
 from ..errors import SurfelError
 from ..files import write_atomically, write_json
 from ..preprocess import INACTIVE_CLIP
+from .binning import bin_input, progress_bar, record_dtype
 from .build import ROOT_PARENT_ERROR, _merge_cells, _next_level, aggregate_attributes, build_lod, morton_codes
 from .sequential import EXTRAS, r_max_bucket, to_sequential_cloud
-from .streaming import KindVote, StreamInput, all_chunks, open_inputs
+from .streaming import StreamInput, open_inputs
 
 DIR_FORMAT = "surfel-lod-dir"
 DIR_VERSION = 1
@@ -93,7 +104,10 @@ BYTES_PER_POINT = 500
 # ... plus this many copies of each point's attributes (the input, up to 2n tree nodes,
 # their sequential copy)
 ATTRIBUTE_COPIES = 5
-HISTOGRAM_BITS = 7
+# memory of each worker process besides its partition (interpreter, numpy/numba/scipy)
+WORKER_OVERHEAD = 400 << 20
+# inputs of at least this many points are built by a pool of worker processes
+PARALLEL_MIN_POINTS = 1_000_000
 _SIZE = re.compile(r"^\s*([0-9]*\.?[0-9]+)\s*([kmgt]?)(i?b)?\s*$", re.IGNORECASE)
 
 
@@ -110,84 +124,35 @@ def parse_size(text: str) -> int:
 # planning
 
 
-@dataclass
-class Plan:
-    """The partitions: cells (level, ix, iy, iz) of the octree over the cube lo + [0, size]^3."""
-
-    lo: np.ndarray
-    size: float
-    cells: list[tuple[int, int, int, int]]
-    counts: list[int]
-
-    def lookup(self) -> np.ndarray:
-        """Partition index of each histogram cell (flattened x-major), -1 where empty."""
-        res = 1 << HISTOGRAM_BITS
-        table = np.full((res, res, res), -1, np.int32)
-        for index, (level, x, y, z) in enumerate(self.cells):
-            s = 1 << (HISTOGRAM_BITS - level)
-            table[x * s:(x + 1) * s, y * s:(y + 1) * s, z * s:(z + 1) * s] = index
-        return table.reshape(-1)
-
-    def fine_cells(self, positions: np.ndarray) -> np.ndarray:
-        res = 1 << HISTOGRAM_BITS
-        q = np.clip(((positions - self.lo) * (res / self.size)).astype(np.int64), 0, res - 1)
-        return (q[:, 0] * res + q[:, 1]) * res + q[:, 2]
-
-
-def _plan(histogram: np.ndarray, lo: np.ndarray, size: float, cap: int) -> Plan:
-    """Split the cube octree-wise while a cell holds more than cap points (see the docstring)."""
-    pyramid = [histogram]
-    while len(pyramid[-1]) > 1:
-        h = pyramid[-1]
-        r = len(h) // 2
-        pyramid.append(h.reshape(r, 2, r, 2, r, 2).sum(axis=(1, 3, 5)))
-    pyramid.reverse()  # pyramid[level]: counts of the 2^level cells per axis
-    cells, counts = [], []
-    stack = [(0, 0, 0, 0)]
-    while stack:
-        level, x, y, z = stack.pop()
-        count = int(pyramid[level][x, y, z])
-        if count == 0:
-            continue
-        if count <= cap or level == HISTOGRAM_BITS:
-            cells.append((level, x, y, z))
-            counts.append(count)
-            continue
-        for child in range(7, -1, -1):
-            stack.append((level + 1, 2 * x + (child >> 2), 2 * y + (child >> 1 & 1), 2 * z + (child & 1)))
-    return Plan(lo, size, cells, counts)
-
-
-def partition_capacity(memory: int, attribute_bytes: int = 0) -> int:
+def partition_capacity(memory: int, attribute_bytes: int = 0, workers: int = 1) -> int:
     """Points one partition may hold under the memory budget, with `attribute_bytes` of
-    attributes per point."""
+    attributes per point, while `workers` processes build one partition each (more than one:
+    each is a process of its own, WORKER_OVERHEAD more)."""
     per_point = BYTES_PER_POINT + ATTRIBUTE_COPIES * attribute_bytes
-    cap = (memory - MEMORY_OVERHEAD) // per_point
+    overhead = MEMORY_OVERHEAD + (workers * WORKER_OVERHEAD if workers > 1 else 0)
+    cap = (memory - overhead) // (workers * per_point)
     if cap < 10_000:
         raise SurfelError(f"--memory {memory >> 20} MB is too small (need at least "
-                          f"{(MEMORY_OVERHEAD + 10_000 * per_point) >> 20} MB)")
+                          f"{(overhead + 10_000 * workers * per_point) >> 20} MB)")
     return int(cap)
+
+
+def worker_count(points: int, memory: int, attribute_bytes: int = 0) -> int:
+    """The partitions built at once: one per core when the input is large enough to pay for
+    starting the worker processes (PARALLEL_MIN_POINTS) and the budget holds them."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    workers = cores if points >= PARALLEL_MIN_POINTS else 1
+    while workers > 1:
+        try:
+            partition_capacity(memory, attribute_bytes, workers)
+            return workers
+        except SurfelError:
+            workers -= 1
+    return 1
 
 
 # --------------------------------------------------------------------------------------------
 # the build
-
-
-def _bar(total: int, desc: str, progress: bool | None) -> tqdm:
-    """A points/s progress bar with ETA (None: only on a terminal)."""
-    show = sys.stderr.isatty() if progress is None else progress
-    return tqdm(total=total, desc=f"surfel: {desc}", unit="pt", unit_scale=True, disable=not show, leave=False)
-
-
-def _record_dtype(has_normals: bool, has_colors: bool, schema: Schema) -> np.dtype:
-    """A binned point: position, normal, colour, and attribute i as field a<i>."""
-    fields = [("p", "<f8", (3,))]
-    if has_normals:
-        fields.append(("n", "<f4", (3,)))
-    if has_colors:
-        fields.append(("c", "<f4", (3,)))
-    fields += [(f"a{i}", spec.dtype, spec.shape) for i, spec in enumerate(schema.values())]
-    return np.dtype(fields)
 
 
 def attribute_key(index: int) -> str:
@@ -196,15 +161,16 @@ def attribute_key(index: int) -> str:
     return f"attribute-{index}"
 
 
-def _input_signature(inputs: list[StreamInput], memory: int) -> dict:
+def _input_signature(inputs: list[StreamInput], memory: int, workers: int) -> dict:
     return {"files": [[i.path, os.path.getsize(i.path), os.path.getmtime(i.path)] for i in inputs],
-            "memory": memory}
+            "memory": memory, "workers": workers}
 
 
 def build_outofcore(in_path: str | os.PathLike, out_path: str | os.PathLike, *, memory: int = 4 << 30,
                     resume: bool = False, progress: bool | None = None,
-                    stats_path: str | os.PathLike | None = None) -> dict:
-    """Build the hierarchy directory `out_path` from `in_path` within `memory` bytes.
+                    stats_path: str | os.PathLike | None = None, workers: int | None = None) -> dict:
+    """Build the hierarchy directory `out_path` from `in_path` within `memory` bytes, building
+    `workers` partitions at once (None: `worker_count`).
 
     Stats: points, nodes, partitions, top_nodes, ms (wall time of the whole build),
     points_per_s, resumed_partitions.
@@ -217,42 +183,26 @@ def build_outofcore(in_path: str | os.PathLike, out_path: str | os.PathLike, *, 
     if out.exists() and not (out / MANIFEST).is_file():
         raise SurfelError(f"{out}: exists and is not a surfel LOD directory; not replacing it")
     inputs = open_inputs(in_path)
-    cap = partition_capacity(memory, sum(spec.dtype.itemsize * spec.components for spec in inputs[0].specs))
-    signature = _input_signature(inputs, memory)
-    plan_file = partial / "plan.json"
-    saved = json.loads(plan_file.read_text()) if resume and plan_file.exists() else None
-    if saved is not None and saved["signature"] != signature:
-        raise SurfelError(f"{partial}: the input or --memory changed since the interrupted build; "
-                          "rerun without --resume")
-    if saved is None:
-        if partial.exists():
-            shutil.rmtree(partial)
-        partial.mkdir(parents=True)
-        try:
-            saved = _bin_input(inputs, partial, cap, signature, progress)
-        except BaseException:  # binning cannot be resumed half way: leave nothing behind
-            shutil.rmtree(partial, ignore_errors=True)
-            raise
-        write_json(plan_file, saved)
+    attribute_bytes = sum(spec.dtype.itemsize * spec.components for spec in inputs[0].specs)
+    if workers is None:
+        workers = worker_count(sum(i.count for i in inputs), memory, attribute_bytes)
+    cap = partition_capacity(memory, attribute_bytes, workers)
+    signature = _input_signature(inputs, memory, workers)
+    with ExitStack() as stack:
+        pool = None
+        if workers > 1:  # started now, so that the workers load their kernels while the input is binned
+            pool = stack.enter_context(ProcessPoolExecutor(workers, mp_context=get_context("spawn"),
+                                                           initializer=_start_worker))
+            for _ in range(workers):
+                pool.submit(int)
+        saved = _plan_and_bin(inputs, partial, cap, signature, resume, progress)
+        has_normals, has_colors = saved["has_normals"], saved["has_colors"]
+        schema = Schema.from_json(saved["schema"])
+        dtype = record_dtype(has_normals, has_colors, schema)
+        parts = _build_partitions(partial, saved["counts"], dtype, schema, saved["geospatial"], pool, progress)
     total = sum(saved["counts"])
-    has_normals, has_colors = saved["has_normals"], saved["has_colors"]
-    schema = Schema.from_json(saved["schema"])
-    dtype = _record_dtype(has_normals, has_colors, schema)
     geospatial = saved["geospatial"]
-
-    from .format import warm_up
-
-    warm_up()
-    parts, resumed = [], 0
-    with _bar(total, "lod build", progress) as bar:
-        for index, count in enumerate(saved["counts"]):
-            name = f"part-{index:05d}"
-            if (partial / name / "root.json").exists():
-                resumed += 1
-            else:
-                _build_partition(partial, name, dtype, schema, geospatial)
-            parts.append(json.loads((partial / name / "root.json").read_text()))
-            bar.update(count)
+    resumed = sum(part.pop("resumed") for part in parts)
     stored = parts[0]["attributes"]
     if any(part["attributes"] != stored for part in parts):
         raise SurfelError(f"{partial}: partitions hold different attributes")
@@ -266,16 +216,85 @@ def build_outofcore(in_path: str | os.PathLike, out_path: str | os.PathLike, *, 
                 "partitions": [{"name": p["name"], "points": p["points"], "nodes": p["nodes"],
                                 "bounds": p["bounds"], "max_radius": p["radius"]} for p in parts]}
     shutil.rmtree(partial / "bins", ignore_errors=True)
-    plan_file.unlink()
+    (partial / "plan.json").unlink()
     write_json(partial / MANIFEST, manifest)
     _replace_dir(partial, out)
     ms = (time.perf_counter() - start) * 1000
     stats = {"points": total, "nodes": nodes, "partitions": len(parts), "top_nodes": top,
              "ms": round(ms, 3), "points_per_s": round(total / max(ms / 1000, 1e-9)),
-             "resumed_partitions": resumed, "memory": memory, "partition_cap": cap}
+             "resumed_partitions": resumed, "memory": memory, "partition_cap": cap, "workers": workers}
     if stats_path is not None:
         write_json(stats_path, stats)
     return stats
+
+
+def _plan_and_bin(inputs: list[StreamInput], partial: Path, cap: int, signature: dict, resume: bool,
+                  progress: bool | None) -> dict:
+    """The plan (plan.json) of the build in `partial`: that of the interrupted build when
+    resuming, else planned and binned now (passes 1 and 2 of the module docstring)."""
+    plan_file = partial / "plan.json"
+    saved = json.loads(plan_file.read_text()) if resume and plan_file.exists() else None
+    if saved is not None and saved["signature"] != signature:
+        raise SurfelError(f"{partial}: the input, --memory or the core count changed since the interrupted build; "
+                          "rerun without --resume")
+    if saved is None:
+        if partial.exists():
+            shutil.rmtree(partial)
+        partial.mkdir(parents=True)
+        try:
+            saved = bin_input(inputs, partial, cap, signature, progress)
+        except BaseException:  # binning cannot be resumed half way: leave nothing behind
+            shutil.rmtree(partial, ignore_errors=True)
+            raise
+        write_json(plan_file, saved)
+    return saved
+
+
+def _build_partitions(partial: Path, counts: list[int], dtype: np.dtype, schema: Schema, geospatial: bool,
+                      pool: ProcessPoolExecutor | None, progress: bool | None) -> list[dict]:
+    """Build every partition not finished yet, in this process or by the pool's workers
+    (module docstring); their root summaries, in partition order, each with "resumed"
+    telling whether it was finished."""
+    names = [f"part-{index:05d}" for index in range(len(counts))]
+    finished = [(partial / name / "root.json").exists() for name in names]
+    todo = [i for i in range(len(counts)) if not finished[i]]
+    with progress_bar(sum(counts), "lod build", progress) as bar:
+        bar.update(sum(c for c, done in zip(counts, finished, strict=True) if done))
+        if pool is None or len(todo) < 2:  # one partition: this process, on every core
+            from .format import warm_up
+
+            warm_up()
+            for i in todo:
+                _build_partition(partial, names[i], dtype, schema, geospatial)
+                bar.update(counts[i])
+        else:
+            # largest first: the last partitions to finish are small, so no core idles long
+            todo.sort(key=lambda i: -counts[i])
+            jobs = {pool.submit(_build_partition, partial, names[i], dtype, schema, geospatial): i for i in todo}
+            try:
+                for job in as_completed(jobs):
+                    job.result()
+                    bar.update(counts[jobs[job]])
+            except BaseException:
+                pool.shutdown(wait=True, cancel_futures=True)
+                raise
+    return [{**json.loads((partial / name / "root.json").read_text()), "resumed": done}
+            for name, done in zip(names, finished, strict=True)]
+
+
+def _start_worker() -> None:
+    """A worker builds one partition at a time on one core (the pool gives the parallelism);
+    it loads its kernels first."""
+    import numba
+
+    from ..preprocess import complete
+    from .format import warm_up
+
+    numba.set_num_threads(1)
+    warm_up()
+    rng = np.random.default_rng(0)
+    sphere = rng.normal(size=(64, 3))
+    complete(PointCloud(sphere, normals=sphere), progress=False)
 
 
 def _replace_dir(partial: Path, out: Path) -> None:
@@ -292,81 +311,25 @@ def _replace_dir(partial: Path, out: Path) -> None:
         old.unlink()
 
 
-def _bin_input(inputs: list[StreamInput], partial: Path, cap: int, signature: dict,
-               progress: bool | None) -> dict:
-    """Passes 1-3 of the module docstring; returns the plan as saved in plan.json."""
-    total = sum(i.count for i in inputs)
-    lo = np.full(3, np.inf)
-    hi = np.full(3, -np.inf)
-    vote = KindVote(inputs)
-    placeholders = False  # zero normals: the input counts as having none (cloud.file_normals)
-    for source in inputs:  # colour ranges of LAS files are needed before the colours are scaled
-        color_max = 0.0
-        with _bar(source.count, f"scan {os.path.basename(source.path)}", progress) as bar:
-            for chunk in source.chunks():
-                lo = np.minimum(lo, chunk.positions.min(axis=0))
-                hi = np.maximum(hi, chunk.positions.max(axis=0))
-                vote.add(chunk)
-                placeholders = placeholders or (chunk.normals is not None and file_normals(chunk.normals) is None)
-                if chunk.colors is not None and source.kind == "las":
-                    color_max = max(color_max, float(chunk.colors.max()))
-                bar.update(len(chunk.positions))
-        if source.kind == "las" and source.has_colors:
-            # chunks were scaled by 1: 8-bit values in 16-bit fields, or real 16-bit ones
-            source.color_scale = 255.0 if color_max <= 255 else 65535.0
-            source.has_colors = color_max > 0
-    size = (float((hi - lo).max()) or 2 * framing_sphere(lo, hi)[1]) * (1 + 1e-9)  # one point: its framing
-    res = 1 << HISTOGRAM_BITS
-    plan = Plan(lo, size, [], [])
-    histogram = np.zeros(res ** 3, np.int64)
-    with _bar(total, "histogram", progress) as bar:
-        for chunk in all_chunks(inputs):
-            histogram += np.bincount(plan.fine_cells(chunk.positions), minlength=res ** 3)
-            bar.update(len(chunk.positions))
-    plan = _plan(histogram.reshape(res, res, res), lo, size, cap)
-    del histogram
-    lookup = plan.lookup()
-    has_normals, has_colors = inputs[0].has_normals and not placeholders, any(i.has_colors for i in inputs)
-    kinds = vote.kinds
-    schema = Schema(replace(spec, kind=kinds[spec.name]) for spec in vote.specs)
-    dtype = _record_dtype(has_normals, has_colors, schema)
-    bins = partial / "bins"
-    bins.mkdir()
-    with _bar(total, "partition", progress) as bar:
-        for chunk in all_chunks(inputs):
-            part = lookup[plan.fine_cells(chunk.positions)]
-            order = np.argsort(part, kind="stable")
-            records = np.empty(len(order), dtype)
-            records["p"] = chunk.positions[order]
-            if has_normals:
-                records["n"] = chunk.normals[order]
-            if has_colors:
-                records["c"] = chunk.colors[order] if chunk.colors is not None else 1.0
-            for i, name in enumerate(schema):
-                records[f"a{i}"] = chunk.attributes[name][order]
-            sorted_part = part[order]
-            bounds = np.flatnonzero(np.diff(sorted_part)) + 1
-            for run in np.split(np.arange(len(order)), bounds):
-                # appended chunk by chunk, so not through write_atomically: scratch files in
-                # the build's own NAME.partial/, which is published only by its final rename
-                with open(bins / f"part-{sorted_part[run[0]]:05d}.bin", "ab") as file:
-                    records[run[0]:run[-1] + 1].tofile(file)
-            bar.update(len(order))
-    return {"signature": signature, "lo": lo.tolist(), "size": size, "cells": plan.cells,
-            "counts": plan.counts, "has_normals": has_normals, "has_colors": has_colors,
-            "schema": schema.to_list(), "geospatial": any(i.geospatial for i in inputs)}
-
-
 def _build_partition(partial: Path, name: str, dtype: np.dtype, schema: Schema, geospatial: bool) -> None:
-    """Complete, build, sequentialise and write one partition; its root summary last."""
+    """Complete, build, sequentialise and write one partition; its root summary last. The
+    partition's points are completed together with its halo (module docstring), which is
+    then dropped."""
     from ..preprocess import complete
 
-    records = np.fromfile(partial / "bins" / f"{name}.bin", dtype)
+    own = np.fromfile(partial / "bins" / f"{name}.bin", dtype)
+    halo_file = partial / "bins" / f"{name}.halo"
+    records = np.concatenate([own, np.fromfile(halo_file, dtype)]) if halo_file.exists() else own
+    count = len(own)
+    del own
     cloud = PointCloud(records["p"], normals=records["n"] if "n" in dtype.names else None,
                        colors=records["c"] if "c" in dtype.names else None, geospatial=geospatial,
                        attributes={spec.name: records[f"a{i}"] for i, spec in enumerate(schema.values())},
                        kinds=schema.kinds, source=name)
     del records
+    cloud, _ = complete(cloud, progress=False)
+    if len(cloud) > count:
+        cloud = cloud.take(slice(0, count))
     cloud, _ = complete(cloud, progress=False)
     points = len(cloud)
     lo, hi = cloud.bounds
@@ -393,6 +356,7 @@ def _build_partition(partial: Path, name: str, dtype: np.dtype, schema: Schema, 
     shutil.rmtree(final, ignore_errors=True)
     os.replace(work, final)
     (partial / "bins" / f"{name}.bin").unlink(missing_ok=True)
+    halo_file.unlink(missing_ok=True)
 
 
 def _save_array(path: Path, value: np.ndarray) -> None:
