@@ -4,7 +4,7 @@
 
 The cloud is `surfel bench`'s (the demo model replicated and jittered to --points); the page
 is exported with the default camera and opens with its point tree at 1 pixel of LOD error,
-so the GL row is `surfel bench --methods deferred --points N --size SxS --lod-error 1`. The
+so the GL row is `surfel bench --methods deferred@gl --points N --size SxS --lod-error 1`. The
 page's time is what it reports itself (window.surfelStats: draw calls to a one-pixel
 readback); Chromium runs WebGL2 on SwiftShader here, the GL path on Mesa's llvmpipe.
 """
@@ -60,7 +60,7 @@ def main():
                 return out; }}""")  # frames of a moving camera: coarser LOD, half resolution
             moving = page.evaluate("({...surfelStats, history: undefined})")
             browser.close()
-    gl = run(cloud, ["deferred"], size=size, frames=args.frames, lod_error=1.0)
+    gl = run(cloud, ["deferred@gl"], size=size, frames=args.frames, lod_error=1.0)
     if args.json:  # benchmarks/readme_numbers.py reads this
         print(json.dumps({"points": len(cloud), "size": size, "page_nodes": report["points"],
                           "page_bytes": report["bytes"], "export_s": export_s, "load_s": load_s,

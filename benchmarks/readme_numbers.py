@@ -245,17 +245,17 @@ def section_demo(ctx: Context) -> str:
 
 
 def section_lod(ctx: Context) -> str:
-    rows = bench(ctx, "--input", ctx.model("bunny"), "--methods", "deferred,points", "--points", "4000000",
-                 "--size", "1024x1024", "--zoom", "4", "--lod-error", "1", "--frames", "3")[0]
-    full = {r["method"]: r for r in rows if "lod" not in r}
-    lod = {r["method"]: r for r in rows if "lod" in r}
-    d_full, d_lod = full["deferred"], lod["deferred"]
-    return (f"Level of detail, {d_full['points'] / 1e6:g}M points at 4x the default distance (`surfel bench "
-            f"--input ../shared/data/stanford-bunny.obj --methods deferred,points --points 4000000 --size 1024x1024 "
-            f"--zoom 4 --lod-error 1 --frames 3`): deferred {d_full['ms']:.0f} ms at full detail, "
-            f"{d_lod['ms']:.0f} ms with `--lod-error 1` ({d_lod['splats']:,} of {d_full['points'] / 1e6:g}M "
-            f"splats drawn: {d_full['ms'] / d_lod['ms']:.0f}x faster); points {full['points']['ms']:.0f} ms and "
-            f"{lod['points']['ms']:.0f} ms.")
+    rows = bench(ctx, "--input", ctx.model("bunny"), "--methods", "deferred@gl,deferred@cpu,points@gl", "--points",
+                 "4000000", "--size", "1024x1024", "--zoom", "4", "--lod-error", "1", "--frames", "3")[0]
+    full = {f"{r['method']}@{r['backend']}": r for r in rows if "lod" not in r}
+    lod = {f"{r['method']}@{r['backend']}": r for r in rows if "lod" in r}
+    points = full["points@gl"]["points"]
+    parts = [f"{name} {full[name]['ms']:.0f} ms at full detail, {lod[name]['ms']:.0f} ms with `--lod-error 1` "
+             f"({full[name]['ms'] / lod[name]['ms']:.0f}x faster)" for name in full]
+    return (f"Level of detail, {points / 1e6:g}M points at 4x the default distance (`surfel bench --input "
+            f"../shared/data/stanford-bunny.obj --methods deferred@gl,deferred@cpu,points@gl --points 4000000 "
+            f"--size 1024x1024 --zoom 4 --lod-error 1 --frames 3`), {lod['points@gl']['splats']:,} of "
+            f"{points / 1e6:g}M splats drawn with `--lod-error 1`: " + "; ".join(parts) + ".")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -437,10 +437,11 @@ def replace_block(text: str, name: str, body: str) -> str:
 
 
 def machine() -> str:
+    from surfel import bench
     from surfel.gl.context import gl_available, renderer_string
 
     renderer = f"OpenGL renderer `{renderer_string()}`" if gl_available() else "no OpenGL"
-    return f"{os.cpu_count()} CPUs, {renderer}, load average {os.getloadavg()[0]:.1f} at the start"
+    return f"{bench.machine()}, {renderer}, load average {os.getloadavg()[0]:.1f} at the start"
 
 
 def footer(name: str, commands: list[str], where: str) -> str:

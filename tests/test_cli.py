@@ -62,6 +62,10 @@ def test_bench_json_rows(tmp_path):
     for r in rows:
         assert {"method", "backend", "points", "width", "height", "ms", "msplats_per_s"} <= set(r)
         assert r["points"] == 20000 and r["ms"] > 0
+        assert " cores of " in r["machine"]
+    table = run("bench", "--methods", "points@gl", "--points", "2000", "--size", "32x32", "--frames", "1")
+    machine, sizes = table.stdout.splitlines()[:2]
+    assert machine == f"machine: {rows[0]['machine']}" and "OpenGL renderer: " in sizes
 
 
 def _bad_inputs(tmp_path):

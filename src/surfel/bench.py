@@ -11,6 +11,8 @@ Renderer, so its caches (GPU buffers, programs, targets) live exactly as long as
 from __future__ import annotations
 
 import json
+import os
+import platform
 import statistics
 import time
 
@@ -71,6 +73,18 @@ def run(cloud: PointCloud, methods: list[str], *, points: int | None = None, siz
     return [_row(data, name, options, results[k], times[k], size, zoom) for k, (name, _, options) in enumerate(runs)]
 
 
+def machine() -> str:
+    """The processor and how many cores this process may use: what the timings depend on."""
+    name = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo") as info:  # Linux names the model here; platform often does not
+            name = next(line.split(":", 1)[1].strip() for line in info if line.startswith("model name"))
+    except (OSError, StopIteration):
+        pass
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    return f"{cores} cores of {name}, {platform.system()} {platform.release()}, Python {platform.python_version()}"
+
+
 def parse_method(spec: str, lod_error: float | None) -> tuple[str, str | None]:
     """NAME or NAME@BACKEND, checked (with --lod-error, only methods that draw splats)."""
     name, _, backend = spec.partition("@")
@@ -85,7 +99,7 @@ def parse_method(spec: str, lod_error: float | None) -> tuple[str, str | None]:
 def _row(data, name, options, result, times, size, zoom) -> dict:
     ms = statistics.median(times)
     row = {"method": name, "backend": result.stats["backend"], "backend_choice": result.stats["backend_choice"],
-           "renderer": result.stats["renderer"],
+           "renderer": result.stats["renderer"], "machine": machine(),
            "points": len(data), "splats": result.stats["splats"], "width": size[0], "height": size[1],
            "ms": round(ms, 2), "msplats_per_s": round(len(data) / ms / 1000, 3), "frames": len(times)}
     if options.lod_error is not None:
@@ -116,7 +130,8 @@ def bench_command(input_path, points, methods: str, frames: int, values: dict, *
     if as_json:
         return json.dumps(rows, indent=2)
     gl = [row["renderer"] for row in rows if row["backend"] == "gl"]
-    lines = [f"{rows[0]['points']} points, {size[0]}x{size[1]}, renderer: {gl[0] if gl else 'cpu'}"]
+    lines = [f"machine: {machine()}", f"{rows[0]['points']} points, {size[0]}x{size[1]}, OpenGL renderer: "
+             f"{gl[0] if gl else 'not used'}"]
     for row in rows:
         lod = f" lod {row['lod']}px" if "lod" in row else ""
         chosen = f"  [{row['backend_choice']}]" if row["backend_choice"] != "asked" else ""
