@@ -15,6 +15,24 @@ def gl_ok() -> bool:
 requires_gl = pytest.mark.skipif(not gl_ok(), reason="no OpenGL context")
 
 
+def invoke(*args):
+    """`surfel ARGS` in this process (click's runner), exceptions propagated."""
+    from click.testing import CliRunner
+
+    from surfel.cli import main
+
+    return CliRunner().invoke(main, [str(a) for a in args], catch_exceptions=False)
+
+
+def assert_refused(result, *words):
+    """Exit status 2 and exactly one line, `surfel: error: ...`, holding `words`."""
+    lines = result.output.strip().splitlines()
+    assert result.exit_code == 2, result.output
+    assert len(lines) == 1 and lines[0].startswith("surfel: error: "), result.output
+    for word in words:
+        assert word in lines[0], (word, lines[0])
+
+
 @pytest.fixture(scope="session")
 def dense_spot():
     """Spot refined to 46,850 vertices (models.dense_spot), completed (radii, tangent axes):

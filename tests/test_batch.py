@@ -8,17 +8,11 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from click.testing import CliRunner
 
-from conftest import requires_gl
-from surfel.cli import main
+from conftest import invoke, requires_gl
 from surfel.errors import SurfelError
 
 SIZE = "128x128"
-
-
-def invoke(*args):
-    return CliRunner().invoke(main, [str(a) for a in args], catch_exceptions=False)
 
 
 def write_jobs(path, jobs):

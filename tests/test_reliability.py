@@ -14,28 +14,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from click.testing import CliRunner
 
-from conftest import requires_gl
-from surfel.cli import main
+from conftest import assert_refused, invoke, requires_gl
 from surfel.errors import InputError, SurfelError
 from surfel.files import write_atomically
 from surfel.io import load
 
 DATA = Path(__file__).parent / "data"
-
-
-def invoke(*args):
-    return CliRunner().invoke(main, [str(a) for a in args], catch_exceptions=False)
-
-
-def assert_refused(result, *words):
-    """Exit status 2 and exactly one line, `surfel: error: ...`, holding `words`."""
-    lines = result.output.strip().splitlines()
-    assert result.exit_code == 2, result.output
-    assert len(lines) == 1 and lines[0].startswith("surfel: error: "), result.output
-    for word in words:
-        assert word in lines[0], (word, lines[0])
 
 
 # ---- 15.1: -o never replaces what is not a regular file ------------------------------------

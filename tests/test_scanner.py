@@ -1,13 +1,13 @@
 """The virtual range scanner (surfel.scan): its samples against the analytic sphere it scans,
 its grazing losses, misregistration and seed, the PLY it writes, and `surfel scan`'s errors."""
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
-from click.testing import CliRunner
 
-from conftest import requires_gl
-from models import unit_sphere
-from surfel.cli import main
+from conftest import assert_refused, invoke, requires_gl
+from models import SPOT, unit_sphere
 from surfel.io import load, write_ply
 from surfel.scan import ScanSettings, scan, view_directions
 
@@ -17,6 +17,22 @@ pytestmark = requires_gl
 @pytest.fixture(scope="module")
 def sphere():
     return unit_sphere()
+
+
+@pytest.fixture(scope="module")
+def scanned_spot():
+    """Spot, its scan with the default noise and misregistration, and the mesh's lambert render
+    from the front, with the Renderer that made it."""
+    from surfel.camera import frame
+    from surfel.options import RenderOptions
+    from surfel.rendering import Renderer
+
+    mesh = load(SPOT)
+    camera = frame(mesh.center, mesh.bounding_radius, size=(384, 384))
+    options = RenderOptions(shading="lambert", background=(0.0, 0.0, 0.0))
+    renderer = Renderer()
+    return SimpleNamespace(mesh=mesh, cloud=scan(mesh), camera=camera, options=options, renderer=renderer,
+                           reference=renderer.render(mesh, camera, "mesh", options=options))
 
 
 def radial_error(cloud) -> np.ndarray:
@@ -90,13 +106,12 @@ def test_the_seed_reproduces_a_scan(sphere):
 
 def test_cli_writes_a_scan_with_its_sensors(tmp_path):
     out = tmp_path / "scan.ply"
-    result = CliRunner().invoke(main, ["scan", "tests/data/spot.obj", "-o", str(out), "--views", "3",
-                                       "--resolution", "64", "--seed", "2"])
+    result = invoke("scan", SPOT, "-o", out, "--views", "3", "--resolution", "64", "--seed", "2")
     assert result.exit_code == 0, result.output
     cloud = load(str(out))
     assert cloud.normals is None and cloud.sensors.shape == (3, 3)
     assert cloud.attributes["scan"].max() == 2
-    direct = scan(load("tests/data/spot.obj"), ScanSettings(views=3, resolution=64, seed=2))
+    direct = scan(load(SPOT), ScanSettings(views=3, resolution=64, seed=2))
     assert np.array_equal(cloud.positions, direct.positions)
     assert np.array_equal(cloud.sensors, direct.sensors)
 
@@ -111,22 +126,16 @@ def test_cli_writes_a_scan_with_its_sensors(tmp_path):
 ])
 def test_cli_refuses_bad_options(tmp_path, args, message):
     out = tmp_path / "scan.ply"
-    result = CliRunner().invoke(main, ["scan", "tests/data/spot.obj", "-o", str(out), *args])
-    assert result.exit_code == 2
-    lines = result.output.strip().splitlines()
-    assert len(lines) == 1 and message in lines[0]
+    assert_refused(invoke("scan", SPOT, "-o", out, *args), message)
     assert not out.exists()
 
 
 def test_cli_refuses_a_point_cloud_and_a_wrong_output(tmp_path):
     points = tmp_path / "points.ply"
-    result = CliRunner().invoke(main, ["scan", "tests/data/spot.obj", "-o", str(points), "--views", "1",
-                                       "--resolution", "32"])
+    result = invoke("scan", SPOT, "-o", points, "--views", "1", "--resolution", "32")
     assert result.exit_code == 0
-    again = CliRunner().invoke(main, ["scan", str(points), "-o", str(tmp_path / "b.ply")])
-    assert again.exit_code == 2 and "needs a mesh" in again.output
-    wrong = CliRunner().invoke(main, ["scan", "tests/data/spot.obj", "-o", str(tmp_path / "b.png")])
-    assert wrong.exit_code == 2 and "name it .ply" in wrong.output
+    assert_refused(invoke("scan", points, "-o", tmp_path / "b.ply"), "needs a mesh")
+    assert_refused(invoke("scan", SPOT, "-o", tmp_path / "b.png"), "name it .ply")
 
 
 def test_an_object_scan_is_surface_throughout(sphere):
@@ -141,22 +150,14 @@ def test_an_object_scan_is_surface_throughout(sphere):
     assert inside_report["screen_facing"] > 0
 
 
-def test_a_scanned_model_renders_close_to_its_mesh():
+def test_a_scanned_model_renders_close_to_its_mesh(scanned_spot):
     """Spot scanned with the default noise and misregistration, rendered from the front: within
     issue 17's bar (27 dB) of the mesh's render, without holes."""
-    from surfel.camera import frame
     from surfel.metrics import compare_results
-    from surfel.options import RenderOptions
-    from surfel.rendering import Renderer
 
-    mesh = load("tests/data/spot.obj")
-    cloud = scan(mesh)
-    camera = frame(mesh.center, mesh.bounding_radius, size=(384, 384))
-    options = RenderOptions(shading="lambert", background=(0.0, 0.0, 0.0))
-    renderer = Renderer()
-    reference = renderer.render(mesh, camera, "mesh", options=options)
+    s = scanned_spot
     for method in ("deferred", "phong"):
-        metrics = compare_results(reference, renderer.render(cloud, camera, method, options=options))
+        metrics = compare_results(s.reference, s.renderer.render(s.cloud, s.camera, method, options=s.options))
         assert metrics["psnr"] > 27 and metrics["holes"] < 0.001, (method, metrics)
 
 
@@ -167,7 +168,7 @@ def test_scanned_normals_select_their_scale():
 
     from surfel.preprocess import estimate_normals, prepare
 
-    mesh = load("tests/data/spot.obj")
+    mesh = load(SPOT)
     cloud = scan(mesh, ScanSettings(views=4, resolution=192))
     _, nearest = cKDTree(mesh.positions).query(cloud.positions)
     truth = mesh.normals[nearest]
@@ -182,22 +183,15 @@ def test_scanned_normals_select_their_scale():
     assert np.median(error(prepared.normals)) < 0.9 * np.median(error(plain))
 
 
-def test_render_smooth_brings_a_scan_closer_to_its_mesh(tmp_path):
+def test_render_smooth_brings_a_scan_closer_to_its_mesh(scanned_spot, tmp_path):
     """`surfel render --smooth` on a scan of Spot: deferred's render comes closer to the mesh's
     than without it; a level-of-detail source refuses it."""
-    from surfel.camera import frame
     from surfel.metrics import compare_results
-    from surfel.options import RenderOptions
-    from surfel.rendering import Renderer
     from surfel.request import parse_render
 
-    mesh = load("tests/data/spot.obj")
-    cloud = scan(mesh)
-    camera = frame(mesh.center, mesh.bounding_radius, size=(384, 384))
-    options = RenderOptions(shading="lambert", background=(0.0, 0.0, 0.0))
-    renderer = Renderer()
-    reference = renderer.render(mesh, camera, "mesh", options=options)
-    raw = compare_results(reference, renderer.render(cloud, camera, "deferred", options=options))
+    cloud, camera, renderer, reference = (scanned_spot.cloud, scanned_spot.camera, scanned_spot.renderer,
+                                          scanned_spot.reference)
+    raw = compare_results(reference, renderer.render(cloud, camera, "deferred", options=scanned_spot.options))
     request = parse_render({"input": "scan.ply", "output": "x.png", "smooth": True, "shading": "lambert",
                             "background": "0,0,0"})
     assert request.options.smooth
@@ -207,9 +201,9 @@ def test_render_smooth_brings_a_scan_closer_to_its_mesh(tmp_path):
     assert metrics["psnr"] > raw["psnr"] + 1 and metrics["holes"] < 0.001
     lod = tmp_path / "spot.lod"  # a lazy source, read node by node
     write_ply(cloud, tmp_path / "spot.ply")
-    assert CliRunner().invoke(main, ["lod", "build", str(tmp_path / "spot.ply"), "-o", str(lod)]).exit_code == 0
-    refused = CliRunner().invoke(main, ["render", str(lod), "-o", str(tmp_path / "x.png"), "--smooth"])
-    assert refused.exit_code == 2 and "smoothing applies to clouds loaded whole" in refused.output
+    assert invoke("lod", "build", tmp_path / "spot.ply", "-o", lod).exit_code == 0
+    assert_refused(invoke("render", lod, "-o", tmp_path / "x.png", "--smooth"),
+                   "smoothing applies to clouds loaded whole")
 
 
 def test_ply_carries_the_sensors(tmp_path):

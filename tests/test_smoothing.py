@@ -4,10 +4,9 @@ removed against an analytic surface, creases and thin sheets kept, the command's
 from __future__ import annotations
 
 import numpy as np
-from click.testing import CliRunner
 
+from conftest import invoke
 from samples import sphere
-from surfel.cli import main
 from surfel.cloud import PointCloud
 from surfel.io import load, write_ply
 from surfel.preprocess import prepare
@@ -65,7 +64,7 @@ def test_prepare_smooth_command(tmp_path):
     noisy = sphere(20_000, noise=0.004)
     source, out = tmp_path / "noisy.ply", tmp_path / "smooth.ply"
     write_ply(PointCloud(noisy), source)
-    result = CliRunner().invoke(main, ["prepare", str(source), "-o", str(out), "--smooth"])
+    result = invoke("prepare", source, "-o", out, "--smooth")
     assert result.exit_code == 0, result.output
     smoothed = load(str(out))
     error = np.abs(np.linalg.norm(smoothed.positions, axis=1) - 1).mean()

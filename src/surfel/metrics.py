@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 from scipy import ndimage
+from scipy.spatial import cKDTree
 
 
 def psnr(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None = None) -> float:
@@ -98,8 +99,6 @@ def top_view_footprint(result, camera, positions: np.ndarray, distinct: bool = F
     """(far, uncovered) of a top orthographic view of a tile (module docstring). The spacing
     is the median horizontal nearest-neighbour distance, or with `distinct` the distance to
     the nearest return elsewhere (coincident returns would make it 0)."""
-    from scipy.spatial import cKDTree
-
     xy = np.asarray(positions, np.float64)[:, :2]
     tree = cKDTree(xy)
     distances, _ = tree.query(xy, k=min(8, len(xy)))
