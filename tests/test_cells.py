@@ -1,4 +1,4 @@
-"""Tangent-plane cells: hole-free radii and ellipses, tangent frames, cells and clip lines at creases."""
+"""Tangent-plane cells: hole-free radii and ellipses, tangent frames, clip lines at creases and borders."""
 
 from __future__ import annotations
 
@@ -7,7 +7,15 @@ import pytest
 
 from samples import coverage, covered_by, dense_samples, edge_wedge, nn_spacing, scan_lines, sphere, unit
 from surfel.cloud import PointCloud
-from surfel.preprocess import estimate_normals, estimate_radii, fit_ellipses, fit_normal_field, prepare, tangent_frames
+from surfel.preprocess import (
+    INACTIVE_CLIP,
+    estimate_normals,
+    estimate_radii,
+    fit_ellipses,
+    fit_normal_field,
+    prepare,
+    tangent_frames,
+)
 
 # --- radii and ellipses: hole-free coverage of the true surface ---------------------------------
 
@@ -139,3 +147,57 @@ def test_smooth_surfaces_get_no_clip_lines():
     prepared, report = prepare(PointCloud(p, normals=p))
     lines = prepared.attributes.get("clip_lines")
     assert lines is None or (lines[:, :, 2] >= 1).all()
+
+
+# --- borders of open surfaces ------------------------------------------------------------------
+
+
+def _open_sheet(h: float = 0.05):
+    """A flat unit square (z = 0, normal +z) sampled on a grid of spacing h, jittered inside and
+    along its four straight borders, as a mesh's vertices sample an open sheet."""
+    rng = np.random.default_rng(11)
+    s = np.arange(0, 1 + 1e-9, h)
+    x, y = (g.ravel() for g in np.meshgrid(s, s, indexing="ij"))
+    inner_x, inner_y = (0 < x) & (x < 1), (0 < y) & (y < 1)
+    x = x + np.where(inner_x, rng.uniform(-0.2 * h, 0.2 * h, x.size), 0.0) * inner_y
+    y = y + np.where(inner_y, rng.uniform(-0.2 * h, 0.2 * h, y.size), 0.0) * inner_x
+    points = np.stack([x, y, np.zeros(x.size)], 1)
+    return PointCloud(points, normals=np.tile([0.0, 0, 1], (len(points), 1)))
+
+
+def test_open_sheets_end_at_their_border():
+    """The splats of an open sheet end at its border line instead of spilling past it by
+    their radius, and the sheet stays covered up to the border."""
+    h = 0.05
+    prepared, _ = prepare(_open_sheet(h))
+    everything = np.arange(len(prepared))
+    rng = np.random.default_rng(12)
+    beyond = np.stack([rng.uniform(1 + 0.05 * h, 1 + 2 * h, 4000), rng.uniform(0.1, 0.9, 4000), np.zeros(4000)], 1)
+    assert covered_by(prepared, everything, beyond).mean() < 0.01
+    inside = np.stack([rng.uniform(0, 1, 20000), rng.uniform(0, 1, 20000), np.zeros(20000)], 1)
+    assert covered_by(prepared, everything, inside).all()
+    # without the border lines the same splats spill past the border
+    inactive = np.broadcast_to(np.float32(INACTIVE_CLIP), prepared.attributes["clip_lines"].shape)
+    whole = prepared.with_(attributes={**prepared.attributes, "clip_lines": inactive})
+    assert covered_by(whole, everything, beyond).mean() > 0.5
+
+
+def test_closed_surfaces_and_aerial_scans_have_no_borders():
+    """Neither a sphere, nor a sampling much denser on one side than the other, nor aerial
+    LiDAR scan lines 30 times farther apart than the points on a line has border lines; the
+    same lines taken for an object scan would have them."""
+    rng = np.random.default_rng(13)
+    p = sphere(2000, seed=3)
+    dense = p[p[:, 2] > 0.3]
+    sparse = p[p[:, 2] <= 0.3][::6]
+    for points in [p, np.concatenate([dense, sparse])]:
+        prepared, _ = prepare(PointCloud(points, normals=points))
+        lines = prepared.attributes.get("clip_lines")
+        assert lines is None or (lines[:, :, 2] >= 1).all()
+    xy = scan_lines(rng, 0.3, line=1.0, along=0.03, half=6.0)
+    interior = np.abs(xy).max(axis=1) < 4
+    for geospatial in (True, False):
+        cloud = PointCloud(np.c_[xy, np.zeros(len(xy))], normals=np.tile([0.0, 0, 1], (len(xy), 1)),
+                           geospatial=geospatial)
+        lines = prepare(cloud)[0].attributes["clip_lines"]
+        assert (lines[interior, :, 2] >= 1).all() == geospatial

@@ -6,7 +6,8 @@ One module per estimation, each citing its source, with its tuning constants at 
                      viewpoint
   frames.py          circular splat axes: tangent frames (Duff et al. 2017)
   cells.py           tangent-plane Voronoi cells: covering radii and ellipses (Botsch et al.
-                     2004), cut at creases, and the splats' clip lines there
+                     2004), cut at creases, and the splats' clip lines there and at the
+                     borders of open surfaces
   sharp_features.py  flat points and crease points (Zwicker et al. 2002, Pauly et al. 2003)
   normal_field.py    Phong splatting's linear normal fields (Botsch et al. 2004)
   structure.py       points on no surface (vegetation, wires, noise; Demantké et al. 2011) and

@@ -44,6 +44,20 @@ creases: `sharp_features.py`):
     fragment (the GPU methods in the splat's plane, EWA as pixel half-planes through its
     Jacobian). The cell kernels and the clip lines share the crease geometry, so they share this
     module: numba's on-disk cache does not see a change to a function in another file.
+
+Borders of open surfaces (as the boundary clipping of Pauly et al. 2003):
+    a disk centred on a sheet's last row of samples spills past the sheet's edge by its radius,
+    which grows the outline of every open surface (a flat part, cloth, a scanned patch). A point
+    is on a border when its neighbours, projected into its tangent plane, leave an angular gap of
+    at least BORDER_GAP (an interior point of a regular sampling sees gaps of about 60 degrees),
+    and no second gap over INTERIOR_GAP (a scan line seen from one of its points); confirmed
+    among its BORDER_CONFIRM nearest neighbours, because a sampling far denser on one side (a
+    CAD mesh's vertices crowd at its curves) leaves a gap towards the sparse side among the
+    nearest ones. Not where a neighbour faces away (n_p . n_q < SHEET_COS: the surface folds
+    back, a thin closed part). Its outward direction w is the middle of the gap, and its border
+    line (X - q) . w <= 0 through the point q is a clip-line candidate of every splat near it,
+    beside the creases. Aerial scan lines (geospatial clouds) have no borders: a line with the
+    next line on one side only looks like one.
 """
 
 from __future__ import annotations
@@ -52,6 +66,7 @@ import math
 
 import numba
 import numpy as np
+from scipy.spatial import cKDTree
 
 from ..cloud import PointCloud
 from .chunked import map_chunks
@@ -74,6 +89,9 @@ CAP_SIDES = 8                  # a cell starts as a regular octagon inscribed in
 CLIP_LINES = 2                 # clip lines per splat: an edge, or an edge and a corner
 INACTIVE_CLIP = (0.0, 0.0, 1.0)  # 0 u + 0 v <= 1: cuts nothing
 PARALLEL_COS = math.cos(math.radians(30.0))  # clip lines closer in direction are one edge
+BORDER_GAP = math.radians(120.0)   # neighbours leaving a gap this wide: p is on a border
+INTERIOR_GAP = math.radians(100.0)  # ... unless another gap is this wide too (a scan line)
+BORDER_CONFIRM = 64                 # neighbours among which a border is confirmed
 
 
 # ---------------------------------------------------------------------------------------------
@@ -378,6 +396,88 @@ def _crease_candidates(points, normals, index, axes, i, p, features, candidates)
     return count
 
 
+@numba.njit(parallel=True, cache=True)
+def _border_outwards(points, normals, index, rows, frames):  # pragma: no cover - compiled
+    """Per point rows[i], the unit tangent (3,) pointing out of the surface if the point lies on
+    the border of an open surface, else zero.
+
+    A point is on a border when its neighbours, projected into its tangent plane (t, s) =
+    frames[i], leave one angular gap wider than BORDER_GAP while every other gap stays below
+    INTERIOR_GAP (two wide gaps: a scan line, not a border); outwards is the middle of the gap.
+    A neighbour facing away (n_p . n_q < SHEET_COS) means the surface folds back here (a thin
+    closed part, sampled too coarsely to show its rim): no border, the splat keeps its overlap."""
+    m, k = index.shape
+    outwards = np.zeros((m, 3))
+    for i in numba.prange(m):
+        p = rows[i]
+        angles = np.empty(k)
+        used = 0
+        folded = False
+        for j in range(k):
+            q = index[i, j]
+            facing = 0.0
+            x = 0.0
+            y = 0.0
+            for a in range(3):
+                facing += normals[q, a] * normals[p, a]
+                d = points[q, a] - points[p, a]
+                x += d * frames[i, 0, a]
+                y += d * frames[i, 1, a]
+            if facing < SHEET_COS:
+                folded = True
+            if q == p or facing < SHEET_COS or (x == 0.0 and y == 0.0):
+                continue
+            angles[used] = math.atan2(y, x)
+            used += 1
+        if used < 3 or folded:
+            continue
+        order = np.sort(angles[:used])
+        widest = 0.0
+        second = 0.0
+        middle = 0.0
+        for j in range(used):
+            following = order[j + 1] if j + 1 < used else order[0] + 2.0 * math.pi
+            gap = following - order[j]
+            if gap > widest:
+                second = widest
+                widest = gap
+                middle = order[j] + 0.5 * gap
+            elif gap > second:
+                second = gap
+        if widest >= BORDER_GAP and second <= INTERIOR_GAP:
+            co = math.cos(middle)
+            si = math.sin(middle)
+            for a in range(3):
+                outwards[i, a] = co * frames[i, 0, a] + si * frames[i, 1, a]
+    return outwards
+
+
+@numba.njit(cache=True, inline="always")
+def _border_candidates(points, index, axes, i, p, outwards, candidates, count):  # pragma: no cover - compiled
+    """Append the border half-planes that cut splat p as unit (a, b, c) rows of candidates in its
+    axes (u, v) = axes[i]: for each neighbour q on a border (its own included), the side of the
+    line through q across its outward direction w_q that holds the surface,
+    (p + u u_axis + v v_axis - q) . w_q <= 0. Returns the new count."""
+    for j in range(index.shape[1]):
+        q = index[i, j]
+        wa = 0.0
+        wb = 0.0
+        inside = 0.0
+        for a in range(3):
+            wa += axes[i, 0, a] * outwards[q, a]
+            wb += axes[i, 1, a] * outwards[q, a]
+            inside += (points[q, a] - points[p, a]) * outwards[q, a]
+        length = math.sqrt(wa * wa + wb * wb)
+        # no border, a border seen edge-on, p beyond it (a concave border), or a line missing the splat
+        if length < 1e-6 or inside < 0.0 or inside >= length:
+            continue
+        candidates[count, 0] = wa / length
+        candidates[count, 1] = wb / length
+        candidates[count, 2] = inside / length
+        count += 1
+    return count
+
+
 @numba.njit(cache=True, inline="always")
 def _nearest_creases(candidates, count, lines, i):  # pragma: no cover - compiled
     """Fill lines[i] (CLIP_LINES, 3) with the most restrictive candidates (smallest c), each
@@ -400,9 +500,10 @@ def _nearest_creases(candidates, count, lines, i):  # pragma: no cover - compile
 
 
 @numba.njit(parallel=True, cache=True)
-def _clip_lines(points, normals, index, start, axes, features):  # pragma: no cover - compiled
+def _clip_lines(points, normals, index, start, axes, features, outwards):  # pragma: no cover - compiled
     """CLIP_LINES clip lines (a, b, c) per splat, in its local coordinates (u, v) (1 on the rim):
-    the crease half-planes that end its cell. A dropped splat keeps nothing (u <= -2, -u <= -2)."""
+    the crease half-planes that end its cell and the border lines of its neighbours (`outwards`).
+    A dropped splat keeps nothing (u <= -2, -u <= -2)."""
     m = index.shape[0]
     lines = np.empty((m, CLIP_LINES, 3), np.float32)
     for i in numba.prange(m):
@@ -417,8 +518,9 @@ def _clip_lines(points, normals, index, start, axes, features):  # pragma: no co
                 lines[i, line, 1] = INACTIVE_CLIP[1]
                 lines[i, line, 2] = INACTIVE_CLIP[2]
         if not features.crease[p]:
-            candidates = np.empty((index.shape[1], 3))  # allocated here: an array returned costs as much
+            candidates = np.empty((2 * index.shape[1], 3))  # allocated here: an array returned costs as much
             count = _crease_candidates(points, normals, index, axes, i, p, features, candidates)
+            count = _border_candidates(points, index, axes, i, p, outwards, candidates, count)
             _nearest_creases(candidates, count, lines, i)
     return lines
 
@@ -515,16 +617,36 @@ def covering_ellipses(nbh: Neighbourhood, normals: np.ndarray, progress: bool | 
     return _cells(nbh, normals, k, True, progress, features, True)[1]
 
 
+def border_outwards(nbh: Neighbourhood, normals: np.ndarray, index: np.ndarray, progress: bool | None) -> np.ndarray:
+    """(N, 3): the outward unit tangent of each point on the border of an open surface, zero
+    elsewhere, in the neighbourhood's order. Points that look like borders among their nearest
+    neighbours `index` are confirmed among their BORDER_CONFIRM nearest: in a sampling much denser
+    on one side (a CAD mesh's vertices crowd at its curves), the nearest neighbours alone leave a
+    gap towards the sparse side where the surface goes on."""
+    n = len(nbh.points)
+    outwards = map_chunks(lambda start, stop: _border_outwards(nbh.points, normals, index[start:stop],
+                                                               np.arange(start, stop),
+                                                               orthonormal_basis(normals[start:stop])),
+                          n, progress, "borders")
+    candidates = np.flatnonzero(outwards.any(axis=1))
+    if len(candidates) and n > index.shape[1]:
+        _, wide = cKDTree(nbh.points).query(nbh.points[candidates], k=min(BORDER_CONFIRM, n))
+        outwards[candidates] = _border_outwards(nbh.points, normals, wide, candidates,
+                                                orthonormal_basis(normals[candidates]))
+    return outwards
+
+
 def clip_lines(nbh: Neighbourhood, normals: np.ndarray, axes: np.ndarray, features: SharpFeatures,
-               progress: bool | None, k: int = RADIUS_NEIGHBOURS) -> np.ndarray:
+               progress: bool | None, k: int = RADIUS_NEIGHBOURS, borders: bool = True) -> np.ndarray:
     """Clip lines (N, CLIP_LINES, 3) float32 of the splats (normals, axes), in the
-    neighbourhood's order."""
+    neighbourhood's order: at creases, and at the borders of open surfaces if `borders`."""
     index = nbh.first(k)
     normals = unit(np.asarray(normals, np.float64))
+    outwards = border_outwards(nbh, normals, index, progress) if borders else np.zeros((len(nbh.points), 3))
 
     def chunk(start: int, stop: int) -> np.ndarray:
         return _clip_lines(nbh.points, normals, index[start:stop], start, np.asarray(axes[start:stop], np.float64),
-                           features)
+                           features, outwards)
 
     return map_chunks(chunk, len(nbh.points), progress, "sharp features")
 

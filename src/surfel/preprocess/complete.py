@@ -16,7 +16,8 @@ FIELD_NEIGHBOURS), serves every estimation, in this order, each using the ones b
   5. axes: fitted ellipses (`cells.py`) or circular tangent frames of the radii (`frames.py`);
   6. the sampling bound on both (`spacing.py`), and the radii of the screen-facing splats
      (`structure.py`);
-  7. clip lines at the sharp features (`cells.py`), none on screen-facing splats;
+  7. clip lines at the sharp features and at the borders of open surfaces (`cells.py`), none
+     on screen-facing splats;
   8. Phong splatting's normal fields (`normal_field.py`), flat on screen-facing splats.
 
 Given attributes are kept as they are.
@@ -84,7 +85,8 @@ def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np
     is `reference_spacing` (N,) when the caller knows it (a COPC node's), else its model's.
     normal_field: also fit attributes["phong_alpha"], attributes["phong_beta"] if missing.
     sharp_features: when radii and axes are estimated, cells end at creases and
-    attributes["clip_lines"] (N, CLIP_LINES, 3) cut the splats there (`cells.py`).
+    attributes["clip_lines"] (N, CLIP_LINES, 3) cut the splats there and at the borders of open
+    surfaces (`cells.py`).
     Given attributes are kept as they are. The report names every estimated attribute and
     how, plus "ambiguous_normals" when normals were estimated, "screen_facing" (how many
     points face the camera) and "splat_bound" (the spacing model and how many splats it capped).
@@ -178,12 +180,12 @@ def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np
         estimated["axes"] = axes
     changes = {name: nbh.unsort(np.asarray(value, np.float32)) for name, value in estimated.items()}
     if features is not None:
-        lines = clip_lines(nbh, normals, axes, features, progress)
+        lines = clip_lines(nbh, normals, axes, features, progress, borders=not cloud.geospatial)
         if facing is not None:
             lines[facing] = INACTIVE_CLIP  # a disk facing the camera has no crease to end at
         attributes["clip_lines"] = nbh.unsort(lines)
         report["sharp_features"] = (f"{float(np.mean(lines[:, 0, 2] < 1)):.1%} of splats end at creases "
-                                    f"(normals > {SHARP_ANGLE:g} degrees apart), "
+                                    f"(normals > {SHARP_ANGLE:g} degrees apart) or borders, "
                                     f"{int(features.crease.sum())} crease points dropped")
     if need_field:
         alpha, beta = field_slopes(nbh, normals, axes, progress)
