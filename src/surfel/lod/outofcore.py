@@ -72,6 +72,7 @@ NAME. An interrupted build leaves only NAME.partial/ (never a complete-looking N
 from __future__ import annotations
 
 import json
+import math
 import os
 import re
 import shutil
@@ -81,6 +82,7 @@ from contextlib import ExitStack
 from multiprocessing import get_context
 from pathlib import Path
 
+import numba
 import numpy as np
 
 from ..attributes import Schema
@@ -368,20 +370,36 @@ def _root_summary(tree) -> dict:
     enclosing radius, normal slab and area weight of all its leaf disks (module docstring)."""
     root = tree.root
     c, n = tree.positions[root], tree.normals[root].astype(np.float64)
-    leaves = slice(0, tree.n_leaves)
-    d = tree.positions[leaves] - c
-    dn = d @ n
-    r = tree.radii[leaves].astype(np.float64)
-    s = np.linalg.norm(np.cross(tree.normals[leaves].astype(np.float64), n), axis=1)
-    if tree.screen_facing is not None:  # a disk facing the camera reaches r every way
-        s = np.where(tree.screen_facing[leaves] > 0.5, 1.0, s)
-    radial = np.linalg.norm(d - dn[:, None] * n, axis=1)
-    axes = tree.axes[leaves].astype(np.float64)
-    weight = float((np.linalg.norm(axes[:, 0], axis=1) * np.linalg.norm(axes[:, 1], axis=1)).sum())
+    leaves = tree.n_leaves
+    facing = tree.screen_facing[:leaves] if tree.screen_facing is not None else np.zeros(0, np.float32)
+    enclosing, low, high, weight = _leaf_bounds(tree.positions[:leaves], tree.normals[:leaves], tree.radii[:leaves],
+                                                tree.axes[:leaves], facing, c, n)
     return {"center": c.tolist(), "normal": n.tolist(),
             "color": None if tree.colors is None else tree.colors[root].tolist(),
-            "e_g": float(tree.e_g[root]), "enclosing": float(max((radial + r).max(), tree.radii[root])),
-            "slab": [float((dn - r * s).min()), float((dn + r * s).max())], "weight": weight}
+            "e_g": float(tree.e_g[root]), "enclosing": float(max(enclosing, tree.radii[root])),
+            "slab": [low, high], "weight": weight}
+
+
+@numba.njit(cache=True)
+def _leaf_bounds(positions, normals, radii, axes, facing, c, n):  # pragma: no cover - compiled
+    """(max_i |d_i - dn_i n| + r_i, min_i dn_i - r_i s_i, max_i dn_i + r_i s_i, sum_i |u_i| |v_i|)
+    over the leaf disks (module docstring; s_i = 1 for a disk facing the camera)."""
+    enclosing, low, high, weight = 0.0, np.inf, -np.inf, 0.0
+    for i in range(len(positions)):
+        dx, dy, dz = positions[i, 0] - c[0], positions[i, 1] - c[1], positions[i, 2] - c[2]
+        dn = dx * n[0] + dy * n[1] + dz * n[2]
+        r = np.float64(radii[i])
+        mx, my, mz = np.float64(normals[i, 0]), np.float64(normals[i, 1]), np.float64(normals[i, 2])
+        cx, cy, cz = my * n[2] - mz * n[1], mz * n[0] - mx * n[2], mx * n[1] - my * n[0]
+        sine = 1.0 if len(facing) and facing[i] > 0.5 else math.sqrt(cx * cx + cy * cy + cz * cz)
+        rx, ry, rz = dx - dn * n[0], dy - dn * n[1], dz - dn * n[2]
+        enclosing = max(enclosing, math.sqrt(rx * rx + ry * ry + rz * rz) + r)
+        low = min(low, dn - r * sine)
+        high = max(high, dn + r * sine)
+        u = math.sqrt(np.float64(axes[i, 0, 0]) ** 2 + np.float64(axes[i, 0, 1]) ** 2 + np.float64(axes[i, 0, 2]) ** 2)
+        v = math.sqrt(np.float64(axes[i, 1, 0]) ** 2 + np.float64(axes[i, 1, 1]) ** 2 + np.float64(axes[i, 1, 2]) ** 2)
+        weight += u * v
+    return enclosing, low, high, weight
 
 
 def _top_tree(partial: Path, parts: list[dict], has_colors: bool, stored: Schema) -> int:
