@@ -3,7 +3,8 @@ for clouds larger than memory: a hierarchy directory read lazily by `surfel.lod.
 
 The input (binary PLY read in chunks at file offsets, LAS/LAZ through laspy's chunk
 iterator, a directory of such tiles as one cloud; other formats are loaded whole: see
-streaming.py) is read twice and never held in memory:
+streaming.py) is read twice and never held in memory, each chunk read by a background thread
+while the one before is processed (`streaming.read_ahead`):
 
 1. scan: bounds, for LAS the colour range (8-bit values in 16-bit fields), the kinds of
    the attributes (streaming.KindVote), whether the normals hold zero placeholders (the
@@ -16,8 +17,10 @@ streaming.py) is read twice and never held in memory:
        cap = (memory - MEMORY_OVERHEAD - w WORKER_OVERHEAD) / (w (BYTES_PER_POINT + ATTRIBUTE_COPIES * a))
    (a: the bytes of one point's attributes; w: the partitions built at once, `worker_count`,
    WORKER_OVERHEAD only when w > 1) bounds the points the w partitions' processing holds at
-   once. A sampled histogram is planned with cap (1 - 3 sqrt(s / cap)), three standard
-   errors of a sampled count, and cells where the sample has no point join the partition of
+   once; with w > 1, cap is at most N / (PARTITIONS_PER_WORKER w), so that no worker idles
+   while another builds a large last partition (one partition in this process uses the
+   cores far less well). A sampled histogram is planned with cap (1 - 3 sqrt(s / cap)),
+   three standard errors of a sampled count, and cells where the sample has no point join the partition of
    the nearest cell that has one;
 2. binning: each chunk's points, with all their attributes, are appended to their
    partition's file, and to the halo files of the partitions within the halo width h of
@@ -110,6 +113,8 @@ ATTRIBUTE_COPIES = 5
 WORKER_OVERHEAD = 400 << 20
 # inputs of at least this many points are built by a pool of worker processes
 PARALLEL_MIN_POINTS = 1_000_000
+# ... in at least this many partitions per worker (largest first: the last ones are small)
+PARTITIONS_PER_WORKER = 4
 _SIZE = re.compile(r"^\s*([0-9]*\.?[0-9]+)\s*([kmgt]?)(i?b)?\s*$", re.IGNORECASE)
 
 
@@ -189,6 +194,8 @@ def build_outofcore(in_path: str | os.PathLike, out_path: str | os.PathLike, *, 
     if workers is None:
         workers = worker_count(sum(i.count for i in inputs), memory, attribute_bytes)
     cap = partition_capacity(memory, attribute_bytes, workers)
+    if workers > 1:  # enough partitions for every worker to stay busy to the end
+        cap = min(cap, -(-sum(i.count for i in inputs) // (PARTITIONS_PER_WORKER * workers)))
     signature = _input_signature(inputs, memory, workers)
     with ExitStack() as stack:
         pool = None
