@@ -243,7 +243,10 @@ def cell_width(points: np.ndarray, k: int) -> float:
 def k_nearest(points: np.ndarray, k: int, workers: int = -1) -> tuple[np.ndarray, np.ndarray]:
     """(order, index): the points' Morton cell order, and the k nearest neighbours (int32,
     nearest first, the point itself first) of each point points[order[i]] as indices i into
-    that order. points: (N, 3) float64, 1 <= k <= N; workers: threads of the k-d tree fallback."""
+    that order. points: (N, 3) float64, 1 <= k <= N < 2^31; workers: threads of the k-d tree
+    fallback."""
+    if len(points) >= 2**31:
+        raise ValueError(f"{len(points)} points: the neighbour search indexes fewer than 2^31")
     h = cell_width(points, k)
     lo = points.min(axis=0)
     keys = cell_keys(points, lo, 1.0 / h)

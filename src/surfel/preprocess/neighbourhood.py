@@ -44,8 +44,8 @@ class Neighbourhood:
     @classmethod
     def build(cls, positions: np.ndarray, k: int, workers: int = -1,
               progress: bool | None = None) -> Neighbourhood:
-        """The k nearest neighbours (at most N) of each of `positions` (N, 3), with `workers`
-        threads (-1: all cores)."""
+        """The k nearest neighbours (at most N) of each of `positions` (N, 3), N < 2^31; the
+        grid search runs on numba's threads, its k-d tree fallback on `workers` (-1: all cores)."""
         if not isinstance(k, (int, np.integer)) or isinstance(k, bool) or k < 1:
             raise TypeError(f"k must be a positive integer, got {type(k).__name__} {k!r:.40}")
         centred = as_points(positions)
