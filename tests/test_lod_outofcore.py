@@ -27,6 +27,7 @@ from surfel.lod.outofcore import (
     parse_size,
 )
 from surfel.lod.source import is_source, open_source
+from surfel.lod.streaming import read_ahead
 from surfel.metrics import compare_results
 from surfel.preprocess import complete
 from surfel.rendering import render
@@ -262,3 +263,28 @@ def test_parse_size():
     assert parse_size("4GB") == 4 << 30 and parse_size("512mb") == 512 << 20 and parse_size("1000") == 1000
     with pytest.raises(SurfelError):
         parse_size("lots")
+
+
+def test_read_ahead_keeps_order_raises_read_errors_and_stops_early():
+    import threading
+
+    assert list(read_ahead(iter(range(50)))) == list(range(50))
+
+    def failing():
+        yield 1
+        raise InputError("x.ply", "truncated PLY body")
+
+    with pytest.raises(InputError, match="truncated"):
+        list(read_ahead(failing()))
+    read = []
+
+    def endless():
+        for value in range(10**9):
+            read.append(value)
+            yield value
+
+    chunks = read_ahead(endless())
+    assert next(chunks) == 0
+    chunks.close()  # the caller stops: the reader thread ends, having read at most a few ahead
+    assert len(read) <= 4
+    assert not any(t.name == "surfel-read-ahead" for t in threading.enumerate())

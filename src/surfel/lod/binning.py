@@ -35,7 +35,7 @@ from tqdm import tqdm
 
 from ..attributes import Schema
 from ..cloud import file_normals, framing_sphere
-from .streaming import KindVote, StreamInput, all_chunks
+from .streaming import KindVote, StreamInput, all_chunks, read_ahead
 
 HISTOGRAM_BITS = 7
 # points of the input sampled evenly for the histogram (all of them in smaller inputs)
@@ -231,7 +231,7 @@ def bin_input(inputs: list[StreamInput], partial: Path, cap: int, signature: dic
     for source in inputs:  # colour ranges of LAS files are needed before the colours are scaled
         color_max = 0.0
         with progress_bar(source.count, f"scan {os.path.basename(source.path)}", progress) as bar:
-            for chunk in source.chunks():
+            for chunk in read_ahead(source.chunks()):
                 lo = np.minimum(lo, chunk.positions.min(axis=0))
                 hi = np.maximum(hi, chunk.positions.max(axis=0))
                 samples.append(chunk.positions[::stride].copy())
@@ -267,7 +267,7 @@ def bin_input(inputs: list[StreamInput], partial: Path, cap: int, signature: dic
     groups = len(plan.cells)
     counts = np.zeros(groups, np.int64)
     with progress_bar(total, "partition", progress) as bar:
-        for chunk in all_chunks(inputs):
+        for chunk in read_ahead(all_chunks(inputs)):
             part = lookup[fine_cells(chunk.positions, lo, scale, res)]
             order, starts = group_by(part, groups)
             counts += np.diff(starts)

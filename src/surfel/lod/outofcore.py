@@ -3,7 +3,8 @@ for clouds larger than memory: a hierarchy directory read lazily by `surfel.lod.
 
 The input (binary PLY read in chunks at file offsets, LAS/LAZ through laspy's chunk
 iterator, a directory of such tiles as one cloud; other formats are loaded whole: see
-streaming.py) is read twice and never held in memory:
+streaming.py) is read twice and never held in memory, each chunk read by a background thread
+while the one before is processed (`streaming.read_ahead`):
 
 1. scan: bounds, for LAS the colour range (8-bit values in 16-bit fields), the kinds of
    the attributes (streaming.KindVote), whether the normals hold zero placeholders (the
@@ -16,8 +17,10 @@ streaming.py) is read twice and never held in memory:
        cap = (memory - MEMORY_OVERHEAD - w WORKER_OVERHEAD) / (w (BYTES_PER_POINT + ATTRIBUTE_COPIES * a))
    (a: the bytes of one point's attributes; w: the partitions built at once, `worker_count`,
    WORKER_OVERHEAD only when w > 1) bounds the points the w partitions' processing holds at
-   once. A sampled histogram is planned with cap (1 - 3 sqrt(s / cap)), three standard
-   errors of a sampled count, and cells where the sample has no point join the partition of
+   once; with w > 1, cap is at most N / (PARTITIONS_PER_WORKER w), so that no worker idles
+   while another builds a large last partition (one partition in this process uses the
+   cores far less well). A sampled histogram is planned with cap (1 - 3 sqrt(s / cap)),
+   three standard errors of a sampled count, and cells where the sample has no point join the partition of
    the nearest cell that has one;
 2. binning: each chunk's points, with all their attributes, are appended to their
    partition's file, and to the halo files of the partitions within the halo width h of
@@ -72,6 +75,7 @@ NAME. An interrupted build leaves only NAME.partial/ (never a complete-looking N
 from __future__ import annotations
 
 import json
+import math
 import os
 import re
 import shutil
@@ -81,6 +85,7 @@ from contextlib import ExitStack
 from multiprocessing import get_context
 from pathlib import Path
 
+import numba
 import numpy as np
 
 from ..attributes import Schema
@@ -108,6 +113,8 @@ ATTRIBUTE_COPIES = 5
 WORKER_OVERHEAD = 400 << 20
 # inputs of at least this many points are built by a pool of worker processes
 PARALLEL_MIN_POINTS = 1_000_000
+# ... in at least this many partitions per worker (largest first: the last ones are small)
+PARTITIONS_PER_WORKER = 4
 _SIZE = re.compile(r"^\s*([0-9]*\.?[0-9]+)\s*([kmgt]?)(i?b)?\s*$", re.IGNORECASE)
 
 
@@ -187,6 +194,8 @@ def build_outofcore(in_path: str | os.PathLike, out_path: str | os.PathLike, *, 
     if workers is None:
         workers = worker_count(sum(i.count for i in inputs), memory, attribute_bytes)
     cap = partition_capacity(memory, attribute_bytes, workers)
+    if workers > 1:  # enough partitions for every worker to stay busy to the end
+        cap = min(cap, -(-sum(i.count for i in inputs) // (PARTITIONS_PER_WORKER * workers)))
     signature = _input_signature(inputs, memory, workers)
     with ExitStack() as stack:
         pool = None
@@ -368,20 +377,36 @@ def _root_summary(tree) -> dict:
     enclosing radius, normal slab and area weight of all its leaf disks (module docstring)."""
     root = tree.root
     c, n = tree.positions[root], tree.normals[root].astype(np.float64)
-    leaves = slice(0, tree.n_leaves)
-    d = tree.positions[leaves] - c
-    dn = d @ n
-    r = tree.radii[leaves].astype(np.float64)
-    s = np.linalg.norm(np.cross(tree.normals[leaves].astype(np.float64), n), axis=1)
-    if tree.screen_facing is not None:  # a disk facing the camera reaches r every way
-        s = np.where(tree.screen_facing[leaves] > 0.5, 1.0, s)
-    radial = np.linalg.norm(d - dn[:, None] * n, axis=1)
-    axes = tree.axes[leaves].astype(np.float64)
-    weight = float((np.linalg.norm(axes[:, 0], axis=1) * np.linalg.norm(axes[:, 1], axis=1)).sum())
+    leaves = tree.n_leaves
+    facing = tree.screen_facing[:leaves] if tree.screen_facing is not None else np.zeros(0, np.float32)
+    enclosing, low, high, weight = _leaf_bounds(tree.positions[:leaves], tree.normals[:leaves], tree.radii[:leaves],
+                                                tree.axes[:leaves], facing, c, n)
     return {"center": c.tolist(), "normal": n.tolist(),
             "color": None if tree.colors is None else tree.colors[root].tolist(),
-            "e_g": float(tree.e_g[root]), "enclosing": float(max((radial + r).max(), tree.radii[root])),
-            "slab": [float((dn - r * s).min()), float((dn + r * s).max())], "weight": weight}
+            "e_g": float(tree.e_g[root]), "enclosing": float(max(enclosing, tree.radii[root])),
+            "slab": [low, high], "weight": weight}
+
+
+@numba.njit(cache=True)
+def _leaf_bounds(positions, normals, radii, axes, facing, c, n):  # pragma: no cover - compiled
+    """(max_i |d_i - dn_i n| + r_i, min_i dn_i - r_i s_i, max_i dn_i + r_i s_i, sum_i |u_i| |v_i|)
+    over the leaf disks (module docstring; s_i = 1 for a disk facing the camera)."""
+    enclosing, low, high, weight = 0.0, np.inf, -np.inf, 0.0
+    for i in range(len(positions)):
+        dx, dy, dz = positions[i, 0] - c[0], positions[i, 1] - c[1], positions[i, 2] - c[2]
+        dn = dx * n[0] + dy * n[1] + dz * n[2]
+        r = np.float64(radii[i])
+        mx, my, mz = np.float64(normals[i, 0]), np.float64(normals[i, 1]), np.float64(normals[i, 2])
+        cx, cy, cz = my * n[2] - mz * n[1], mz * n[0] - mx * n[2], mx * n[1] - my * n[0]
+        sine = 1.0 if len(facing) and facing[i] > 0.5 else math.sqrt(cx * cx + cy * cy + cz * cz)
+        rx, ry, rz = dx - dn * n[0], dy - dn * n[1], dz - dn * n[2]
+        enclosing = max(enclosing, math.sqrt(rx * rx + ry * ry + rz * rz) + r)
+        low = min(low, dn - r * sine)
+        high = max(high, dn + r * sine)
+        u = math.sqrt(np.float64(axes[i, 0, 0]) ** 2 + np.float64(axes[i, 0, 1]) ** 2 + np.float64(axes[i, 0, 2]) ** 2)
+        v = math.sqrt(np.float64(axes[i, 1, 0]) ** 2 + np.float64(axes[i, 1, 1]) ** 2 + np.float64(axes[i, 1, 2]) ** 2)
+        weight += u * v
+    return enclosing, low, high, weight
 
 
 def _top_tree(partial: Path, parts: list[dict], has_colors: bool, stored: Schema) -> int:

@@ -16,6 +16,8 @@ values in the whole input is categorical).
 from __future__ import annotations
 
 import os
+import queue
+import threading
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -26,6 +28,7 @@ from ..attributes import CATEGORICAL, CONTINUOUS, DERIVED, MAX_CATEGORIES, Attri
 from ..errors import InputError, SurfelError
 
 CHUNK_POINTS = 2_000_000
+READ_AHEAD = 1  # chunks read ahead of the one processed (read_ahead)
 
 
 @dataclass
@@ -235,6 +238,44 @@ def open_inputs(path: str | os.PathLike) -> list[StreamInput]:
 def all_chunks(inputs: list[StreamInput]) -> Iterator[Chunk]:
     for source in inputs:
         yield from source.chunks()
+
+
+def read_ahead(chunks: Iterator[Chunk]) -> Iterator[Chunk]:
+    """The chunks, the next one read by a background thread while the caller processes the
+    last: the reads (file I/O, numpy's conversions, LAZ decoding) release the GIL, so they run
+    on the other core. At most READ_AHEAD chunks wait; a read's error is raised in the caller."""
+    waiting: queue.Queue = queue.Queue(maxsize=READ_AHEAD)
+    stop = threading.Event()
+    finished = object()
+
+    def hand_over(item) -> bool:
+        while not stop.is_set():
+            try:
+                waiting.put(item, timeout=0.05)
+                return True
+            except queue.Full:
+                continue
+        return False
+
+    def read() -> None:
+        try:
+            for chunk in chunks:
+                if not hand_over(chunk):
+                    return
+            hand_over(finished)
+        except BaseException as error:  # raised again in the caller's thread
+            hand_over(error)
+
+    reader = threading.Thread(target=read, name="surfel-read-ahead", daemon=True)
+    reader.start()
+    try:
+        while (item := waiting.get()) is not finished:
+            if isinstance(item, BaseException):
+                raise item
+            yield item
+    finally:
+        stop.set()
+        reader.join()
 
 
 class KindVote:

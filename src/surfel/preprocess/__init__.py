@@ -18,8 +18,9 @@ One module per estimation, each citing its source, with its tuning constants at 
   complete.py        `prepare`: fill in what a cloud lacks; `complete`: the one policy for what
                      a method gets estimated
 
-They share two steps: `neighbourhood.py`, the k nearest neighbours in the k-d tree's leaf order,
-and `chunked.py`, the chunked, progress-reporting loop every per-point kernel runs in.
+They share two steps: `neighbourhood.py`, the k nearest neighbours (`grid_knn.py`, a grid of
+Morton-ordered cells) in that cell order, and `chunked.py`, the chunked, progress-reporting loop
+every per-point kernel runs in.
 
 Memory stays bounded: the neighbour lists (N x k indices) and the propagation graph are the
 only O(N k) arrays; all per-neighbour work runs in numba kernels (parallel over points) in

@@ -26,10 +26,9 @@ def map_chunks(function: Callable[[int, int], np.ndarray | tuple[np.ndarray, ...
     (n, ...) arrays come back, with the dtypes and trailing shapes of the first chunk's.
     progress: None shows a bar named `desc` above PROGRESS_MIN_POINTS points; True/False force it.
     """
-    show = n > PROGRESS_MIN_POINTS if progress is None else bool(progress)
     outputs: tuple[np.ndarray, ...] = ()
     single = False
-    with tqdm(total=n, desc=f"surfel: {desc}", unit="pt", unit_scale=True, disable=not show, leave=False) as bar:
+    with progress_bar(n, desc, progress) as bar:
         for start in range(0, n, CHUNK):
             stop = min(start + CHUNK, n)
             parts = function(start, stop)
@@ -41,3 +40,9 @@ def map_chunks(function: Callable[[int, int], np.ndarray | tuple[np.ndarray, ...
                 output[start:stop] = part
             bar.update(stop - start)
     return outputs[0] if single else outputs
+
+
+def progress_bar(n: int, desc: str, progress: bool | None) -> tqdm:
+    """A points/s bar named `desc` over n points (progress as `map_chunks`'s)."""
+    show = n > PROGRESS_MIN_POINTS if progress is None else bool(progress)
+    return tqdm(total=n, desc=f"surfel: {desc}", unit="pt", unit_scale=True, disable=not show, leave=False)

@@ -1,14 +1,16 @@
 """The k nearest neighbours of every point, the step every estimation starts from.
 
-The neighbours come from a k-d tree (scipy's cKDTree, Maneewongvatana & Mount's sliding
-midpoint rule), and the points are kept in the tree's leaf order: a point's neighbours then lie
-close to it in memory, which makes the queries and every gather of the kernels several times
-faster than in the input's order. `Neighbourhood.sort` takes a per-point array into that order,
-`unsort` back into the input's. Positions are made relative to their centroid, so that
-georeferenced coordinates (hundreds of kilometres from their origin) keep their precision.
+The neighbours come from a uniform grid of Morton-ordered cells (`grid_knn.py`, exact, about
+half the CPU time of a k-d tree's queries on scanned surfaces), and the points are kept in that cell order:
+a point's neighbours then lie close to it in memory, which makes every gather of the kernels
+several times faster than in the input's order. Widening the neighbourhood queries a k-d tree
+(scipy's cKDTree, Maneewongvatana & Mount's sliding midpoint rule). `Neighbourhood.sort`
+takes a per-point array into that order, `unsort` back into the input's. Positions are made
+relative to their centroid, so that georeferenced coordinates (hundreds of kilometres from
+their origin) keep their precision.
 
-Memory: the neighbour lists (N x k indices) are the only O(N k) array; they are queried in
-chunks (`chunked.map_chunks`).
+Memory: the neighbour lists (N x k int32 indices) are the only O(N k) array; widening queries
+them in chunks (`chunked.map_chunks`).
 """
 
 from __future__ import annotations
@@ -18,7 +20,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .chunked import map_chunks
+from .chunked import map_chunks, progress_bar
+from .grid_knn import k_nearest
 
 
 def as_points(positions: np.ndarray) -> np.ndarray:
@@ -35,31 +38,24 @@ class Neighbourhood:
     the k-d tree's leaf order, positions relative to their centroid."""
 
     points: np.ndarray  # (N, 3) float64, sorted
-    index: np.ndarray   # (N, k) int32 or int64 into the sorted points
+    index: np.ndarray   # (N, k) int32 into the sorted points
     order: np.ndarray   # (N,) input index of each sorted point
 
     @classmethod
     def build(cls, positions: np.ndarray, k: int, workers: int = -1,
               progress: bool | None = None) -> Neighbourhood:
-        """The k nearest neighbours (at most N) of each of `positions` (N, 3), with `workers`
-        threads (-1: all cores)."""
+        """The k nearest neighbours (at most N) of each of `positions` (N, 3), N < 2^31; the
+        grid search runs on numba's threads, its k-d tree fallback on `workers` (-1: all cores)."""
         if not isinstance(k, (int, np.integer)) or isinstance(k, bool) or k < 1:
             raise TypeError(f"k must be a positive integer, got {type(k).__name__} {k!r:.40}")
         centred = as_points(positions)
         centred = centred - centred.mean(axis=0)
         n = len(centred)
         k = max(1, min(k, n))
-        tree = cKDTree(centred, balanced_tree=False)  # sliding midpoint: 3x faster to build, faster queries
-        order = tree.indices
-        rank = np.empty(n, np.int32 if n < 2**31 else np.int64)
-        rank[order] = np.arange(n)
-        points = centred[order]
-
-        def query(start: int, stop: int) -> np.ndarray:
-            _, found = tree.query(points[start:stop], k=k, workers=workers)
-            return rank[found.reshape(stop - start, k)]
-
-        return cls(points, map_chunks(query, n, progress, "neighbours"), order)
+        with progress_bar(n, "neighbours", progress) as bar:
+            order, index = k_nearest(centred, k, workers)
+            bar.update(n)
+        return cls(np.ascontiguousarray(centred[order]), index, order)
 
     def widened(self, k: int, workers: int = -1, progress: bool | None = None) -> Neighbourhood:
         """The same points, in the same order, with their k nearest neighbours (self if it has

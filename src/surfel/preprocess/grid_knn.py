@@ -1,0 +1,274 @@
+"""Exact k nearest neighbours on a uniform grid of Morton-ordered cells, compiled with numba.
+
+The cell technique of Bentley, Stanat & Williams (1977, "The complexity of finding fixed-radius
+near neighbors"), with the cells in Morton (Z) order (Morton 1966) so that neighbouring cells,
+and the points in them, lie close together in memory.
+
+Cells: with cell width h and lo the minimum corner of the points, point p lies in the cell
+q = floor((p - lo) / h) (per axis, 0 <= q < 2^21), keyed by the Morton code of q (its bits
+interleaved). The points are sorted by key, so each occupied cell is one run of them.
+
+Search: a point p of cell q scans the 3 x 3 x 3 block of cells around q (gathered once per
+cell for all its points) and keeps its k nearest candidates. Every point not scanned lies
+outside the block, at least
+
+    m = min over axes a of min(p_a - lo_a - (q_a - 1) h, lo_a + (q_a + 2) h - p_a)
+
+away, so the k found are the k nearest when the k-th lies within m. Otherwise the shells of
+cells at Chebyshev distance r = 2, 3, ... RINGS are scanned too (m grows by h each), and a
+point still unresolved after them (an outlier far from the rest) is queried in a k-d tree
+(scipy's cKDTree) instead, as is every point when some cell holds more than MAX_CELL points
+(many coincident points, which no cell width separates).
+
+Cell width: the mean number of points per occupied cell c(h) is measured at two coarse widths
+h0 and h0 / 2; c grows as h^e (e = 2 on a surface, 3 in a volume), so e = log2(c(h0) / c(h0/2))
+(clamped to [1, 3]), and h is chosen so that c(h) = k / CELL_SHARE: about the k nearest within
+one cell width of a point on a surface.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+from scipy.spatial import cKDTree
+
+MORTON_BITS = 21       # bits of a cell coordinate per axis (3 x 21 in an int64 key)
+CELL_SHARE = 2.0       # points per occupied cell: k / this (measured fastest on scanned surfaces)
+COARSE_CELLS = 64      # cells along the longest side of the first occupancy measurement
+RINGS = 3              # shells of cells scanned around a point before the k-d tree takes over
+RUN_BATCH = 256        # cells searched per parallel task
+MAX_CELL = 4096        # more points in one cell (coincident points): the k-d tree for all
+# the 3 x 3 x 3 block's cell offsets, nearest first: the nearest fill the k first
+BLOCK_OFFSETS = np.array(sorted(((x, y, z) for x in (-1, 0, 1) for y in (-1, 0, 1) for z in (-1, 0, 1)),
+                                key=lambda o: abs(o[0]) + abs(o[1]) + abs(o[2])), np.int64)
+
+
+@numba.njit(cache=True, inline="always")
+def _spread(v):  # pragma: no cover - compiled
+    """The 21 low bits of v moved to every third bit."""
+    v &= 0x1FFFFF
+    v = (v | v << 32) & 0x1F00000000FFFF
+    v = (v | v << 16) & 0x1F0000FF0000FF
+    v = (v | v << 8) & 0x100F00F00F00F00F
+    v = (v | v << 4) & 0x10C30C30C30C30C3
+    v = (v | v << 2) & 0x1249249249249249
+    return v
+
+
+@numba.njit(cache=True, inline="always")
+def _key(qx, qy, qz):  # pragma: no cover - compiled
+    return (_spread(qx) << 2) | (_spread(qy) << 1) | _spread(qz)
+
+
+@numba.njit(cache=True, inline="always")
+def _cell(value, lo, inv_h):  # pragma: no cover - compiled
+    return min(max(np.int64(math.floor((value - lo) * inv_h)), 0), (1 << MORTON_BITS) - 1)
+
+
+@numba.njit(parallel=True, cache=True)
+def cell_keys(points, lo, inv_h):  # pragma: no cover - compiled
+    """Morton key (int64) of the cell of each point."""
+    keys = np.empty(len(points), np.int64)
+    for i in numba.prange(len(points)):
+        keys[i] = _key(_cell(points[i, 0], lo[0], inv_h), _cell(points[i, 1], lo[1], inv_h),
+                       _cell(points[i, 2], lo[2], inv_h))
+    return keys
+
+
+@numba.njit(cache=True)
+def _occupied(points, lo, inv_h, res):  # pragma: no cover - compiled
+    """Number of occupied cells of a res^3 grid."""
+    seen = np.zeros(res * res * res, np.uint8)
+    count = 0
+    for i in range(len(points)):
+        flat = 0
+        for axis in range(3):
+            flat = flat * res + min(max(np.int64(math.floor((points[i, axis] - lo[axis]) * inv_h)), 0), res - 1)
+        count += 1 - seen[flat]
+        seen[flat] = 1
+    return count
+
+
+@numba.njit(cache=True)
+def _runs(keys):  # pragma: no cover - compiled
+    """Start of each run of equal sorted keys (and len(keys) last)."""
+    count = 1
+    for i in range(1, len(keys)):
+        count += keys[i] != keys[i - 1]
+    starts = np.empty(count + 1, np.int64)
+    starts[0] = 0
+    run = 1
+    for i in range(1, len(keys)):
+        if keys[i] != keys[i - 1]:
+            starts[run] = i
+            run += 1
+    starts[count] = len(keys)
+    return starts
+
+
+@numba.njit(cache=True, inline="always")
+def _find(cell_key, run_keys):  # pragma: no cover - compiled
+    """Run index of a cell key, -1 if that cell is empty."""
+    at = np.searchsorted(run_keys, cell_key)
+    return at if at < len(run_keys) and run_keys[at] == cell_key else -1
+
+
+@numba.njit(cache=True, inline="always")
+def _gap(offset, d, h):  # pragma: no cover - compiled
+    """Squared distance along one axis from a point at `offset` in its cell to the cell d away."""
+    if d == 0:
+        return 0.0
+    g = offset - (d + 1) * h if d < 0 else d * h - offset
+    return g * g if g > 0.0 else 0.0
+
+
+@numba.njit(cache=True, inline="always")
+def _scan(points, i, start, stop, best_d, best_i, count, k):  # pragma: no cover - compiled
+    """Offer points start:stop to point i's sorted k best; returns the new count."""
+    px, py, pz = points[i, 0], points[i, 1], points[i, 2]
+    for j in range(start, stop):
+        if j == i:
+            continue
+        dx = points[j, 0] - px
+        dy = points[j, 1] - py
+        dz = points[j, 2] - pz
+        d = dx * dx + dy * dy + dz * dz
+        if count == k and d >= best_d[k - 1]:
+            continue
+        slot = count if count < k else k - 1
+        while slot > 0 and best_d[slot - 1] > d:
+            best_d[slot] = best_d[slot - 1]
+            best_i[slot] = best_i[slot - 1]
+            slot -= 1
+        best_d[slot] = d
+        best_i[slot] = j
+        if count < k:
+            count += 1
+    return count
+
+
+@numba.njit(cache=True)
+def _search_run(points, starts, run_keys, run, lo, h, k, index, best_d, best_i, block):  # pragma: no cover - compiled
+    """Rows of index for the points of one cell (a run of the sorted points): the 3 x 3 x 3
+    block around it, gathered once into block (start, stop, dx, dy, dz), then shells of cells
+    while the k-th found may lie nearer outside (module docstring); -1 in column 0 where the
+    shells up to RINGS do not settle it."""
+    top = (1 << MORTON_BITS) - 1
+    inv_h = 1.0 / h
+    first = starts[run]
+    qx = _cell(points[first, 0], lo[0], inv_h)
+    qy = _cell(points[first, 1], lo[1], inv_h)
+    qz = _cell(points[first, 2], lo[2], inv_h)
+    blocks = 0
+    for o in range(27):
+        dx, dy, dz = BLOCK_OFFSETS[o, 0], BLOCK_OFFSETS[o, 1], BLOCK_OFFSETS[o, 2]
+        cx, cy, cz = qx + dx, qy + dy, qz + dz
+        if min(cx, cy, cz) < 0 or max(cx, cy, cz) > top:
+            continue
+        found = _find(_key(cx, cy, cz), run_keys)
+        if found >= 0:
+            block[blocks, 0] = starts[found]
+            block[blocks, 1] = starts[found + 1]
+            block[blocks, 2] = dx
+            block[blocks, 3] = dy
+            block[blocks, 4] = dz
+            blocks += 1
+    for i in range(first, starts[run + 1]):
+        best_d[0] = -1.0  # the point itself, first
+        best_i[0] = i
+        count = 1
+        fx = (points[i, 0] - lo[0]) - qx * h  # the point's offset in its cell
+        fy = (points[i, 1] - lo[1]) - qy * h
+        fz = (points[i, 2] - lo[2]) - qz * h
+        for b in range(blocks):
+            # a cell farther than the k-th found holds none of the k nearest
+            if count == k and _gap(fx, block[b, 2], h) + _gap(fy, block[b, 3], h) + \
+                    _gap(fz, block[b, 4], h) >= best_d[k - 1]:
+                continue
+            count = _scan(points, i, block[b, 0], block[b, 1], best_d, best_i, count, k)
+        margin = min(fx + h, 2.0 * h - fx, fy + h, 2.0 * h - fy, fz + h, 2.0 * h - fz)
+        ring = 1
+        while (count < k or best_d[k - 1] > margin * margin) and ring < RINGS:
+            ring += 1
+            for dx in range(-ring, ring + 1):
+                for dy in range(-ring, ring + 1):
+                    for dz in range(-ring, ring + 1):
+                        cx, cy, cz = qx + dx, qy + dy, qz + dz
+                        if max(abs(dx), abs(dy), abs(dz)) != ring or min(cx, cy, cz) < 0 or max(cx, cy, cz) > top:
+                            continue
+                        found = _find(_key(cx, cy, cz), run_keys)
+                        if found >= 0:
+                            count = _scan(points, i, starts[found], starts[found + 1], best_d, best_i, count, k)
+            margin += h
+        if count < k or best_d[k - 1] > margin * margin:
+            index[i, 0] = -1
+            continue
+        for j in range(k):
+            index[i, j] = best_i[j]
+
+
+@numba.njit(parallel=True, cache=True)
+def grid_neighbours(points, starts, run_keys, lo, h, k):  # pragma: no cover - compiled
+    """The k nearest (nearest first, the point itself first) of each of the key-sorted points,
+    as int32 indices into them; rows of points the grid could not resolve are -1 (module
+    docstring)."""
+    runs = len(starts) - 1
+    index = np.empty((len(points), k), np.int32)
+    for batch in numba.prange((runs + RUN_BATCH - 1) // RUN_BATCH):
+        best_d = np.empty(k, np.float64)
+        best_i = np.empty(k, np.int64)
+        block = np.empty((27, 5), np.int64)
+        for run in range(batch * RUN_BATCH, min(runs, (batch + 1) * RUN_BATCH)):
+            _search_run(points, starts, run_keys, run, lo, h, k, index, best_d, best_i, block)
+    return index
+
+
+def cell_width(points: np.ndarray, k: int) -> float:
+    """The cell width h of the module docstring (points (N, 3) float64, N > 0)."""
+    lo = points.min(axis=0)
+    extent = float((points.max(axis=0) - lo).max())
+    if extent == 0.0:
+        return 1.0
+    mean = []
+    for res in (COARSE_CELLS, 2 * COARSE_CELLS):
+        mean.append(len(points) / _occupied(points, lo, res / extent, res))
+    exponent = min(max(math.log2(mean[0] / mean[1]), 1.0), 3.0)
+    h = extent / (2 * COARSE_CELLS) * (k / CELL_SHARE / mean[1]) ** (1.0 / exponent)
+    # the grid spans at most 2^MORTON_BITS cells per axis
+    return max(h, extent / ((1 << MORTON_BITS) - 2))
+
+
+def k_nearest(points: np.ndarray, k: int, workers: int = -1) -> tuple[np.ndarray, np.ndarray]:
+    """(order, index): the points' Morton cell order, and the k nearest neighbours (int32,
+    nearest first, the point itself first) of each point points[order[i]] as indices i into
+    that order. points: (N, 3) float64, 1 <= k <= N < 2^31; workers: threads of the k-d tree
+    fallback."""
+    if len(points) >= 2**31:
+        raise ValueError(f"{len(points)} points: the neighbour search indexes fewer than 2^31")
+    h = cell_width(points, k)
+    lo = points.min(axis=0)
+    keys = cell_keys(points, lo, 1.0 / h)
+    order = np.argsort(keys, kind="stable")
+    keys = keys[order]
+    sorted_points = np.ascontiguousarray(points[order])
+    starts = _runs(keys)
+    if int(np.diff(starts).max()) > MAX_CELL:
+        unresolved = np.arange(len(points))
+        index = np.empty((len(points), k), np.int32)
+    else:
+        index = grid_neighbours(sorted_points, starts, keys[starts[:-1]], lo, h, k)
+        unresolved = np.flatnonzero(index[:, 0] < 0)
+    if len(unresolved):
+        _, found = cKDTree(sorted_points).query(sorted_points[unresolved], k=k, workers=workers)
+        found = found.reshape(len(unresolved), k)
+        # the point itself first, as the grid has it (a coincident point may come first)
+        itself = found == unresolved[:, None]
+        has_self = itself.any(axis=1)
+        at = np.argmax(itself, axis=1)
+        rows = np.flatnonzero(has_self)
+        found[rows, at[rows]] = found[rows, 0]
+        found[:, 0] = unresolved
+        index[unresolved] = found
+    return order, index

@@ -1,0 +1,57 @@
+"""The grid neighbour search (preprocess/grid_knn.py) finds what a k-d tree finds."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from surfel.preprocess.grid_knn import k_nearest
+from surfel.preprocess.neighbourhood import Neighbourhood
+
+
+def assert_exact(points: np.ndarray, k: int) -> None:
+    """The grid's k nearest of every point are at the k-d tree's k nearest distances, the
+    point itself first, and the order is a permutation."""
+    order, index = k_nearest(points, k)
+    assert np.array_equal(np.sort(order), np.arange(len(points)))
+    ordered = points[order]
+    assert index.shape == (len(points), k) and index.dtype == np.int32
+    assert np.array_equal(index[:, 0], np.arange(len(points)))
+    found = np.linalg.norm(ordered[index] - ordered[:, None], axis=2)
+    expected, _ = cKDTree(ordered).query(ordered, k=k)
+    expected = expected.reshape(len(points), k)
+    assert np.allclose(np.sort(found, axis=1), np.sort(expected, axis=1), rtol=0, atol=1e-12)
+    assert (np.diff(found[:, 1:], axis=1) >= 0).all()  # nearest first after the point itself
+    # no neighbour twice
+    assert (np.diff(np.sort(index, axis=1), axis=1) > 0).all()
+
+
+rng = np.random.default_rng(7)
+
+
+@pytest.mark.parametrize("name, points, k", [
+    ("cube", rng.random((20_000, 3)), 16),
+    ("plane", np.c_[rng.random((20_000, 2)), np.zeros(20_000)], 16),
+    ("sphere", (lambda v: v / np.linalg.norm(v, axis=1, keepdims=True))(rng.normal(size=(20_000, 3))), 8),
+    ("lattice", np.stack(np.meshgrid(np.arange(30), np.arange(30), np.arange(3)), -1).reshape(-1, 3) * 1.0, 16),
+    ("far outlier and near duplicates", np.r_[rng.random((5_000, 3)), [[1e6, 0, 0]], rng.random((10, 3)) * 1e-9], 16),
+    ("coincident", np.zeros((5_000, 3)), 16),
+    ("clusters far apart", np.r_[rng.random((3_000, 3)), rng.random((3_000, 3)) * 1e-3 + 50.0], 16),
+    ("fewer points than k", rng.random((5, 3)), 5),
+    ("one point", rng.random((1, 3)), 1),
+    ("georeferenced line", np.c_[np.linspace(0, 10, 4_000), np.zeros(4_000), np.zeros(4_000)] + 4e5, 6),
+])
+def test_grid_matches_kd_tree(name, points, k):
+    assert_exact(np.asarray(points, np.float64), k)
+
+
+def test_neighbourhood_sorts_and_unsorts():
+    points = rng.random((3_000, 3)) * [5.0, 1.0, 0.1]
+    nbh = Neighbourhood.build(points, 12)
+    assert np.allclose(nbh.unsort(nbh.points) + points.mean(axis=0), points)
+    values = rng.random(3_000)
+    assert np.array_equal(nbh.unsort(nbh.sort(values)), values)
+    expected, _ = cKDTree(points).query(points, k=12)
+    found = np.linalg.norm(nbh.points[nbh.index] - nbh.points[:, None], axis=2)
+    assert np.allclose(np.sort(found, axis=1), nbh.sort(expected), atol=1e-12)
