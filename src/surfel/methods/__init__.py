@@ -33,7 +33,7 @@ class Method:
     needs_radii: bool = True  # draws splats: needs radii, and takes --lod-error
     shader_lod: bool = False  # its vertex stage runs the sequential point tree test (gl/lod.glsl)
     elliptical: bool = False  # fitted elliptical splats when the cloud has no axes
-    normal_field: bool = False  # shades with Phong splatting's linear normal fields (fitted if missing)
+    normal_field: bool = False  # draws with Phong splatting's linear normal fields (fitted if missing)
     dump_passes: tuple[str, ...] = ()  # the backends that can write their intermediate passes
     # --backend auto picks its CPU backend over a software GL rasterizer (llvmpipe): measured
     # faster there with `surfel bench` (README, issue 18)
@@ -88,10 +88,10 @@ METHODS: dict[str, Method] = {
                {"gl": "methods.splatting:render_gaussian", "cpu": "methods.splatting_cpu:render_gaussian_cpu"},
                "methods.splatting:GaussianParams", shader_lod=True, cpu_beats_software_gl=True,
                dump_passes=_GL_PASSES),
-        Method("deferred", "Botsch et al. 2005: deferred shading with the EWA filter approximation",
+        Method("deferred", "Botsch et al. 2005: deferred shading with the EWA filter approximation, curved splats",
                {"gl": "methods.splatting:render_deferred", "cpu": "methods.splatting_cpu:render_deferred_cpu"},
                "methods.splatting:DeferredParams", shader_lod=True, cpu_beats_software_gl=True,
-               dump_passes=_GL_PASSES),
+               elliptical=True, normal_field=True, dump_passes=_GL_PASSES),
         Method("phong", "Botsch et al. 2004: Phong splatting, elliptical splats with linear normal fields",
                {"gl": "methods.splatting:render_phong", "cpu": "methods.splatting_cpu:render_phong_cpu"},
                "methods.splatting:PhongParams", shader_lod=True, cpu_beats_software_gl=True,
