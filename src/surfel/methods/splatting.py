@@ -24,11 +24,14 @@ blended normal is the front's, not an average that faces the camera (+1 to +2.7 
 figures, `surfel compare`). A low-pass fragment off its splat's disk filters but hides
 nothing in the visibility pass: at an occluding contour the edge-on splats in front would
 otherwise claim a pixel-wide band of the surface behind, drawn with their grazing normals
-(ogre, 512x512 oblique: +2.4 dB). Beyond the paper, the splats are elliptical and curved
-as `phong`'s (below) -- the ray meets the surface their fitted normal field describes, so a
-splat ends at the true contour -- while the shading keeps the blended splat normals, which
-fitted fields would make noisier on raw scans (issue 17: a coarse CAD part in an oblique
-view, 26.0 dB flat, 30.3 dB curved; phong 31.6 dB).
+(ogre, 512x512, front and oblique: +1.9 dB). Beyond the paper, the splats are elliptical
+(fitted where the cloud brings no radii; circles of given radii are kept) and curved as
+`phong`'s (below) -- the ray meets the surface their fitted normal field
+describes, so a splat ends at the true contour -- while the shading keeps the blended splat
+normals, which fitted fields would make noisier on raw scans (issue 17: a coarse CAD part in
+an oblique view, 26.0 dB flat, 30.3 dB curved, 30.7 dB with the low-pass hiding nothing;
+phong 31.6 dB). A level-of-detail cut's splats are flat (rendering.py): fitting fields to
+every frame's cut would cost more than the frame.
 
 `phong` -- Botsch, Spernat & Kobbelt 2004, "Phong splatting" (survey 2.1.4): elliptical
 splats (c_j, u_j, v_j) aligned with the principal curvature directions, the per-fragment
