@@ -60,6 +60,23 @@ def test_splat_methods_against_mesh_on_creases_and_coarse_sampling(other_model, 
         assert metrics["psnr"] >= least and metrics["holes"] <= holes, (method, metrics)
 
 
+@pytest.mark.parametrize("model", ["turned_part", "spot"])
+def test_deferred_is_at_least_as_close_to_the_mesh_as_gaussian_in_an_oblique_view(model):
+    """Issue 17: the default method at least as close as gaussian, on a CAD part's creases and
+    a coarse figure seen from azimuth 60, elevation 20 (flat splats overshooting the outline
+    and the EWA low-pass spilling across occluding contours kept deferred 0.3 to 0.9 dB below
+    gaussian on such models)."""
+    import models
+
+    mesh = getattr(models, model)()
+    cam = frame(mesh.center, mesh.bounding_radius, azimuth=60, elevation=20, size=SIZE)
+    ref = render(mesh, cam, "mesh", shading="lambert")
+    cloud = mesh.with_(faces=None)
+    deferred = compare_results(ref, render(cloud, cam, "deferred", shading="lambert"))
+    gaussian = compare_results(ref, render(cloud, cam, "gaussian", shading="lambert"))
+    assert deferred["psnr"] >= gaussian["psnr"] + 0.3 and deferred["holes"] <= 0.001, (deferred, gaussian)
+
+
 def test_back_splats_do_not_brighten_a_closed_surfaces_silhouette():
     """At a closed surface's outline the back's splats, turned to face the camera, meet the
     front's within z_t: averaged with them, the deferred normal faces the camera (a bright
