@@ -9,6 +9,7 @@
   groove, a chamfered head) revolved about its axis: flat, cylindrical and conical faces
   meeting at sharp convex and concave creases of 90 and 135 degrees, 10,754 vertices,
   standing in for fandisk.
+- `ball_over_plate`: a sphere in front of a square plate, an occluding contour over a surface.
 """
 
 from __future__ import annotations
@@ -78,3 +79,21 @@ def unit_sphere() -> PointCloud:
 
     sphere = icosphere(subdivisions=5)
     return mesh_cloud(np.asarray(sphere.vertices, np.float64), np.asarray(sphere.faces, np.int32), "unit sphere")
+
+
+def ball_over_plate() -> PointCloud:
+    """A sphere of radius 0.5 (an icosphere of 2,562 vertices) 0.6 in front of a 2.4 x 2.4
+    plate (a grid of 81 x 81 vertices) facing +z: seen from the front, the sphere's outline
+    is an occluding contour over the plate."""
+    from trimesh.creation import icosphere
+
+    ball = icosphere(subdivisions=4)
+    ball_vertices = np.asarray(ball.vertices) * 0.5 + [0.1, 0.05, 0.6]
+    n = 81
+    x, y = np.meshgrid(np.linspace(-1.2, 1.2, n), np.linspace(-1.2, 1.2, n))
+    plate = np.stack([x.ravel(), y.ravel(), np.zeros(n * n)], axis=1)
+    corner = np.arange(n * n).reshape(n, n)[:-1, :-1].ravel()
+    plate_faces = np.concatenate([np.stack([corner, corner + 1, corner + n + 1], axis=1),
+                                  np.stack([corner, corner + n + 1, corner + n], axis=1)])
+    faces = np.concatenate([np.asarray(ball.faces), plate_faces + len(ball_vertices)]).astype(np.int32)
+    return mesh_cloud(np.concatenate([ball_vertices, plate]), faces, "ball over a plate")

@@ -86,6 +86,8 @@ def test_full_detail_matches_in_memory_render(built):
     # every leaf and nothing else; leaves are the input points but crease points, which their
     # clip lines cut away whole (surfel.preprocess sharp features)
     assert 0.999 * POINTS <= result.stats["points_selected"] <= POINTS
+    # a cut's splats are flat: no normal fields fitted to each frame's cut
+    assert "normal_field" not in result.stats.get("estimated", {}), result.stats["estimated"]
     metrics = compare_results(reference, result)
     assert metrics["psnr"] > 35 and metrics["holes"] < 0.002, metrics
 

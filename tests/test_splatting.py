@@ -60,6 +60,23 @@ def test_splat_methods_against_mesh_on_creases_and_coarse_sampling(other_model, 
         assert metrics["psnr"] >= least and metrics["holes"] <= holes, (method, metrics)
 
 
+@pytest.mark.parametrize("model", ["turned_part", "spot"])
+def test_deferred_is_at_least_as_close_to_the_mesh_as_gaussian_in_an_oblique_view(model):
+    """Issue 17: the default method at least as close as gaussian, on a CAD part's creases and
+    a coarse figure seen from azimuth 60, elevation 20 (flat splats overshooting the outline
+    and the EWA low-pass spilling across occluding contours kept deferred 0.3 to 0.9 dB below
+    gaussian on such models)."""
+    import models
+
+    mesh = getattr(models, model)()
+    cam = frame(mesh.center, mesh.bounding_radius, azimuth=60, elevation=20, size=SIZE)
+    ref = render(mesh, cam, "mesh", shading="lambert")
+    cloud = mesh.with_(faces=None)
+    deferred = compare_results(ref, render(cloud, cam, "deferred", shading="lambert"))
+    gaussian = compare_results(ref, render(cloud, cam, "gaussian", shading="lambert"))
+    assert deferred["psnr"] >= gaussian["psnr"] + 0.3 and deferred["holes"] <= 0.001, (deferred, gaussian)
+
+
 def test_back_splats_do_not_brighten_a_closed_surfaces_silhouette():
     """At a closed surface's outline the back's splats, turned to face the camera, meet the
     front's within z_t: averaged with them, the deferred normal faces the camera (a bright
@@ -95,10 +112,10 @@ def test_phong_beats_gaussian_on_sparse_sampling(dense_spot, views):
         assert phong["holes"] <= 0.001
 
 
-def test_phong_splats_are_curved_to_the_surface():
-    """Phong splats follow the surface their normal fields describe: on 400 samples of a
-    sphere the depth is 10x nearer the true sphere's than flat splats' (deferred), and the
-    outline is the sphere's, where flat splats stick out past it."""
+def test_phong_and_deferred_splats_are_curved_to_the_surface():
+    """Phong and deferred splats follow the surface their normal fields describe: on 400
+    samples of a sphere the depth is 10x nearer the true sphere's than flat splats'
+    (gaussian), and the outline is the sphere's, where flat splats stick out past it."""
     rng = np.random.default_rng(3)
     p = rng.normal(size=(400, 3))
     p /= np.linalg.norm(p, axis=1, keepdims=True)
@@ -112,15 +129,38 @@ def test_phong_splats_are_curved_to_the_surface():
     true_depth = np.where(inside, (b - np.sqrt(np.maximum(disc, 0))) * -rays[..., 2], np.inf)
     outside = ~ndimage.binary_dilation(inside, iterations=1)
     errors, spill = {}, {}
-    for method in ("phong", "deferred"):
+    for method in ("phong", "deferred", "gaussian"):
         result = render(sphere, cam, method, shading="lambert")
         covered = result.alpha >= 0.5
         assert not (~covered & ndimage.binary_erosion(inside, iterations=1)).any(), method  # no holes
         core = covered & ndimage.binary_erosion(inside, iterations=2)
         errors[method] = np.median(np.abs(result.depth[core] - true_depth[core]) / true_depth[core])
         spill[method] = (covered & outside).sum()
-    assert errors["phong"] < 0.1 * errors["deferred"]
-    assert spill["phong"] < 0.01 * spill["deferred"]
+    for method in ("phong", "deferred"):
+        assert errors[method] < 0.1 * errors["gaussian"], errors
+        assert spill[method] < 0.01 * spill["gaussian"], spill
+
+
+@pytest.mark.parametrize("backend", ["gl", "cpu"])
+def test_ewa_low_pass_does_not_spill_across_an_occluding_contour(backend):
+    """Where a sphere's outline lies over a plate, its edge-on splats' low-pass fragments
+    filter but must not claim the plate's pixels beside it (a dark band, drawn with the
+    splats' grazing normals): within 3 pixels of the outline deferred's error against the
+    mesh is no larger with the EWA filter than without it (it was 3.3x larger)."""
+    import models
+
+    mesh = models.ball_over_plate()
+    cam = frame(mesh.center, mesh.bounding_radius, view="front", size=(256, 256))
+    ref = render(mesh, cam, "mesh", shading="lambert")
+    ball = ref.depth < np.median(ref.depth[ref.alpha > 0]) - 0.3
+    band = ndimage.binary_dilation(ball, iterations=3) & ~ndimage.binary_erosion(ball, iterations=3)
+    cloud = mesh.with_(faces=None)
+    error = {}
+    for ewa_filter in (True, False):
+        result = render(cloud, cam, "deferred", shading="lambert", ewa_filter=ewa_filter, backend=backend)
+        error[ewa_filter] = np.abs(result.color - ref.color).mean(axis=-1)[band].mean()
+        assert compare_results(ref, result)["holes"] <= 0.001
+    assert error[True] <= 1.05 * error[False], error
 
 
 def test_dense_clouds_of_sub_pixel_splats_cover_whole_pixels(dense_spot, views):

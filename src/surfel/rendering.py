@@ -313,7 +313,7 @@ class Renderer:
         backend, backend_choice = choose_backend(method, backend, dump_passes=options.dump_passes is not None)
         cloud, options = self.appearance(cloud, options)
         selected = len(cloud)
-        cloud, estimated = self.complete(cloud, needs_radii=m.needs_radii, elliptical=m.elliptical,
+        cloud, estimated = self.complete(cloud, needs_radii=m.needs_radii, elliptical=m.fits_ellipses(cloud),
                                          normal_field=m.normal_field, smooth=options.smooth)
         if options.lod_error is not None:
             from .lod import as_sequential, lod_subset
@@ -386,6 +386,10 @@ class Renderer:
         start = time.perf_counter()
         cut, selection = source.select(camera, epsilon, options.point_budget)
         select_ms = (time.perf_counter() - start) * 1000
+        m = get_method(method)
+        if m.normal_field and not m.fields_per_cut and "phong_alpha" not in cut.attributes:
+            flat = np.zeros(len(cut), np.float32)
+            cut = cut.with_(attributes={**cut.attributes, "phong_alpha": flat, "phong_beta": flat})
         # the cut is already at the requested detail: no second selection on it; its shading is
         # the source's default (a COPC file without normals is shaded as such, though its cut's
         # normals were estimated)

@@ -33,11 +33,19 @@ class Method:
     needs_radii: bool = True  # draws splats: needs radii, and takes --lod-error
     shader_lod: bool = False  # its vertex stage runs the sequential point tree test (gl/lod.glsl)
     elliptical: bool = False  # fitted elliptical splats when the cloud has no axes
-    normal_field: bool = False  # shades with Phong splatting's linear normal fields (fitted if missing)
+    ellipses_over_given_radii: bool = True  # ... even when it has radii (else circles of them)
+    normal_field: bool = False  # draws with Phong splatting's linear normal fields (fitted if missing)
+    # fits them for a level-of-detail cut too; without (deferred, whose fields only curve its
+    # splats), a cut's splats are flat: fitting every frame's cut would cost more than the frame
+    fields_per_cut: bool = True
     dump_passes: tuple[str, ...] = ()  # the backends that can write their intermediate passes
     # --backend auto picks its CPU backend over a software GL rasterizer (llvmpipe): measured
     # faster there with `surfel bench` (README, issue 18)
     cpu_beats_software_gl: bool = False
+
+    def fits_ellipses(self, cloud) -> bool:
+        """Whether completing `cloud` for this method fits elliptical splats."""
+        return self.elliptical and (cloud.radii is None or self.ellipses_over_given_radii)
 
     def function(self, backend: str):
         if backend not in self.backends:
@@ -88,9 +96,10 @@ METHODS: dict[str, Method] = {
                {"gl": "methods.splatting:render_gaussian", "cpu": "methods.splatting_cpu:render_gaussian_cpu"},
                "methods.splatting:GaussianParams", shader_lod=True, cpu_beats_software_gl=True,
                dump_passes=_GL_PASSES),
-        Method("deferred", "Botsch et al. 2005: deferred shading with the EWA filter approximation",
+        Method("deferred", "Botsch et al. 2005: deferred shading with the EWA filter approximation, curved splats",
                {"gl": "methods.splatting:render_deferred", "cpu": "methods.splatting_cpu:render_deferred_cpu"},
                "methods.splatting:DeferredParams", shader_lod=True, cpu_beats_software_gl=True,
+               elliptical=True, ellipses_over_given_radii=False, normal_field=True, fields_per_cut=False,
                dump_passes=_GL_PASSES),
         Method("phong", "Botsch et al. 2004: Phong splatting, elliptical splats with linear normal fields",
                {"gl": "methods.splatting:render_phong", "cpu": "methods.splatting_cpu:render_phong_cpu"},

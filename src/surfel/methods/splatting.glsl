@@ -8,9 +8,10 @@
 // Variants: PER_SPLAT_SHADING (the 2003 Gouraud look: colours shaded per splat before
 // blending) or deferred shading from blended normals (2005); EWA_FILTER (2005 screen-space
 // filter approximation: the union of the object-space disk and a screen-space low-pass);
-// NORMAL_FIELD (Botsch, Spernat & Kobbelt 2004, Phong splatting: the blended normal is the
-// splat's linear normal field N(u, v) = n + u alpha u_j + v beta v_j, eq. 8, per fragment,
-// on the curved splat whose normals the field describes);
+// CURVED_SPLATS (each splat is the curved surface its linear normal field describes: the
+// ray meets that, so the splat ends at the surface's true contour); NORMAL_FIELD (with
+// CURVED_SPLATS: Botsch, Spernat & Kobbelt 2004, Phong splatting: the blended normal is the
+// splat's linear normal field N(u, v) = n + u alpha u_j + v beta v_j, eq. 8, per fragment);
 // CLIP_LINES (splats cut at sharp features by the clip lines of surfel.preprocess).
 #include "common.glsl"
 #include "lod.glsl"
@@ -19,6 +20,7 @@
 
 #define DEPTH_CLAMP 32.0  // splat radii: how far the plane's depth may stray from the centre's
 #define BACK_SPLAT_WEIGHT (1.0 / 256.0)  // a back-facing splat's weight beside front-facing ones
+#define FAR_DEPTH 3.0e38  // the visibility target's clear value (gl/passes.py FAR): no surface
 
 uniform float u_radius_scale;
 uniform float u_depth_offset;    // z_t as a fraction of the splat radius
@@ -162,7 +164,7 @@ flat in vec3 v_clip0;
 flat in vec3 v_clip1;
 #endif
 
-#ifdef NORMAL_FIELD
+#ifdef CURVED_SPLATS
 // Curved splats: the surface whose normals are the splat's linear field is, to second order,
 // the height field h(s_u, s_v) = -(k_u s_u² + k_v s_v²) / 2 over the splat plane, with s the
 // metric tangent coordinates and k = alpha / |u_j|, beta / |v_j| the field's tilt per unit
@@ -188,7 +190,7 @@ bool curved_splat_hit(vec3 o, vec3 d, float denom, inout float t) {
 
 // Squared distance of the fragment to the splat centre in the kernel's unit domain (1e30
 // where its ray misses the splat), and the eye depth of the splat seen there: the exact
-// ray-plane intersection (perspective accurate), or with NORMAL_FIELD the ray's hit on the
+// ray-plane intersection (perspective accurate), or with CURVED_SPLATS the ray's hit on the
 // curved splat, located by its tangent coordinates. Low-pass fragments outside the disk keep
 // the plane's depth too, so coplanar neighbours agree at grazing angles, where a pixel's
 // footprint spans many splat radii in depth; only near-parallel rays are clamped to the
@@ -205,7 +207,7 @@ float splat_distance(out float eye_depth, out vec2 local_uv, out float clipped) 
     clipped = -1e30;  // no clip line near
     float t = dot(v_center - o, v_normal) / denom;
     bool hit = abs(denom) > 1e-12;
-#ifdef NORMAL_FIELD
+#ifdef CURVED_SPLATS
     hit = hit && curved_splat_hit(o, d, denom, t);
 #endif
     if (hit) {
@@ -248,10 +250,11 @@ void main() {
                      0.5 - length(image_coord(gl_FragCoord.xy) - v_center_px));
     float coverage = clamp(0.5 + edge, 0.0, 1.0);
     if (max(sqrt(filter_distance(splat_rho2)), 1.0 + clipped) > 1.0) discard;
-    // a low-pass fragment lies off the disk: it must not hide surfaces nearer than the disk's
-    // far end, or edge-on splats punch wrong normals into the visible surface
-    if (dot(uv, uv) > 1.0) z = max(z, -v_center.z + v_radius);
-    out_depth = vec4(z + v_offset, 1.0 - coverage, 0.0, 0.0);  // MIN blending: nearest, most covering
+    // A low-pass fragment off the disk filters but hides nothing: the edge-on splats of an
+    // occluding contour would otherwise claim a pixel-wide band of the surface behind it,
+    // drawn with their grazing normals.
+    float depth = splat_rho2 > 1.0 ? FAR_DEPTH : z + v_offset;
+    out_depth = vec4(depth, 1.0 - coverage, 0.0, 0.0);  // MIN blending: nearest, most covering
 }
 #endif
 

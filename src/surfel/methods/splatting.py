@@ -21,7 +21,17 @@ splat covers at least 2x2 pixels and minified textures do not alias (Fig. 10). S
 two-sided, each turned to face the camera; where front- and back-facing splats blend (a
 closed surface's outline), a back one weighs BACK_SPLAT_WEIGHT (splatting.glsl), so the
 blended normal is the front's, not an average that faces the camera (+1 to +2.7 dB on coarse
-figures, `surfel compare`).
+figures, `surfel compare`). A low-pass fragment off its splat's disk filters but hides
+nothing in the visibility pass: at an occluding contour the edge-on splats in front would
+otherwise claim a pixel-wide band of the surface behind, drawn with their grazing normals
+(ogre, 512x512, front and oblique: +1.9 dB). Beyond the paper, the splats are elliptical
+(fitted where the cloud brings no radii; circles of given radii are kept) and curved as
+`phong`'s (below) -- the ray meets the surface their fitted normal field
+describes, so a splat ends at the true contour -- while the shading keeps the blended splat
+normals, which fitted fields would make noisier on raw scans (issue 17: a coarse CAD part in
+an oblique view, 26.0 dB flat, 30.3 dB curved, 30.7 dB with the low-pass hiding nothing;
+phong 31.6 dB). A level-of-detail cut's splats are flat (rendering.py): fitting fields to
+every frame's cut would cost more than the frame.
 
 `phong` -- Botsch, Spernat & Kobbelt 2004, "Phong splatting" (survey 2.1.4): elliptical
 splats (c_j, u_j, v_j) aligned with the principal curvature directions, the per-fragment
@@ -40,7 +50,8 @@ spot, coarsely sampled: +6 dB).
 
 Parameters: those every blended splat method has (`params.SplatParams`: radius_scale, z_t as
 depth_offset, backface_culling, lowpass_radius r_lp) and ewa_filter, whose default is each
-paper's: on for `deferred` (`DeferredParams`), off for `gaussian` and `phong`.
+paper's: on for `deferred` (`DeferredParams`), off for `gaussian` and `phong`. The program's
+variants: CURVED_SPLATS for `deferred` and `phong`, NORMAL_FIELD for `phong`.
 """
 
 from __future__ import annotations
@@ -113,14 +124,15 @@ def render_gaussian(cloud, camera, options, params: GaussianParams, renderer):
 
 
 def render_deferred(cloud, camera, options, params: DeferredParams, renderer):
-    return _render(cloud, camera, options, params, renderer, per_splat_shading=False)
+    return _render(cloud, camera, options, params, renderer, per_splat_shading=False, curved=True)
 
 
 def render_phong(cloud, camera, options, params: PhongParams, renderer):
-    return _render(cloud, camera, options, params, renderer, per_splat_shading=False, normal_field=True)
+    return _render(cloud, camera, options, params, renderer, per_splat_shading=False, curved=True, normal_field=True)
 
 
-def _render(cloud, camera, options, params, renderer, *, per_splat_shading: bool, normal_field: bool = False):
+def _render(cloud, camera, options, params, renderer, *, per_splat_shading: bool, curved: bool = False,
+            normal_field: bool = False):
     ctx = get_context()
     ss = options.supersample or DEFAULT_SUPERSAMPLE
     width, height = camera.width * ss, camera.height * ss
@@ -129,7 +141,8 @@ def _render(cloud, camera, options, params, renderer, *, per_splat_shading: bool
     lod_k, prefix, drawn = splats.lod_frame(cloud, camera, options.lod_error)
     sprites = use_point_sprites(cloud, camera, params.radius_scale, ss, lowpass, drawn)
     guard = GUARD if sprites else 0
-    variant = {"PER_SPLAT_SHADING": per_splat_shading, "EWA_FILTER": ewa_filter, "NORMAL_FIELD": normal_field,
+    variant = {"PER_SPLAT_SHADING": per_splat_shading, "EWA_FILTER": ewa_filter, "CURVED_SPLATS": curved,
+               "NORMAL_FIELD": normal_field,
                "POINT_SPRITES": sprites, "CLIP_LINES": "clip_lines" in cloud.attributes}
     categorical = options.coloring is not None and options.coloring.categorical
     passes = ("PASS_VISIBILITY", "PASS_ATTRIBUTE", *(("PASS_CATEGORY",) if categorical else ()), "PASS_NORMALIZE")

@@ -14,16 +14,17 @@ unit. Where it meets the splat plane,
 
 each a ratio of affine functions of (dx, dy) whose coefficients the setup computes once (for
 perspective u W = d.((c.n) u_j/|u_j|² - (c.u_j/|u_j|²) n), zero on the centre's ray), so a
-fragment costs one division. `phong` moves t to the root of the ray's quadratic with the
-curved splat h = -(k_u s_u² + k_v s_v²)/2 nearest the plane's hit, and its normal is the
-linear field N(u, v) = n + u alpha e_u + v beta e_v (eq. 8), turned no further than edge-on.
+fragment costs one division. `deferred` and `phong` move t to the root of the ray's quadratic
+with the curved splat h = -(k_u s_u² + k_v s_v²)/2 nearest the plane's hit; `phong`'s normal
+is the linear field N(u, v) = n + u alpha e_u + v beta e_v (eq. 8), turned no further than
+edge-on, `deferred`'s the splat's own.
 
 The passes, as in splatting.glsl (r_lp the low-pass radius in pixels, z_t = depth_offset r):
 
 1. visibility: fragments with rho² = min(u² + v², |x - m|² / r_lp²) <= 1 (the union of the
    disk and the screen-space low-pass, EWA filter on) or u² + v² <= 1 (off), inside their
-   clip lines, give per pixel Z = min(depth + z_t) (a low-pass fragment off the disk counts no
-   nearer than the disk's far end) and the coverage max(clamp(0.5 + e)), e the larger of the
+   clip lines, give per pixel Z = min(depth + z_t) (a low-pass fragment off the disk hides
+   nothing: it filters, it covers no surface) and the coverage max(clamp(0.5 + e)), e the larger of the
    signed distance (1 - rho) / |grad rho| to the splat's edge (rho's analytic screen gradient)
    and 0.5 - |x - m|, the footprint of a sub-pixel splat;
 2. attributes: fragments with depth <= Z add w (rgb, 1, n, depth), w = v_w exp(-3 rho²) (the
@@ -151,11 +152,12 @@ def render_gaussian_cpu(cloud, camera, options, params: GaussianParams, renderer
 
 
 def render_deferred_cpu(cloud, camera, options, params: DeferredParams, renderer):
-    return _render_cpu(cloud, camera, options, params, renderer, per_splat_shading=False)
+    return _render_cpu(cloud, camera, options, params, renderer, per_splat_shading=False, curved=True)
 
 
 def render_phong_cpu(cloud, camera, options, params: PhongParams, renderer):
-    return _render_cpu(cloud, camera, options, params, renderer, per_splat_shading=False, normal_field=True)
+    return _render_cpu(cloud, camera, options, params, renderer, per_splat_shading=False, curved=True,
+                       normal_field=True)
 
 
 def _camera(camera, origin) -> np.ndarray:
@@ -179,14 +181,15 @@ def _color_mode(options) -> tuple[int, np.ndarray, int]:
     return k.COLOR_CATEGORICAL, coloring.table, coloring.code_levels
 
 
-def _render_cpu(cloud, camera, options, params, renderer, *, per_splat_shading: bool, normal_field: bool = False):
+def _render_cpu(cloud, camera, options, params, renderer, *, per_splat_shading: bool, curved: bool = False,
+                normal_field: bool = False):
     cloud = renderer.cached(cloud, "morton order", lambda: spatially_ordered(cloud))
     ss = options.supersample or DEFAULT_SUPERSAMPLE
     target = target_camera(camera, ss)
     width, height = target.width, target.height
     check_cpu_samples(width, height)
     clip_lines = "clip_lines" in cloud.attributes
-    extras = clip_lines or normal_field
+    extras = clip_lines or curved
     buffers = renderer.cached(cloud, ("cpu splat buffers", extras), lambda: CpuSplatBuffers(cloud, extras))
     buffers.frame(width, height)
     color_mode, palette, levels = _color_mode(options)
@@ -212,7 +215,8 @@ def _render_cpu(cloud, camera, options, params, renderer, *, per_splat_shading: 
                       buffers.tile_count, buffers.order, buffers.tiles_x, width, height, m,
                       np.float32(params.radius_scale), lowpass, np.float32(params.depth_offset),
                       np.float32(DEPTH_CLAMP), buffers.extras if clip_lines else None,
-                      buffers.extras if normal_field else None, model if per_splat else -1,
+                      buffers.extras if curved else None, buffers.extras if normal_field else None,
+                      model if per_splat else -1,
                       -1 if per_splat else model, color_mode, palette, levels, background, composite,
                       buffers.tables, buffers.boxes, buffers.temp, buffers.zbuf, buffers.cover, buffers.accum,
                       buffers.best, buffers.present, color, alpha, depth, normals, indices)

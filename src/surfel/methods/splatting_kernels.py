@@ -452,15 +452,17 @@ def _write(color, alpha, depth, normals, y, x, r, g, b, a, z, nx, ny, nz, backgr
 
 @nb.njit(parallel=True, fastmath=True, error_model="numpy", cache=True)
 def rasterize_tiles(packed, extras, box, index, tile_start, tile_count, order, tiles_x, width, height, m,
-                    radius_scale, lowpass, depth_offset, depth_clamp, clip_src, field_src, per_splat_model,
-                    deferred_model, color_mode, palette, levels, background, composite, tables, boxes, temp, zbuf,
-                    cover, accum, best, present, color, alpha, depth, normals, indices):
+                    radius_scale, lowpass, depth_offset, depth_clamp, clip_src, field_src, normal_src,
+                    per_splat_model, deferred_model, color_mode, palette, levels, background, composite, tables, boxes,
+                    temp, zbuf, cover, accum, best, present, color, alpha, depth, normals, indices):
     """Every tile of `order`, written into color (H, W, 3), alpha, depth (H, W) and normals
     (H, W, 3). `present` (H, W) uint8 gets, per pixel, 0 (no splat), 1, or 2 where
     `finish_surrounded` must still decide whether its neighbours in other tiles make it whole
     (the pixel then holds its raw colour and its own coverage). Each thread's scratch: tables
     (threads, table_size(largest tile)), boxes (threads, 4 x that), temp (threads,
     TEMP_ROWS x BLOCK), zbuf, cover (threads, STRIDE²), accum (threads, LAYER, STRIDE²).
+    clip_src, field_src, normal_src: the extras where the cloud has clip lines, where splats are
+    curved by their normal fields, where they are shaded with them too (`phong`); else None.
     per_splat_model / deferred_model: the shading.MODEL_IDS value applied per splat
     (`gaussian`) or per pixel (`deferred`, `phong`, and every method in a categorical colour
     mode), -1 for the other. color_mode: COLOR_RGB, COLOR_CONTINUOUS (`palette` the colour map's
@@ -521,7 +523,7 @@ def rasterize_tiles(packed, extras, box, index, tile_start, tile_count, order, t
         if categorical:
             category[:] = -1
         visibility_tile(table, ibox, count, ox, oy, params, clip_src, field_src, tmp, zb, cov)
-        attribute_tile(table, ibox, count, ox, oy, params, clip_src, field_src, tmp, zb, acc,
+        attribute_tile(table, ibox, count, ox, oy, params, clip_src, field_src, normal_src, tmp, zb, acc,
                         levels if categorical else 0, category)
         # normalization and deferred shading, straight into the output
         for ly in range(th):

@@ -159,7 +159,7 @@ def fragment(s, c, f, clipping, curved, dx, dy, params):
     v = (v0 + vx * dx + vy * dy) * iw
     z = (z0 + zx * dx + zy * dy) * iw
     if curved:
-        # Phong splatting's curved splat: the root of the ray-surface quadratic nearest the
+        # the curved splat of the normal field: the root of the ray-surface quadratic nearest the
         # plane's hit (splatting.glsl curved_splat_hit), moving t, u, v and the depth along d.
         ku, kv, lu, lv, a10, a1x, a1y, b10, b1x, b1y = f[0], f[1], f[2], f[3], f[4], f[5], f[6], f[7], f[8], f[9]
         a1, b1 = a10 + a1x * dx + a1y * dy, b10 + b1x * dx + b1y * dy
@@ -193,7 +193,7 @@ def fragment(s, c, f, clipping, curved, dx, dy, params):
 @nb.njit(inline="always", fastmath=True, error_model="numpy")
 def visibility_fragment(s, c, f, clipping, curved, dx, dy, params):
     """A fragment's visibility-pass output (splatting.glsl PASS_VISIBILITY): its depth + z_t
-    (FAR when discarded) and its coverage of the pixel (0 when discarded), 0.5 + the signed
+    (FAR when discarded or off the disk) and its coverage of the pixel (0 when discarded), 0.5 + the signed
     distance in pixels to the splat's edge, where rho = max(|(u, v)|, 1 + clip excess) is 1,
     from rho's screen-space gradient (analytic here, a quad's differences on the GPU), and at
     least the footprint of a pixel-wide disk at the projected centre (sub-pixel splats)."""
@@ -219,9 +219,8 @@ def visibility_fragment(s, c, f, clipping, curved, dx, dy, params):
     edge = distance / max(gradient, tiny)  # one division of selected operands: SIMD-safe
     edge = max(edge if hit else np.float32(-1e30), np.float32(0.5) - math.sqrt(dx * dx + dy * dy))
     coverage = min(max(np.float32(0.5) + edge, np.float32(0.0)), one)
-    # a low-pass fragment off the disk hides nothing nearer than the disk's far end
-    z = max(z, cz + radius) if hit and rho2 > 1 else z
-    return (z + depth_offset * radius if kept else FAR), (coverage if kept else np.float32(0.0))
+    # a low-pass fragment off the disk filters but hides nothing
+    return (z + depth_offset * radius if kept and rho2 <= 1 else FAR), (coverage if kept else np.float32(0.0))
 
 
 @nb.njit(inline="always", fastmath=True, error_model="numpy")
@@ -237,14 +236,14 @@ def gaussian_weight(kernel2):
 
 
 @nb.njit(inline="always", fastmath=True, error_model="numpy")
-def attribute_fragment(s, c, f, clipping, curved, dx, dy, params, nx, ny, nz):
+def attribute_fragment(s, c, f, clipping, curved, field_normals, dx, dy, params, nx, ny, nz):
     """A fragment's attribute-pass output before its depth test: weight (0 when discarded), eye
-    depth and normal: the splat's (nx, ny, nz), or with a normal field Phong splatting's
+    depth and normal: the splat's (nx, ny, nz), or with `field_normals` Phong splatting's
     N(u, v) = n + u alpha e_u + v beta e_v (eq. 8), unit and turned no further than edge-on
     (gl/common.glsl field_normal)."""
     kept, kernel2, z, u, v, rho2, clipped, hit, iw = fragment(s, c, f, clipping, curved, dx, dy, params)
     w = s[16] * gaussian_weight(kernel2)
-    if curved:
+    if field_normals:
         fux, fuy, fuz, fvx, fvy, fvz, ex, ey, ez = f[10], f[11], f[12], f[13], f[14], f[15], f[16], f[17], f[18]
         nx, ny, nz = nx + u * fux + v * fvx, ny + u * fuy + v * fvy, nz + u * fuz + v * fvz
         away = min(nx * ex + ny * ey + nz * ez, np.float32(0.0))
@@ -321,13 +320,17 @@ def visibility_tile(table, ibox, count, ox, oy, params, clip_src, field_src, tmp
 
 
 @nb.njit(fastmath=True, error_model="numpy")
-def attribute_tile(table, ibox, count, ox, oy, params, clip_src, field_src, tmp, zb, acc, levels, best):
+def attribute_tile(table, ibox, count, ox, oy, params, clip_src, field_src, normal_src, tmp, zb, acc, levels,
+                   best):
     """The attribute pass of a tile's `count` splats: the weighted sums of the fragments no
-    farther than zb into acc, block by block as `visibility_tile`. With `levels` > 0 (a
+    farther than zb into acc, block by block as `visibility_tile`; curved splats with
+    `field_src`, shaded with their normal fields too with `normal_src` (Phong splatting; None:
+    the splat's own normal, `deferred`). With `levels` > 0 (a
     categorical colour mode, whose splats carry their palette index k as k / CODE_SCALE in
     red), `best` keeps per pixel the MAX of category_pack(w, k): the heaviest splat's category
     (splatting.glsl PASS_CATEGORY), never a blend."""
     clipping, curved = clip_src is not None, field_src is not None
+    field_normals = curved and normal_src is not None
     half, one, zero = np.float32(0.5), np.float32(1.0), np.float32(0.0)
     for first in range(0, count, BLOCK):
         size = min(BLOCK, count - first)
@@ -341,21 +344,25 @@ def attribute_tile(table, ibox, count, ox, oy, params, clip_src, field_src, tmp,
             x0, y0 = ibox[jb + TEMP[0]], ibox[jb + TEMP[2]]
             wide, tall = ibox[jb + TEMP[1]] > x0, ibox[jb + TEMP[3]] > y0
             dx, dy = np.float32(x0 + ox) + half - s[0], np.float32(y0 + oy) + half - s[1]
-            w, z, fx, fy, fz = attribute_fragment(s, c, f, clipping, curved, dx, dy, params, nx, ny, nz)
+            w, z, fx, fy, fz = attribute_fragment(s, c, f, clipping, curved, field_normals, dx, dy, params,
+                                                  nx, ny, nz)
             tmp[TEMP[0] + uq], tmp[TEMP[4] + uq] = w, z
-            if curved:
+            if field_normals:
                 tmp[TEMP[8] + uq], tmp[TEMP[12] + uq], tmp[TEMP[16] + uq] = fx, fy, fz
-            w, z, fx, fy, fz = attribute_fragment(s, c, f, clipping, curved, dx + one, dy, params, nx, ny, nz)
+            w, z, fx, fy, fz = attribute_fragment(s, c, f, clipping, curved, field_normals, dx + one, dy, params,
+                                                  nx, ny, nz)
             tmp[TEMP[1] + uq], tmp[TEMP[5] + uq] = (w if wide else zero), z
-            if curved:
+            if field_normals:
                 tmp[TEMP[9] + uq], tmp[TEMP[13] + uq], tmp[TEMP[17] + uq] = fx, fy, fz
-            w, z, fx, fy, fz = attribute_fragment(s, c, f, clipping, curved, dx, dy + one, params, nx, ny, nz)
+            w, z, fx, fy, fz = attribute_fragment(s, c, f, clipping, curved, field_normals, dx, dy + one, params,
+                                                  nx, ny, nz)
             tmp[TEMP[2] + uq], tmp[TEMP[6] + uq] = (w if tall else zero), z
-            if curved:
+            if field_normals:
                 tmp[TEMP[10] + uq], tmp[TEMP[14] + uq], tmp[TEMP[18] + uq] = fx, fy, fz
-            w, z, fx, fy, fz = attribute_fragment(s, c, f, clipping, curved, dx + one, dy + one, params, nx, ny, nz)
+            w, z, fx, fy, fz = attribute_fragment(s, c, f, clipping, curved, field_normals, dx + one, dy + one, params,
+                                                  nx, ny, nz)
             tmp[TEMP[3] + uq], tmp[TEMP[7] + uq] = (w if wide and tall else zero), z
-            if curved:
+            if field_normals:
                 tmp[TEMP[11] + uq], tmp[TEMP[15] + uq], tmp[TEMP[19] + uq] = fx, fy, fz
         for q in range(size):
             uq = np.uint64(q)
@@ -371,7 +378,7 @@ def attribute_tile(table, ibox, count, ox, oy, params, clip_src, field_src, tmp,
                 if w > 0 and z <= zb[pl]:
                     if levels > 0:
                         best[pl] = max(best[pl], category_pack(w, code, levels))
-                    if curved:
+                    if field_normals:
                         blend(acc, pl, w, z, r, g, b, tmp[TEMP[8 + lane] + uq], tmp[TEMP[12 + lane] + uq],
                                tmp[TEMP[16 + lane] + uq])
                     else:
@@ -383,7 +390,7 @@ def attribute_tile(table, ibox, count, ox, oy, params, clip_src, field_src, tmp,
             for y in range(y0, y1 + 1):
                 dy = np.float32(y + oy) + half - s[1]
                 for x in range(x0 + 2 if y < y0 + 2 else x0, x1 + 1):
-                    w, z, fx, fy, fz = attribute_fragment(s, c, f, clipping, curved,
+                    w, z, fx, fy, fz = attribute_fragment(s, c, f, clipping, curved, field_normals,
                                                           np.float32(x + ox) + half - s[0], dy, params, nx, ny, nz)
                     pl = y * STRIDE + x
                     if w > 0 and z <= zb[pl]:

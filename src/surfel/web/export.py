@@ -5,8 +5,9 @@ the exporter resolves its includes with the page's splat_attributes.glsl first, 
 decodes the quantized columns of pack.py under the attribute names the desktop shaders use.
 So the page's `deferred` is Botsch et al. 2005 exactly as `surfel render --method deferred`
 draws it: visibility, attribute accumulation, the category pass of categorical colour modes
-and normalization, the EWA screen-space filter approximation, coverage from edge_distance()
-and surrounded(), point sprites on a guard band or quads. Colour modes are surfel.colors'
+and normalization, the EWA screen-space filter approximation, splats curved by their normal
+fields, coverage from edge_distance() and surrounded(), point sprites on a guard band or
+quads. The cloud is completed for the method the page opens with. Colour modes are surfel.colors'
 (gl/colors.glsl decodes them in the same passes, with the same tables); eye-dome lighting
 is gl/edl.glsl, the twin of surfel.edl, in the page's last pass (display.glsl), which also
 box-filters supersamples without mixing categories. The camera, options and colour mode it
@@ -75,16 +76,18 @@ def source_cut(source, size) -> tuple[PointCloud, dict]:
     return source.select(view, SOURCE_CUT_ERROR, SOURCE_MAX_POINTS)
 
 
-def cloud_for_page(cloud: PointCloud, point_budget: int, lod_error: float | None, renderer) -> tuple[PointCloud, dict]:
-    """What the page draws: the completed cloud (normals, radii, axes estimated as surfel
-    render would), as a sequential point tree when it holds more than `point_budget` points
-    or a LOD error is asked for. Returns (cloud, report)."""
+def cloud_for_page(cloud: PointCloud, method: str, point_budget: int, lod_error: float | None, renderer,
+                   cut: bool = False) -> tuple[PointCloud, dict]:
+    """What the page draws: the cloud completed for `method` as surfel render would complete
+    it (normals, radii, axes; the normal fields that curve deferred's splats, except on a
+    source's `cut`, whose splats surfel render draws flat), as a sequential point tree when it
+    holds more than `point_budget` points or a LOD error is asked for. Returns (cloud, report)."""
     from ..lod import as_sequential, is_sequential
 
     report: dict = {}
-    method = get_method("deferred")
-    cloud, estimated = renderer.complete(cloud, needs_radii=method.needs_radii, elliptical=method.elliptical,
-                                         normal_field=method.normal_field)
+    m = get_method(method)
+    cloud, estimated = renderer.complete(cloud, needs_radii=m.needs_radii, elliptical=m.fits_ellipses(cloud),
+                                         normal_field=m.normal_field and (m.fields_per_cut or not cut))
     if estimated:
         report["estimated"] = estimated
     if is_sequential(cloud) or len(cloud) > point_budget or lod_error is not None:  # a loaded tree: its cut
@@ -168,8 +171,8 @@ def export_html(cloud, camera: Camera, output, *, method: str = "deferred", opti
     if is_source(cloud):
         cloud, cut = source_cut(cloud, camera.size)
     cloud, options = renderer.appearance(cloud, options)  # --classes, --returns, the data's defaults
-    page_cloud, report = cloud_for_page(cloud, options.point_budget or DEFAULT_POINT_BUDGET, options.lod_error,
-                                        renderer)
+    page_cloud, report = cloud_for_page(cloud, method, options.point_budget or DEFAULT_POINT_BUDGET,
+                                        options.lod_error, renderer, cut=cut is not None)
     if cut is not None:
         report["source_cut"] = cut
     page_options = replace(options, coloring=colors.resolve(page_cloud, options.coloring.name, options.colormap,

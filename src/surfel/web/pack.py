@@ -16,7 +16,8 @@ the decoded normal (Duff et al. 2017, "Building an orthonormal basis, revisited"
 (web/splat_attributes.glsl decodes the same way). Where the cloud's axis_v points the other
 way, the clip lines' v coefficients change sign instead, so that splats still end where they
 did. A splat that faces the camera (surfel.preprocess.structure) has its first radius negated:
-the page gives it the zero normal the desktop's splat buffers give it. Sequential point tree
+the page gives it the zero normal the desktop's splat buffers give it. Normal-field slopes
+(alpha, beta; `deferred` curves its splats by them) are half floats. Sequential point tree
 errors (e_g, the parent's e_g, the distance to the parent) are half floats in the same unit,
 rounded outwards (e_g down, the others up), so the page's vertex test passes a superset of
 surfel.lod's selection: overlaps, never holes. Attributes:
@@ -28,6 +29,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..cloud import PointCloud
+from ..methods.ewa import has_normal_field, splat_fields
 from ..preprocess import facing_mask
 
 POSITION_STEPS = 65535
@@ -106,6 +108,8 @@ def pack_cloud(cloud: PointCloud, values: dict[str, np.ndarray]) -> tuple[dict, 
     columns["radii"] = (lengths / unit).astype(np.float16)
     if cloud.colors is not None:
         columns["color"] = np.round(cloud.colors * 255).astype(np.uint8)
+    if has_normal_field(cloud):  # dimensionless slopes, which a flipped axis_v leaves as they are
+        columns["field"] = splat_fields(cloud).astype(np.float16)
     if "clip_lines" in cloud.attributes:
         v_decoded = np.cos(phi)[:, None] * t2 - np.sin(phi)[:, None] * t1
         flip = np.einsum("ij,ij->i", v, v_decoded) < 0

@@ -14,6 +14,7 @@ in float a_angle;    // angle of axis_u in tangent_frame(normal), [0, 1) of a tu
 in vec3 a_color;     // rgb albedo
 in float a_value;    // the attribute the colour mode shows: 16-bit steps (normalized) or a palette index
 in vec3 a_lod;       // e_g, the parent's e_g, the distance to the parent, in length units
+in vec2 a_field;     // Phong splatting's normal-field slopes (alpha, beta), 0 when absent
 in vec3 a_clip0;     // clip lines in the local coordinates of axis_u, axis_v
 in vec3 a_clip1;
 
@@ -71,7 +72,7 @@ vec3 page_color() {
 #define in_color page_color()
 #define in_axis_u splat_axis(false)
 #define in_axis_v splat_axis(true)
-#define in_field vec2(0.0)
+#define in_field a_field
 #define in_lod (a_lod * u_length_unit)
 #define in_clip0 a_clip0
 #define in_clip1 a_clip1

@@ -19,7 +19,8 @@
   const SHADING = { lambert: 0, phong: 1, none: 2, normals: 3, depth: 4 };
   const COLOR_MODE = { rgb: 0, continuous: 1, categorical: 2 };  // gl/colors.glsl
   const PAGE_MODE = { rgb: 0, value: 1, elevation: 2, code: 3 };  // web/splat_attributes.glsl
-  const ATTRIBUTES = ["a_position", "a_normal", "a_radii", "a_angle", "a_color", "a_value", "a_lod", "a_clip0", "a_clip1"];
+  const ATTRIBUTES = ["a_position", "a_normal", "a_radii", "a_angle", "a_color", "a_value", "a_lod", "a_field", "a_clip0",
+                      "a_clip1"];
   const LOC = Object.fromEntries(ATTRIBUTES.map((name, i) => [name, i]));
   const UNIT = { kernel: 0, visibility: 1, accumColor: 2, accumNormal: 3, shaded: 4, gnormal: 5, gdepth: 6,
                  category: 7, table: 8, scratch: 10 };  // scratch: where new textures are made
@@ -239,6 +240,7 @@
     bind(LOC.a_angle, "angle", 1);
     if (columns.color) bind(LOC.a_color, "color", 3);
     if (columns.lod) bind(LOC.a_lod, "lod", 3);
+    if (columns.field) bind(LOC.a_field, "field", 2);
     if (columns.clip) { bind(LOC.a_clip0, "clip", 3, 0, 12); bind(LOC.a_clip1, "clip", 3, 6, 12); }
     if (columns["value:" + S.color]) bind(LOC.a_value, "value:" + S.color, 1);
     gl.bindVertexArray(null);
@@ -339,7 +341,7 @@
     const guard = sprites ? GUARD : 0;
     const t = allocate(w, h, guard);
     const variant = { PER_SPLAT_SHADING: method === "gaussian", EWA_FILTER: ewa, POINT_SPRITES: sprites,
-                      CLIP_LINES: !!columns.clip };
+                      CURVED_SPLATS: method === "deferred" && !!columns.field, CLIP_LINES: !!columns.clip };
     let pageMode = PAGE_MODE.rgb, range = [0, 1];
     if (mode.kind === "continuous") {
       pageMode = mode.name === "elevation" ? PAGE_MODE.elevation : PAGE_MODE.value;
