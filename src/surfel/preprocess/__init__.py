@@ -9,6 +9,8 @@ One module per estimation, each citing its source, with its tuning constants at 
                      2004), cut at creases, and the splats' clip lines there and at the
                      borders of open surfaces
   sharp_features.py  flat points and crease points (Zwicker et al. 2002, Pauly et al. 2003)
+  borders.py         border points of open surfaces and their outward directions (Pauly et al.
+                     2003)
   normal_field.py    Phong splatting's linear normal fields (Botsch et al. 2004)
   structure.py       points on no surface (vegetation, wires, noise; Demantké et al. 2011) and
                      points without a tangent plane: round splats facing the camera

@@ -45,19 +45,9 @@ creases: `sharp_features.py`):
     Jacobian). The cell kernels and the clip lines share the crease geometry, so they share this
     module: numba's on-disk cache does not see a change to a function in another file.
 
-Borders of open surfaces (as the boundary clipping of Pauly et al. 2003):
-    a disk centred on a sheet's last row of samples spills past the sheet's edge by its radius,
-    which grows the outline of every open surface (a flat part, cloth, a scanned patch). A point
-    is on a border when its neighbours, projected into its tangent plane, leave an angular gap of
-    at least BORDER_GAP (an interior point of a regular sampling sees gaps of about 60 degrees),
-    and no second gap over INTERIOR_GAP (a scan line seen from one of its points); confirmed
-    among its BORDER_CONFIRM nearest neighbours, because a sampling far denser on one side (a
-    CAD mesh's vertices crowd at its curves) leaves a gap towards the sparse side among the
-    nearest ones. Not where a neighbour faces away (n_p . n_q < SHEET_COS: the surface folds
-    back, a thin closed part). Its outward direction w is the middle of the gap, and its border
-    line (X - q) . w <= 0 through the point q is a clip-line candidate of every splat near it,
-    beside the creases. Aerial scan lines (geospatial clouds) have no borders: a line with the
-    next line on one side only looks like one.
+Borders of open surfaces (`borders.py`, as the boundary clipping of Pauly et al. 2003):
+    the border line (X - q) . w_q <= 0 through each border point q, across its outward
+    direction w_q, is a clip-line candidate of every splat near it, beside the creases.
 """
 
 from __future__ import annotations
@@ -66,7 +56,6 @@ import math
 
 import numba
 import numpy as np
-from scipy.spatial import cKDTree
 
 from ..cloud import PointCloud
 from .chunked import map_chunks
@@ -89,9 +78,6 @@ CAP_SIDES = 8                  # a cell starts as a regular octagon inscribed in
 CLIP_LINES = 2                 # clip lines per splat: an edge, or an edge and a corner
 INACTIVE_CLIP = (0.0, 0.0, 1.0)  # 0 u + 0 v <= 1: cuts nothing
 PARALLEL_COS = math.cos(math.radians(30.0))  # clip lines closer in direction are one edge
-BORDER_GAP = math.radians(120.0)   # neighbours leaving a gap this wide: p is on a border
-INTERIOR_GAP = math.radians(100.0)  # ... unless another gap is this wide too (a scan line)
-BORDER_CONFIRM = 64                 # neighbours among which a border is confirmed
 
 
 # ---------------------------------------------------------------------------------------------
@@ -396,62 +382,6 @@ def _crease_candidates(points, normals, index, axes, i, p, features, candidates)
     return count
 
 
-@numba.njit(parallel=True, cache=True)
-def _border_outwards(points, normals, index, rows, frames):  # pragma: no cover - compiled
-    """Per point rows[i], the unit tangent (3,) pointing out of the surface if the point lies on
-    the border of an open surface, else zero.
-
-    A point is on a border when its neighbours, projected into its tangent plane (t, s) =
-    frames[i], leave one angular gap wider than BORDER_GAP while every other gap stays below
-    INTERIOR_GAP (two wide gaps: a scan line, not a border); outwards is the middle of the gap.
-    A neighbour facing away (n_p . n_q < SHEET_COS) means the surface folds back here (a thin
-    closed part, sampled too coarsely to show its rim): no border, the splat keeps its overlap."""
-    m, k = index.shape
-    outwards = np.zeros((m, 3))
-    for i in numba.prange(m):
-        p = rows[i]
-        angles = np.empty(k)
-        used = 0
-        folded = False
-        for j in range(k):
-            q = index[i, j]
-            facing = 0.0
-            x = 0.0
-            y = 0.0
-            for a in range(3):
-                facing += normals[q, a] * normals[p, a]
-                d = points[q, a] - points[p, a]
-                x += d * frames[i, 0, a]
-                y += d * frames[i, 1, a]
-            if facing < SHEET_COS:
-                folded = True
-            if q == p or facing < SHEET_COS or (x == 0.0 and y == 0.0):
-                continue
-            angles[used] = math.atan2(y, x)
-            used += 1
-        if used < 3 or folded:
-            continue
-        order = np.sort(angles[:used])
-        widest = 0.0
-        second = 0.0
-        middle = 0.0
-        for j in range(used):
-            following = order[j + 1] if j + 1 < used else order[0] + 2.0 * math.pi
-            gap = following - order[j]
-            if gap > widest:
-                second = widest
-                widest = gap
-                middle = order[j] + 0.5 * gap
-            elif gap > second:
-                second = gap
-        if widest >= BORDER_GAP and second <= INTERIOR_GAP:
-            co = math.cos(middle)
-            si = math.sin(middle)
-            for a in range(3):
-                outwards[i, a] = co * frames[i, 0, a] + si * frames[i, 1, a]
-    return outwards
-
-
 @numba.njit(cache=True, inline="always")
 def _border_candidates(points, index, axes, i, p, outwards, candidates, count):  # pragma: no cover - compiled
     """Append the border half-planes that cut splat p as unit (a, b, c) rows of candidates in its
@@ -617,32 +547,13 @@ def covering_ellipses(nbh: Neighbourhood, normals: np.ndarray, progress: bool | 
     return _cells(nbh, normals, k, True, progress, features, True)[1]
 
 
-def border_outwards(nbh: Neighbourhood, normals: np.ndarray, index: np.ndarray, progress: bool | None) -> np.ndarray:
-    """(N, 3): the outward unit tangent of each point on the border of an open surface, zero
-    elsewhere, in the neighbourhood's order. Points that look like borders among their nearest
-    neighbours `index` are confirmed among their BORDER_CONFIRM nearest: in a sampling much denser
-    on one side (a CAD mesh's vertices crowd at its curves), the nearest neighbours alone leave a
-    gap towards the sparse side where the surface goes on."""
-    n = len(nbh.points)
-    outwards = map_chunks(lambda start, stop: _border_outwards(nbh.points, normals, index[start:stop],
-                                                               np.arange(start, stop),
-                                                               orthonormal_basis(normals[start:stop])),
-                          n, progress, "borders")
-    candidates = np.flatnonzero(outwards.any(axis=1))
-    if len(candidates) and n > index.shape[1]:
-        _, wide = cKDTree(nbh.points).query(nbh.points[candidates], k=min(BORDER_CONFIRM, n))
-        outwards[candidates] = _border_outwards(nbh.points, normals, wide, candidates,
-                                                orthonormal_basis(normals[candidates]))
-    return outwards
-
-
 def clip_lines(nbh: Neighbourhood, normals: np.ndarray, axes: np.ndarray, features: SharpFeatures,
-               progress: bool | None, k: int = RADIUS_NEIGHBOURS, borders: bool = True) -> np.ndarray:
+               outwards: np.ndarray, progress: bool | None, k: int = RADIUS_NEIGHBOURS) -> np.ndarray:
     """Clip lines (N, CLIP_LINES, 3) float32 of the splats (normals, axes), in the
-    neighbourhood's order: at creases, and at the borders of open surfaces if `borders`."""
+    neighbourhood's order: at creases, and at the borders of open surfaces given by `outwards`
+    (N, 3), the border points' outward directions (`borders.border_outwards`), zero elsewhere."""
     index = nbh.first(k)
     normals = unit(np.asarray(normals, np.float64))
-    outwards = border_outwards(nbh, normals, index, progress) if borders else np.zeros((len(nbh.points), 3))
 
     def chunk(start: int, stop: int) -> np.ndarray:
         return _clip_lines(nbh.points, normals, index[start:stop], start, np.asarray(axes[start:stop], np.float64),

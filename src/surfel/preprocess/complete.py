@@ -16,8 +16,8 @@ FIELD_NEIGHBOURS), serves every estimation, in this order, each using the ones b
   5. axes: fitted ellipses (`cells.py`) or circular tangent frames of the radii (`frames.py`);
   6. the sampling bound on both (`spacing.py`), and the radii of the screen-facing splats
      (`structure.py`);
-  7. clip lines at the sharp features and at the borders of open surfaces (`cells.py`), none
-     on screen-facing splats;
+  7. clip lines at the sharp features and at the borders of open surfaces (`borders.py`,
+     `cells.py`), none on screen-facing splats;
   8. Phong splatting's normal fields (`normal_field.py`), flat on screen-facing splats.
 
 Given attributes are kept as they are.
@@ -34,6 +34,7 @@ from dataclasses import replace
 import numpy as np
 
 from ..cloud import PointCloud
+from .borders import border_outwards
 from .cells import INACTIVE_CLIP, RADIUS_MARGIN, RADIUS_NEIGHBOURS, clip_lines, covering_ellipses, covering_radii
 from .frames import tangent_frames, unit
 from .neighbourhood import Neighbourhood
@@ -180,7 +181,10 @@ def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np
         estimated["axes"] = axes
     changes = {name: nbh.unsort(np.asarray(value, np.float32)) for name, value in estimated.items()}
     if features is not None:
-        lines = clip_lines(nbh, normals, axes, features, progress, borders=not cloud.geospatial)
+        # aerial scan lines look like borders (borders.py)
+        outwards = (np.zeros((len(nbh.points), 3)) if cloud.geospatial
+                    else border_outwards(nbh, unit(normals), nbh.first(RADIUS_NEIGHBOURS), progress))
+        lines = clip_lines(nbh, normals, axes, features, outwards, progress)
         if facing is not None:
             lines[facing] = INACTIVE_CLIP  # a disk facing the camera has no crease to end at
         attributes["clip_lines"] = nbh.unsort(lines)
