@@ -38,14 +38,14 @@ BORDER_CONFIRM = 64                 # neighbours among which a border is confirm
 
 
 @numba.njit(parallel=True, cache=True)
-def _border_outwards(points, normals, index, rows, frames):  # pragma: no cover - compiled
+def _border_outwards(points, normals, index, rows, frames, sheet_cos):  # pragma: no cover - compiled
     """Per point rows[i], the unit tangent (3,) pointing out of the surface if the point lies on
     the border of an open surface, else zero.
 
     A point is on a border when its neighbours, projected into its tangent plane (t, s) =
     frames[i], leave one angular gap wider than BORDER_GAP while every other gap stays below
     INTERIOR_GAP (two wide gaps: a scan line, not a border); outwards is the middle of the gap.
-    A neighbour facing away (n_p . n_q < SHEET_COS) means the surface folds back here (a thin
+    A neighbour facing away (n_p . n_q < sheet_cos) means the surface folds back here (a thin
     closed part, sampled too coarsely to show its rim): no border, the splat keeps its overlap."""
     m, k = index.shape
     outwards = np.zeros((m, 3))
@@ -64,9 +64,9 @@ def _border_outwards(points, normals, index, rows, frames):  # pragma: no cover 
                 d = points[q, a] - points[p, a]
                 x += d * frames[i, 0, a]
                 y += d * frames[i, 1, a]
-            if facing < SHEET_COS:
+            if facing < sheet_cos:
                 folded = True
-            if q == p or facing < SHEET_COS or (x == 0.0 and y == 0.0):
+            if q == p or facing < sheet_cos or (x == 0.0 and y == 0.0):
                 continue
             angles[used] = math.atan2(y, x)
             used += 1
@@ -102,11 +102,11 @@ def border_outwards(nbh: Neighbourhood, normals: np.ndarray, index: np.ndarray, 
     n = len(nbh.points)
     outwards = map_chunks(lambda start, stop: _border_outwards(nbh.points, normals, index[start:stop],
                                                                np.arange(start, stop),
-                                                               orthonormal_basis(normals[start:stop])),
+                                                               orthonormal_basis(normals[start:stop]), SHEET_COS),
                           n, progress, "borders")
     candidates = np.flatnonzero(outwards.any(axis=1))
     if len(candidates) and n > index.shape[1]:
         _, wide = cKDTree(nbh.points).query(nbh.points[candidates], k=min(BORDER_CONFIRM, n))
         outwards[candidates] = _border_outwards(nbh.points, normals, wide, candidates,
-                                                orthonormal_basis(normals[candidates]))
+                                                orthonormal_basis(normals[candidates]), SHEET_COS)
     return outwards
