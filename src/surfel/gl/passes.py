@@ -188,9 +188,8 @@ class SplatPasses:
 
     def normalize_pass(self, program) -> None:
         ctx = self.ctx
-        ctx.disable(ctx.BLEND)
-        self.out.fbo.use()
-        self.out.clear()
+        ctx.disable(ctx.BLEND | ctx.DEPTH_TEST)
+        self.out.fbo.use()  # no clear: the full-screen triangle writes every pixel of every target
         self.visibility.use(1)
         self.accum[0].use(2)
         self.accum[1].use(3)
