@@ -170,3 +170,43 @@ def test_backend_options_on_the_command_line(tmp_path):
     bad = run("-o", tmp_path / "c.png", "--backend", "cpu", "--method", "points")
     assert bad.returncode == 2 and bad.stderr.count("\n") == 1 and "no 'cpu' backend" in bad.stderr
     assert "Traceback" not in bad.stderr
+
+
+def stacked_sheets(sheets: int = 10, side: int = 80, seed: int = 0):
+    """Parallel square sheets one behind the other, each shifted sideways so that a strip of
+    it shows: nine tenths of the splats hidden wholly, the rest partly, at every edge."""
+    from surfel.cloud import PointCloud
+
+    rng = np.random.default_rng(seed)
+    g = (np.arange(side) + 0.5) / side * 2 - 1
+    x, y = (a.ravel() for a in np.meshgrid(g, g))
+    palette = rng.uniform(0.1, 0.9, (sheets, 3))
+    palette[0] = (0.9, 0.2, 0.1)
+    positions, colors = [], []
+    for k in range(sheets):
+        jitter = rng.uniform(-0.3, 0.3, (len(x), 2)) * (2 / side)
+        positions.append(np.c_[x + jitter[:, 0] + 0.12 * k, y + jitter[:, 1], np.full(len(x), -0.1 * k)])
+        colors.append(np.tile(palette[k], (len(x), 1)))
+    n = sheets * len(x)
+    radius = np.full(n, 2.4 / side, np.float32)  # 1.2 spacings: no gaps, whatever the jitter
+    axes = np.zeros((n, 2, 3), np.float32)
+    axes[:, 0, 0] = axes[:, 1, 1] = radius
+    return PointCloud(np.concatenate(positions), normals=np.tile([0, 0, 1.0], (n, 1)),
+                      colors=np.concatenate(colors), radii=radius, axes=axes)
+
+
+@pytest.mark.parametrize("method", METHODS)
+@pytest.mark.parametrize("ortho", [False, True])
+def test_occlusion_culling_keeps_the_picture_of_stacked_sheets(method, ortho):
+    """The GL attribute pass culls splats behind the visible surface by an early depth test
+    (splatting.glsl nearest_depth): on a stack of sheets its picture is still the CPU
+    backend's, which culls nothing, and the front sheet's colour fills its part."""
+    from surfel.camera import Camera
+
+    cloud = stacked_sheets()
+    camera = Camera.look_at([0.4, 0.3, 4.0], [0.4, 0.0, -0.5], fov=40, size=SIZE,
+                            ortho_height=2.8 if ortho else None).fit_clip_planes(cloud.center, cloud.bounding_radius)
+    cpu, gl = both(cloud, camera, method, shading="lambert")
+    assert_agree(cpu, gl)
+    front = gl.color[80:112, 40:72]  # inside the front sheet, away from its edges
+    assert (front[..., 0] > 3 * front[..., 1]).all()

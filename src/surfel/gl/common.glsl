@@ -20,9 +20,9 @@ vec4 image_to_clip(vec2 image) {
     return vec4(2.0 * (image.x + u_guard) / target.x - 1.0, 1.0 - 2.0 * (image.y + u_guard) / target.y, 0.0, 1.0);
 }
 
-// Eye-space ray through the fragment's pixel centre: origin and (unnormalised) direction.
-void pixel_ray(vec2 frag_coord, out vec3 origin, out vec3 direction) {
-    vec2 image = image_coord(frag_coord);
+// Eye-space ray through a point of the image (pixels, y down): origin and (unnormalised)
+// direction.
+void image_ray(vec2 image, out vec3 origin, out vec3 direction) {
     if (u_ortho > 0.0) {
         origin = vec3((image.x - u_intrinsics.z) / u_ortho, (u_intrinsics.w - image.y) / u_ortho, 0.0);
         direction = vec3(0.0, 0.0, -1.0);
@@ -30,6 +30,11 @@ void pixel_ray(vec2 frag_coord, out vec3 origin, out vec3 direction) {
         origin = vec3(0.0);
         direction = vec3((image.x - u_intrinsics.z) / u_intrinsics.x, (u_intrinsics.w - image.y) / u_intrinsics.y, -1.0);
     }
+}
+
+// Eye-space ray through the fragment's pixel centre.
+void pixel_ray(vec2 frag_coord, out vec3 origin, out vec3 direction) {
+    image_ray(image_coord(frag_coord), origin, direction);
 }
 
 // Window depth in [0, 1] of an eye-space point, for gl_FragDepth.

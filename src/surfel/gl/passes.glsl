@@ -5,10 +5,25 @@ uniform sampler2D u_accum_color;  // (sum w rgb, sum w)
 uniform sampler2D u_accum_normal; // (sum w n, sum w z)
 uniform sampler2D u_category;     // categorical colour modes: the packed category of the heaviest splat
 
-#if defined(PASS_NORMALIZE) && defined(VERTEX_SHADER)
+// The depth buffer's code of an eye depth for the occlusion culling of the attribute pass:
+// 1 - far / (z + far), rising with z, in floating point too (each operation rounds
+// monotonically), 0 at the eye and 1 at the visibility pass's FAR.
+float depth_code(float eye_depth) {
+    return 1.0 - u_depth_range.y / (max(eye_depth, 0.0) + u_depth_range.y);
+}
+
+#if (defined(PASS_NORMALIZE) || defined(PASS_OCCLUSION)) && defined(VERTEX_SHADER)
 void main() {  // full-screen triangle
     vec2 p = vec2((gl_VertexID << 1) & 2, gl_VertexID & 2);
     gl_Position = vec4(2.0 * p - 1.0, 0.0, 1.0);
+}
+#endif
+
+#if defined(PASS_OCCLUSION) && defined(FRAGMENT_SHADER)
+// The visibility depth as the depth buffer of the attribute pass, whose splats are drawn at
+// the nearest depth they can have (splatting.glsl nearest_depth) and depth-tested against it.
+void main() {
+    gl_FragDepth = depth_code(texelFetch(u_visibility, ivec2(gl_FragCoord.xy), 0).r);
 }
 #endif
 

@@ -3,6 +3,11 @@ splats with a visibility pass (Ren et al. 2002; Botsch & Kobbelt 2003; Botsch et
 
 1. visibility: MIN blending into an RG32F target: (eye depth + z_t, 1 - coverage), i.e. the
    nearest surface pushed back by z_t, and how much of the pixel some splat covers;
+1c. occlusion (`occlusion_pass`, optional): a full-screen triangle writes the visibility
+   depth into a depth buffer, which the attribute and category passes then test their
+   splats against, each drawn at the nearest depth any of its fragments can have: a
+   conservative early cull of hidden splats' fragments before their fragment shader runs,
+   which leaves every sum unchanged (the shaders still compare each fragment's exact depth);
 2. attribute: additive blending into two RGBA32F accumulators: (w rgb, w) and (w n, w z),
    of fragments no farther than the visibility depth;
 3. normalization: a full-screen triangle turns the sums into the G-buffer layout of
@@ -59,6 +64,8 @@ class SplatTargets:
     back: object = None
     back_fbo: object = None
     back_accum: list = field(default_factory=list)
+    depth: object = None      # the attribute pass's depth buffer (occlusion culling)
+    occlusion_fbo: object = None
 
     @classmethod
     def allocate(cls, width: int, height: int, guard: int = 0, back_layer: bool = False) -> SplatTargets:
@@ -70,16 +77,22 @@ class SplatTargets:
             back = ctx.texture(target, 1, dtype="f4") if back_layer else None
             back_accum = [ctx.texture(target, 4, dtype="f4") for _ in range(2)] if back_layer else []
             category = ctx.texture(target, 2, dtype="f4")
+            depth = ctx.depth_texture(target)
             for tex in (visibility, *accum, *back_accum, *([back] if back else []), category):
                 tex.filter = (ctx.NEAREST, ctx.NEAREST)
-            return cls(guard, visibility, ctx.framebuffer(color_attachments=[visibility]), accum,
-                       ctx.framebuffer(color_attachments=accum + back_accum), GBuffer(width, height),
-                       category, ctx.framebuffer(color_attachments=[category]),
-                       back, ctx.framebuffer(color_attachments=[back]) if back else None, back_accum)
+            accum_fbo = ctx.framebuffer(color_attachments=accum + back_accum, depth_attachment=depth)
+            category_fbo = ctx.framebuffer(color_attachments=[category], depth_attachment=depth)
+            for fbo in (accum_fbo, category_fbo):
+                fbo.depth_mask = False  # the passes test the occlusion pass's depths, never write or clear them
+            return cls(guard, visibility, ctx.framebuffer(color_attachments=[visibility]), accum, accum_fbo,
+                       GBuffer(width, height), category, category_fbo,
+                       back, ctx.framebuffer(color_attachments=[back]) if back else None, back_accum,
+                       depth, ctx.framebuffer(depth_attachment=depth))
 
     def release(self) -> None:
         for obj in (self.visibility, self.visibility_fbo, *self.accum, self.accum_fbo, self.out,
-                    self.category, self.category_fbo, self.back, self.back_fbo, *self.back_accum):
+                    self.category, self.category_fbo, self.back, self.back_fbo, *self.back_accum,
+                    self.depth, self.occlusion_fbo):
             if obj is not None:
                 obj.release()
 
@@ -103,6 +116,8 @@ class SplatPasses:
 
     def __exit__(self, *exc):
         self.ctx.blend_equation = self.ctx.FUNC_ADD
+        self.ctx.disable(self.ctx.DEPTH_TEST)
+        self.ctx.depth_func = "<"  # OpenGL's default, which the other methods draw with
 
     def _min_blended(self, fbo, clear: tuple, draw) -> None:
         fbo.use()
@@ -118,6 +133,23 @@ class SplatPasses:
         """The back layer's depth (after visibility_pass)."""
         self.visibility.use(1)
         self._min_blended(self.back_fbo, (FAR, 0.0, 0.0, 0.0), draw)
+
+    def occlusion_pass(self, program) -> None:
+        """The visibility depths into the depth buffer (after visibility_pass), so that the
+        attribute and category passes depth-test their splats against them."""
+        ctx = self.ctx
+        ctx.disable(ctx.BLEND)
+        ctx.enable(ctx.DEPTH_TEST)
+        ctx.depth_func = "1"  # always: every pixel's depth written
+        self.targets.occlusion_fbo.use()
+        self.visibility.use(1)
+        self._full_screen(program)
+        ctx.depth_func = "<="  # the splat passes: drawn where their nearest depth is not behind it
+
+    def _full_screen(self, program) -> None:
+        triangle = self.ctx.vertex_array(program, [])
+        triangle.render(self.ctx.TRIANGLES, vertices=3)
+        triangle.release()
 
     def attribute_pass(self, draw) -> None:
         ctx = self.ctx
@@ -156,16 +188,13 @@ class SplatPasses:
 
     def normalize_pass(self, program) -> None:
         ctx = self.ctx
-        ctx.disable(ctx.BLEND)
-        self.out.fbo.use()
-        self.out.clear()
+        ctx.disable(ctx.BLEND | ctx.DEPTH_TEST)
+        self.out.fbo.use()  # no clear: the full-screen triangle writes every pixel of every target
         self.visibility.use(1)
         self.accum[0].use(2)
         self.accum[1].use(3)
         self.category.use(CATEGORY_UNIT)
-        triangle = ctx.vertex_array(program, [])
-        triangle.render(ctx.TRIANGLES, vertices=3)
-        triangle.release()
+        self._full_screen(program)
         ctx.finish()
 
     def result(self, camera, options, supersample: int, stats: dict):

@@ -1,7 +1,10 @@
 // GPU surface splatting (Botsch & Kobbelt 2003; Botsch, Hornung, Zwicker & Kobbelt 2005).
 // One source, passes chosen by #define:
 //   PASS_VISIBILITY  eye depth + z_t of every splat fragment, MIN-blended: the nearest surface
-//   PASS_ATTRIBUTE   additive blending of weighted attributes of fragments within z_t of it
+//   PASS_OCCLUSION   full-screen: that depth into the depth buffer (passes.glsl)
+//   PASS_ATTRIBUTE   additive blending of weighted attributes of fragments within z_t of it;
+//                    each splat drawn at the nearest depth it can have and depth-tested, so
+//                    that fragments of splats hidden there never reach the fragment shader
 //   PASS_CATEGORY    categorical colour modes: the packed (weight, palette index) of the same
 //                    fragments, MAX-blended: the heaviest splat's category per pixel (colors.glsl)
 //   PASS_NORMALIZE   full-screen: divide by the accumulated weight, then (deferred) shade
@@ -17,6 +20,9 @@
 #include "lod.glsl"
 #include "shading.glsl"
 #include "passes.glsl"
+#if defined(PASS_NORMALIZE) || defined(PASS_OCCLUSION)
+#define FULL_SCREEN  // passes.glsl's full-screen triangle
+#endif
 
 #define DEPTH_CLAMP 32.0  // splat radii: how far the plane's depth may stray from the centre's
 #define BACK_SPLAT_WEIGHT (1.0 / 256.0)  // a back-facing splat's weight beside front-facing ones
@@ -29,7 +35,7 @@ uniform int u_backface_culling;
 uniform sampler2D u_kernel;      // Gaussian weight exp(-GAUSSIAN_SHARPNESS d^2) (splatting.py), indexed by d^2 in [0, 1]
 
 #ifdef VERTEX_SHADER
-#ifndef PASS_NORMALIZE
+#ifndef FULL_SCREEN
 #include "splat_attributes.glsl"
 flat out vec3 v_center;     // eye space
 flat out vec3 v_normal;     // eye space, facing the camera
@@ -52,6 +58,32 @@ vec2 to_pixels(vec3 eye) {
     if (u_ortho > 0.0) return vec2(u_intrinsics.z + u_ortho * eye.x, u_intrinsics.w - u_ortho * eye.y);
     return vec2(u_intrinsics.z + u_intrinsics.x * eye.x / -eye.z, u_intrinsics.w - u_intrinsics.y * eye.y / -eye.z);
 }
+
+#if defined(PASS_ATTRIBUTE) || defined(PASS_CATEGORY)
+// The nearest eye depth that a fragment of the splat (centre c, unit normal n) in the image
+// box [lo, hi] can have (splat_distance). Along the pixel rays the plane's depth t has an
+// affine reciprocal (perspective) or is affine (orthographic) in the image coordinates, so
+// where the plane faces every ray of the box from the same side its least value is at a
+// corner; splat_distance clamps it to `extent` of the centre's depth. Curved splats
+// (NORMAL_FIELD) leave the plane: only the clamp bounds them. Rounding in the fragment
+// shader is covered by a relative margin of 1e-4.
+float nearest_depth(vec3 c, vec3 n, vec2 lo, vec2 hi, float extent) {
+    float nearest = -c.z - extent;
+#ifndef NORMAL_FIELD
+    float least = -c.z, side = 0.0;
+    for (int i = 0; i < 4; ++i) {
+        vec3 o, d;
+        image_ray(vec2(i % 2 == 0 ? lo.x : hi.x, i < 2 ? lo.y : hi.y), o, d);
+        float denom = dot(d, n);
+        if (abs(denom) < 1e-3 * length(d) || denom * side < 0.0) return nearest;  // edge-on within the box
+        side = denom;
+        least = min(least, dot(c - o, n) / denom);
+    }
+    nearest = max(nearest, least);
+#endif
+    return nearest - 1e-4 * (abs(c.z) + extent);
+}
+#endif
 
 void main() {
     const vec2 corners[4] = vec2[4](vec2(0.0, 0.0), vec2(1.0, 0.0), vec2(0.0, 1.0), vec2(1.0, 1.0));
@@ -116,12 +148,24 @@ void main() {
     // band so that sprites centred outside the image still reach into it (OpenGL drops a
     // point whose centre is clipped). splatting.py picks quads when a splat could outgrow
     // the guard band or the largest point size, or cross the near plane.
-    gl_Position = image_to_clip(0.5 * (lo + hi));
-    gl_PointSize = max(max(hi.x - lo.x, hi.y - lo.y), 1.0);  // covers every pixel centre in the box
+    vec2 box_center = 0.5 * (lo + hi);
+    float size = max(max(hi.x - lo.x, hi.y - lo.y), 1.0);  // covers every pixel centre in the box
+    lo = box_center - 0.5 * size;  // the sprite's square
+    hi = box_center + 0.5 * size;
+    gl_Position = image_to_clip(box_center);
+    gl_PointSize = size;
 #else
     if (crosses_near) { lo = vec2(0.0); hi = u_viewport; }
     lo = max(lo, vec2(-1.0)); hi = min(hi, u_viewport + 1.0);
     gl_Position = image_to_clip(mix(lo, hi, corners[gl_VertexID]));
+#endif
+    float radius = max(length(au), length(av));
+#if defined(PASS_ATTRIBUTE) || defined(PASS_CATEGORY)
+    // Occlusion culling: the splat is drawn at the nearest depth it can have, so that the
+    // depth test (early, before the fragment shader) drops its fragments wherever even that
+    // lies behind the visible surface. Half a pixel of margin covers the rasterizer's snapping.
+    float nearest = crosses_near ? 0.0 : nearest_depth(c, n, lo - 0.5, hi + 0.5, DEPTH_CLAMP * radius);
+    gl_Position.z = 2.0 * depth_code(nearest) - 1.0;
 #endif
 
     v_center = c;
@@ -139,14 +183,14 @@ void main() {
     v_clip0 = in_clip0;
     v_clip1 = in_clip1;
 #endif
-    v_radius = max(length(au), length(av));
+    v_radius = radius;
     v_offset = u_depth_offset * v_radius;
 }
 #endif
 #endif
 
 #ifdef FRAGMENT_SHADER
-#ifndef PASS_NORMALIZE
+#ifndef FULL_SCREEN
 flat in vec3 v_center;
 flat in vec3 v_normal;
 flat in vec3 v_u;

@@ -8,6 +8,11 @@ q = o + d (c - o).n / d.n (the δz offset of the survey, perspective accurate), 
 weight alpha = G(|(u, v)|) looked up in a 1D texture, and three passes:
   1. visibility: the nearest eye depth pushed back by z_t (MIN blending into a float target);
   2. attribute: additive blending of (w rgb, w, w n, w z) of fragments no farther than it;
+     the visibility depth is copied into a depth buffer first and each splat drawn at the
+     least depth any of its fragments can have (its plane's depth at the corners of its
+     screen box, the least of a function whose reciprocal is affine there), so the early
+     depth test drops hidden splats' fragments before their shader runs: the sums are the
+     same, the work less (gl/passes.py);
   3. normalization: rgb = sum(w rgb) / sum(w).
 Colours are shaded per splat before blending: the Gouraud look of the survey's Fig. 6.
 
@@ -145,7 +150,8 @@ def _render(cloud, camera, options, params, renderer, *, per_splat_shading: bool
                "NORMAL_FIELD": normal_field,
                "POINT_SPRITES": sprites, "CLIP_LINES": "clip_lines" in cloud.attributes}
     categorical = options.coloring is not None and options.coloring.categorical
-    passes = ("PASS_VISIBILITY", "PASS_ATTRIBUTE", *(("PASS_CATEGORY",) if categorical else ()), "PASS_NORMALIZE")
+    passes = ("PASS_VISIBILITY", "PASS_OCCLUSION", "PASS_ATTRIBUTE", *(("PASS_CATEGORY",) if categorical else ()),
+              "PASS_NORMALIZE")
     programs = {p: renderer.program(SHADER, {p: True, **variant}) for p in passes}
     for program in programs.values():
         apply_common(program, camera, cloud.local_origin, ss, options,
@@ -166,6 +172,7 @@ def _render(cloud, camera, options, params, renderer, *, per_splat_shading: bool
         with SplatPasses(renderer.splat_targets(width, height, guard)) as passes:
             kernel.use(0)
             passes.visibility_pass(draw(programs["PASS_VISIBILITY"]))
+            passes.occlusion_pass(programs["PASS_OCCLUSION"])
             passes.attribute_pass(draw(programs["PASS_ATTRIBUTE"]))
             if categorical:
                 passes.category_pass(draw(programs["PASS_CATEGORY"]))
