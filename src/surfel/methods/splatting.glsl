@@ -65,11 +65,11 @@ vec2 to_pixels(vec3 eye) {
 // affine reciprocal (perspective) or is affine (orthographic) in the image coordinates, so
 // where the plane faces every ray of the box from the same side its least value is at a
 // corner; splat_distance clamps it to `extent` of the centre's depth. Curved splats
-// (NORMAL_FIELD) leave the plane: only the clamp bounds them. Rounding in the fragment
+// (CURVED_SPLATS) leave the plane: only the clamp bounds them. Rounding in the fragment
 // shader is covered by a relative margin of 1e-4.
 float nearest_depth(vec3 c, vec3 n, vec2 lo, vec2 hi, float extent) {
     float nearest = -c.z - extent;
-#ifndef NORMAL_FIELD
+#ifndef CURVED_SPLATS
     float least = -c.z, side = 0.0;
     for (int i = 0; i < 4; ++i) {
         vec3 o, d;
