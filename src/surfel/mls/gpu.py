@@ -30,12 +30,13 @@ Then `iterations` times (default 3), at r = o + t d:
 4. system: the supports again; with (u, v, f) the coordinates of (p_i - q) / l in (e1, e2, n),
    the normal equations of  min sum w (g(u, v) - f)^2  need only the 15 moments w u^a v^b
    (a + b <= 4) and the 6 sums w f u^a v^b (a + b <= 2): six RGBA32F targets, full system;
-   a seventh sums the half-disc test's area-weighted offsets of the samples from r;
+   a seventh sums the half-disc test's area-weighted offsets of the samples from r, and
+   spare channels count the crease test's samples (surface.sample_beyond);
 5. solve + re-intersect (full screen): Cholesky of the 6x6 (double precision), then the ray
    meets the new quadratic within 2.5 l of r (the CPU tracer's window) -- the next t, whose
    window depth is rewritten for the next culling test. The fit's normal at the new point is
    the next n_r for the first REFERENCE_UPDATES steps, as on the CPU. At the last step the
-   half-disc test rejects a hit past the edge of its sheet.
+   half-disc and crease tests reject a hit past the edge of its sheet.
 6. keep / retry: converged pixels keep their hit; where the fits failed, the next candidate
    (`candidates`, default 4) is the nearest intersection beyond the failed one -- the CPU
    tracer's walk on to the next bounding sphere, bounded here to a few candidates.
@@ -65,7 +66,7 @@ from ..options import RenderOptions, at_least, setting
 from ..result import RenderResult
 from .polynomial import P_C, P_E1, P_E2, P_N, P_Q, P_SCALE
 from .raytrace import DEFAULT_SUPERSAMPLE, MLSScene, cached_scene, scene_kernel
-from .surface import REFERENCE_UPDATES, MlsKernel
+from .surface import EDGE_REACH, EDGE_SHEET_COS, EDGE_TURN_COS, REFERENCE_UPDATES, MlsKernel
 
 SHADER = Path(__file__).with_suffix(".glsl")
 FAR = 3.0e38
@@ -185,7 +186,8 @@ def render_mls_gl(cloud: PointCloud, camera: Camera, options: RenderOptions, par
     targets = renderer.targets("mls caster", size, lambda: CasterTargets(size))
     view = camera.view_matrix(surface.origin)
     common = {"u_view_inv": np.linalg.inv(view), "u_scale": surface.scale, "u_domain": surface.domain,
-              "u_normal_weight": 1.0 / params.normal_sigma**2, "u_boundary": params.boundary, "u_guard": 0.0}
+              "u_normal_weight": 1.0 / params.normal_sigma**2, "u_boundary": params.boundary,
+              "u_edge_cos": EDGE_SHEET_COS, "u_edge_reach": EDGE_REACH, "u_edge_turn": EDGE_TURN_COS, "u_guard": 0.0}
     programs = {name: renderer.program(SHADER, {f"PASS_{name.upper()}": True})
                 for name in ("intersect", "cull", "covariance", "frame", "system", "solve", "keep", "retry", "shade")}
     for program in programs.values():

@@ -48,7 +48,18 @@ weighted by a_i exp(-|p_i - r|^2 / l^2 - |n_i - n_r|^2 / sigma_n^2) (a_i the are
 stands for: its spacing before the slope limit, squared), may lie at most `boundary * l`
 from r across the tangent plane (at the edge of a half-plane it lies l / sqrt(pi) = 0.56 l
 away). The areas and the one width l keep a jump in sampling density from reading as an
-edge. Failures are statuses (FIT_*), never exceptions.
+edge. That bound leaves a sheet running on by a tenth of l or so past its last samples, which
+a LiDAR canopy's ragged edge needs and a crease does not; so at a crease a second test cuts
+the sheet at its outermost sample. With m the weighted mean of the samples about x (the
+fit's q - x) and u = -(m - (m . n) n) the direction away from it along the plane, x lies past
+the edge of its sheet when no sample of the sheet (n_i . n > cos 60 degrees) lies beyond x,
+(p_i - x) . u >= 0, while a sample of another sheet turning away across the edge lies near
+the edge or past it, (p_i - x) . u >= -EDGE_REACH l |u| with n_i . u > cos 60 degrees |u|:
+the sheet ends there at a convex crease or a rim (the extent criterion of Bendels et al.'s
+boundary detection, in the direction the half-disc test points). An open boundary, where no
+other sheet turns away -- a LiDAR canopy's edge, whose noisy normals point every way but
+rarely outwards just there -- is left to the half-disc test alone.
+Failures are statuses (FIT_*), never exceptions.
 
 Neighbour search: a bounding volume hierarchy over the supports. The samples are stored in
 Morton order; each leaf holds LEAF consecutive samples, each node the box of its samples'
@@ -103,6 +114,9 @@ SPACING_K = 8          # spacing: mean distance to the 8 nearest neighbours, med
 WIDTH_SLOPE = 0.5      # kernel widths fall by at most this per unit distance along a sheet
 WIDTH_SHEET_COS = 0.7  # ... a sheet: samples whose normals lie within 45 degrees
 WIDTH_PASSES = 2       # passes of that limit (each reaches one support further)
+EDGE_REACH = 0.25      # ... another sheet's samples count from this many l behind x
+EDGE_SHEET_COS = 0.5   # crease test: a sheet's samples have normals within 60 degrees of the fit's
+EDGE_TURN_COS = 0.5    # ... another sheet across a crease turns its normals within 60 degrees of u
 REFERENCE_UPDATES = 2  # fits whose normal becomes the next fit's reference normal; later fits keep it
 LEAF = 8               # samples per leaf of the hierarchies
 STACK = 64             # traversal stack: twice the depth of any tree that fits in memory
@@ -498,7 +512,44 @@ def past_edge(poly, samples, scratch):
         az += wa * dz
     ax, ay, az = ax / sa, ay / sa, az / sa
     along = ax * poly[P_N] + ay * poly[P_N + 1] + az * poly[P_N + 2]
-    return ax * ax + ay * ay + az * az - along * along > (samples.boundary * poly[P_SCALE]) ** 2
+    if ax * ax + ay * ay + az * az - along * along > (samples.boundary * poly[P_SCALE]) ** 2:
+        return True
+    return not sample_beyond(poly, samples, scratch)
+
+
+@numba.njit(cache=True, fastmath=True)
+def sample_beyond(poly, samples, scratch):
+    """The crease test of the last fit (module docstring): False where x lies past the
+    outermost sample of its sheet (normals within 60 degrees of the fit's) in the direction u
+    away from the weighted mean of the samples about x, while a sample of another sheet whose
+    normal turns towards u lies within EDGE_REACH l of x or beyond it along u: the sheet has
+    ended at a convex crease or a rim.
+    An open boundary (a canopy's edge in a LiDAR tile) is left to the half-disc test."""
+    nb, normals = scratch.nb, samples.normals
+    n0, n1, n2 = poly[P_N], poly[P_N + 1], poly[P_N + 2]
+    sw = mx = my = mz = 0.0
+    for k in range(scratch.found[0]):
+        w = nb[k, 3]
+        sw += w
+        mx += w * nb[k, 0]
+        my += w * nb[k, 1]
+        mz += w * nb[k, 2]
+    along = (mx * n0 + my * n1 + mz * n2)
+    ux, uy, uz = along * n0 - mx, along * n1 - my, along * n2 - mz  # -(tangential part of the mean) * sw
+    if ux * ux + uy * uy + uz * uz <= (1e-6 * sw * poly[P_SCALE]) ** 2:
+        return True  # the mean lies at x: samples all around
+    norm = math.sqrt(ux * ux + uy * uy + uz * uz)
+    reach = -EDGE_REACH * poly[P_SCALE] * norm
+    other = False
+    for k in range(scratch.found[0]):
+        i = int(nb[k, 5])
+        out = nb[k, 0] * ux + nb[k, 1] * uy + nb[k, 2] * uz
+        if normals[i, 0] * n0 + normals[i, 1] * n1 + normals[i, 2] * n2 > EDGE_SHEET_COS:
+            if out >= 0.0:
+                return True
+        elif out >= reach and normals[i, 0] * ux + normals[i, 1] * uy + normals[i, 2] * uz > EDGE_TURN_COS * norm:
+            other = True
+    return not other
 
 
 @numba.njit(cache=True)
