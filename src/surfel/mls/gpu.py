@@ -83,9 +83,9 @@ def pack_points(scene: MLSScene) -> np.ndarray:
     s = scene.surface
     out = np.zeros((len(s.points), 3, 4), np.float32)
     out[:, 0, :3] = s.points
-    out[:, 0, 3] = s.h
-    out[:, 1, :3] = s.colors
-    out[:, 1, 3] = s.spacing
+    out[:, 0, 3] = s.samples.h
+    out[:, 1, :3] = s.samples.colors
+    out[:, 1, 3] = s.samples.spacing
     out[:, 2, :3] = s.normals
     out[:, 2, 3] = s.samples.area
     return out

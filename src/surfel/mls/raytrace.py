@@ -91,7 +91,7 @@ def prepare_scene(cloud, kernel: MlsKernel = DEFAULT_KERNEL) -> MLSScene:
     polys, status = point_polynomials(surface)
     valid = status == FIT_OK
     # a sample whose own fit failed starts no intersection: no sphere, left out of the tree
-    radius = np.where(valid, kernel.domain * surface.spacing, 0.0)
+    radius = np.where(valid, kernel.domain * surface.samples.spacing, 0.0)
     boxes = leaf_tree(surface.points, np.where(valid, radius, -EMPTY))
     return MLSScene(surface, polys, valid, radius, boxes)
 

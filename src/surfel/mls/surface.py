@@ -16,57 +16,54 @@ oriented normals n_i) whose support |p_i - r| < 2.5 h_i holds r:
            (u_i, v_i, f_i) = coordinates of (p_i - q) / l in (e1, e2, n)
     P(r) = q + l (u_r e1 + v_r e2 + g(u_r, v_r) n)        (u_r, v_r) = coordinates of (r - q) / l in H
 
-A projection starts with the normal of the sample it starts from as n_r; the normal of the
-first REFERENCE_UPDATES fits' surfaces at their projected points becomes the next n_r, after
-which n_r is kept (so that the iteration converges to a fixed point of one operator).
+A projection starts with its first sample's normal as n_r; the normal of the first
+REFERENCE_UPDATES fits at their projected points becomes the next n_r, then n_r is kept (the
+iteration converges to a fixed point of one operator).
 
 Kernel width (adaptive MLS): h_i = h_scale * s_i, s_i the local sample spacing: the mean
 distance to the k = 8 nearest neighbours (the k-nearest neighbourhood sizes the kernel as in
 Pauly, Gross & Kobbelt, "Efficient simplification of point-sampled surfaces", 2002, and the
 per-sample widths h_i = t r_i of Guennebaud & Gross, "Algebraic point set surfaces", 2007),
 then the median over the sample and those neighbours, so that an isolated outlier takes the
-spacing of the surface near it instead of spreading its weight far. Dense parts (a face) keep
-a narrow kernel and their detail, sparse parts (a body) a wide one and no holes. Where dense
-and sparse sampling meet, a narrow kernel next to a wide one would leave the gap between them
-to the wide kernels alone; so, as the feature-size-proportional widths of Dey & Sun ("An
-adaptive MLS surface for reconstruction with guarantees", 2005) are Lipschitz, the widths are
-limited in slope along a sheet: h_i >= h_j - WIDTH_SLOPE |p_i - p_j| for every sample j
-whose support reaches p_i and whose normal lies within 45 degrees of n_i.
+spacing of the surface near it. Dense parts (a face) keep a narrow kernel and their detail,
+sparse parts (a body) a wide one and no holes. Where dense and sparse sampling meet, a narrow
+kernel next to a wide one would leave the gap between them to the wide kernels alone; so, as
+the feature-size-proportional widths of Dey & Sun ("An adaptive MLS surface for reconstruction
+with guarantees", 2005) are Lipschitz, the widths are limited in slope along a sheet: h_i >=
+h_j - WIDTH_SLOPE |p_i - p_j| for every sample j whose support reaches p_i and whose normal
+lies within 45 degrees of n_i.
 
 Normal weight (Oztireli, Guennebaud & Gross, "Feature preserving point set surfaces based on
-non-linear kernel regression", 2009): samples whose oriented normal disagrees with n_r --
-the other side of a finger or an ear rim thinner than the kernel, the facing side of a gap
-between two legs, the far face across a crease -- get little weight. Thin parts keep both
-their sides instead of collapsing onto a midsurface, gaps stay open, creases stay sharp.
+non-linear kernel regression", 2009): samples whose oriented normal disagrees with n_r (the
+other side of a thin finger, the facing side of a gap, the far face across a crease) get little
+weight: thin parts keep both sides, gaps stay open, creases stay sharp.
 
-Domain. A fit needs MIN_NEIGHBOURS samples facing n_r (n_i . n_r > 0) in its support, and
-one of them within `domain * s_i` of r (Adamson & Alexa's domain test: no bridging of holes).
-A sheet that the normal weight separates from its neighbour would run on past the crease or
-rim where it ends, so where a projection converges the half-disc test of Bendels, Schnabel &
-Klein ("Detecting holes in point set surfaces", 2006) applies too: the mean of the samples,
-weighted by a_i exp(-|p_i - r|^2 / l^2 - |n_i - n_r|^2 / sigma_n^2) (a_i the area a sample
-stands for: its spacing before the slope limit, squared), may lie at most `boundary * l`
-from r across the tangent plane (at the edge of a half-plane it lies l / sqrt(pi) = 0.56 l
-away). The areas and the one width l keep a jump in sampling density from reading as an
-edge. That bound leaves a sheet running on by a tenth of l or so past its last samples, which
-a LiDAR canopy's ragged edge needs and a crease does not; so at a crease a second test cuts
-the sheet at its outermost sample. With m the weighted mean of the samples about x (the
-fit's q - x) and u = -(m - (m . n) n) the direction away from it along the plane, x lies past
-the edge of its sheet when no sample of the sheet (n_i . n > cos 60 degrees) lies beyond x,
-(p_i - x) . u >= 0, while a sample of another sheet turning away across the edge lies near
-the edge or past it, (p_i - x) . u >= -EDGE_REACH l |u| with n_i . u > cos 60 degrees |u|:
-the sheet ends there at a convex crease or a rim (the extent criterion of Bendels et al.'s
-boundary detection, in the direction the half-disc test points). An open boundary, where no
-other sheet turns away -- a LiDAR canopy's edge, whose noisy normals point every way but
-rarely outwards just there -- is left to the half-disc test alone.
+Domain. A fit needs MIN_NEIGHBOURS samples facing n_r (n_i . n_r > 0) in its support, and one
+of them within `domain * s_i` of r (Adamson & Alexa's domain test: no bridging of holes). A
+sheet that the normal weight separates from its neighbour would run on past the crease or rim
+where it ends, so where a projection converges the half-disc test of Bendels, Schnabel & Klein
+("Detecting holes in point set surfaces", 2006) applies too: the mean of the samples, weighted
+by a_i exp(-|p_i - r|^2 / l^2 - |n_i - n_r|^2 / sigma_n^2) (a_i the area a sample stands for:
+its spacing before the slope limit, squared), may lie at most `boundary * l` from r across the
+tangent plane (at the edge of a half-plane it lies l / sqrt(pi) = 0.56 l away). The areas and
+the one width l keep a jump in sampling density from reading as an edge. That bound leaves a
+sheet running on by a tenth of l or so past its last samples, which a LiDAR canopy's ragged
+edge needs and a crease does not; so at a crease a second test cuts the sheet at its outermost
+sample. With m the weighted mean of the samples about x (the fit's q - x) and
+u = -(m - (m . n) n) the direction away from it along the plane, x lies past the edge of its
+sheet when no sample of the sheet (n_i . n > cos 60 degrees) lies beyond x, (p_i - x) . u >= 0,
+while a sample of another sheet turning away across the edge lies near the edge or past it,
+(p_i - x) . u >= -EDGE_REACH l |u| with n_i . u > cos 60 degrees |u|: the sheet ends there at
+a convex crease or a rim (Bendels et al.'s extent criterion). An open boundary (a LiDAR
+canopy's edge) is left to the half-disc test alone.
 Failures are statuses (FIT_*), never exceptions.
 
 Neighbour search: a bounding volume hierarchy over the supports. The samples are stored in
 Morton order; each leaf holds LEAF consecutive samples, each node the box of its samples'
 support boxes (an implicit complete binary tree in heap order). A query descends into the
-boxes that hold r and reads the leaves' samples from contiguous memory. The ray tracer builds
-its tree of bounding spheres over the same leaves. A fitted polynomial is a float64 row of
-polynomial.POLY_SIZE values (see the P_* offsets there).
+boxes that hold r and reads the leaves' samples from contiguous memory (the ray tracer's tree
+of bounding spheres has the same leaves). A fitted polynomial is a float64 row of POLY_SIZE
+values (polynomial.py's P_* offsets).
 """
 
 from __future__ import annotations
@@ -80,6 +77,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..cloud import PointCloud
+from ..lod.build import morton_codes
 from ..options import Settings, positive, setting
 from ..preprocess import estimate_normals
 from .polynomial import (
@@ -166,18 +164,6 @@ class MLSSurface:
         return self.samples.normals
 
     @property
-    def spacing(self) -> np.ndarray:
-        return self.samples.spacing
-
-    @property
-    def h(self) -> np.ndarray:
-        return self.samples.h
-
-    @property
-    def colors(self) -> np.ndarray:
-        return self.samples.colors
-
-    @property
     def domain(self) -> float:
         return self.samples.domain
 
@@ -198,17 +184,6 @@ def local_spacing(points: np.ndarray, k: int = SPACING_K) -> np.ndarray:
     positive_spacing = spacing[spacing > 0]
     floor = 1e-6 * float(np.median(positive_spacing)) if positive_spacing.size else 1.0
     return np.maximum(spacing, floor)  # duplicates: no zero-width kernel
-
-
-def morton_order(points: np.ndarray) -> np.ndarray:
-    """Indices sorting the points along a 30-bit Morton curve of their bounding box."""
-    lo, hi = points.min(axis=0), points.max(axis=0)
-    q = ((points - lo) / np.maximum(hi - lo, 1e-30) * 1023).astype(np.uint64)
-    code = np.zeros(len(points), np.uint64)
-    for bit in range(10):
-        for axis in range(3):
-            code |= ((q[:, axis] >> np.uint64(bit)) & np.uint64(1)) << np.uint64(3 * bit + axis)
-    return np.argsort(code, kind="stable")
 
 
 def leaf_tree(centers: np.ndarray, radius: np.ndarray) -> np.ndarray:
@@ -247,7 +222,7 @@ def oriented_normals(cloud: PointCloud) -> np.ndarray:
 def build_surface(cloud: PointCloud, kernel: MlsKernel = DEFAULT_KERNEL) -> MLSSurface:
     """Spacing, kernel widths, Morton order and the support hierarchy of `cloud`."""
     origin = cloud.local_origin
-    order = morton_order(cloud.positions)
+    order = np.argsort(morton_codes(cloud.positions), kind="stable")
     points = np.ascontiguousarray(cloud.positions[order] - origin)
     normals = np.ascontiguousarray(oriented_normals(cloud)[order])
     sampled = local_spacing(points)
