@@ -66,7 +66,8 @@ def _border_outwards(points, normals, index, rows, frames, sheet_cos):  # pragma
                 y += d * frames[i, 1, a]
             if facing < sheet_cos:
                 folded = True
-            if q == p or facing < sheet_cos or (x == 0.0 and y == 0.0):
+                break
+            if q == p or (x == 0.0 and y == 0.0):
                 continue
             angles[used] = math.atan2(y, x)
             used += 1

@@ -360,6 +360,16 @@ def _covering_ellipses(points, normals, index, start, frames, features, sheet_co
 
 
 @numba.njit(cache=True, inline="always")
+def _append_unit_line(candidates, count, a, b, c, length):  # pragma: no cover - compiled
+    """Append the line a u + b v <= c, divided by length = |(a, b)|, as row `count` of
+    candidates; returns the new count."""
+    candidates[count, 0] = a / length
+    candidates[count, 1] = b / length
+    candidates[count, 2] = c / length
+    return count + 1
+
+
+@numba.njit(cache=True, inline="always")
 def _crease_candidates(points, normals, index, axes, i, p, features, candidates):  # pragma: no cover - compiled
     """The crease half-planes of splat p that cut it, among its neighbours index[i], in its axes
     (u, v) = axes[i], as unit (a, b, c) rows of candidates; returns their number."""
@@ -375,10 +385,7 @@ def _crease_candidates(points, normals, index, axes, i, p, features, candidates)
         length = math.sqrt(la * la + lb * lb)
         if length < 1e-6 or lc >= length:  # parallel planes, or the line misses the splat
             continue
-        candidates[count, 0] = la / length
-        candidates[count, 1] = lb / length
-        candidates[count, 2] = lc / length
-        count += 1
+        count = _append_unit_line(candidates, count, la, lb, lc, length)
     return count
 
 
@@ -401,10 +408,7 @@ def _border_candidates(points, index, axes, i, p, outwards, candidates, count): 
         # no border, a border seen edge-on, p beyond it (a concave border), or a line missing the splat
         if length < 1e-6 or inside < 0.0 or inside >= length:
             continue
-        candidates[count, 0] = wa / length
-        candidates[count, 1] = wb / length
-        candidates[count, 2] = inside / length
-        count += 1
+        count = _append_unit_line(candidates, count, wa, wb, inside, length)
     return count
 
 
