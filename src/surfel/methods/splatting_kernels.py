@@ -450,6 +450,16 @@ def _write(color, alpha, depth, normals, y, x, r, g, b, a, z, nx, ny, nz, backgr
         normals[y, x, 0], normals[y, x, 1], normals[y, x, 2] = 0, 0, 0
 
 
+@nb.njit(inline="always")
+def _write_empty(color, alpha, depth, normals, present, indices, y, x, background, composite, categorical):
+    """One output pixel that no splat reaches: the background, and no category."""
+    zero = np.float32(0.0)
+    present[y, x] = 0
+    _write(color, alpha, depth, normals, y, x, zero, zero, zero, zero, zero, zero, zero, zero, background, composite)
+    if categorical:
+        indices[y, x] = -1
+
+
 @nb.njit(parallel=True, fastmath=True, error_model="numpy", cache=True)
 def rasterize_tiles(packed, extras, box, index, tile_start, tile_count, order, tiles_x, width, height, m,
                     radius_scale, lowpass, depth_offset, depth_clamp, clip_src, field_src, normal_src,
@@ -484,11 +494,8 @@ def rasterize_tiles(packed, extras, box, index, tile_start, tile_count, order, t
         if count == 0:
             for y in range(oy, oy + th):
                 for x in range(ox, ox + tw):
-                    present[y, x] = 0
-                    _write(color, alpha, depth, normals, y, x, zero, zero, zero, zero, zero, zero, zero, zero,
-                           background, composite)
-                    if categorical:
-                        indices[y, x] = -1
+                    _write_empty(color, alpha, depth, normals, present, indices, y, x, background, composite,
+                                 categorical)
             continue
         thread = nb.get_thread_id()
         table, ibox, tmp = tables[thread], boxes[thread], temp[thread]
@@ -532,11 +539,8 @@ def rasterize_tiles(packed, extras, box, index, tile_start, tile_count, order, t
                 x = ox + lx
                 p = ly * STRIDE + lx
                 if acc[3, p] <= 0:
-                    present[y, x] = 0
-                    _write(color, alpha, depth, normals, y, x, zero, zero, zero, zero, zero, zero, zero, zero,
-                           background, composite)
-                    if categorical:
-                        indices[y, x] = -1
+                    _write_empty(color, alpha, depth, normals, present, indices, y, x, background, composite,
+                                 categorical)
                     continue
                 winner = 0
                 if categorical:  # colors.category_unpack: every fragment packed, so the pixel has one
