@@ -680,6 +680,17 @@ def _ply_files(draw) -> tuple:
     return fmt, elements, tuple(comments)
 
 
+def test_mesh_with_an_infinite_vertex_is_refused_naming_the_file(tmp_path):
+    # the vertex normals come before the cloud's own check of its positions: they must not
+    # reach a neighbour search with an infinite coordinate (found by the fuzz test below)
+    vertex = [("x", "float"), ("y", "float"), ("z", "float")]
+    rows = [(float("inf"), 0, 0), (0, 0, 0), (1, 0, 0), (0, 1, 0)]
+    faces = ("face", [("vertex_indices", "list", "uchar", "int")], [([0, 0, 0],), ([1, 2, 3],)])
+    path = ply_file(tmp_path / "inf.ply", "ascii", [("vertex", vertex, rows), faces])
+    with pytest.raises(InputError, match=r"inf\.ply.*(NaN|infinite)"):
+        load(path)
+
+
 @settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(spec=_ply_files(), damage=st.sampled_from(["none", "flip", "cut", "lie"]),
        where=st.lists(st.integers(0, 10**6), min_size=1, max_size=3), value=st.integers(0, 2**40))

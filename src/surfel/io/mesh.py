@@ -49,7 +49,10 @@ def referenced_vertices(faces: np.ndarray, vertex_count: int) -> tuple[np.ndarra
 def mesh_normals(positions: np.ndarray, faces: np.ndarray) -> np.ndarray | None:
     """The vertex normals of a mesh read from a file: `area_weighted_vertex_normals`, or
     None when no face has any area (the vertices are then points whose normals are
-    estimated, as for a cloud without normals)."""
+    estimated, as for a cloud without normals), as also when a position is not finite (the
+    cloud then refuses the file, naming what is wrong)."""
+    if not np.isfinite(positions).all():
+        return None
     normals = area_weighted_vertex_normals(positions, faces)
     return normals if normals.any() else None
 
