@@ -33,7 +33,7 @@ from ..colors import CODE_SCALE, category_pack
 from .ewa_kernels import FAR, TILE
 from .splatting import GAUSSIAN_SHARPNESS, KERNEL_SIZE
 
-# Columns of a cloud's packed inputs (splatting_cpu.pack_splats): one 64-byte row per splat.
+# Columns of a cloud's packed inputs (splatting_cpu.pack_splats): one row per splat.
 (PX, PY, PZ, PNX, PNY, PNZ, PUX, PUY, PUZ, PVX, PVY, PVZ, PR, PG, PB) = range(15)
 PACKED = 16
 # Columns of its extras: two clip lines a u + b v <= c (surfel.preprocess) and the normal
