@@ -15,12 +15,12 @@ Radii (`estimate_radii`): each splat covers its own Voronoi cell.
     away (n_p . n_q < SHEET_COS, the other side of a sheet, a surface of its own that would cut
     this side's cells into holes). A point whose radius exceeds ISOLATED_FACTOR x the median
     radius of its neighbours on the same surface (an outlier) is capped there so it does not
-    become a blob. Same surface: normals within SHARP_ANGLE of its own (at least
-    SAME_SURFACE_MIN of them, else all neighbours). A thin sheet lying on a body brings its
-    densely sampled rim, whose normals turn through every direction, into the body points' k
-    nearest neighbours; over all neighbours, the rim's small cells made the median, and the
-    body's splats along the rim were capped to a third of their cells, leaving holes (ogre's
-    belt, front view: 0.12% of the silhouette).
+    become a blob. Same surface: normals within SHARP_ANGLE of its own (all neighbours where
+    none is). A thin sheet lying on a body brings its densely sampled rim, whose normals turn
+    through every direction, into the body points' k nearest neighbours; over all neighbours,
+    the rim's small cells made the median, and the body's splats along the rim were capped to a
+    third of their cells, leaving holes (ogre's belt, phong, front view: 0.12% of the
+    silhouette, 0.04% after).
 
 Ellipses (`fit_ellipses`, for Phong splatting, Botsch, Spernat & Kobbelt 2004):
     axis directions are the principal curvature directions ("aligned along the curvature",
@@ -75,7 +75,6 @@ RADIUS_NEIGHBOURS = 16         # neighbours bounding a Voronoi cell: enough to r
 RADIUS_MARGIN = 1.2            # covering radius x this: curvature, normal noise, and overlap for
                                # the Gaussian blending (coverage 99.98% at 1.0, 99.998% at 1.2)
 ISOLATED_FACTOR = 2.0          # a radius at most this x the median of its neighbours' radii
-SAME_SURFACE_MIN = 4           # neighbours on the same surface the outlier cap needs, else all
 ELLIPSE_MAX_ASPECT = 4.0       # no needles: major / minor semi-axis at most this
 CURVATURE_ANISOTROPY = 0.05    # radians by which the normals turn more one way than the other
                                # across a cell, above which an ellipse follows the curvature
@@ -536,8 +535,8 @@ def _margin_and_cap(raw: np.ndarray, index: np.ndarray, normals: np.ndarray, sam
 @numba.njit(parallel=True, cache=True)
 def _outlier_cap(raw, index, start, normals, same_cos):  # pragma: no cover - compiled
     """min(1, ISOLATED_FACTOR x the median raw radius of the neighbours / the point's own), for
-    each point p = start + i: of the neighbours whose normals are within acos(same_cos) of p's
-    when there are SAME_SURFACE_MIN of them, else of all."""
+    each point p = start + i: of the neighbours whose normals are within acos(same_cos) of p's,
+    or of all where none is."""
     m, k = index.shape
     cap = np.empty(m)
     for i in numba.prange(m):
@@ -552,7 +551,7 @@ def _outlier_cap(raw, index, start, normals, same_cos):  # pragma: no cover - co
             if facing >= same_cos:
                 same[count] = raw[q]
                 count += 1
-        typical = np.median(same[:count]) if count >= SAME_SURFACE_MIN else np.median(every)
+        typical = np.median(same[:count]) if count > 0 else np.median(every)
         cap[i] = min(1.0, ISOLATED_FACTOR * typical / raw[p])
     return cap
 
