@@ -14,13 +14,9 @@ Radii (`estimate_radii`): each splat covers its own Voronoi cell.
     far side of a thin sheet) do not cut the cell, nor do neighbours whose oriented normals face
     away (n_p . n_q < SHEET_COS, the other side of a sheet, a surface of its own that would cut
     this side's cells into holes). A point whose radius exceeds ISOLATED_FACTOR x the median
-    radius of its neighbours on the same surface (an outlier) is capped there so it does not
-    become a blob. Same surface: normals within SHARP_ANGLE of its own (all neighbours where
-    none is). A thin sheet lying on a body brings its densely sampled rim, whose normals turn
-    through every direction, into the body points' k nearest neighbours; over all neighbours,
-    the rim's small cells made the median, and the body's splats along the rim were capped to a
-    third of their cells, leaving holes (ogre's belt, phong, front view: 0.12% of the
-    silhouette, 0.04% after).
+    radius of its neighbours on its surface (normals within SHARP_ANGLE; all where none is) is
+    capped there so it does not become a blob (over all neighbours, a sheet's dense rim, its
+    normals turning every way, capped the body the sheet lies on: holes along ogre's belt).
 
 Ellipses (`fit_ellipses`, for Phong splatting, Botsch, Spernat & Kobbelt 2004):
     axis directions are the principal curvature directions ("aligned along the curvature",
@@ -515,44 +511,31 @@ def _cells(nbh: Neighbourhood, normals: np.ndarray, k: int, ellipse: bool, progr
     if ellipse:
         circle = ~positive | (np.linalg.norm(axes, axis=2).min(axis=1) <= 0)
         axes[circle] = orthonormal_basis(normals[circle]) * raw[circle][:, None, None]
-    # unoriented normals cannot tell a sheet's sides apart: every neighbour counts
-    scale = _margin_and_cap(raw, index, normals, SHARP_COS if oriented else -2.0)
+    # the margin, times the outlier cap (unoriented normals cannot tell a sheet's sides apart: all count)
+    same_cos = SHARP_COS if oriented else -2.0
+    scale = RADIUS_MARGIN * (map_chunks(lambda start, stop: _outlier_cap(raw, index[start:stop], start, normals,
+                                                                         same_cos), n) if index.shape[1] > 1 else 1.0)
     if ellipse:
         axes *= scale[:, None, None]
     return raw * scale, axes
 
 
-def _margin_and_cap(raw: np.ndarray, index: np.ndarray, normals: np.ndarray, same_cos: float) -> np.ndarray:
-    """RADIUS_MARGIN, times the outlier cap: at most ISOLATED_FACTOR x the median raw radius of
-    the neighbours on the same surface (unit `normals` at most acos(same_cos) apart)."""
-    if index.shape[1] == 1:
-        return np.full(len(raw), RADIUS_MARGIN)
-
-    return RADIUS_MARGIN * map_chunks(
-        lambda start, stop: _outlier_cap(raw, index[start:stop], start, normals, same_cos), len(raw))
-
-
 @numba.njit(parallel=True, cache=True)
 def _outlier_cap(raw, index, start, normals, same_cos):  # pragma: no cover - compiled
-    """min(1, ISOLATED_FACTOR x the median raw radius of the neighbours / the point's own), for
-    each point p = start + i: of the neighbours whose normals are within acos(same_cos) of p's,
-    or of all where none is."""
+    """min(1, ISOLATED_FACTOR x the median raw radius of p's neighbours on its surface (normals within
+    acos(same_cos); all where none is) / its own), for each point p = start + i."""
     m, k = index.shape
     cap = np.empty(m)
     for i in numba.prange(m):
         p = start + i
-        same = np.empty(k - 1)
-        every = np.empty(k - 1)
+        neighbours = np.empty(k - 1)  # those on p's surface first
         count = 0
         for j in range(1, k):
             q = index[i, j]
-            every[j - 1] = raw[q]
             facing = normals[q, 0] * normals[p, 0] + normals[q, 1] * normals[p, 1] + normals[q, 2] * normals[p, 2]
-            if facing >= same_cos:
-                same[count] = raw[q]
-                count += 1
-        typical = np.median(same[:count]) if count > 0 else np.median(every)
-        cap[i] = min(1.0, ISOLATED_FACTOR * typical / raw[p])
+            neighbours[count if facing >= same_cos else k - 1 - j + count] = raw[q]
+            count += 1 if facing >= same_cos else 0
+        cap[i] = min(1.0, ISOLATED_FACTOR * np.median(neighbours[:count] if count else neighbours) / raw[p])
     return cap
 
 
