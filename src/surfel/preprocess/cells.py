@@ -513,8 +513,9 @@ def _cells(nbh: Neighbourhood, normals: np.ndarray, k: int, ellipse: bool, progr
         axes[circle] = orthonormal_basis(normals[circle]) * raw[circle][:, None, None]
     # the margin, times the outlier cap (unoriented normals cannot tell a sheet's sides apart: all count)
     same_cos = SHARP_COS if oriented else -2.0
-    scale = RADIUS_MARGIN * (map_chunks(lambda start, stop: _outlier_cap(raw, index[start:stop], start, normals,
-                                                                         same_cos), n) if index.shape[1] > 1 else 1.0)
+    cap = np.ones(n) if index.shape[1] == 1 else map_chunks(  # no neighbours: nothing to compare with
+        lambda start, stop: _outlier_cap(raw, index[start:stop], start, normals, same_cos), n)
+    scale = RADIUS_MARGIN * cap
     if ellipse:
         axes *= scale[:, None, None]
     return raw * scale, axes
