@@ -70,3 +70,24 @@ def far_half_rms(reference, result) -> float:
     far = covered & (distance > np.median(distance[covered]))
     err = result.color.mean(axis=-1) - ref_color
     return float(np.sqrt(np.mean(err[far] ** 2)))
+
+
+def sheet_on_body(rng, height: float = 0.1):
+    """A body z = 0 sampled at a spacing of about 1 (jittered) with a thin sheet lying on it
+    (y < 0, `height` above) whose rolled rim along y = 0 is sampled four times as densely, its
+    normals turning from 30 degrees above outward to straight down (a belt on a body: ogre's
+    belt points among a body point's neighbours face -0.5 to 0.6 of its way).
+    Returns (points, normals, body)."""
+    g = np.arange(-12.0, 12.5)
+    xy = np.stack(np.meshgrid(g, g), axis=-1).reshape(-1, 2) + rng.uniform(-0.25, 0.25, (len(g) ** 2, 2))
+    body = np.c_[xy, np.zeros(len(xy))]
+    top = body[body[:, 1] < -0.5] + [0.3, 0.3, height]
+    along = np.arange(-12.0, 12.0, 0.25)
+    turn = np.radians(np.linspace(-90.0, 30.0, 5))
+    a, t = (m.ravel() for m in np.meshgrid(along, turn))
+    rim_normals = np.c_[np.zeros(len(t)), np.cos(t), np.sin(t)]
+    rim = np.c_[a, np.zeros(len(a)), np.full(len(a), 0.5 * height)] + 0.5 * height * rim_normals
+    points = np.concatenate([body, top, rim])
+    normals = np.concatenate([np.tile([0.0, 0.0, 1.0], (len(body) + len(top), 1)), rim_normals])
+    return points, normals, np.arange(len(points)) < len(body)
+

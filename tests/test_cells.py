@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from samples import coverage, covered_by, dense_samples, edge_wedge, nn_spacing, scan_lines, sphere, unit
+from scenes import sheet_on_body
 from surfel.cloud import PointCloud
 from surfel.preprocess import (
     INACTIVE_CLIP,
@@ -60,6 +61,19 @@ def test_isolated_point_gets_no_blob():
     points = np.concatenate([points, [[0.0, 0.0, 0.5]]])  # a stray return above the surface
     radii = estimate_radii(points)
     assert radii[-1] <= 3 * np.median(radii)  # its cell alone would be 0.5 across, 15 x the median
+
+
+def test_a_sheet_lying_on_a_body_leaves_no_holes_beside_its_rim():
+    # the rim's small cells must not cap the body's splats beside it: the outlier cap compares a
+    # point with the neighbours on its own surface
+    rng = np.random.default_rng(11)
+    points, normals, body = sheet_on_body(rng)
+    beside = np.c_[rng.uniform(-10, 10, 50_000), rng.uniform(0.5, 3.0, 50_000), np.zeros(50_000)]
+    radii = estimate_radii(points, normals=normals)
+    # capped by the median over all neighbours: 0.84 and 0.83
+    assert coverage(beside, points[body], normals[body], tangent_frames(normals[body], radii[body])) >= 0.995
+    ellipses = fit_ellipses(points, normals)
+    assert coverage(beside, points[body], normals[body], ellipses[body]) >= 0.995
 
 
 def test_tangent_frames_orthonormal():
