@@ -147,6 +147,7 @@ class CpuSplatBuffers:
             self.capacity = largest + largest // 4
             self.tables = np.zeros((self.threads, t.table_size(self.capacity)), np.float32)
             self.boxes = np.zeros((self.threads, 4 * t.table_size(self.capacity) // t.TABLE_ROWS), np.int32)
+            self.kept = np.zeros((self.threads, t.table_size(self.capacity, t.KEPT_ROWS)), np.float32)
 
 
 def render_gaussian_cpu(cloud, camera, options, params: GaussianParams, renderer):
@@ -220,8 +221,8 @@ def _render_cpu(cloud, camera, options, params, renderer, *, per_splat_shading: 
                       buffers.extras if curved else None, buffers.extras if normal_field else None,
                       model if per_splat else -1,
                       -1 if per_splat else model, color_mode, palette, levels, background, composite,
-                      buffers.tables, buffers.boxes, buffers.temp, buffers.zbuf, buffers.cover, buffers.accum,
-                      buffers.best, buffers.present, color, alpha, depth, normals, indices)
+                      buffers.tables, buffers.boxes, buffers.temp, buffers.kept, buffers.zbuf, buffers.cover,
+                      buffers.accum, buffers.best, buffers.present, color, alpha, depth, normals, indices)
     k.finish_surrounded(buffers.present, color, alpha, depth, normals, background, composite)
     stats = {"splats": len(cloud), "supersample": ss, "ewa_filter": params.ewa_filter}
     if composite:

@@ -464,13 +464,14 @@ def _write_empty(color, alpha, depth, normals, present, indices, y, x, backgroun
 def rasterize_tiles(packed, extras, box, index, tile_start, tile_count, order, tiles_x, width, height, m,
                     radius_scale, lowpass, depth_offset, depth_clamp, clip_src, field_src, normal_src,
                     per_splat_model, deferred_model, color_mode, palette, levels, background, composite, tables, boxes,
-                    temp, zbuf, cover, accum, best, present, color, alpha, depth, normals, indices):
+                    temp, kept, zbuf, cover, accum, best, present, color, alpha, depth, normals, indices):
     """Every tile of `order`, written into color (H, W, 3), alpha, depth (H, W) and normals
     (H, W, 3). `present` (H, W) uint8 gets, per pixel, 0 (no splat), 1, or 2 where
     `finish_surrounded` must still decide whether its neighbours in other tiles make it whole
     (the pixel then holds its raw colour and its own coverage). Each thread's scratch: tables
     (threads, table_size(largest tile)), boxes (threads, 4 x that), temp (threads,
-    TEMP_ROWS x BLOCK), zbuf, cover (threads, STRIDE²), accum (threads, LAYER, STRIDE²).
+    TEMP_ROWS x BLOCK), kept (threads, table_size(largest tile, KEPT_ROWS)), zbuf, cover
+    (threads, STRIDE²), accum (threads, LAYER, STRIDE²).
     clip_src, field_src, normal_src: the extras where the cloud has clip lines, where splats are
     curved by their normal fields, where they are shaded with them too (`phong`); else None.
     per_splat_model / deferred_model: the shading.MODEL_IDS value applied per splat
@@ -498,7 +499,7 @@ def rasterize_tiles(packed, extras, box, index, tile_start, tile_count, order, t
                                  categorical)
             continue
         thread = nb.get_thread_id()
-        table, ibox, tmp = tables[thread], boxes[thread], temp[thread]
+        table, ibox, tmp, store = tables[thread], boxes[thread], temp[thread], kept[thread]
         zb, cov, acc = zbuf[thread], cover[thread], accum[thread]
         # stage the tile's splats: one packed row each, its extras and its box
         start = tile_start[t]
@@ -529,8 +530,8 @@ def rasterize_tiles(packed, extras, box, index, tile_start, tile_count, order, t
         category = best[thread]
         if categorical:
             category[:] = -1
-        visibility_tile(table, ibox, count, ox, oy, params, clip_src, field_src, tmp, zb, cov)
-        attribute_tile(table, ibox, count, ox, oy, params, clip_src, field_src, normal_src, tmp, zb, acc,
+        visibility_tile(table, ibox, count, ox, oy, params, clip_src, field_src, normal_src, tmp, store, zb, cov)
+        attribute_tile(table, ibox, count, ox, oy, params, clip_src, field_src, normal_src, store, zb, acc,
                         levels if categorical else 0, category)
         # normalization and deferred shading, straight into the output
         for ly in range(th):

@@ -7,11 +7,12 @@ splat_distance, filter_distance, PASS_VISIBILITY and PASS_ATTRIBUTE), per table 
 The table holds BLOCK splats at a time, row after row (an array of structures of arrays): a
 row of a block is contiguous and the rows lie at fixed distances, so that a loop over a
 block's splats loads and stores each row as a vector, with no aliasing check for the compiler
-to add. `visibility_tile` and `attribute_tile` compute the 2x2 pixels at the top-left of each
-splat's box (all of a splat smaller than the low-pass, the common case of a dense cloud) for
-a whole block in one loop without branches, which the compiler turns into SIMD code, blend
-the results into the tile one splat after another, and follow with the rest of a larger box
-pixel by pixel. Per-fragment arithmetic is float32 under fastmath, with error_model="numpy"
+to add. `visibility_tile` computes the 2x2 pixels at the top-left of each splat's box (all of
+a splat smaller than the low-pass, the common case of a dense cloud) for a whole block in one
+loop without branches, which the compiler turns into SIMD code: both passes' outputs from one
+intersection of each ray with the splat, the attribute pass's kept for `attribute_tile`.
+Each pass blends them into the tile one splat after another, and follows with the rest of a
+larger box pixel by pixel. Per-fragment arithmetic is float32 under fastmath, with error_model="numpy"
 (no division checks, which would keep the loops scalar); masked lanes select finite values,
 so no infinity or NaN is computed ("no depth yet" is the finite FAR). Helpers called inside
 the SIMD loops take scalars only: an array argument brings reference counting into the loop,
@@ -62,8 +63,13 @@ ROW = tuple(np.uint64(row * BLOCK) for row in range(TABLE_ROWS))  # a row's offs
 TILE_BITS = TILE.bit_length() - 1  # TILE is a power of two: a pixel's tile is pixel >> TILE_BITS
 STRIDE = TILE + 2  # row stride of the tile scratch: a splat's 2x2 block may reach one past the tile
 LAYER = 8  # accumulator planes, the GL attribute pass's two targets: w r, w g, w b, w, w n, w depth
-TEMP_ROWS = 20  # block results: 4 lanes each of depth and coverage, or of w, depth and 3 normal components
+TEMP_ROWS = 8  # a block's visibility results: 4 lanes each of depth and coverage
 TEMP = tuple(np.uint64(row * BLOCK) for row in range(TEMP_ROWS))
+# A block's attribute-pass results, computed with its visibility results (one ray-splat
+# intersection serves both passes) and kept until the attribute pass: 4 lanes each of w,
+# depth and 3 normal components.
+KEPT_ROWS = 20
+KEPT = tuple(np.uint64(row * BLOCK) for row in range(KEPT_ROWS))
 MISS = np.float32(1e30)  # the squared kernel distance of a ray that misses the splat
 NO_CLIP = np.float32(-1e30)
 NO_LOWPASS = np.float32(2.0)  # added to the low-pass distance when the EWA filter is off: never <= 1
@@ -99,9 +105,9 @@ def face_camera(ex, ey, ez, nx, ny, nz, ux, uy, uz, vx, vy, vz, ortho):
     return nx, ny, nz, ux, uy, uz, vx, vy, vz
 
 
-def table_size(count: int) -> int:
-    """Entries of a table for `count` splats (whole blocks)."""
-    return -(-count // BLOCK) * BLOCK * TABLE_ROWS
+def table_size(count: int, rows: int = TABLE_ROWS) -> int:
+    """Entries of a table of `rows` rows for `count` splats (whole blocks)."""
+    return -(-count // BLOCK) * BLOCK * rows
 
 
 @nb.njit(inline="always")
@@ -192,12 +198,19 @@ def fragment(s, c, f, clipping, curved, dx, dy, params):
 
 @nb.njit(inline="always", fastmath=True, error_model="numpy")
 def visibility_fragment(s, c, f, clipping, curved, dx, dy, params):
-    """A fragment's visibility-pass output (splatting.glsl PASS_VISIBILITY): its depth + z_t
+    """A fragment's visibility-pass output (`visibility_output`)."""
+    return visibility_output(s, c, fragment(s, c, f, clipping, curved, dx, dy, params), clipping, dx, dy, params)
+
+
+@nb.njit(inline="always", fastmath=True, error_model="numpy")
+def visibility_output(s, c, hit_record, clipping, dx, dy, params):
+    """The visibility-pass output (splatting.glsl PASS_VISIBILITY) of the fragment whose
+    `fragment` results are `hit_record`: its depth + z_t
     (FAR when discarded or off the disk) and its coverage of the pixel (0 when discarded), 0.5 + the signed
     distance in pixels to the splat's edge, where rho = max(|(u, v)|, 1 + clip excess) is 1,
     from rho's screen-space gradient (analytic here, a quad's differences on the GPU), and at
     least the footprint of a pixel-wide disk at the projected centre (sub-pixel splats)."""
-    kept, kernel2, z, u, v, rho2, clipped, hit, iw = fragment(s, c, f, clipping, curved, dx, dy, params)
+    kept, kernel2, z, u, v, rho2, clipped, hit, iw = hit_record
     mx, my, w0, wx, wy, z0, zx, zy, u0, ux, uy, v0, vx, vy, cz, radius, weight = s
     depth_offset = params[3]
     one, tiny = np.float32(1.0), np.float32(1e-6)
@@ -237,11 +250,17 @@ def gaussian_weight(kernel2):
 
 @nb.njit(inline="always", fastmath=True, error_model="numpy")
 def attribute_fragment(s, c, f, clipping, curved, field_normals, dx, dy, params, nx, ny, nz):
-    """A fragment's attribute-pass output before its depth test: weight (0 when discarded), eye
-    depth and normal: the splat's (nx, ny, nz), or with `field_normals` Phong splatting's
-    N(u, v) = n + u alpha e_u + v beta e_v (eq. 8), unit and turned no further than edge-on
-    (gl/common.glsl field_normal)."""
-    kept, kernel2, z, u, v, rho2, clipped, hit, iw = fragment(s, c, f, clipping, curved, dx, dy, params)
+    """A fragment's attribute-pass output (`attribute_output`)."""
+    return attribute_output(s, f, fragment(s, c, f, clipping, curved, dx, dy, params), field_normals, nx, ny, nz)
+
+
+@nb.njit(inline="always", fastmath=True, error_model="numpy")
+def attribute_output(s, f, hit_record, field_normals, nx, ny, nz):
+    """The attribute-pass output before its depth test of the fragment whose `fragment`
+    results are `hit_record`: weight (0 when discarded), eye depth and normal: the splat's
+    (nx, ny, nz), or with `field_normals` Phong splatting's N(u, v) = n + u alpha e_u +
+    v beta e_v (eq. 8), unit and turned no further than edge-on (gl/common.glsl field_normal)."""
+    kept, kernel2, z, u, v, rho2, clipped, hit, iw = hit_record
     w = s[16] * gaussian_weight(kernel2)
     if field_normals:
         fux, fuy, fuz, fvx, fvy, fvz, ex, ey, ez = f[10], f[11], f[12], f[13], f[14], f[15], f[16], f[17], f[18]
@@ -267,34 +286,65 @@ def blend(acc, p, w, z, r, g, b, nx, ny, nz):
     acc[7, p] += w * z
 
 
+@nb.njit(inline="always", fastmath=True, error_model="numpy")
+def both_outputs(s, c, f, clipping, curved, field_normals, dx, dy, params, nx, ny, nz, inside):
+    """A fragment's visibility and attribute outputs from one intersection of its ray with the
+    splat: (depth + z_t, coverage, w, depth, normal), those of a discarded fragment where
+    `inside` (the splat's box) is False."""
+    hit_record = fragment(s, c, f, clipping, curved, dx, dy, params)
+    z, cover = visibility_output(s, c, hit_record, clipping, dx, dy, params)
+    w, depth, fx, fy, fz = attribute_output(s, f, hit_record, field_normals, nx, ny, nz)
+    zero = np.float32(0.0)
+    return (z if inside else FAR), (cover if inside else zero), (w if inside else zero), depth, fx, fy, fz
+
+
 @nb.njit(fastmath=True, error_model="numpy")
-def visibility_tile(table, ibox, count, ox, oy, params, clip_src, field_src, tmp, zb, cov):
+def visibility_tile(table, ibox, count, ox, oy, params, clip_src, field_src, normal_src, tmp, kept, zb, cov):
     """The visibility pass of a tile's `count` splats into zb (MIN of depth + z_t) and cov (MAX of
     coverage): per table block, the 2x2 blocks at the top-left of the boxes in one SIMD loop,
     blended one splat after another (a block's splats may overlap), then the rest of the larger
-    boxes pixel by pixel."""
+    boxes pixel by pixel. The same loop keeps the 2x2 blocks' attribute outputs in `kept`
+    (table_size(count, KEPT_ROWS)) for `attribute_tile`: the two passes meet the same rays."""
     clipping, curved = clip_src is not None, field_src is not None
-    half, one, zero = np.float32(0.5), np.float32(1.0), np.float32(0.0)
+    field_normals = curved and normal_src is not None
+    half, one = np.float32(0.5), np.float32(1.0)
     for first in range(0, count, BLOCK):
         size = min(BLOCK, count - first)
         base, box_base = table_slot(first, TABLE_ROWS), table_slot(first, 4)
+        kept_base = table_slot(first, KEPT_ROWS)
         for q in range(size):
             uq = np.uint64(q)
-            j, jb = base + uq, box_base + uq
+            j, jb, k = base + uq, box_base + uq, kept_base + uq
             s = splat_geometry(table, j)
             c, f = splat_extras(table, clip_src, field_src, j)
+            nx, ny, nz = table[j + ROW[NX]], table[j + ROW[NY]], table[j + ROW[NZ]]
             x0, y0 = ibox[jb + TEMP[0]], ibox[jb + TEMP[2]]
             wide, tall = ibox[jb + TEMP[1]] > x0, ibox[jb + TEMP[3]] > y0
             dx, dy = np.float32(x0 + ox) + half - s[0], np.float32(y0 + oy) + half - s[1]
-            z, cover = visibility_fragment(s, c, f, clipping, curved, dx, dy, params)
+            z, cover, w, depth, fx, fy, fz = both_outputs(s, c, f, clipping, curved, field_normals, dx, dy, params,
+                                                          nx, ny, nz, True)
             tmp[TEMP[0] + uq], tmp[TEMP[4] + uq] = z, cover
-            z, cover = visibility_fragment(s, c, f, clipping, curved, dx + one, dy, params)
-            tmp[TEMP[1] + uq], tmp[TEMP[5] + uq] = (z if wide else FAR), (cover if wide else zero)
-            z, cover = visibility_fragment(s, c, f, clipping, curved, dx, dy + one, params)
-            tmp[TEMP[2] + uq], tmp[TEMP[6] + uq] = (z if tall else FAR), (cover if tall else zero)
-            z, cover = visibility_fragment(s, c, f, clipping, curved, dx + one, dy + one, params)
-            corner = wide and tall
-            tmp[TEMP[3] + uq], tmp[TEMP[7] + uq] = (z if corner else FAR), (cover if corner else zero)
+            kept[k + KEPT[0]], kept[k + KEPT[4]] = w, depth
+            if field_normals:
+                kept[k + KEPT[8]], kept[k + KEPT[12]], kept[k + KEPT[16]] = fx, fy, fz
+            z, cover, w, depth, fx, fy, fz = both_outputs(s, c, f, clipping, curved, field_normals, dx + one, dy,
+                                                          params, nx, ny, nz, wide)
+            tmp[TEMP[1] + uq], tmp[TEMP[5] + uq] = z, cover
+            kept[k + KEPT[1]], kept[k + KEPT[5]] = w, depth
+            if field_normals:
+                kept[k + KEPT[9]], kept[k + KEPT[13]], kept[k + KEPT[17]] = fx, fy, fz
+            z, cover, w, depth, fx, fy, fz = both_outputs(s, c, f, clipping, curved, field_normals, dx, dy + one,
+                                                          params, nx, ny, nz, tall)
+            tmp[TEMP[2] + uq], tmp[TEMP[6] + uq] = z, cover
+            kept[k + KEPT[2]], kept[k + KEPT[6]] = w, depth
+            if field_normals:
+                kept[k + KEPT[10]], kept[k + KEPT[14]], kept[k + KEPT[18]] = fx, fy, fz
+            z, cover, w, depth, fx, fy, fz = both_outputs(s, c, f, clipping, curved, field_normals, dx + one,
+                                                          dy + one, params, nx, ny, nz, wide and tall)
+            tmp[TEMP[3] + uq], tmp[TEMP[7] + uq] = z, cover
+            kept[k + KEPT[3]], kept[k + KEPT[7]] = w, depth
+            if field_normals:
+                kept[k + KEPT[11]], kept[k + KEPT[15]], kept[k + KEPT[19]] = fx, fy, fz
         for q in range(size):
             uq = np.uint64(q)
             jb = box_base + uq
@@ -320,50 +370,22 @@ def visibility_tile(table, ibox, count, ox, oy, params, clip_src, field_src, tmp
 
 
 @nb.njit(fastmath=True, error_model="numpy")
-def attribute_tile(table, ibox, count, ox, oy, params, clip_src, field_src, normal_src, tmp, zb, acc, levels,
+def attribute_tile(table, ibox, count, ox, oy, params, clip_src, field_src, normal_src, kept, zb, acc, levels,
                    best):
     """The attribute pass of a tile's `count` splats: the weighted sums of the fragments no
-    farther than zb into acc, block by block as `visibility_tile`; curved splats with
-    `field_src`, shaded with their normal fields too with `normal_src` (Phong splatting; None:
-    the splat's own normal, `deferred`). With `levels` > 0 (a
-    categorical colour mode, whose splats carry their palette index k as k / CODE_SCALE in
-    red), `best` keeps per pixel the MAX of category_pack(w, k): the heaviest splat's category
-    (splatting.glsl PASS_CATEGORY), never a blend."""
+    farther than zb into acc, block by block as `visibility_tile`, whose `kept` outputs of the
+    2x2 blocks it blends; curved splats with `field_src`, shaded with their normal fields too
+    with `normal_src` (Phong splatting; None: the splat's own normal, `deferred`). With
+    `levels` > 0 (a categorical colour mode, whose splats carry their palette index k as
+    k / CODE_SCALE in red), `best` keeps per pixel the MAX of category_pack(w, k): the heaviest
+    splat's category (splatting.glsl PASS_CATEGORY), never a blend."""
     clipping, curved = clip_src is not None, field_src is not None
     field_normals = curved and normal_src is not None
-    half, one, zero = np.float32(0.5), np.float32(1.0), np.float32(0.0)
+    half = np.float32(0.5)
     for first in range(0, count, BLOCK):
         size = min(BLOCK, count - first)
         base, box_base = table_slot(first, TABLE_ROWS), table_slot(first, 4)
-        for q in range(size):
-            uq = np.uint64(q)
-            j, jb = base + uq, box_base + uq
-            s = splat_geometry(table, j)
-            c, f = splat_extras(table, clip_src, field_src, j)
-            nx, ny, nz = table[j + ROW[NX]], table[j + ROW[NY]], table[j + ROW[NZ]]
-            x0, y0 = ibox[jb + TEMP[0]], ibox[jb + TEMP[2]]
-            wide, tall = ibox[jb + TEMP[1]] > x0, ibox[jb + TEMP[3]] > y0
-            dx, dy = np.float32(x0 + ox) + half - s[0], np.float32(y0 + oy) + half - s[1]
-            w, z, fx, fy, fz = attribute_fragment(s, c, f, clipping, curved, field_normals, dx, dy, params,
-                                                  nx, ny, nz)
-            tmp[TEMP[0] + uq], tmp[TEMP[4] + uq] = w, z
-            if field_normals:
-                tmp[TEMP[8] + uq], tmp[TEMP[12] + uq], tmp[TEMP[16] + uq] = fx, fy, fz
-            w, z, fx, fy, fz = attribute_fragment(s, c, f, clipping, curved, field_normals, dx + one, dy, params,
-                                                  nx, ny, nz)
-            tmp[TEMP[1] + uq], tmp[TEMP[5] + uq] = (w if wide else zero), z
-            if field_normals:
-                tmp[TEMP[9] + uq], tmp[TEMP[13] + uq], tmp[TEMP[17] + uq] = fx, fy, fz
-            w, z, fx, fy, fz = attribute_fragment(s, c, f, clipping, curved, field_normals, dx, dy + one, params,
-                                                  nx, ny, nz)
-            tmp[TEMP[2] + uq], tmp[TEMP[6] + uq] = (w if tall else zero), z
-            if field_normals:
-                tmp[TEMP[10] + uq], tmp[TEMP[14] + uq], tmp[TEMP[18] + uq] = fx, fy, fz
-            w, z, fx, fy, fz = attribute_fragment(s, c, f, clipping, curved, field_normals, dx + one, dy + one, params,
-                                                  nx, ny, nz)
-            tmp[TEMP[3] + uq], tmp[TEMP[7] + uq] = (w if wide and tall else zero), z
-            if field_normals:
-                tmp[TEMP[11] + uq], tmp[TEMP[15] + uq], tmp[TEMP[19] + uq] = fx, fy, fz
+        kept_base = table_slot(first, KEPT_ROWS)
         for q in range(size):
             uq = np.uint64(q)
             j, jb = base + uq, box_base + uq
@@ -372,15 +394,16 @@ def attribute_tile(table, ibox, count, ox, oy, params, clip_src, field_src, norm
             nx, ny, nz = table[j + ROW[NX]], table[j + ROW[NY]], table[j + ROW[NZ]]
             code = math.floor(r * np.float32(CODE_SCALE) + np.float32(0.5))
             p = y0 * STRIDE + x0
+            k = kept_base + uq
             for lane in range(4):
                 pl = p + (lane >> 1) * STRIDE + (lane & 1)
-                w, z = tmp[TEMP[lane] + uq], tmp[TEMP[4 + lane] + uq]
+                w, z = kept[k + KEPT[lane]], kept[k + KEPT[4 + lane]]
                 if w > 0 and z <= zb[pl]:
                     if levels > 0:
                         best[pl] = max(best[pl], category_pack(w, code, levels))
                     if field_normals:
-                        blend(acc, pl, w, z, r, g, b, tmp[TEMP[8 + lane] + uq], tmp[TEMP[12 + lane] + uq],
-                               tmp[TEMP[16 + lane] + uq])
+                        blend(acc, pl, w, z, r, g, b, kept[k + KEPT[8 + lane]], kept[k + KEPT[12 + lane]],
+                              kept[k + KEPT[16 + lane]])
                     else:
                         blend(acc, pl, w, z, r, g, b, nx, ny, nz)
             if x1 - x0 < 2 and y1 - y0 < 2:
