@@ -76,6 +76,34 @@ def test_tangent_frames_orthonormal():
     assert np.allclose(np.cross(u, v), normals, atol=1e-5)  # right-handed (u, v, n)
 
 
+def test_compiled_frames_match_the_formula():
+    """frames.py's kernels give exactly the numpy evaluation of Duff et al.'s listing 3, and
+    unit leaves zero rows zero."""
+    from surfel.preprocess.frames import orthonormal_basis
+    from surfel.preprocess.frames import unit as unit_rows
+
+    rng = np.random.default_rng(3)
+    v = np.concatenate([rng.normal(size=(5_000, 3)), [[0, 0, 0], [0, 0, -1], [1e-9, 0, -1]]])
+    reference = v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-300)
+    n = unit_rows(v.astype(np.float32))
+    assert n.dtype == np.float64 and np.array_equal(unit_rows(v), reference) and not n[5_000].any()
+    x, y, z = reference[:, 0], reference[:, 1], reference[:, 2]
+    sign = np.copysign(1.0, z)
+    a = -1.0 / (sign + z)
+    b = x * y * a
+    t = np.stack([1.0 + sign * x * x * a, sign * b, -sign * x], axis=1)
+    s = np.stack([b, sign + y * y * a, -y], axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        assert np.array_equal(orthonormal_basis(reference), np.stack([t, s], axis=1), equal_nan=True)
+
+
+def test_cloud_bounds_are_the_corners():
+    rng = np.random.default_rng(4)
+    positions = rng.normal(size=(10_000, 3)) * [1, 100, 1e-3] + [5e5, -3, 0]
+    lo, hi = PointCloud(positions).bounds
+    assert np.array_equal(lo, positions.min(axis=0)) and np.array_equal(hi, positions.max(axis=0))
+
+
 def test_ellipse_axes_are_tangent_and_right_handed():
     p = sphere(5_000)
     axes = fit_ellipses(p, p).astype(np.float64)
