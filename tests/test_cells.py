@@ -229,3 +229,36 @@ def test_closed_surfaces_and_aerial_scans_have_no_borders():
                            geospatial=geospatial)
         lines = prepare(cloud)[0].attributes["clip_lines"]
         assert (lines[interior, :, 2] >= 1).all() == geospatial
+
+
+def test_compiled_border_and_cap_kernels_match_numpy():
+    """The border kernel's gaps and the outlier cap's median, against numpy's sort and median
+    on a half disc (a border along its diameter) with ragged radii."""
+    from surfel.preprocess import borders, cells
+    from surfel.preprocess.frames import orthonormal_basis
+    from surfel.preprocess.neighbourhood import Neighbourhood
+
+    rng = np.random.default_rng(5)
+    xy = rng.uniform(-1, 1, size=(4_000, 2))
+    xy = xy[(np.hypot(*xy.T) < 1) & (xy[:, 1] > 0)]
+    nbh = Neighbourhood.build(np.column_stack([xy, 0.01 * xy[:, 0] ** 2]), 16, progress=False)
+    normals = np.tile([0.0, 0.0, 1.0], (len(nbh.points), 1))
+    frames = orthonormal_basis(normals)
+    rows = np.arange(len(nbh.points))
+    got = borders._border_outwards(nbh.points, normals, nbh.index, rows, frames, cells.SHEET_COS)
+    d = nbh.points[nbh.index] - nbh.points[:, None]
+    angles = np.sort(np.arctan2(np.einsum("nkj,nj->nk", d, frames[:, 1]), np.einsum("nkj,nj->nk", d, frames[:, 0]))
+                     [:, 1:], axis=1)
+    gaps = np.diff(np.concatenate([angles, angles[:, :1] + 2 * np.pi], axis=1), axis=1)
+    ranked = np.sort(gaps, axis=1)
+    border = (ranked[:, -1] >= borders.BORDER_GAP) & (ranked[:, -2] <= borders.INTERIOR_GAP)
+    assert border.sum() > 50 and np.array_equal(got.any(axis=1), border)
+    widest = np.argmax(gaps, axis=1)
+    middle = angles[rows, widest] + gaps[rows, widest] / 2
+    expected = np.cos(middle)[:, None] * frames[:, 0] + np.sin(middle)[:, None] * frames[:, 1]
+    assert np.allclose(got[border], expected[border], atol=1e-12)
+    raw = rng.uniform(0.1, 1, len(nbh.points)) ** 4
+    for k in (16, 15):  # an odd and an even count of neighbours
+        cap = cells._outlier_cap(raw, nbh.index[:, :k], 0)
+        reference = np.minimum(1.0, cells.ISOLATED_FACTOR * np.median(raw[nbh.index[:, 1:k]], axis=1) / raw)
+        assert np.array_equal(cap, reference) and (cap < 1).sum() > 10

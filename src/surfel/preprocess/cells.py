@@ -69,6 +69,7 @@ RADIUS_NEIGHBOURS = 16         # neighbours bounding a Voronoi cell: enough to r
 RADIUS_MARGIN = 1.2            # covering radius x this: curvature, normal noise, and overlap for
                                # the Gaussian blending (coverage 99.98% at 1.0, 99.998% at 1.2)
 ISOLATED_FACTOR = 2.0          # a radius at most this x the median of its neighbours' radii
+CAP_BLOCK = 1024               # points per parallel task of the outlier cap
 ELLIPSE_MAX_ASPECT = 4.0       # no needles: major / minor semi-axis at most this
 CURVATURE_ANISOTROPY = 0.05    # radians by which the normals turn more one way than the other
                                # across a cell, above which an ellipse follows the curvature
@@ -530,11 +531,19 @@ def _outlier_cap(raw, index, start):  # pragma: no cover - compiled
     each point start + i."""
     m, k = index.shape
     cap = np.empty(m)
-    for i in numba.prange(m):
-        neighbours = np.empty(k - 1)
-        for j in range(1, k):
-            neighbours[j - 1] = raw[index[i, j]]
-        cap[i] = min(1.0, ISOLATED_FACTOR * np.median(neighbours) / raw[start + i])
+    for block in numba.prange((m + CAP_BLOCK - 1) // CAP_BLOCK):
+        neighbours = np.empty(k - 1)  # one buffer per block: an allocation per point costs as much as its work
+        for i in range(block * CAP_BLOCK, min(m, (block + 1) * CAP_BLOCK)):
+            for j in range(1, k):  # insertion sort: a dozen values
+                value = raw[index[i, j]]
+                slot = j - 1
+                while slot > 0 and neighbours[slot - 1] > value:
+                    neighbours[slot] = neighbours[slot - 1]
+                    slot -= 1
+                neighbours[slot] = value
+            half = (k - 1) // 2
+            median = neighbours[half] if (k - 1) % 2 else (neighbours[half - 1] + neighbours[half]) / 2
+            cap[i] = min(1.0, ISOLATED_FACTOR * median / raw[start + i])
     return cap
 
 
