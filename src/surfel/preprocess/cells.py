@@ -517,32 +517,27 @@ def _cells(nbh: Neighbourhood, normals: np.ndarray, k: int, ellipse: bool, progr
 
 
 def _margin_and_cap(raw: np.ndarray, index: np.ndarray) -> np.ndarray:
-    """RADIUS_MARGIN, times the outlier cap: at most ISOLATED_FACTOR x the median raw radius of
-    the neighbours."""
+    """RADIUS_MARGIN, times the outlier cap: at most ISOLATED_FACTOR x the neighbours' median raw radius."""
     if index.shape[1] == 1:
         return np.full(len(raw), RADIUS_MARGIN)
-
     return RADIUS_MARGIN * map_chunks(lambda start, stop: _outlier_cap(raw, index[start:stop], start), len(raw))
 
 
 @numba.njit(parallel=True, cache=True)
 def _outlier_cap(raw, index, start):  # pragma: no cover - compiled
-    """min(1, ISOLATED_FACTOR x the median raw radius of the neighbours / the point's own), for
-    each point start + i."""
+    """min(1, ISOLATED_FACTOR x the neighbours' median raw radius / the own) of each point start + i."""
     m, k = index.shape
     cap = np.empty(m)
     for block in numba.prange((m + CAP_BLOCK - 1) // CAP_BLOCK):
         neighbours = np.empty(k - 1)  # one buffer per block: an allocation per point costs as much as its work
         for i in range(block * CAP_BLOCK, min(m, (block + 1) * CAP_BLOCK)):
             for j in range(1, k):  # insertion sort: a dozen values
-                value = raw[index[i, j]]
-                slot = j - 1
+                value, slot = raw[index[i, j]], j - 1
                 while slot > 0 and neighbours[slot - 1] > value:
                     neighbours[slot] = neighbours[slot - 1]
                     slot -= 1
                 neighbours[slot] = value
-            half = (k - 1) // 2
-            median = neighbours[half] if (k - 1) % 2 else (neighbours[half - 1] + neighbours[half]) / 2
+            median = (neighbours[(k - 2) // 2] + neighbours[(k - 1) // 2]) / 2  # one middle twice if k - 1 is odd
             cap[i] = min(1.0, ISOLATED_FACTOR * median / raw[start + i])
     return cap
 
