@@ -90,6 +90,34 @@ def test_tangent_frames_orthonormal():
     assert np.allclose(np.cross(u, v), normals, atol=1e-5)  # right-handed (u, v, n)
 
 
+def test_compiled_frames_match_the_formula():
+    """frames.py's kernels give exactly the numpy evaluation of Duff et al.'s listing 3, and
+    unit leaves zero rows zero."""
+    from surfel.preprocess.frames import orthonormal_basis
+    from surfel.preprocess.frames import unit as unit_rows
+
+    rng = np.random.default_rng(3)
+    v = np.concatenate([rng.normal(size=(5_000, 3)), [[0, 0, 0], [0, 0, -1], [1e-9, 0, -1]]])
+    reference = v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-300)
+    n = unit_rows(v.astype(np.float32))
+    assert n.dtype == np.float64 and np.array_equal(unit_rows(v), reference) and not n[5_000].any()
+    x, y, z = reference[:, 0], reference[:, 1], reference[:, 2]
+    sign = np.copysign(1.0, z)
+    a = -1.0 / (sign + z)
+    b = x * y * a
+    t = np.stack([1.0 + sign * x * x * a, sign * b, -sign * x], axis=1)
+    s = np.stack([b, sign + y * y * a, -y], axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        assert np.array_equal(orthonormal_basis(reference), np.stack([t, s], axis=1), equal_nan=True)
+
+
+def test_cloud_bounds_are_the_corners():
+    rng = np.random.default_rng(4)
+    positions = rng.normal(size=(10_000, 3)) * [1, 100, 1e-3] + [5e5, -3, 0]
+    lo, hi = PointCloud(positions).bounds
+    assert np.array_equal(lo, positions.min(axis=0)) and np.array_equal(hi, positions.max(axis=0))
+
+
 def test_ellipse_axes_are_tangent_and_right_handed():
     p = sphere(5_000)
     axes = fit_ellipses(p, p).astype(np.float64)
@@ -215,3 +243,43 @@ def test_closed_surfaces_and_aerial_scans_have_no_borders():
                            geospatial=geospatial)
         lines = prepare(cloud)[0].attributes["clip_lines"]
         assert (lines[interior, :, 2] >= 1).all() == geospatial
+
+
+def test_compiled_border_and_cap_kernels_match_numpy():
+    """The border kernel's gaps and the outlier cap's median, against numpy's sort and median
+    on a half disc (a border along its diameter) with ragged radii."""
+    from surfel.preprocess import borders, cells
+    from surfel.preprocess.frames import orthonormal_basis
+    from surfel.preprocess.neighbourhood import Neighbourhood
+    from surfel.preprocess.outlier_cap import ISOLATED_FACTOR, outlier_cap
+
+    rng = np.random.default_rng(5)
+    xy = rng.uniform(-1, 1, size=(4_000, 2))
+    xy = xy[(np.hypot(*xy.T) < 1) & (xy[:, 1] > 0)]
+    nbh = Neighbourhood.build(np.column_stack([xy, 0.01 * xy[:, 0] ** 2]), 16, progress=False)
+    normals = np.tile([0.0, 0.0, 1.0], (len(nbh.points), 1))
+    frames = orthonormal_basis(normals)
+    rows = np.arange(len(nbh.points))
+    got = borders._border_outwards(nbh.points, normals, nbh.index, rows, frames, cells.SHEET_COS)
+    d = nbh.points[nbh.index] - nbh.points[:, None]
+    angles = np.sort(np.arctan2(np.einsum("nkj,nj->nk", d, frames[:, 1]), np.einsum("nkj,nj->nk", d, frames[:, 0]))
+                     [:, 1:], axis=1)
+    gaps = np.diff(np.concatenate([angles, angles[:, :1] + 2 * np.pi], axis=1), axis=1)
+    ranked = np.sort(gaps, axis=1)
+    border = (ranked[:, -1] >= borders.BORDER_GAP) & (ranked[:, -2] <= borders.INTERIOR_GAP)
+    assert border.sum() > 50 and np.array_equal(got.any(axis=1), border)
+    widest = np.argmax(gaps, axis=1)
+    middle = angles[rows, widest] + gaps[rows, widest] / 2
+    expected = np.cos(middle)[:, None] * frames[:, 0] + np.sin(middle)[:, None] * frames[:, 1]
+    assert np.allclose(got[border], expected[border], atol=1e-12)
+    raw = rng.uniform(0.1, 1, len(nbh.points)) ** 4
+    flipped = np.where(rng.uniform(size=(len(raw), 1)) < 0.3, -normals, normals)  # another surface's
+    for k in (16, 15):  # an odd and an even count of neighbours
+        index = nbh.index[:, :k]
+        for oriented in (False, True):
+            cap = outlier_cap(raw, index, flipped, oriented)
+            same = (np.einsum("nkj,nj->nk", flipped[index[:, 1:]], flipped) > 0) | (not oriented)
+            same[~same.any(axis=1)] = True  # none on its surface: all count
+            median = np.array([np.median(raw[row[1:]][keep]) for row, keep in zip(index, same, strict=True)])
+            reference = np.minimum(1.0, ISOLATED_FACTOR * median / raw)
+            assert np.array_equal(cap, reference) and (cap < 1).sum() > 10

@@ -292,7 +292,10 @@ class PointCloud:
     @cached_property
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """(min, max) corners; computed once, since renderers ask every frame."""
-        return _read_only(self.positions.min(axis=0)), _read_only(self.positions.max(axis=0))
+        # column by column: numpy reduces a strided column several times faster than axis=0 of (N, 3)
+        columns = [self.positions[:, axis] for axis in range(3)]
+        return (_read_only(np.array([column.min() for column in columns])),
+                _read_only(np.array([column.max() for column in columns])))
 
     @cached_property
     def max_splat_radius(self) -> float:

@@ -8,6 +8,7 @@ One module per estimation, each citing its source, with its tuning constants at 
   cells.py           tangent-plane Voronoi cells: covering radii and ellipses (Botsch et al.
                      2004), cut at creases, and the splats' clip lines there and at the
                      borders of open surfaces
+  outlier_cap.py     radii no larger than twice the median of the neighbours' on the same surface
   sharp_features.py  flat points and crease points (Zwicker et al. 2002, Pauly et al. 2003)
   borders.py         border points of open surfaces and their outward directions (Pauly et al.
                      2003)

@@ -13,10 +13,8 @@ Radii (`estimate_radii`): each splat covers its own Voronoi cell.
     regular regions. Neighbours more than 45 degrees off the tangent plane (|z| > |(x, y)|, the
     far side of a thin sheet) do not cut the cell, nor do neighbours whose oriented normals face
     away (n_p . n_q < SHEET_COS, the other side of a sheet, a surface of its own that would cut
-    this side's cells into holes). A point whose radius exceeds ISOLATED_FACTOR x the median
-    radius of its neighbours on its surface (normals within SHARP_ANGLE; all where none is) is
-    capped there so it does not become a blob (over all neighbours, a sheet's dense rim, its
-    normals turning every way, capped the body the sheet lies on: holes along ogre's belt).
+    this side's cells into holes). Radii far above those of the neighbours on the point's
+    surface are capped (`outlier_cap.py`) so that stray points do not become blobs.
 
 Ellipses (`fit_ellipses`, for Phong splatting, Botsch, Spernat & Kobbelt 2004):
     axis directions are the principal curvature directions ("aligned along the curvature",
@@ -64,13 +62,13 @@ from .chunked import map_chunks
 from .frames import orthonormal_basis, unit
 from .neighbourhood import Neighbourhood
 from .normals import pca_normals
-from .sharp_features import SHARP_COS, SharpFeatures
+from .outlier_cap import outlier_cap
+from .sharp_features import SharpFeatures
 
 RADIUS_NEIGHBOURS = 16         # neighbours bounding a Voronoi cell: enough to reach the next scan
                                # line when lines are up to ~8 x farther apart than points on a line
 RADIUS_MARGIN = 1.2            # covering radius x this: curvature, normal noise, and overlap for
                                # the Gaussian blending (coverage 99.98% at 1.0, 99.998% at 1.2)
-ISOLATED_FACTOR = 2.0          # a radius at most this x the median of its neighbours' radii
 ELLIPSE_MAX_ASPECT = 4.0       # no needles: major / minor semi-axis at most this
 CURVATURE_ANISOTROPY = 0.05    # radians by which the normals turn more one way than the other
                                # across a cell, above which an ellipse follows the curvature
@@ -511,33 +509,10 @@ def _cells(nbh: Neighbourhood, normals: np.ndarray, k: int, ellipse: bool, progr
     if ellipse:
         circle = ~positive | (np.linalg.norm(axes, axis=2).min(axis=1) <= 0)
         axes[circle] = orthonormal_basis(normals[circle]) * raw[circle][:, None, None]
-    # the margin, times the outlier cap (unoriented normals cannot tell a sheet's sides apart: all count)
-    same_cos = SHARP_COS if oriented else -2.0
-    cap = np.ones(n) if index.shape[1] == 1 else map_chunks(  # no neighbours: nothing to compare with
-        lambda start, stop: _outlier_cap(raw, index[start:stop], start, normals, same_cos), n)
-    scale = RADIUS_MARGIN * cap
+    scale = RADIUS_MARGIN * outlier_cap(raw, index, normals, oriented)
     if ellipse:
         axes *= scale[:, None, None]
     return raw * scale, axes
-
-
-@numba.njit(parallel=True, cache=True)
-def _outlier_cap(raw, index, start, normals, same_cos):  # pragma: no cover - compiled
-    """min(1, ISOLATED_FACTOR x the median raw radius of p's neighbours on its surface (normals within
-    acos(same_cos); all where none is) / its own), for each point p = start + i."""
-    m, k = index.shape
-    cap = np.empty(m)
-    for i in numba.prange(m):
-        p = start + i
-        neighbours = np.empty(k - 1)  # those on p's surface first
-        count = 0
-        for j in range(1, k):
-            q = index[i, j]
-            facing = normals[q, 0] * normals[p, 0] + normals[q, 1] * normals[p, 1] + normals[q, 2] * normals[p, 2]
-            neighbours[count if facing >= same_cos else k - 1 - j + count] = raw[q]
-            count += 1 if facing >= same_cos else 0
-        cap[i] = min(1.0, ISOLATED_FACTOR * np.median(neighbours[:count] if count else neighbours) / raw[p])
-    return cap
 
 
 def covering_radii(nbh: Neighbourhood, normals: np.ndarray, progress: bool | None,

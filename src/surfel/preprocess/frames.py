@@ -9,28 +9,57 @@ singularity: Frisvad 2012's formula, which this revises, breaks down near z = -1
 
 so that (t, s, n) is orthonormal and right-handed. A circular splat of radius r has the axes
 (r t, r s).
+
+Both kernels run in one compiled pass over the rows: every estimation of `complete.py` asks
+for unit normals and tangent frames of millions of points, which numpy's temporaries made
+a visible share of a hierarchy build.
 """
 
 from __future__ import annotations
 
+import math
+
+import numba
 import numpy as np
 
 
+@numba.njit(parallel=True, cache=True)
+def _unit_rows(v):  # pragma: no cover - compiled
+    """Rows of v (N, 3) float64 divided by max(|v_i|, 1e-300)."""
+    out = np.empty_like(v)
+    for i in numba.prange(len(v)):
+        length = max(math.sqrt(v[i, 0] * v[i, 0] + v[i, 1] * v[i, 1] + v[i, 2] * v[i, 2]), 1e-300)
+        for a in range(3):
+            out[i, a] = v[i, a] / length
+    return out
+
+
+@numba.njit(parallel=True, cache=True)
+def _basis(n):  # pragma: no cover - compiled
+    """(t, s) of the module docstring for each row of n (N, 3) float64."""
+    frames = np.empty((len(n), 2, 3))
+    for i in numba.prange(len(n)):
+        x, y, z = n[i, 0], n[i, 1], n[i, 2]
+        sign = math.copysign(1.0, z)
+        a = -1.0 / (sign + z)
+        b = x * y * a
+        frames[i, 0, 0] = 1.0 + sign * x * x * a
+        frames[i, 0, 1] = sign * b
+        frames[i, 0, 2] = -sign * x
+        frames[i, 1, 0] = b
+        frames[i, 1, 1] = sign + y * y * a
+        frames[i, 1, 2] = -y
+    return frames
+
+
 def unit(v: np.ndarray) -> np.ndarray:
-    """Rows of v scaled to unit length (zero rows stay zero)."""
-    return v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-300)
+    """Rows of v (N, 3) scaled to unit length, float64 (zero rows stay zero)."""
+    return _unit_rows(np.ascontiguousarray(v, np.float64))
 
 
 def orthonormal_basis(normals: np.ndarray) -> np.ndarray:
     """Unit tangents (N, 2, 3) float64, (t, s): (t, s, n) right-handed for unit normals (N, 3)."""
-    n = np.asarray(normals, np.float64)
-    x, y, z = n[:, 0], n[:, 1], n[:, 2]
-    sign = np.copysign(1.0, z)
-    a = -1.0 / (sign + z)
-    b = x * y * a
-    t = np.stack([1.0 + sign * x * x * a, sign * b, -sign * x], axis=1)
-    s = np.stack([b, sign + y * y * a, -y], axis=1)
-    return np.stack([t, s], axis=1)
+    return _basis(np.ascontiguousarray(normals, np.float64))
 
 
 def tangent_frames(normals: np.ndarray, radii: np.ndarray) -> np.ndarray:

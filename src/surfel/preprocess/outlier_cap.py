@@ -1,0 +1,64 @@
+"""The outlier cap of the splat radii (`cells.py`): a point whose covering radius exceeds
+ISOLATED_FACTOR times the median radius of its neighbours on its own surface is capped there,
+so that a stray point, whose Voronoi cell reaches far, does not become a blob:
+
+    cap_p = min(1, ISOLATED_FACTOR median{r_q : q among p's k nearest, n_p . n_q >= cos 45°} / r_p)
+
+the median taken over all k neighbours where none lies on p's surface. Only p's own surface
+counts because over all neighbours a sheet's densely sampled rim, its normals turning every
+way, capped the splats of the body the sheet lies on (holes along ogre's belt). Unoriented
+normals cannot tell a sheet's two sides apart: with them every neighbour counts.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+from .chunked import map_chunks
+from .sharp_features import SHARP_COS
+
+ISOLATED_FACTOR = 2.0  # a radius at most this x the median of its neighbours' radii
+CAP_BLOCK = 1024       # points per parallel task
+
+
+def outlier_cap(raw: np.ndarray, index: np.ndarray, normals: np.ndarray, oriented: bool) -> np.ndarray:
+    """(N,) cap factors in (0, 1] of the raw radii `raw` (N,), given each point's neighbours
+    `index` (N, k) (itself first) and unit `normals` (N, 3), oriented or not."""
+    if index.shape[1] == 1:  # no neighbours: nothing to compare with
+        return np.ones(len(raw))
+    same_cos = SHARP_COS if oriented else -2.0
+    return map_chunks(lambda start, stop: _outlier_cap(raw, index[start:stop], start, normals, same_cos), len(raw))
+
+
+@numba.njit(cache=True, inline="always")
+def _insert_sorted(values, filled, value):  # pragma: no cover - compiled
+    """Insert `value` into the ascending values[:filled]."""
+    while filled > 0 and values[filled - 1] > value:
+        values[filled] = values[filled - 1]
+        filled -= 1
+    values[filled] = value
+
+
+@numba.njit(parallel=True, cache=True)
+def _outlier_cap(raw, index, start, normals, same_cos):  # pragma: no cover - compiled
+    """cap_p of each point p = start + i, p's surface being its neighbours with n_p . n_q >= same_cos."""
+    m, k = index.shape
+    cap = np.empty(m)
+    for block in numba.prange((m + CAP_BLOCK - 1) // CAP_BLOCK):
+        # one pair of buffers per block (an allocation per point costs as much as its work), each
+        # kept sorted by insertion: a dozen values
+        same, every = np.empty(k - 1), np.empty(k - 1)
+        for i in range(block * CAP_BLOCK, min(m, (block + 1) * CAP_BLOCK)):
+            p, count = start + i, 0
+            for j in range(1, k):
+                q = index[i, j]
+                facing = normals[q, 0] * normals[p, 0] + normals[q, 1] * normals[p, 1] + normals[q, 2] * normals[p, 2]
+                _insert_sorted(every, j - 1, raw[q])
+                if facing >= same_cos:
+                    _insert_sorted(same, count, raw[q])
+                    count += 1
+            values, n = (same, count) if count else (every, k - 1)
+            median = (values[(n - 1) // 2] + values[n // 2]) / 2  # one middle twice if n is odd
+            cap[i] = min(1.0, ISOLATED_FACTOR * median / raw[p])
+    return cap
