@@ -307,7 +307,7 @@ def visibility_tile(table, ibox, count, ox, oy, params, clip_src, field_src, nor
     (table_size(count, KEPT_ROWS)) for `attribute_tile`: the two passes meet the same rays."""
     clipping, curved = clip_src is not None, field_src is not None
     field_normals = curved and normal_src is not None
-    half, one = np.float32(0.5), np.float32(1.0)
+    half = np.float32(0.5)
     for first in range(0, count, BLOCK):
         size = min(BLOCK, count - first)
         base, box_base = table_slot(first, TABLE_ROWS), table_slot(first, 4)
@@ -321,30 +321,15 @@ def visibility_tile(table, ibox, count, ox, oy, params, clip_src, field_src, nor
             x0, y0 = ibox[jb + TEMP[0]], ibox[jb + TEMP[2]]
             wide, tall = ibox[jb + TEMP[1]] > x0, ibox[jb + TEMP[3]] > y0
             dx, dy = np.float32(x0 + ox) + half - s[0], np.float32(y0 + oy) + half - s[1]
-            z, cover, w, depth, fx, fy, fz = both_outputs(s, c, f, clipping, curved, field_normals, dx, dy, params,
-                                                          nx, ny, nz, True)
-            tmp[TEMP[0] + uq], tmp[TEMP[4] + uq] = z, cover
-            kept[k + KEPT[0]], kept[k + KEPT[4]] = w, depth
-            if field_normals:
-                kept[k + KEPT[8]], kept[k + KEPT[12]], kept[k + KEPT[16]] = fx, fy, fz
-            z, cover, w, depth, fx, fy, fz = both_outputs(s, c, f, clipping, curved, field_normals, dx + one, dy,
-                                                          params, nx, ny, nz, wide)
-            tmp[TEMP[1] + uq], tmp[TEMP[5] + uq] = z, cover
-            kept[k + KEPT[1]], kept[k + KEPT[5]] = w, depth
-            if field_normals:
-                kept[k + KEPT[9]], kept[k + KEPT[13]], kept[k + KEPT[17]] = fx, fy, fz
-            z, cover, w, depth, fx, fy, fz = both_outputs(s, c, f, clipping, curved, field_normals, dx, dy + one,
-                                                          params, nx, ny, nz, tall)
-            tmp[TEMP[2] + uq], tmp[TEMP[6] + uq] = z, cover
-            kept[k + KEPT[2]], kept[k + KEPT[6]] = w, depth
-            if field_normals:
-                kept[k + KEPT[10]], kept[k + KEPT[14]], kept[k + KEPT[18]] = fx, fy, fz
-            z, cover, w, depth, fx, fy, fz = both_outputs(s, c, f, clipping, curved, field_normals, dx + one,
-                                                          dy + one, params, nx, ny, nz, wide and tall)
-            tmp[TEMP[3] + uq], tmp[TEMP[7] + uq] = z, cover
-            kept[k + KEPT[3]], kept[k + KEPT[7]] = w, depth
-            if field_normals:
-                kept[k + KEPT[11]], kept[k + KEPT[15]], kept[k + KEPT[19]] = fx, fy, fz
+            for lane in range(4):  # (x0, y0), (x0 + 1, y0), (x0, y0 + 1), (x0 + 1, y0 + 1)
+                right, below = lane & 1, lane >> 1
+                z, cover, w, depth, fx, fy, fz = both_outputs(
+                    s, c, f, clipping, curved, field_normals, dx + np.float32(right), dy + np.float32(below), params,
+                    nx, ny, nz, (wide or right == 0) and (tall or below == 0))
+                tmp[TEMP[lane] + uq], tmp[TEMP[4 + lane] + uq] = z, cover
+                kept[k + KEPT[lane]], kept[k + KEPT[4 + lane]] = w, depth
+                if field_normals:
+                    kept[k + KEPT[8 + lane]], kept[k + KEPT[12 + lane]], kept[k + KEPT[16 + lane]] = fx, fy, fz
         for q in range(size):
             uq = np.uint64(q)
             jb = box_base + uq
