@@ -35,7 +35,7 @@ def as_points(positions: np.ndarray) -> np.ndarray:
 @dataclass(frozen=True)
 class Neighbourhood:
     """The points and their k nearest neighbours (nearest first, the point itself first), in
-    the k-d tree's leaf order, positions relative to their centroid."""
+    the grid's Morton cell order (grid_knn.py), positions relative to their centroid."""
 
     points: np.ndarray  # (N, 3) float64, sorted
     index: np.ndarray   # (N, k) int32 into the sorted points
