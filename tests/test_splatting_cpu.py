@@ -216,7 +216,7 @@ def test_occlusion_culling_keeps_the_picture_of_stacked_sheets(method, ortho):
 @pytest.mark.parametrize("method", METHODS)
 def test_a_sheet_on_a_body_leaves_no_holes_beside_its_rim(method):
     """A thin sheet lying on a body (ogre's belt): the body's splats beside the sheet's dense rim
-    keep the size of their cells (preprocess/cells.py, the outlier cap), so the body there has
+    keep the size of their cells (preprocess/outlier_cap.py), so the body there has
     no holes, on either backend (the cap over all neighbours left 17% of it uncovered)."""
     from surfel.camera import Camera
     from surfel.cloud import PointCloud
