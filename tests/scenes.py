@@ -91,3 +91,18 @@ def sheet_on_body(rng, height: float = 0.1):
     normals = np.concatenate([np.tile([0.0, 0.0, 1.0], (len(body) + len(top), 1)), rim_normals])
     return points, normals, np.arange(len(points)) < len(body)
 
+
+
+def sheet_over_body(rng, height: float = 0.3):
+    """A body z = 0 (blue) and a sheet `height` above it over y < 0 (red), both sampled at a
+    spacing of about 1 (jittered), normals +z: two surfaces closer than a splat radius (about
+    0.9), as cloth on a body. Returns the cloud and the sheet's mask."""
+    g = np.arange(-20.0, 20.5)
+    xy = np.stack(np.meshgrid(g, g), axis=-1).reshape(-1, 2)
+    body = np.c_[xy + rng.uniform(-0.25, 0.25, xy.shape), np.zeros(len(xy))]
+    under = xy[xy[:, 1] < 0]
+    sheet = np.c_[under + rng.uniform(-0.25, 0.25, under.shape), np.full(len(under), height)]
+    points = np.concatenate([body, sheet])
+    colors = np.concatenate([np.tile([0.0, 0.0, 1.0], (len(body), 1)), np.tile([1.0, 0.0, 0.0], (len(sheet), 1))])
+    cloud = PointCloud(points, normals=np.tile([0.0, 0.0, 1.0], (len(points), 1)), colors=colors)
+    return cloud, np.arange(len(points)) >= len(body)

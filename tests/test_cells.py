@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from samples import coverage, covered_by, dense_samples, edge_wedge, nn_spacing, scan_lines, sphere, unit
-from scenes import sheet_on_body
+from scenes import sheet_on_body, sheet_over_body
 from surfel.cloud import PointCloud
 from surfel.preprocess import (
     INACTIVE_CLIP,
@@ -283,3 +283,48 @@ def test_compiled_border_and_cap_kernels_match_numpy():
             median = np.array([np.median(raw[row[1:]][keep]) for row, keep in zip(index, same, strict=True)])
             reference = np.minimum(1.0, ISOLATED_FACTOR * median / raw)
             assert np.array_equal(cap, reference) and (cap < 1).sum() > 10
+
+
+def test_layer_thickness_separates_close_layers_and_nothing_else():
+    """Two surfaces 0.3 apart, closer than a splat radius: each point's layer thickness is half
+    the gap; where the body lies alone, and on single surfaces (noisy, curved, creased), none."""
+    from surfel.attributes import INFINITE_LENGTH
+    from surfel.preprocess.neighbourhood import Neighbourhood
+    from surfel.preprocess.thickness import layer_thickness
+
+    def thickness(points, normals):
+        nbh = Neighbourhood.build(points, 16)
+        return nbh.unsort(layer_thickness(nbh.points, unit(nbh.sort(normals)), nbh.index))
+
+    cloud, sheet = sheet_over_body(np.random.default_rng(4))
+    x, y = cloud.positions[:, 0], cloud.positions[:, 1]
+    tau = thickness(cloud.positions, cloud.normals)
+    both = (np.abs(x) < 18) & (y > -18) & (y < -2)
+    assert (tau[both] < INFINITE_LENGTH).mean() > 0.98
+    assert np.abs(np.median(tau[both]) - 0.15) < 0.02
+    assert (tau[y > 2] == INFINITE_LENGTH).all()
+    # curved layers: a sphere of 3000 samples and a cap 0.3 spacings above its top half
+    body, cap = sphere(3_000, seed=5), sphere(3_000, seed=6)
+    cap = cap[cap[:, 2] > 0.2] * (1 + 0.3 * np.sqrt(4 * np.pi / 3_000))
+    layered = np.concatenate([body, cap])
+    tau = thickness(layered, unit(layered))
+    assert (tau[np.r_[body[:, 2] > 0.3, cap[:, 2] > 0.3]] < INFINITE_LENGTH).mean() > 0.95
+    noisy = sphere(20_000, seed=2, noise=0.004)  # about a tenth of the spacing
+    normals, _ = estimate_normals(noisy)
+    assert (thickness(noisy, normals) < INFINITE_LENGTH).mean() < 0.01
+    coarse = sphere(300, seed=3)  # neighbours far down the curve
+    assert (thickness(coarse, coarse) < INFINITE_LENGTH).mean() < 0.01
+    wedge, _ = edge_wedge()
+    assert (thickness(wedge.positions, wedge.normals) < INFINITE_LENGTH).mean() < 0.01
+
+
+def test_another_layer_close_by_does_not_cut_the_cells():
+    """The body's samples under a sheet 0.3 above it keep the radii of the body alone: the
+    sheet's samples, another layer, do not bound their cells (they cut them to 0.82 before)."""
+    cloud, sheet = sheet_over_body(np.random.default_rng(4))
+    y = cloud.positions[:, 1]
+    for radii in (estimate_radii(cloud.positions, normals=cloud.normals),
+                  np.linalg.norm(fit_ellipses(cloud.positions, cloud.normals), axis=2).max(axis=1)):
+        alone = np.median(radii[~sheet & (y > 3)])
+        assert np.median(radii[~sheet & (y < -3)]) > 0.97 * alone
+        assert np.median(radii[sheet & (y < -3)]) > 0.97 * alone

@@ -62,7 +62,8 @@ def test_complete_gives_each_method_what_its_flags_ask():
     # splats: circular by default, fitted ellipses for an elliptical method, given normals kept
     circles, report = complete(oriented)
     assert np.array_equal(circles.normals, oriented.normals)
-    assert set(report) == {"radii", "axes", "sharp_features", "splat_bound"}
+    assert set(report) == {"radii", "axes", "sharp_features", "splat_bound", "thickness"}
+    assert report["thickness"].startswith("0.0% ")  # one surface: no layer caps z_t
     assert np.allclose(np.linalg.norm(circles.axes[:, 0], axis=1), circles.radii, rtol=1e-5)
     ellipses, report = complete(oriented, elliptical=True, normal_field=True)
     lengths = np.linalg.norm(ellipses.axes.astype(np.float64), axis=2)

@@ -35,7 +35,7 @@ def _setup(cloud, camera, sigma=0.5, lowpass=1.0):
     ortho = 0.0 if camera.ortho_height is None else camera.height / camera.ortho_height
     return k.setup_splats(cloud.positions, cloud.local_origin, camera.world_to_eye, cloud.normals,
                           np.ones((1, 3), np.float32), splat_axes(cloud), splat_clip_lines(cloud), splat_fields(cloud),
-                          intr, ortho, camera.near,
+                          np.zeros(len(cloud), np.float32), intr, ortho, camera.near,
                           np.float32(1), np.float32(sigma ** 2), np.float32(lowpass ** 2), np.float32(0.04),
                           np.float32(9.21), np.float32(1), np.float32(4), False, camera.width, camera.height)
 

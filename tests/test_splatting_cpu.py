@@ -12,10 +12,11 @@ import pytest
 
 import surfel
 from conftest import requires_gl
-from scenes import sheet_on_body
+from scenes import sheet_on_body, sheet_over_body
 from surfel.camera import frame
 from surfel.io import load
 from surfel.metrics import compare_results
+from surfel.preprocess import prepare
 from surfel.rendering import Renderer, choose_backend, is_software_renderer
 from surfel.request import CameraSpec
 
@@ -231,3 +232,45 @@ def test_a_sheet_on_a_body_leaves_no_holes_beside_its_rim(method):
     column, row = np.floor(camera.project(beside)[0]).astype(int).T
     for result in (cpu, gl):
         assert (result.alpha[row, column] >= 0.5).all()
+
+
+def _sheet_pixels(rng, camera, count=5_000):
+    """Pixels (rows, columns) of the sheet of `scenes.sheet_over_body` well inside its edges."""
+    inside = np.c_[rng.uniform(-15, 15, count), rng.uniform(-15, -2, count), np.full(count, 0.3)]
+    column, row = np.floor(camera.project(inside)[0]).astype(int).T
+    seen = (column >= 0) & (column < camera.width) & (row >= 0) & (row < camera.height)
+    return row[seen], column[seen]
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_a_sheet_close_above_a_body_hides_it(method):
+    """A sheet 0.3 above a body, closer than their splats' radius (0.9), seen at 30 degrees:
+    z_t capped by the layers' thickness (preprocess/thickness.py) keeps the body's colour out
+    of the sheet on both backends; uncapped, the two blend about half and half."""
+    rng = np.random.default_rng(5)
+    cloud, _ = sheet_over_body(rng)
+    camera = frame(cloud.center, 0.5 * cloud.bounding_radius, azimuth=0.0, elevation=30.0, size=SIZE)
+    cpu, gl = both(cloud, camera, method, shading="none")
+    assert_agree(cpu, gl)
+    rows, columns = _sheet_pixels(rng, camera)
+    assert len(rows) > 1_000
+    for result in (cpu, gl):
+        assert (result.color[rows, columns, 2] > 0.05).mean() < 0.005
+    uncapped = prepare(cloud, elliptical=method == "phong", normal_field=True)[0]  # all a method needs
+    uncapped = uncapped.with_(attributes={k: v for k, v in uncapped.attributes.items() if k != "thickness"})
+    for backend in ("cpu", "gl"):
+        result = Renderer().render(uncapped, camera, method, backend=backend, shading="none")
+        assert result.color[rows, columns, 2].mean() > 0.3
+
+
+@pytest.mark.parametrize(("method", "backend"), [("ewa", "cpu"), ("ewa", "gl"), ("object-space", "gl")])
+def test_the_other_splat_methods_keep_a_close_sheet_in_front(method, backend):
+    """The same cap in EWA splatting's threshold (its own depth range included) and in the
+    object-space visibility pass: the body shows through the sheet at most faintly, at the
+    low-pass fringes."""
+    rng = np.random.default_rng(5)
+    cloud, _ = sheet_over_body(rng)
+    camera = frame(cloud.center, 0.5 * cloud.bounding_radius, azimuth=0.0, elevation=30.0, size=SIZE)
+    result = Renderer().render(cloud, camera, method, backend=backend, shading="none")
+    rows, columns = _sheet_pixels(rng, camera)
+    assert result.color[rows, columns, 2].mean() < 0.05  # uncapped: 0.48

@@ -76,6 +76,31 @@ def test_page_matches_surfel_render(browser, tmp_path, name):
 
 
 @requires_gl
+def test_a_sheet_close_above_a_body_hides_it_in_the_page_too(browser, tmp_path):
+    """The page caps z_t by the layers' thickness as surfel render does (its own column): the
+    body 0.3 below the sheet stays hidden, so the page matches the render (uncapped, the sheet
+    would show half blue)."""
+    from scenes import sheet_over_body
+    from surfel.io import write_ply
+
+    cloud, _ = sheet_over_body(np.random.default_rng(5))
+    write_ply(cloud, tmp_path / "layers.ply")
+    flags = ["--eye", "0,-40,17", "--target", "0,-5,0", "--up", "0,0,1", "--fov", "40", "--size", "320x240",
+             "--shading", "none"]
+    ref = run("render", tmp_path / "layers.ply", "-o", tmp_path / "ref.png", *flags)
+    assert ref.returncode == 0, ref.stderr
+    out = run("export-html", tmp_path / "layers.ply", "-o", tmp_path / "view.html", *flags)
+    assert out.returncode == 0, out.stderr
+    page = open_page(browser, tmp_path / "view.html", (320, 240))
+    shot = png_rgb(page.screenshot())
+    reference = png_rgb((tmp_path / "ref.png").read_bytes())
+    sheet = reference[..., 0] > 200
+    assert sheet.mean() > 0.2 and (reference[sheet, 2] < 10).all()  # red, no body colour
+    assert psnr(shot, reference) >= 35.0
+    page.close()
+
+
+@requires_gl
 def test_dragging_zooming_and_switching_change_the_view(browser, tmp_path):
     proc = run("export-html", "--demo", "-o", tmp_path / "view.html", "--size", "400x320")
     assert proc.returncode == 0, proc.stderr

@@ -43,6 +43,17 @@ float window_depth(vec3 eye) {
     return 0.5 * clip.z / clip.w + 0.5;
 }
 
+// The visibility threshold z_t of a splat centred at eye-space c with unit normal n: `offset`
+// (depth_offset x radius), capped where another surface lies within it by the thickness of the
+// splat's layer (along its normal, preprocess/thickness.py; 0: no cap), as eye depth along
+// the ray, which crosses the layer at |n . view|.
+#define MIN_LAYER_COS 0.05  // a ray this close to the plane is left the uncapped offset's reach
+float layer_offset(float offset, vec3 c, vec3 n, float thickness) {
+    if (thickness <= 0.0) return offset;
+    vec3 view = u_ortho > 0.0 ? vec3(0.0, 0.0, 1.0) : normalize(-c);
+    return min(offset, thickness / max(abs(dot(n, view)), MIN_LAYER_COS));
+}
+
 // Whether the eye-space normal n at eye-space point p faces away from the camera (every
 // method reports and shades the side that faces it).
 bool faces_away(vec3 p, vec3 n) {

@@ -8,3 +8,4 @@ in vec2 in_field;    // Phong splatting's normal-field slopes (alpha, beta)
 in vec3 in_lod;      // sequential point tree: e_g, the parent's e_g, the distance to the parent
 in vec3 in_clip0;    // clip lines at sharp features: keep dot(xy, (u, v)) <= z
 in vec3 in_clip1;
+in float in_thickness;  // its layer's thickness, z_t's cap (preprocess/thickness.py); 0: none

@@ -10,6 +10,7 @@ Every splat method reads the same layout (see splat_common.glsl):
                   (surfel.lod; a cloud without them is all leaves that always pass)
     in_clip0 (3), in_clip1 (3) clip lines (a, b, c) at sharp features: the splat keeps
                   a u + b v <= c in its local coordinates (surfel.preprocess; (0, 0, 1) cuts nothing)
+    in_thickness (1) its layer's thickness, the cap of z_t (preprocess/thickness.py); 0 for none
 Clouds larger than CHUNK points are drawn one chunk at a time so 10M+ points fit in memory;
 a cloud's buffers are kept (by `rendering.Renderer`) so benchmarks measure drawing, not uploading.
 """
@@ -21,13 +22,13 @@ import weakref
 import numpy as np
 
 from ..cloud import PointCloud
-from ..preprocess import INACTIVE_CLIP, drawn_normals
+from ..preprocess import INACTIVE_CLIP, drawn_normals, splat_thickness
 from .context import get_context
 
 CHUNK = 2_000_000
 ATTRIBUTES = ("in_center", "in_normal", "in_color", "in_axis_u", "in_axis_v", "in_field", "in_lod",
-              "in_clip0", "in_clip1")
-WIDTHS = (3, 3, 3, 3, 3, 2, 3, 3, 3)
+              "in_clip0", "in_clip1", "in_thickness")
+WIDTHS = (3, 3, 3, 3, 3, 2, 3, 3, 3, 1)
 LOD_EXTRAS = ("lod_emin", "lod_emax", "lod_dparent")
 FLOATS = sum(WIDTHS)
 CACHE_LIMIT_BYTES = 2_000_000_000
@@ -54,6 +55,7 @@ def pack(cloud: PointCloud, start: int = 0, stop: int | None = None) -> np.ndarr
         out[:, 20:26] = cloud.attributes["clip_lines"][start:stop].reshape(n, 6)
     else:
         out[:, 20:26] = INACTIVE_CLIP * 2
+    out[:, 26] = splat_thickness(cloud, start, stop)
     return out
 
 

@@ -71,6 +71,7 @@ import lazrs
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ..attributes import INFINITE_LENGTH
 from ..camera import Camera
 from ..cloud import PointCloud, framing_sphere
 from ..errors import InputError
@@ -398,6 +399,8 @@ class CopcSource:
             # of a coarse sample must not be cut by them.
             extras["clip_lines"] = np.where((radii != own)[:, None, None], np.float32(INACTIVE_CLIP),
                                             extras["clip_lines"])
+        if "thickness" in extras:  # nor capped by the thickness of a layer it now spans
+            extras["thickness"] = np.where(radii != own, np.float32(INFINITE_LENGTH), extras["thickness"])
         from ..preprocess import (
             tangent_frames,  # (numba module: imported when first needed)
         )

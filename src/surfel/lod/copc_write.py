@@ -33,9 +33,9 @@ scanner_channel, the flags, gps_time (as float64) and scan_angle (degrees, store
 0.006 degrees: quantised to that). Any other attribute, or one whose values the standard
 field cannot hold (a float intensity, a return number above 15), is stored as extra bytes of
 its own type (bool as uint8, float16 as float32), one scalar dimension per component, under
-its name (made unique, ASCII, at most 32 bytes). Of the derived arrays only clip_lines and
-screen_facing are written: lod_* describe another hierarchy and Phong slopes splats of other
-sizes. Fields the
+its name (made unique, ASCII, at most 32 bytes). Of the derived arrays only clip_lines,
+screen_facing and thickness are written: lod_* describe another hierarchy and Phong slopes
+splats of other sizes. Fields the
 format requires but the cloud lacks get defaults (return 1 of 1); the schema in the surfel VLR
 names which dimensions hold attributes, so readers leave the defaults out. laspy's CopcReader
 gives the same values back under the dimensions' names.
@@ -79,7 +79,7 @@ STANDARD_FIELDS = {
     "scan_angle": ("scan_angle", -32768 * SCAN_ANGLE_UNIT, 32767 * SCAN_ANGLE_UNIT),
     "gps_time": ("gps_time", -np.inf, np.inf),
 }
-_WRITTEN_DERIVED = {"clip_lines", "screen_facing"}
+_WRITTEN_DERIVED = {"clip_lines", "screen_facing", "thickness"}
 _EXTRA_BYTES = struct.Struct("<2xBB32s4x24x24x24x24x24x32s")  # one extra-bytes descriptor: 192
 # LAS extra-bytes data types (LAS 1.4 R15, table 24) of the numpy types they hold
 _EXTRA_TYPES = {"u1": 1, "i1": 2, "u2": 3, "i2": 4, "u4": 5, "i4": 6, "u8": 7, "i8": 8, "f4": 9, "f8": 10}

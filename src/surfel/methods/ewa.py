@@ -67,7 +67,7 @@ import numpy as np
 from ..camera import Camera
 from ..cloud import PointCloud
 from ..options import RenderOptions, check_cpu_samples, non_negative, open_unit_interval, positive, setting
-from ..preprocess import INACTIVE_CLIP, drawn_normals
+from ..preprocess import INACTIVE_CLIP, drawn_normals, splat_thickness
 from ..result import RenderResult
 from ..shading import shade
 from .params import SplatParams
@@ -226,7 +226,7 @@ def render_ewa_cpu(cloud: PointCloud, camera: Camera, options: RenderOptions, pa
     clip_lines = splat_clip_lines(cloud)
     splats, extra, box = k.setup_splats(cloud.positions, np.asarray(cloud.local_origin, np.float64),
                                  np.asarray(target.world_to_eye, np.float64), drawn_normals(cloud), splat_colors(cloud),
-                                 splat_axes(cloud), clip_lines, splat_fields(cloud), intr,
+                                 splat_axes(cloud), clip_lines, splat_fields(cloud), splat_thickness(cloud), intr,
                                  ortho_scale(target), float(target.near),
                                  np.float32(params.radius_scale), np.float32(params.sigma ** 2),
                                  np.float32(params.lowpass ** 2), np.float32(params.visibility ** 2),

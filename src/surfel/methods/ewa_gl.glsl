@@ -115,8 +115,9 @@ void main() {
     v_clip1 = pixel_half_plane(in_clip1, j00, j01, j10, j11, det_j);
     v_mean = m;
     v_depth = vec4(d, g, dz);
-    // z_t widened by the depth range, so one splat's extrapolated fringe cannot hide its neighbours.
-    v_threshold = u_depth_offset * radius + dz;
+    // z_t widened by the depth range, so one splat's extrapolated fringe cannot hide its
+    // neighbours; where another layer lies close, no farther than the layer's thickness.
+    v_threshold = layer_offset(u_depth_offset * radius + dz, e, normalize(n), in_thickness);
 #ifdef PASS_VISIBILITY
     v_conic = vec3(n11, -m01, n00) / det_n;
 #else

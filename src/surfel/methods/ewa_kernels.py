@@ -45,10 +45,11 @@ LAYER = 8  # w*r, w*g, w*b, w, w*nx, w*ny, w*nz, w*depth
 ACC_CHANNELS = 2 * LAYER  # front layer, then back layer
 # Finite "no depth yet" sentinel: fastmath may assume no infinities.
 FAR = np.float32(3e38)
+MIN_LAYER_COS = np.float32(0.05)  # gl/common.glsl's: the least |n . view| a layer's thickness is divided by
 
 
 @nb.njit(parallel=True, fastmath=True, cache=True)
-def setup_splats(positions, origin, view, normals, colors, axes, clip_lines, fields, intr, ortho, near,
+def setup_splats(positions, origin, view, normals, colors, axes, clip_lines, fields, thickness, intr, ortho, near,
                  radius_scale, sigma2, lowpass2, vis2, cutoff2, depth_offset, depth_clamp, backface,
                  width, height):
     """Per-splat parameter table (N, SPLAT_FIELDS) float32, the table of clip lines and
@@ -60,6 +61,7 @@ def setup_splats(positions, origin, view, normals, colors, axes, clip_lines, fie
     colors (N,3) f32 or (1,3) for a constant colour, axes (N,2,3) f32, clip_lines (N,2,3)
     f32 or (1,2,3) for none (a u + b v <= c in the splat's unscaled local coordinates),
     fields (N,2) f32 Phong normal-field slopes (alpha, beta) or (1,2) zeros,
+    thickness (N,) f32 the layers' thickness, the cap of z_t (0: none; gl/common.glsl layer_offset),
     intr = fx, fy, cx, cy; ortho > 0 is the orthographic pixels-per-unit scale.
     """
     n = positions.shape[0]
@@ -165,8 +167,13 @@ def setup_splats(positions, origin, view, normals, colors, axes, clip_lines, fie
         # The plane's depth range over that footprint is +-R sqrt(g^T N g); capped so that a
         # splat seen edge-on (J near singular, g huge) cannot claim absurd depths.
         row[DZ] = min(cutoff * math.sqrt(gx * gx * n00 + 2 * gx * gy * m01 + gy * gy * n11), depth_clamp * radius)
-        # Threshold: the splat's own depth range over its footprint is one surface, plus z_t.
+        # Threshold: the splat's own depth range over its footprint is one surface, plus z_t;
+        # where another layer lies close, no farther than the layer's thickness along the ray.
         row[ZT] = depth_offset * radius + row[DZ]
+        if thickness[i] > 0:
+            to_eye = np.float32(1.0) if ortho > 0 else math.sqrt(ex * ex + ey * ey + ez * ez)
+            crossing = abs(facing) / max(math.sqrt(nx * nx + ny * ny + nz * nz) * to_eye, np.float32(1e-30))
+            row[ZT] = min(row[ZT], thickness[i] / max(crossing, MIN_LAYER_COS))
         c = i * color_step
         row[R], row[G], row[B] = colors[c, 0], colors[c, 1], colors[c, 2]
         row[NX], row[NY], row[NZ] = nx, ny, nz

@@ -71,9 +71,9 @@ void main() {
     }
 #ifdef PASS_VISIBILITY
     // The square of side twice the splat radius (the largest neighbour distance), pushed
-    // back along the viewing ray by z_t.
+    // back along the viewing ray by z_t (capped by the layer's thickness).
     vec3 p = c + (2.0 * v.x - 1.0) * au + (2.0 * v.y - 1.0) * av;
-    v_depth = -p.z + u_depth_offset * radius;
+    v_depth = -p.z + layer_offset(u_depth_offset * radius, c, n, in_thickness);
 #ifdef CLIP_LINES
     v_local = (2.0 * v - 1.0) * u_radius_scale;
 #endif

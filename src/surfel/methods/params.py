@@ -4,7 +4,8 @@ extends one of these (`Method.params` in the registry names it).
     RadiusParams  points: the splat radius r_k = radius_scale x the radius of the cloud
     SplatParams   gaussian, deferred, phong, object-space, ewa: the blended splats of a
                   visibility pass, whose threshold is z_t = depth_offset x r_k (Botsch &
-                  Kobbelt 2003; Zwicker et al. 2001), a screen-space low-pass of
+                  Kobbelt 2003; Zwicker et al. 2001; capped where another surface lies
+                  closer, preprocess/thickness.py), a screen-space low-pass of
                   lowpass_radius pixels, and back-face culling
 """
 

@@ -184,7 +184,7 @@ void main() {
     v_clip1 = in_clip1;
 #endif
     v_radius = radius;
-    v_offset = u_depth_offset * v_radius;
+    v_offset = layer_offset(u_depth_offset * v_radius, c, n, in_thickness);
 }
 #endif
 #endif

@@ -58,7 +58,7 @@ import numpy as np
 
 from ..cloud import PointCloud
 from ..options import check_cpu_samples
-from ..preprocess import drawn_normals
+from ..preprocess import drawn_normals, splat_thickness
 from ..result import RenderResult
 from ..shading import MODEL_IDS
 from . import splatting_kernels as k
@@ -84,16 +84,17 @@ def pack_splats(cloud: PointCloud, extras: bool) -> tuple[np.ndarray, np.ndarray
     """A cloud's splats as the kernels read them, made once per cloud: (N, PACKED) float32
     (centre relative to the local origin, as the GPU path uploads it; unit normal, zero for a
     splat that faces the camera (preprocess.drawn_normals); the tangent axes; albedo, white
-    without colours) and, with `extras`, (N, EXTRAS) of clip lines (inactive where the cloud
-    has none) and Phong normal-field slopes (0 where none). Both column-major: the per-splat
-    loop of k.bound_splats then reads each value of consecutive splats from consecutive
-    addresses (about 6% of a deferred frame, against rows)."""
+    without colours; the layer's thickness, 0 for none) and, with `extras`, (N, EXTRAS) of clip
+    lines (inactive where the cloud has none) and Phong normal-field slopes (0 where none).
+    Both column-major: the per-splat loop of k.bound_splats then reads each value of
+    consecutive splats from consecutive addresses (about 6% of a deferred frame, against rows)."""
     n = len(cloud)
     packed = np.zeros((n, t.PACKED), np.float32, order="F")
     packed[:, t.PX:t.PZ + 1] = cloud.positions - np.asarray(cloud.local_origin, np.float64)
     packed[:, t.PNX:t.PNZ + 1] = drawn_normals(cloud)
     packed[:, t.PUX:t.PVZ + 1] = splat_axes(cloud).reshape(n, 6)
     packed[:, t.PR:t.PB + 1] = splat_colors(cloud)
+    packed[:, t.PT] = splat_thickness(cloud)
     if not extras:
         return packed, None
     rows = np.empty((n, t.EXTRAS), np.float32, order="F")

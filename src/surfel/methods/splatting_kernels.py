@@ -36,7 +36,7 @@ import numpy as np
 
 from ..colors import continuous_pixel
 from ..shading import shade_pixel
-from .ewa_kernels import FAR, TILE
+from .ewa_kernels import FAR, MIN_LAYER_COS, TILE
 from .splatting_tiles import (
     A1X,
     A1Y,
@@ -88,6 +88,7 @@ from .splatting_tiles import (
     PNY,
     PNZ,
     PR,
+    PT,
     PUX,
     PUY,
     PUZ,
@@ -114,6 +115,7 @@ from .splatting_tiles import (
     WX,
     WY,
     Z0,
+    ZT,
     ZX,
     ZY,
     B,
@@ -264,7 +266,7 @@ def place_splats(box, tiles_x, places, index):
 
 
 @nb.njit(inline="always", fastmath=True, error_model="numpy")
-def _setup(p, e, m, radius_scale, lowpass2, ewa_filter, curved, back_light):
+def _setup(p, e, m, radius_scale, lowpass2, depth_offset, ewa_filter, curved, back_light):
     """The record of one splat from its staged inputs p (PACKED values) and extras e (EXTRAS
     values), without branches (the vertex stage of splatting.glsl): (record values MX..NZ, field
     values KU..EZ). `back_light`: a back-facing splat weighs BACK_SPLAT_WEIGHT (the methods
@@ -283,6 +285,11 @@ def _setup(p, e, m, radius_scale, lowpass2, ewa_filter, curved, back_light):
     lu, lv = math.sqrt(ux * ux + uy * uy + uz * uz), math.sqrt(vx * vx + vy * vy + vz * vz)
     depth = -ez
     perspective = ortho <= 0
+    # z_t, capped by the layer's thickness along the ray (gl/common.glsl layer_offset)
+    offset = depth_offset * max(lu, lv)
+    to_eye = one / max(math.sqrt(ex * ex + ey * ey + ez * ez), tiny)
+    crossing = max(abs(facing) * inv_n * (one if not perspective else to_eye), MIN_LAYER_COS)
+    zt = min(offset, p[PT] / crossing) if p[PT] > 0 else offset
     # a corner of the bounding square behind the near plane: the GPU's quad covers the whole
     # viewport and its EWA weight is 1
     crosses_near = perspective and (depth - abs(uz) - abs(vz) < near)
@@ -335,14 +342,13 @@ def _setup(p, e, m, radius_scale, lowpass2, ewa_filter, curved, back_light):
               zero if not perspective else v0,
               (avx * w_ortho + nx * avz) * inv_o if not perspective else hx * inv_fx,
               -(avy * w_ortho + ny * avz) * inv_o if not perspective else -hy * inv_fy,
-              depth, max(lu, lv), weight, p[PR], p[PG], p[PB], nx, ny, nz)
+              depth, max(lu, lv), weight, zt, p[PR], p[PG], p[PB], nx, ny, nz)
     field = FLAT_FIELD
     if curved:
         alpha, beta = flip * e[EALPHA], flip * e[EBETA]
         ilu, ilv = one / max(lu, tiny), one / max(lv, tiny)
         eux, euy, euz = ux * ilu, uy * ilu, uz * ilu
         evx, evy, evz = vx * ilv, vy * ilv, vz * ilv
-        to_eye = one / max(math.sqrt(ex * ex + ey * ey + ez * ez), tiny)
         field = (alpha * ilu, beta * ilv, lu, lv,
                  -euz if not perspective else rx * eux + ry * euy + rz * euz,
                  zero if not perspective else eux * inv_fx,
@@ -362,7 +368,8 @@ def _staged(table, j):
     """The staged inputs of the splat at table slot j: (PACKED values, EXTRAS values)."""
     p = (table[j + ROW[PX]], table[j + ROW[PY]], table[j + ROW[PZ]], table[j + ROW[PNX]], table[j + ROW[PNY]],
          table[j + ROW[PNZ]], table[j + ROW[PUX]], table[j + ROW[PUY]], table[j + ROW[PUZ]], table[j + ROW[PVX]],
-         table[j + ROW[PVY]], table[j + ROW[PVZ]], table[j + ROW[PR]], table[j + ROW[PG]], table[j + ROW[PB]])
+         table[j + ROW[PVY]], table[j + ROW[PVZ]], table[j + ROW[PR]], table[j + ROW[PG]], table[j + ROW[PB]],
+         table[j + ROW[PT]])
     e = (table[j + ROW[PACKED + EA0]], table[j + ROW[PACKED + EB0]], table[j + ROW[PACKED + EC0]],
          table[j + ROW[PACKED + EA1]], table[j + ROW[PACKED + EB1]], table[j + ROW[PACKED + EC1]],
          table[j + ROW[PACKED + EALPHA]], table[j + ROW[PACKED + EBETA]])
@@ -370,8 +377,8 @@ def _staged(table, j):
 
 
 @nb.njit(fastmath=True, error_model="numpy")
-def _setup_tile(table, ibox, count, ox, oy, m, radius_scale, lowpass2, ewa_filter, clip_src, field_src,
-                back_light):
+def _setup_tile(table, ibox, count, ox, oy, m, radius_scale, lowpass2, depth_offset, ewa_filter, clip_src,
+                field_src, back_light):
     """The records of a tile's `count` staged splats, block by block (SIMD), with each box made
     tile-local and clipped to the tile. `clip_src`, `field_src`: the extras, or None where the
     cloud has no clip lines or no normal field is drawn (then their rows are left alone)."""
@@ -384,12 +391,12 @@ def _setup_tile(table, ibox, count, ox, oy, m, radius_scale, lowpass2, ewa_filte
         for q in range(min(BLOCK, count - first)):
             j, jb = base + np.uint64(q), box_base + np.uint64(q)
             p, e = _staged(table, j)
-            record, field = _setup(p, e, cam, radius_scale, lowpass2, ewa_filter, curved, back_light)
+            record, field = _setup(p, e, cam, radius_scale, lowpass2, depth_offset, ewa_filter, curved, back_light)
             (table[j + ROW[MX]], table[j + ROW[MY]], table[j + ROW[W0]], table[j + ROW[WX]], table[j + ROW[WY]],
              table[j + ROW[Z0]], table[j + ROW[ZX]], table[j + ROW[ZY]], table[j + ROW[U0]], table[j + ROW[UX]],
              table[j + ROW[UY]], table[j + ROW[V0]], table[j + ROW[VX]], table[j + ROW[VY]], table[j + ROW[CZ]],
-             table[j + ROW[RAD]], table[j + ROW[WT]], table[j + ROW[R]], table[j + ROW[G]], table[j + ROW[B]],
-             table[j + ROW[NX]], table[j + ROW[NY]], table[j + ROW[NZ]]) = record
+             table[j + ROW[RAD]], table[j + ROW[WT]], table[j + ROW[ZT]], table[j + ROW[R]], table[j + ROW[G]],
+             table[j + ROW[B]], table[j + ROW[NX]], table[j + ROW[NY]], table[j + ROW[NZ]]) = record
             if clip_src is not None:
                 (table[j + ROW[C0A]], table[j + ROW[C0B]], table[j + ROW[C0C]], table[j + ROW[C1A]],
                  table[j + ROW[C1B]], table[j + ROW[C1C]]) = (e[EA0], e[EB0], e[EC0] * scale, e[EA1], e[EB1],
@@ -484,8 +491,7 @@ def rasterize_tiles(packed, extras, box, index, tile_start, tile_count, order, t
     near, far = m[17], m[18]
     lowpass2 = lowpass * lowpass
     ewa_filter = lowpass > 0
-    params = (np.float32(1.0) / max(lowpass2, np.float32(1e-30)), zero if ewa_filter else NO_LOWPASS, depth_clamp,
-              depth_offset)
+    params = (np.float32(1.0) / max(lowpass2, np.float32(1e-30)), zero if ewa_filter else NO_LOWPASS, depth_clamp)
     categorical = color_mode == COLOR_CATEGORICAL
     for k in nb.prange(order.shape[0]):
         t = order[k]
@@ -513,8 +519,8 @@ def rasterize_tiles(packed, extras, box, index, tile_start, tile_count, order, t
                     table[j + np.uint64((PACKED + col) * BLOCK)] = extras[i, col]
             for col in range(4):
                 ibox[jb + np.uint64(col * BLOCK)] = box[i, col]
-        _setup_tile(table, ibox, count, ox, oy, m, radius_scale, lowpass2, ewa_filter, clip_src, field_src,
-                    per_splat_model < 0)
+        _setup_tile(table, ibox, count, ox, oy, m, radius_scale, lowpass2, depth_offset, ewa_filter, clip_src,
+                    field_src, per_splat_model < 0)
         if per_splat_model >= 0:  # Botsch & Kobbelt 2003: each splat's colour shaded, then blended
             for slot in range(count):
                 j = table_slot(slot, TABLE_ROWS)

@@ -34,8 +34,9 @@ from ..colors import CODE_SCALE, category_pack
 from .ewa_kernels import FAR, TILE
 from .splatting import GAUSSIAN_SHARPNESS, KERNEL_SIZE
 
-# Columns of a cloud's packed inputs (splatting_cpu.pack_splats): one row per splat.
-(PX, PY, PZ, PNX, PNY, PNZ, PUX, PUY, PUZ, PVX, PVY, PVZ, PR, PG, PB) = range(15)
+# Columns of a cloud's packed inputs (splatting_cpu.pack_splats): one row per splat; PT its
+# layer's thickness, the cap of z_t (0: none).
+(PX, PY, PZ, PNX, PNY, PNZ, PUX, PUY, PUZ, PVX, PVY, PVZ, PR, PG, PB, PT) = range(16)
 PACKED = 16
 # Columns of its extras: two clip lines a u + b v <= c (surfel.preprocess) and the normal
 # field's slopes alpha, beta (Phong splatting).
@@ -44,11 +45,11 @@ EXTRAS = 8
 # Rows of a tile's table. The first PACKED + EXTRAS rows are the staged inputs. Then the
 # setup's record: the projected centre (MX, MY); with (dx, dy) a pixel centre's offset from
 # it, W = W0 + WX dx + WY dy, depth W = Z0 + ZX dx + ZY dy, u W = U0 + UX dx + UY dy and
-# v W likewise; the centre's eye depth CZ; the largest semi-axis RAD; the EWA weight WT; the
-# albedo (or per-splat shaded colour); the eye normal, turned to face the camera.
+# v W likewise; the centre's eye depth CZ; the largest semi-axis RAD; the EWA weight WT; z_t
+# ZT; the albedo (or per-splat shaded colour); the eye normal, turned to face the camera.
 STAGED = PACKED + EXTRAS
-(MX, MY, W0, WX, WY, Z0, ZX, ZY, U0, UX, UY, V0, VX, VY, CZ, RAD, WT, R, G, B, NX, NY, NZ) = range(STAGED,
-                                                                                                 STAGED + 23)
+(MX, MY, W0, WX, WY, Z0, ZX, ZY, U0, UX, UY, V0, VX, VY, CZ, RAD, WT, ZT, R, G, B, NX, NY, NZ) = range(
+    STAGED, STAGED + 24)
 # The clip lines (c over radius_scale: the scaled splat's coordinates).
 (C0A, C0B, C0C, C1A, C1B, C1C) = range(NZ + 1, NZ + 7)
 # Phong splatting's normal field: the curvatures KU = alpha / |u_j|, KV; the semi-axes LU, LV;
@@ -119,11 +120,11 @@ def table_slot(k, rows):
 
 @nb.njit(inline="always")
 def splat_geometry(table, j):
-    """The rows MX..WT of the splat at table slot j: what every fragment of it needs."""
+    """The rows MX..ZT of the splat at table slot j: what every fragment of it needs."""
     return (table[j + ROW[MX]], table[j + ROW[MY]], table[j + ROW[W0]], table[j + ROW[WX]], table[j + ROW[WY]],
             table[j + ROW[Z0]], table[j + ROW[ZX]], table[j + ROW[ZY]], table[j + ROW[U0]], table[j + ROW[UX]],
             table[j + ROW[UY]], table[j + ROW[V0]], table[j + ROW[VX]], table[j + ROW[VY]], table[j + ROW[CZ]],
-            table[j + ROW[RAD]], table[j + ROW[WT]])
+            table[j + ROW[RAD]], table[j + ROW[WT]], table[j + ROW[ZT]])
 
 
 @nb.njit(inline="always")
@@ -155,8 +156,8 @@ def fragment(s, c, f, clipping, curved, dx, dy, params):
     that misses (parallel to the plane, or past the contour of a curved splat) has
     u² + v² = MISS and the centre's depth; `kept` is the test of both passes (inside the filter
     and the clip lines)."""
-    mx, my, w0, wx, wy, z0, zx, zy, u0, ux, uy, v0, vx, vy, cz, radius, weight = s
-    inv_lowpass2, no_lowpass, depth_clamp, depth_offset = params
+    mx, my, w0, wx, wy, z0, zx, zy, u0, ux, uy, v0, vx, vy, cz, radius, weight, zt = s
+    inv_lowpass2, no_lowpass, depth_clamp = params
     one = np.float32(1.0)
     w = w0 + wx * dx + wy * dy
     hit = abs(w) > np.float32(1e-12)
@@ -211,8 +212,7 @@ def visibility_output(s, c, hit_record, clipping, dx, dy, params):
     from rho's screen-space gradient (analytic here, a quad's differences on the GPU), and at
     least the footprint of a pixel-wide disk at the projected centre (sub-pixel splats)."""
     kept, kernel2, z, u, v, rho2, clipped, hit, iw = hit_record
-    mx, my, w0, wx, wy, z0, zx, zy, u0, ux, uy, v0, vx, vy, cz, radius, weight = s
-    depth_offset = params[3]
+    mx, my, w0, wx, wy, z0, zx, zy, u0, ux, uy, v0, vx, vy, cz, radius, weight, zt = s
     one, tiny = np.float32(1.0), np.float32(1e-6)
     # d(u, v)/d(dx, dy) of u = (u W) / W: the plane's, also for a curved splat
     dux, duy = (ux - u * wx) * iw, (uy - u * wy) * iw
@@ -233,7 +233,7 @@ def visibility_output(s, c, hit_record, clipping, dx, dy, params):
     edge = max(edge if hit else np.float32(-1e30), np.float32(0.5) - math.sqrt(dx * dx + dy * dy))
     coverage = min(max(np.float32(0.5) + edge, np.float32(0.0)), one)
     # a low-pass fragment off the disk filters but hides nothing
-    return (z + depth_offset * radius if kept and rho2 <= 1 else FAR), (coverage if kept else np.float32(0.0))
+    return (z + zt if kept and rho2 <= 1 else FAR), (coverage if kept else np.float32(0.0))
 
 
 @nb.njit(inline="always", fastmath=True, error_model="numpy")

@@ -36,6 +36,8 @@ from .frames import tangent_frames
 from .normal_field import fit_normal_field
 from .normals import estimate_normals
 from .structure import drawn_normals, facing_mask
+from .thickness import splat_thickness
 
 __all__ = ["CLIP_LINES", "INACTIVE_CLIP", "clipped_away", "complete", "drawn_normals", "estimate_normals",
-           "estimate_radii", "facing_mask", "fit_ellipses", "fit_normal_field", "prepare", "tangent_frames"]
+           "estimate_radii", "facing_mask", "fit_ellipses", "fit_normal_field", "prepare", "splat_thickness",
+           "tangent_frames"]

@@ -13,8 +13,9 @@ Radii (`estimate_radii`): each splat covers its own Voronoi cell.
     regular regions. Neighbours more than 45 degrees off the tangent plane (|z| > |(x, y)|, the
     far side of a thin sheet) do not cut the cell, nor do neighbours whose oriented normals face
     away (n_p . n_q < SHEET_COS, the other side of a sheet, a surface of its own that would cut
-    this side's cells into holes). Radii far above those of the neighbours on the point's
-    surface are capped (`outlier_cap.py`) so that stray points do not become blobs.
+    this side's cells into holes), nor those of another layer lying close (`thickness.py`).
+    Radii far above those of the neighbours on the point's surface are capped
+    (`outlier_cap.py`) so that stray points do not become blobs.
 
 Ellipses (`fit_ellipses`, for Phong splatting, Botsch, Spernat & Kobbelt 2004):
     axis directions are the principal curvature directions ("aligned along the curvature",
@@ -64,6 +65,7 @@ from .neighbourhood import Neighbourhood
 from .normals import pca_normals
 from .outlier_cap import outlier_cap
 from .sharp_features import SharpFeatures
+from .thickness import layer_thickness
 
 RADIUS_NEIGHBOURS = 16         # neighbours bounding a Voronoi cell: enough to reach the next scan
                                # line when lines are up to ~8 x farther apart than points on a line
@@ -114,10 +116,11 @@ def _crease_half_plane(points, p, q, normal_q, frame, on_plane_sin2):  # pragma:
 
 
 @numba.njit(cache=True, inline="always")
-def _cell_bounds(points, normals, index, frames, i, p, features, sheet_cos):  # pragma: no cover - compiled
+def _cell_bounds(points, normals, index, frames, i, p, features, sheet_cos, layers):  # pragma: no cover - compiled
     """The sheet and crease rules: the half-planes a x + b y <= c of p's tangent frame
     (t, s) = frames[i] that bound its cell among its neighbours index[i], in the order they cut
-    it. (Rows, not row views: a view per point costs as much as a tenth of the kernel.)
+    it; neighbours on another layer than p's (separation beyond layers[p], thickness.py) cut
+    nothing. (Rows, not row views: a view per point costs as much as a tenth of the kernel.)
 
     Returns (lines (k, 3), bisectors, count, bounding, reach): lines[:bisectors] are the
     bisectors of the bounding neighbours `bounding[:bisectors]` ((a, b) = their offset),
@@ -142,7 +145,10 @@ def _cell_bounds(points, normals, index, frames, i, p, features, sheet_cos):  # 
         facing = 0.0
         for a in range(3):
             facing += normals[q, a] * normals[p, a]
-        if features.crease[q] or facing < sheet_cos:
+        # thickness.py's h_pq (the separation of q from p's layer), for its cap layers[p]
+        separation = 0.5 * (abs(z + d0 * normals[q, 0] + d1 * normals[q, 1] + d2 * normals[q, 2])
+                            - math.sqrt(planar) * math.sqrt(max(2.0 - 2.0 * facing, 0.0)))
+        if features.crease[q] or facing < sheet_cos or separation > layers[p]:
             continue
         if facing < features.sharp_cos and features.flat[p] and features.flat[q]:
             ca, cb, cc = _crease_half_plane(points, p, q, normals[q], frames[i], features.on_plane_sin2)
@@ -312,12 +318,13 @@ def _covering_ellipse(polygon, vertices, co, si):  # pragma: no cover - compiled
 
 
 @numba.njit(parallel=True, cache=True)
-def _covering_radii(points, normals, index, start, frames, features, sheet_cos):  # pragma: no cover - compiled
+def _covering_radii(points, normals, index, start, frames, features, sheet_cos, layers):  # pragma: no cover
     """The covering radius of each point's cell (0 where all its neighbours coincide with it)."""
     m = index.shape[0]
     radius = np.zeros(m)
     for i in numba.prange(m):
-        lines, _, count, _, reach = _cell_bounds(points, normals, index, frames, i, start + i, features, sheet_cos)
+        lines, _, count, _, reach = _cell_bounds(points, normals, index, frames, i, start + i, features, sheet_cos,
+                                                 layers)
         if reach == 0.0:
             continue
         polygon, vertices = _cell_polygon(lines, count, reach)
@@ -326,7 +333,7 @@ def _covering_radii(points, normals, index, start, frames, features, sheet_cos):
 
 
 @numba.njit(parallel=True, cache=True)
-def _covering_ellipses(points, normals, index, start, frames, features, sheet_cos):  # pragma: no cover - compiled
+def _covering_ellipses(points, normals, index, start, frames, features, sheet_cos, layers):  # pragma: no cover
     """The covering radius of each point's cell, and the semi-axes (m, 2) and direction
     (m, 2: cos, sin in the frame) of its covering ellipse (zero semi-axes for degenerate cells)."""
     m = index.shape[0]
@@ -337,7 +344,7 @@ def _covering_ellipses(points, normals, index, start, frames, features, sheet_co
     for i in numba.prange(m):
         p = start + i
         lines, bisectors, count, bounding, reach = _cell_bounds(points, normals, index, frames, i, p, features,
-                                                                sheet_cos)
+                                                                sheet_cos, layers)
         if reach == 0.0:
             continue
         polygon, vertices = _cell_polygon(lines, count, reach)
@@ -478,12 +485,14 @@ def _ellipse_axes(frames: np.ndarray, semi: np.ndarray, direction: np.ndarray) -
 
 
 def _cells(nbh: Neighbourhood, normals: np.ndarray, k: int, ellipse: bool, progress: bool | None,
-           features: SharpFeatures | None, oriented: bool) -> tuple[np.ndarray, np.ndarray | None]:
+           features: SharpFeatures | None, oriented: bool,
+           layers: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None]:
     """Radii (N,) float64 and, if `ellipse`, axes (N, 2, 3) float64, both including the margin
     and the outlier cap. Given `features`, cells end at creases and ignore the crease points.
     With `oriented` normals, neighbours facing the other way (the far side of a thin sheet) do
-    not bound cells."""
+    not bound cells; nor, given `layers` (thickness.py), those of another layer."""
     n = len(nbh.points)
+    layers = np.full(n, np.inf) if layers is None else np.asarray(layers, np.float64)
     index = nbh.first(k)
     normals = unit(np.asarray(normals, np.float64))
     features = SharpFeatures.none(n) if features is None else features
@@ -491,12 +500,12 @@ def _cells(nbh: Neighbourhood, normals: np.ndarray, k: int, ellipse: bool, progr
 
     def radii(start: int, stop: int) -> np.ndarray:
         frames = orthonormal_basis(normals[start:stop])
-        return _covering_radii(nbh.points, normals, index[start:stop], start, frames, features, sheet_cos)
+        return _covering_radii(nbh.points, normals, index[start:stop], start, frames, features, sheet_cos, layers)
 
     def ellipses(start: int, stop: int) -> tuple[np.ndarray, np.ndarray]:
         frames = orthonormal_basis(normals[start:stop])
         radius, semi, direction = _covering_ellipses(nbh.points, normals, index[start:stop], start, frames,
-                                                     features, sheet_cos)
+                                                     features, sheet_cos, layers)
         return radius, _ellipse_axes(frames, semi, direction)
 
     if ellipse:
@@ -517,15 +526,16 @@ def _cells(nbh: Neighbourhood, normals: np.ndarray, k: int, ellipse: bool, progr
 
 def covering_radii(nbh: Neighbourhood, normals: np.ndarray, progress: bool | None,
                    features: SharpFeatures | None = None, k: int = RADIUS_NEIGHBOURS,
-                   oriented: bool = True) -> np.ndarray:
+                   oriented: bool = True, layers: np.ndarray | None = None) -> np.ndarray:
     """Splat radii (N,) float64 in the neighbourhood's order (see the module docstring)."""
-    return _cells(nbh, normals, k, False, progress, features, oriented)[0]
+    return _cells(nbh, normals, k, False, progress, features, oriented, layers)[0]
 
 
 def covering_ellipses(nbh: Neighbourhood, normals: np.ndarray, progress: bool | None,
-                      features: SharpFeatures | None = None, k: int = RADIUS_NEIGHBOURS) -> np.ndarray:
+                      features: SharpFeatures | None = None, k: int = RADIUS_NEIGHBOURS,
+                      layers: np.ndarray | None = None) -> np.ndarray:
     """Elliptical splat axes (N, 2, 3) float64 in the neighbourhood's order."""
-    return _cells(nbh, normals, k, True, progress, features, True)[1]
+    return _cells(nbh, normals, k, True, progress, features, True, layers)[1]
 
 
 def clip_lines(nbh: Neighbourhood, normals: np.ndarray, axes: np.ndarray, features: SharpFeatures,
@@ -556,11 +566,13 @@ def estimate_radii(positions: np.ndarray, k: int = RADIUS_NEIGHBOURS, normals: n
     """Splat radii (N,) float32 that cover the surface without holes: each point's covering
     radius of its tangent-plane Voronoi cell among its k nearest neighbours, times
     RADIUS_MARGIN, outliers capped (see the module docstring). Normals only define the tangent
-    planes; without them unoriented PCA normals over the same neighbours are used."""
+    planes (and, oriented, the layers: thickness.py); without them unoriented PCA normals over
+    the same neighbours are used."""
     nbh = Neighbourhood.build(positions, k, workers, progress)
     oriented = normals is not None
     normals = pca_normals(nbh, k, progress)[0] if normals is None else nbh.sort(normals)
-    radii = covering_radii(nbh, normals, progress, k=k, oriented=oriented)
+    layers = layer_thickness(nbh.points, unit(normals), nbh.index) if oriented else None
+    radii = covering_radii(nbh, normals, progress, k=k, oriented=oriented, layers=layers)
     return nbh.unsort(radii.astype(np.float32))
 
 
@@ -570,4 +582,6 @@ def fit_ellipses(positions: np.ndarray, normals: np.ndarray, k: int = RADIUS_NEI
     directions of the curvature or of the neighbours in the tangent plane, semi-axes covering
     the point's Voronoi cell like the radius rule (see the module docstring)."""
     nbh = Neighbourhood.build(positions, k, workers, progress)
-    return nbh.unsort(covering_ellipses(nbh, nbh.sort(normals), progress, k=k).astype(np.float32))
+    normals = nbh.sort(normals)
+    layers = layer_thickness(nbh.points, unit(normals), nbh.index)
+    return nbh.unsort(covering_ellipses(nbh, normals, progress, k=k, layers=layers).astype(np.float32))

@@ -10,15 +10,18 @@ FIELD_NEIGHBOURS), serves every estimation, in this order, each using the ones b
      `sensors`), +Z for geospatial clouds (aerial scans, seen from above), or by propagation
      and outward; with them, from the same PCA, the points drawn facing the camera
      (`structure.py`);
-  2. the sampling spacing (`spacing.py`), when radii or axes are estimated;
-  3. sharp features (`sharp_features.py`), when both radii and axes are estimated;
-  4. radii (`cells.py`): covering radii of the tangent-plane Voronoi cells;
-  5. axes: fitted ellipses (`cells.py`) or circular tangent frames of the radii (`frames.py`);
-  6. the sampling bound on both (`spacing.py`), and the radii of the screen-facing splats
+  2. with the splats, the thickness of each point's layer (`thickness.py`), which caps z_t
+     where another surface lies within a splat radius and keeps that surface's samples out of
+     the cells (splats given with the cloud keep their z_t);
+  3. the sampling spacing (`spacing.py`), when radii or axes are estimated;
+  4. sharp features (`sharp_features.py`), when both radii and axes are estimated;
+  5. radii (`cells.py`): covering radii of the tangent-plane Voronoi cells;
+  6. axes: fitted ellipses (`cells.py`) or circular tangent frames of the radii (`frames.py`);
+  7. the sampling bound on both (`spacing.py`), and the radii of the screen-facing splats
      (`structure.py`);
-  7. clip lines at the sharp features and at the borders of open surfaces (`borders.py`,
+  8. clip lines at the sharp features and at the borders of open surfaces (`borders.py`,
      `cells.py`), none on screen-facing splats;
-  8. Phong splatting's normal fields (`normal_field.py`), flat on screen-facing splats.
+  9. Phong splatting's normal fields (`normal_field.py`), flat on screen-facing splats;
 
 Given attributes are kept as they are.
 
@@ -33,6 +36,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from ..attributes import INFINITE_LENGTH
 from ..cloud import PointCloud
 from .borders import border_outwards
 from .cells import INACTIVE_CLIP, RADIUS_MARGIN, RADIUS_NEIGHBOURS, clip_lines, covering_ellipses, covering_radii
@@ -44,6 +48,7 @@ from .sharp_features import SHARP_ANGLE, find_sharp_features
 from .smoothing import SMOOTH_NEIGHBOURS, smoothed_points
 from .spacing import BOUND_FACTOR, bound_semi_axes, sampling_spacing
 from .structure import round_radii, scans_surroundings, screen_facing
+from .thickness import layer_thickness
 
 
 def complete(cloud: PointCloud, *, needs_radii: bool = True, elliptical: bool = False,
@@ -144,6 +149,15 @@ def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np
     # what is estimated from the positions is bounded by their sampling (circles of given radii keep them)
     bound_radii = radii is None
     bound_axes = axes is None and (bound_radii or elliptical)
+    thickness = None
+    if bound_radii or bound_axes:  # the layers first: another layer's samples must not cut this one's cells
+        thickness = layer_thickness(nbh.points, unit(normals), nbh.first(RADIUS_NEIGHBOURS))
+        if facing is not None:
+            thickness[facing] = INFINITE_LENGTH  # no tangent plane, no layer
+        if "thickness" not in cloud.attributes:
+            attributes["thickness"] = nbh.unsort(thickness.astype(np.float32))
+            report["thickness"] = (f"{float(np.mean(thickness < INFINITE_LENGTH)):.1%} of splats lie within a "
+                                   f"splat radius of another layer (z_t capped there)")
     spacing = None
     if bound_radii or bound_axes:
         ranges = None if towards_sensor is None else np.linalg.norm(towards_sensor, axis=1)
@@ -154,11 +168,11 @@ def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np
     if sharp_features and radii is None and axes is None:
         features = find_sharp_features(nbh, normals, RADIUS_NEIGHBOURS)
     if radii is None:
-        radii = estimated["radii"] = covering_radii(nbh, normals, progress, features)
+        radii = estimated["radii"] = covering_radii(nbh, normals, progress, features, layers=thickness)
         report["radii"] = (f"estimated (Voronoi covering radius, k={RADIUS_NEIGHBOURS}, "
                            f"x{RADIUS_MARGIN}, mean {float(np.mean(radii)):.4g})")
     if axes is None and elliptical:
-        axes = covering_ellipses(nbh, normals, progress, features)
+        axes = covering_ellipses(nbh, normals, progress, features, layers=thickness)
         report["axes"] = f"fitted ellipses (k={RADIUS_NEIGHBOURS})"
     elif axes is None:
         axes = tangent_frames(normals, radii)

@@ -17,11 +17,12 @@ the decoded normal (Duff et al. 2017, "Building an orthonormal basis, revisited"
 way, the clip lines' v coefficients change sign instead, so that splats still end where they
 did. A splat that faces the camera (surfel.preprocess.structure) has its first radius negated:
 the page gives it the zero normal the desktop's splat buffers give it. Normal-field slopes
-(alpha, beta; `deferred` curves its splats by them) are half floats. Sequential point tree
-errors (e_g, the parent's e_g, the distance to the parent) are half floats in the same unit,
-rounded outwards (e_g down, the others up), so the page's vertex test passes a superset of
-surfel.lod's selection: overlaps, never holes. Attributes:
-16-bit codes (categorical) or 16-bit steps over their range (continuous).
+(alpha, beta; `deferred` curves its splats by them) are half floats, and so are the layers'
+thicknesses (z_t's cap, surfel.preprocess.thickness) in the length unit, rounded down.
+Sequential point tree errors (e_g, the parent's e_g, the distance to the parent) are half
+floats in the same unit, rounded outwards (e_g down, the others up), so the page's vertex test
+passes a superset of surfel.lod's selection: overlaps, never holes. Attributes: 16-bit codes
+(categorical) or 16-bit steps over their range (continuous).
 """
 
 from __future__ import annotations
@@ -30,7 +31,7 @@ import numpy as np
 
 from ..cloud import PointCloud
 from ..methods.ewa import has_normal_field, splat_fields
-from ..preprocess import facing_mask
+from ..preprocess import facing_mask, splat_thickness
 
 POSITION_STEPS = 65535
 LOD_SEARCH_STRIDE = 64  # the CPU's prefix search reads every 64th node's bounds
@@ -116,6 +117,9 @@ def pack_cloud(cloud: PointCloud, values: dict[str, np.ndarray]) -> tuple[dict, 
         lines = cloud.attributes["clip_lines"].astype(np.float32).copy()
         lines[flip, :, 1] *= -1
         columns["clip"] = lines.reshape(len(cloud), 6).astype(np.float16)
+    thickness = splat_thickness(cloud)
+    if thickness.any():  # z_t's cap where layers lie close, rounded down: never past the next layer
+        columns["thickness"] = half_outwards(thickness / unit, -1)
     layout: dict = {"count": len(cloud), "box_lo": lo.tolist(), "box_size": size.tolist(), "origin": origin.tolist(),
                     "max_radius": cloud.max_splat_radius, "length_unit": unit}
     if "lod_emax" in cloud.attributes:

@@ -17,6 +17,7 @@ in vec3 a_lod;       // e_g, the parent's e_g, the distance to the parent, in le
 in vec2 a_field;     // Phong splatting's normal-field slopes (alpha, beta), 0 when absent
 in vec3 a_clip0;     // clip lines in the local coordinates of axis_u, axis_v
 in vec3 a_clip1;
+in float a_thickness; // the layer's thickness, z_t's cap, in length units (0: none)
 
 uniform vec3 u_box_lo;         // bounding box, relative to the cloud's local origin
 uniform vec3 u_box_size;
@@ -76,3 +77,4 @@ vec3 page_color() {
 #define in_lod (a_lod * u_length_unit)
 #define in_clip0 a_clip0
 #define in_clip1 a_clip1
+#define in_thickness (a_thickness * u_length_unit)

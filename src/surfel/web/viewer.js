@@ -20,7 +20,7 @@
   const COLOR_MODE = { rgb: 0, continuous: 1, categorical: 2 };  // gl/colors.glsl
   const PAGE_MODE = { rgb: 0, value: 1, elevation: 2, code: 3 };  // web/splat_attributes.glsl
   const ATTRIBUTES = ["a_position", "a_normal", "a_radii", "a_angle", "a_color", "a_value", "a_lod", "a_field", "a_clip0",
-                      "a_clip1"];
+                      "a_clip1", "a_thickness"];
   const LOC = Object.fromEntries(ATTRIBUTES.map((name, i) => [name, i]));
   const UNIT = { kernel: 0, visibility: 1, accumColor: 2, accumNormal: 3, shaded: 4, gnormal: 5, gdepth: 6,
                  category: 7, table: 8, scratch: 10 };  // scratch: where new textures are made
@@ -242,6 +242,7 @@
     if (columns.lod) bind(LOC.a_lod, "lod", 3);
     if (columns.field) bind(LOC.a_field, "field", 2);
     if (columns.clip) { bind(LOC.a_clip0, "clip", 3, 0, 12); bind(LOC.a_clip1, "clip", 3, 6, 12); }
+    if (columns.thickness) bind(LOC.a_thickness, "thickness", 1);  // else the generic value 0: no cap
     if (columns["value:" + S.color]) bind(LOC.a_value, "value:" + S.color, 1);
     gl.bindVertexArray(null);
     vaos[key] = vao;
