@@ -39,7 +39,7 @@ KERNEL_BLOCK = 1024                 # points per parallel task of the kernel
 
 
 @numba.njit(parallel=True, cache=True)
-def _border_outwards(points, normals, index, rows, frames, sheet_cos):  # pragma: no cover - compiled
+def _border_outwards(points, normals, index, rows, frames, sheet_cos, layers):  # pragma: no cover - compiled
     """Per point rows[i], the unit tangent (3,) pointing out of the surface if the point lies on
     the border of an open surface, else zero.
 
@@ -47,18 +47,20 @@ def _border_outwards(points, normals, index, rows, frames, sheet_cos):  # pragma
     frames[i], leave one angular gap wider than BORDER_GAP while every other gap stays below
     INTERIOR_GAP (two wide gaps: a scan line, not a border); outwards is the middle of the gap.
     A neighbour facing away (n_p . n_q < sheet_cos) means the surface folds back here (a thin
-    closed part, sampled too coarsely to show its rim): no border, the splat keeps its overlap."""
+    closed part, sampled too coarsely to show its rim): no border, the splat keeps its overlap.
+    Neighbours on another layer (separated by more than layers[p], thickness.py) do not count:
+    a sheet lying on a body ends where its own samples end."""
     m, k = index.shape
     outwards = np.zeros((m, 3))
     for block in numba.prange((m + KERNEL_BLOCK - 1) // KERNEL_BLOCK):
         angles = np.empty(k)  # one buffer per block of points: an allocation per point costs as much as its work
         for i in range(block * KERNEL_BLOCK, min(m, (block + 1) * KERNEL_BLOCK)):
-            _point_outwards(points, normals, index, rows, frames, sheet_cos, i, angles, outwards)
+            _point_outwards(points, normals, index, rows, frames, sheet_cos, layers, i, angles, outwards)
     return outwards
 
 
 @numba.njit(cache=True, inline="always")
-def _point_outwards(points, normals, index, rows, frames, sheet_cos, i, angles, out):  # pragma: no cover - compiled
+def _point_outwards(points, normals, index, rows, frames, sheet_cos, layers, i, angles, out):  # pragma: no cover
     """out[i]: row i of `_border_outwards`, with angles (k,) as scratch."""
     k = index.shape[1]
     p = rows[i]
@@ -69,15 +71,17 @@ def _point_outwards(points, normals, index, rows, frames, sheet_cos, i, angles, 
         facing = 0.0
         x = 0.0
         y = 0.0
+        antisymmetric = 0.0  # (q - p) . (n_p + n_q): twice q's separation from p's layer
         for a in range(3):
             facing += normals[q, a] * normals[p, a]
             d = points[q, a] - points[p, a]
             x += d * frames[i, 0, a]
             y += d * frames[i, 1, a]
+            antisymmetric += d * (normals[p, a] + normals[q, a])
         if facing < sheet_cos:
             folded = True
             break
-        if q == p or (x == 0.0 and y == 0.0):
+        if q == p or (x == 0.0 and y == 0.0) or 0.5 * abs(antisymmetric) > layers[p]:
             continue
         # insertion sort as they come: a dozen angles, no allocation
         angle = math.atan2(y, x)
@@ -108,21 +112,25 @@ def _point_outwards(points, normals, index, rows, frames, sheet_cos, i, angles, 
             out[i, a] = co * frames[i, 0, a] + si * frames[i, 1, a]
 
 
-def border_outwards(nbh: Neighbourhood, normals: np.ndarray, index: np.ndarray, progress: bool | None) -> np.ndarray:
+def border_outwards(nbh: Neighbourhood, normals: np.ndarray, index: np.ndarray, progress: bool | None,
+                    layers: np.ndarray | None = None) -> np.ndarray:
     """(N, 3): the outward unit tangent of each point on the border of an open surface, zero
     elsewhere, in the neighbourhood's order. Points that look like borders among their nearest
     neighbours `index` are confirmed among their BORDER_CONFIRM nearest: in a sampling much denser
     on one side (a CAD mesh's vertices crowd at its curves), the nearest neighbours alone leave a
-    gap towards the sparse side where the surface goes on."""
+    gap towards the sparse side where the surface goes on. `layers`: each point's layer
+    thickness (thickness.py), None for one layer everywhere."""
     n = len(nbh.points)
+    layers = np.full(n, np.inf) if layers is None else np.asarray(layers, np.float64)
     outwards = map_chunks(lambda start, stop: _border_outwards(nbh.points, normals, index[start:stop],
                                                                np.arange(start, stop),
-                                                               orthonormal_basis(normals[start:stop]), SHEET_COS),
+                                                               orthonormal_basis(normals[start:stop]), SHEET_COS,
+                                                               layers),
                           n, progress, "borders")
     candidates = np.flatnonzero(outwards.any(axis=1))
     if len(candidates) and n > index.shape[1]:
         # unbalanced (sliding midpoint): built in about half the time, the same neighbours
         _, wide = cKDTree(nbh.points, balanced_tree=False).query(nbh.points[candidates], k=min(BORDER_CONFIRM, n))
         outwards[candidates] = _border_outwards(nbh.points, normals, wide, candidates,
-                                                orthonormal_basis(normals[candidates]), SHEET_COS)
+                                                orthonormal_basis(normals[candidates]), SHEET_COS, layers)
     return outwards

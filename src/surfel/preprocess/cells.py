@@ -145,9 +145,8 @@ def _cell_bounds(points, normals, index, frames, i, p, features, sheet_cos, laye
         facing = 0.0
         for a in range(3):
             facing += normals[q, a] * normals[p, a]
-        # thickness.py's h_pq (the separation of q from p's layer), for its cap layers[p]
-        separation = 0.5 * (abs(z + d0 * normals[q, 0] + d1 * normals[q, 1] + d2 * normals[q, 2])
-                            - math.sqrt(planar) * math.sqrt(max(2.0 - 2.0 * facing, 0.0)))
+        # q's separation from p's layer (thickness.py's |d_pq - d_qp| / 2), against its thickness
+        separation = 0.5 * abs(z + d0 * normals[q, 0] + d1 * normals[q, 1] + d2 * normals[q, 2])
         if features.crease[q] or facing < sheet_cos or separation > layers[p]:
             continue
         if facing < features.sharp_cos and features.flat[p] and features.flat[q]:

@@ -197,7 +197,7 @@ def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np
     if features is not None:
         # aerial scan lines look like borders (borders.py)
         outwards = (np.zeros((len(nbh.points), 3)) if cloud.geospatial
-                    else border_outwards(nbh, unit(normals), nbh.first(RADIUS_NEIGHBOURS), progress))
+                    else border_outwards(nbh, unit(normals), nbh.first(RADIUS_NEIGHBOURS), progress, thickness))
         lines = clip_lines(nbh, normals, axes, features, outwards, progress)
         if facing is not None:
             lines[facing] = INACTIVE_CLIP  # a disk facing the camera has no crease to end at

@@ -15,13 +15,16 @@ along the ray, gl/common.glsl layer_offset and its CPU twins):
 Two points p, q of one smooth surface see each other below (or above) their tangent planes by
 about the same amount, d_pq = (q - p) . n_p ~ d_qp = (p - q) . n_q ~ -kappa s^2 / 2, while two
 points of parallel layers a distance h apart see each other on opposite sides, d_pq = -d_qp = -h.
-So the separation of q from p's layer is the antisymmetric part, less what a bend between
-their planes explains (at a crease, q at tangential distance t_pq from p on a plane tilted by
-the angle between the normals, |d_pq - d_qp| is at most t_pq |n_p - n_q|):
+So the separation of q from p's layer is the antisymmetric part, less, where the normals lie
+more than 30 degrees apart (CREASE_COS), what a crease between their planes explains (q at
+tangential distance t_pq from p on a plane tilted by the angle between the normals:
+|d_pq - d_qp| is at most t_pq |n_p - n_q|):
 
-    h_pq = max(0, |d_pq - d_qp| - t_pq |n_p - n_q|) / 2,   d_pq - d_qp = (q - p) . (n_p + n_q),
+    h_pq = max(0, |d_pq - d_qp| - c_pq t_pq |n_p - n_q|) / 2,   d_pq - d_qp = (q - p) . (n_p + n_q),
 
-which curvature and creases leave near zero and noise spreads over a continuous range.
+c_pq = 1 at such a crease, else 0; curvature and creases leave it near zero, noise spreads it
+over a continuous range. (The cells and the borders, which only need to know which neighbours
+lie beyond tau_p, compare |d_pq - d_qp| / 2 with it.)
 
 Over p's k nearest neighbours (about two sample spacings: the splats that can overlap p's)
 whose normals lie within 60 degrees of p's (a surface facing the other way is the back-face
@@ -55,6 +58,7 @@ from ..cloud import PointCloud
 from .chunked import map_chunks
 
 PARALLEL_COS = 0.5   # neighbours whose normals are within 60 degrees count as parallel layers
+CREASE_COS = float(np.cos(np.radians(30.0)))  # normals further apart may meet at a crease
 GAP_FACTOR = 2.0     # a gap wider than twice the own layer's extent ...
 GAP_FLOOR = 0.05     # ... plus this fraction of the local spacing separates two layers
 FLOOR_NEIGHBOUR = 4  # the neighbour whose distance is that spacing
@@ -108,7 +112,8 @@ def _layer_thickness(points, normals, index, start):  # pragma: no cover - compi
                 d_qp = -(dx * normals[q, 0] + dy * normals[q, 1] + dz * normals[q, 2])
                 tangential = math.sqrt(max(dx * dx + dy * dy + dz * dz - d_pq * d_pq, 0.0))
                 antisymmetric = 0.5 * abs(d_pq - d_qp)
-                h = max(antisymmetric - 0.5 * tangential * math.sqrt(max(2.0 - 2.0 * cos, 0.0)), 0.0)
+                crease = tangential * math.sqrt(max(2.0 - 2.0 * cos, 0.0)) if cos < CREASE_COS else 0.0
+                h = max(antisymmetric - 0.5 * crease, 0.0)
                 bend = 0.5 * (abs(d_pq) + abs(d_qp)) * min(1.0, spacing2 / max(tangential * tangential, 1e-300))
                 e = max(antisymmetric, bend)
                 slot = count  # insertion into the ascending separations
