@@ -107,6 +107,29 @@ def test_crease_test_cuts_a_sheet_at_its_outermost_samples():
     assert (S.project(square, xs - square.origin, normals=up).status == S.FIT_OK).all()
 
 
+def coarse_tail(around: int, gap: float, rings: int = 6, radius: float = 0.1) -> PointCloud:
+    """A thin cylinder about the y axis sampled as a coarse mesh's tail is: rings of `around`
+    vertices with exact normals, `gap` apart along it (several times the spacing around)."""
+    angle, y = (v.ravel() for v in np.meshgrid(2 * np.pi * np.arange(around) / around,
+                                               (np.arange(rings) - (rings - 1) / 2) * gap))
+    normals = np.stack([np.cos(angle), np.zeros_like(angle), np.sin(angle)], 1)
+    return PointCloud(radius * normals + y[:, None] * [0.0, 1.0, 0.0], normals=normals)
+
+
+@pytest.mark.parametrize("around, gap", [(24, 0.2), (12, 0.3)])
+def test_coarse_thin_part_is_whole(around, gap):
+    """Issue 17 (the cow's tail): rays across a thin part sampled as rings far apart all meet
+    it, on the cylinder. With the covariance's plane a support holding one ring fitted the
+    ring's plane, across the part (24 around, 0.2 apart: no ray hit); between two rings the
+    quadratic's normal equations were singular (12 around, 0.3 apart: 29% hit)."""
+    scene = prepare_scene(coarse_tail(around, gap))
+    y = np.linspace(-gap, gap, 21)  # from a ring across two gaps, through two more rings
+    origins = np.stack([np.zeros_like(y), y, np.full_like(y, 3.0)], 1) - scene.surface.origin
+    hits = trace(scene, origins, np.broadcast_to([0.0, 0.0, -1.0], origins.shape), 0.0, 10.0)
+    assert hits.hit.all(), hits.hit
+    assert np.abs(hits.t - 2.9).max() <= 1e-3  # the cylinder's near side, z = 0.1
+
+
 @requires_gl
 @pytest.mark.parametrize("view", ["front", "oblique"])
 def test_crease_part_keeps_its_creases(turned_part, view):

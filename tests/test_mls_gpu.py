@@ -14,7 +14,7 @@ from surfel.mls.gpu import MlsGpuParams, render_mls_gl
 from surfel.options import RenderOptions
 from surfel.preprocess import complete
 from surfel.rendering import Renderer, render
-from test_mls import RENDERER, SPHERE, assert_depth_on_torus, mls_cpu, sphere_points
+from test_mls import RENDERER, SPHERE, assert_depth_on_torus, coarse_tail, mls_cpu, sphere_points
 
 pytestmark = requires_gl
 
@@ -88,8 +88,10 @@ def test_agrees_with_cpu_mls_on_coarse_spot():
 
 def test_agrees_with_cpu_mls_on_the_crease_part(turned_part):
     """The crease test on the GPU (issue 17): the turned CAD part's vertices, obliquely, as
-    close to its mesh as the CPU tracer's render and to that render (measured 32.8 dB against
-    the mesh, 31.8 without the test; 43.6 dB against the CPU)."""
+    close to its mesh as the CPU tracer's render and to that render (measured 34.1 dB against
+    the mesh, 31.8 without the test; 39.4 dB against the CPU, whose rims differ by a line of
+    pixels since H's normal is the samples' mean normal: 43.6 with the covariance's, and 32.8
+    against the mesh)."""
     cloud = turned_part.with_(faces=None)
     cam = frame(cloud.center, cloud.bounding_radius, azimuth=60.0, elevation=20.0, size=(256, 256))
     options = RenderOptions(shading="lambert")
@@ -97,9 +99,28 @@ def test_agrees_with_cpu_mls_on_the_crease_part(turned_part):
     cpu = mls_cpu(cloud, cam, options)
     assert compare_results(render(turned_part, cam, "mesh", shading="lambert"), gpu)["psnr"] >= 32.3
     metrics = compare_results(cpu, gpu)
-    assert metrics["psnr"] >= 40 and metrics["holes"] <= 0.001 and metrics["spill"] <= 0.001
+    assert metrics["psnr"] >= 38.5 and metrics["holes"] <= 0.001 and metrics["spill"] <= 0.001
     both = np.isfinite(cpu.depth) & np.isfinite(gpu.depth)
     assert np.median(np.abs(cpu.depth[both] - gpu.depth[both]) / cpu.depth[both]) <= 1e-5
+
+
+def test_agrees_with_cpu_mls_on_a_coarse_thin_part():
+    """Issue 17: the plane from the samples' normals and the regularised singular quadratic on
+    the GPU too: a thin cylinder sampled as rings far apart (test_mls.coarse_tail), whole and
+    where the CPU tracer puts it."""
+    cloud = coarse_tail(24, 0.2)
+    cam = frame(cloud.center, cloud.bounding_radius, eye=[0, 0, 3.0], target=[0, 0, 0], up=[0, 1.0, 0],
+                size=(128, 128))
+    options = RenderOptions(shading="lambert")
+    gpu = mls_gl(cloud, cam, options)
+    cpu = mls_cpu(cloud, cam, options)
+    inner = ndimage.binary_erosion(cpu.alpha >= 0.5, iterations=1)
+    assert inner.sum() > 500 and not (inner & (gpu.alpha < 0.5)).any()
+    metrics = compare_results(cpu, gpu)
+    assert metrics["psnr"] >= 35 and metrics["spill"] <= 0.002
+    both = np.isfinite(cpu.depth) & np.isfinite(gpu.depth)
+    # both converge to 1e-3 of the local width (0.08 here): 3e-5 of the depth
+    assert np.median(np.abs(cpu.depth[both] - gpu.depth[both]) / cpu.depth[both]) <= 1e-4
 
 
 def test_gpu_torus_depth_lies_on_the_torus():

@@ -6,8 +6,8 @@
 //                    the candidate the pixel's fits failed from)
 //   PASS_CULL        full screen: pixels without a candidate get depth 0, so that no support
 //                    disc reaches their fragment shader
-//   PASS_COVARIANCE  discs of the kernel supports: weighted sums about the hit point r
-//   PASS_FRAME       full screen: weighted mean q, smallest eigenvector n of the covariance,
+//   PASS_MEANS       discs of the kernel supports: weighted sums about the hit point r
+//   PASS_FRAME       full screen: weighted mean q, weighted mean normal n of the samples,
 //                    local kernel width l and the half-disc offset
 //   PASS_SYSTEM      discs of the kernel supports: moments of the quadratic's normal equations
 //   PASS_SOLVE       full screen: solve the 6x6 system, re-intersect the ray with the quadratic
@@ -35,6 +35,7 @@ uniform float u_boundary;       // half-disc test: largest offset of the weighte
 uniform float u_edge_cos;       // crease test: a sheet's samples have normals within this cosine of the fit's
 uniform float u_edge_reach;     // ... another sheet's samples count from this many l behind r
 uniform float u_edge_turn;      // ... and where their normals lie within this cosine of the way out
+uniform float u_ridge;          // regularisation of a singular quadratic fit, in units of sum w (surface.RIDGE)
 uniform bool u_last;            // the last iteration: apply the half-disc and crease tests to its fit
 uniform bool u_update_reference;  // the fit's normal becomes the next reference normal
 uniform bool u_retry;           // a later candidate: the nearest beyond the one that failed
@@ -94,7 +95,7 @@ void tangent_frame(vec3 n, out vec3 e1, out vec3 e2) {
     e2 = cross(n, e1);
 }
 
-#if defined(PASS_INTERSECT) || defined(PASS_COVARIANCE) || defined(PASS_SYSTEM)
+#if defined(PASS_INTERSECT) || defined(PASS_MEANS) || defined(PASS_SYSTEM)
 #define DISC
 #endif
 
@@ -158,7 +159,7 @@ void main() {  // full-screen triangle
 #ifdef DISC
 flat in int v_index;
 #endif
-#if defined(PASS_COVARIANCE) || defined(PASS_SYSTEM)
+#if defined(PASS_MEANS) || defined(PASS_SYSTEM)
 layout(early_fragment_tests) in;  // the depth test culls before shading (no depth is written)
 #endif
 // Ray of the fragment's pixel in local world coordinates; d.z in eye space is -1, so the
@@ -227,7 +228,7 @@ void main() {
 }
 #endif
 
-#if defined(PASS_COVARIANCE) || defined(PASS_SYSTEM)
+#if defined(PASS_MEANS) || defined(PASS_SYSTEM)
 // Weight of sample i at r for the reference normal n_r (surface.gather): false outside its
 // support. `facing` tells whether its normal lies on n_r's side.
 bool kernel(int i, vec3 r, out float w, out float d2, out bool facing) {
@@ -242,10 +243,10 @@ bool kernel(int i, vec3 r, out float w, out float d2, out bool facing) {
 }
 #endif
 
-#ifdef PASS_COVARIANCE
+#ifdef PASS_MEANS
 layout(location = 0) out vec4 out_sum;    // w x, w                   x = (p - r) / u_scale
-layout(location = 1) out vec4 out_xx;     // w (xx, xy, xz, yy)
-layout(location = 2) out vec4 out_yz;     // w (yz, zz), samples facing n_r, those passing the domain test
+layout(location = 1) out vec4 out_normal;  // w n_i, samples facing n_r
+layout(location = 2) out vec4 out_inside;  // samples facing n_r that pass the domain test
 layout(location = 3) out vec4 out_color;  // w rgb, w h / u_scale
 void main() {
     vec3 r;
@@ -256,40 +257,19 @@ void main() {
     vec3 x = (points[3 * i].xyz - r) / u_scale;
     float s = u_domain * points[3 * i + 1].w;
     out_sum = vec4(w * x, w);
-    out_xx = w * vec4(x.x * x.x, x.x * x.y, x.x * x.z, x.y * x.y);
-    out_yz = vec4(w * x.y * x.z, w * x.z * x.z, facing ? 1.0 : 0.0, facing && d2 < s * s ? 1.0 : 0.0);
+    out_normal = vec4(w * points[3 * i + 2].xyz, facing ? 1.0 : 0.0);
+    out_inside = vec4(facing && d2 < s * s ? 1.0 : 0.0, 0.0, 0.0, 0.0);
     out_color = vec4(w * points[3 * i + 1].rgb, w * points[3 * i].w / u_scale);
 }
 #endif
 
 #ifdef PASS_FRAME
 uniform sampler2D u_sum;
-uniform sampler2D u_xx;
-uniform sampler2D u_yz;
+uniform sampler2D u_normal_sum;
+uniform sampler2D u_inside;
 uniform sampler2D u_color;
 layout(location = 0) out vec4 out_q;  // q = r + mean, 0
 layout(location = 1) out vec4 out_n;  // n (facing n_r), l (0: the fit failed)
-
-// Unit eigenvector of the symmetric 3x3 for the smallest eigenvalue (polynomial.smallest_eigenvector:
-// trigonometric eigenvalue, then the largest cross product of two rows of C - l I).
-bool smallest_eigenvector(float c00, float c01, float c02, float c11, float c12, float c22, out vec3 n) {
-    float p1 = c01 * c01 + c02 * c02 + c12 * c12;
-    float q = (c00 + c11 + c22) / 3.0;
-    float p2 = (c00 - q) * (c00 - q) + (c11 - q) * (c11 - q) + (c22 - q) * (c22 - q) + 2.0 * p1;
-    if (p2 <= 1e-12 * q * q) return false;
-    float p = sqrt(p2 / 6.0);
-    mat3 b = mat3(c00 - q, c01, c02, c01, c11 - q, c12, c02, c12, c22 - q) / p;
-    float phi = acos(clamp(0.5 * determinant(b), -1.0, 1.0)) / 3.0;
-    float lam = q + 2.0 * p * cos(phi + 2.0943951023931953);
-    vec3 r0 = vec3(c00 - lam, c01, c02), r1 = vec3(c01, c11 - lam, c12), r2 = vec3(c02, c12, c22 - lam);
-    vec3 x0 = cross(r0, r1), x1 = cross(r0, r2), x2 = cross(r1, r2);
-    float n0 = dot(x0, x0), n1 = dot(x1, x1), n2 = dot(x2, x2);
-    vec3 x = n0 >= n1 && n0 >= n2 ? x0 : (n1 >= n2 ? x1 : x2);
-    float nn = max(n0, max(n1, n2));
-    if (nn <= 1e-14 * p * p * p * p) return false;
-    n = x * inversesqrt(nn);
-    return true;
-}
 
 void main() {
     out_q = vec4(0.0);
@@ -297,16 +277,13 @@ void main() {
     vec3 r;
     float t;
     ivec2 pix = ivec2(gl_FragCoord.xy);
-    vec4 sum = texelFetch(u_sum, pix, 0), xx = texelFetch(u_xx, pix, 0), yz = texelFetch(u_yz, pix, 0);
-    // the fit's failure statuses: too few samples facing n_r, outside the domain
-    if (!current_hit(r, t) || yz.b < MIN_NEIGHBOURS || yz.a == 0.0) return;
+    vec4 sum = texelFetch(u_sum, pix, 0), normal = texelFetch(u_normal_sum, pix, 0);
+    // the fit's failure statuses: too few samples facing n_r, outside the domain, normals that
+    // cancel out or turn away from n_r (surface.fit)
+    if (!current_hit(r, t) || normal.w < MIN_NEIGHBOURS || texelFetch(u_inside, pix, 0).x == 0.0) return;
+    if (dot(normal.xyz, texelFetch(u_reference, pix, 0).xyz) <= 1e-9 * sum.w) return;
     vec3 m = sum.xyz / sum.w;
-    // sum w (x - m)(x - m)^T = sum w x x^T - W m m^T
-    vec3 n;
-    if (!smallest_eigenvector(xx.x - sum.w * m.x * m.x, xx.y - sum.w * m.x * m.y, xx.z - sum.w * m.x * m.z,
-                              xx.w - sum.w * m.y * m.y, yz.x - sum.w * m.y * m.z, yz.y - sum.w * m.z * m.z, n))
-        return;
-    if (dot(n, texelFetch(u_reference, pix, 0).xyz) < 0.0) n = -n;
+    vec3 n = normalize(normal.xyz);
     out_q = vec4(r + m * u_scale, 0.0);
     out_n = vec4(n, texelFetch(u_color, pix, 0).a / sum.w * u_scale);
 }
@@ -372,8 +349,8 @@ uniform sampler2D u_m3;
 uniform sampler2D u_m4;
 uniform sampler2D u_m5;
 uniform sampler2D u_m6;
-uniform sampler2D u_color;  // w rgb of the covariance pass
-uniform sampler2D u_weight; // (w x, w) of the covariance pass
+uniform sampler2D u_color;  // w rgb of the means pass
+uniform sampler2D u_weight; // (w x, w) of the means pass
 layout(location = 0) out vec4 out_state;      // new t (MISS if the fit failed), |step| / l
 layout(location = 1) out vec4 out_reference;  // reference normal of the next fit
 layout(location = 2) out vec4 out_normal;     // local world normal of the surface at the new point
@@ -403,26 +380,36 @@ void main() {
     double b[6] = double[6](m3.w, m4.x, m4.y, m4.z, m4.w, m5.x);
     const ivec2 basis[6] = ivec2[6](ivec2(0, 0), ivec2(1, 0), ivec2(0, 1), ivec2(2, 0), ivec2(1, 1), ivec2(0, 2));
     double a[6][6];
-    for (int i = 0; i < 6; i++) {
-        for (int j = 0; j < 6; j++) {
-            ivec2 e = basis[i] + basis[j];
-            int k = e.x + e.y;
-            a[i][j] = mom[k * (k + 1) / 2 + e.y];
+    bool solved = false;
+    // the least squares fit; where it is singular, the smoothest quadratic (surface.fit)
+    for (int attempt = 0; attempt < 2 && !solved; attempt++) {
+        double ridge = attempt == 0 ? 0.0 : double(u_ridge) * mom[0];
+        for (int i = 0; i < 6; i++) {
+            for (int j = 0; j < 6; j++) {
+                ivec2 e = basis[i] + basis[j];
+                int k = e.x + e.y;
+                a[i][j] = mom[k * (k + 1) / 2 + e.y] + (i == j && i > 0 ? ridge : 0.0);
+            }
+        }
+        // Cholesky (polynomial.solve_spd), in double: the moment matrix spans several decades
+        solved = true;
+        for (int j = 0; j < 6 && solved; j++) {
+            double d = a[j][j];
+            for (int k = 0; k < j; k++) d -= a[j][k] * a[j][k];
+            if (d <= 1e-12 * a[0][0]) {
+                solved = false;  // singular
+                break;
+            }
+            d = sqrt(d);
+            a[j][j] = d;
+            for (int i = j + 1; i < 6; i++) {
+                double s = a[i][j];
+                for (int k = 0; k < j; k++) s -= a[i][k] * a[j][k];
+                a[i][j] = s / d;
+            }
         }
     }
-    // Cholesky (polynomial.solve_spd), in double: the moment matrix spans several decades
-    for (int j = 0; j < 6; j++) {
-        double d = a[j][j];
-        for (int k = 0; k < j; k++) d -= a[j][k] * a[j][k];
-        if (d <= 1e-12 * a[0][0]) return;  // degenerate
-        d = sqrt(d);
-        a[j][j] = d;
-        for (int i = j + 1; i < 6; i++) {
-            double s = a[i][j];
-            for (int k = 0; k < j; k++) s -= a[i][k] * a[j][k];
-            a[i][j] = s / d;
-        }
-    }
+    if (!solved) return;  // degenerate
     for (int i = 0; i < 6; i++) {
         double s = b[i];
         for (int k = 0; k < i; k++) s -= a[i][k] * b[k];

@@ -18,21 +18,22 @@ structure: a point's screen-space disc is the set of pixels whose ray or hit it 
    sample's normal n_i becomes the pixel's n_r. A full-screen pass then sets the depth of
    pixels without a hit to 0, so that the support passes skip them.
 Then `iterations` times (default 3), at r = o + t d:
-2. covariance: per point, a quad over its kernel support 2.5 h_i; fragments with |p_i - r| <
-   2.5 h_i add w (x, 1), w x x^T, w rgb, w h_i, the count of samples facing n_r and of those
+2. means: per point, a quad over its kernel support 2.5 h_i; fragments with |p_i - r| <
+   2.5 h_i add w (x, 1), w n_i, w rgb, w h_i, the count of samples facing n_r and of those
    passing the domain test (x = (p_i - r) / u_scale, u_scale the median width) with additive
    blending. Each quad lies at the near end of its support and is depth tested (read only)
    against the hits' depths, so supports wholly behind the surface never reach the fragment
    shader -- a third of the cost on llvmpipe;
-3. frame (full screen): q = r + mean, C = sum w x x^T - W m m^T, n its smallest eigenvector
-   turned towards n_r, and l;
-   too few facing samples, the domain test failing or a degenerate C make the pixel a miss;
+3. frame (full screen): q = r + mean, n = sum w n_i normalised (surface.fit), and l;
+   too few facing samples, the domain test failing or normals that cancel out or turn away
+   from n_r make the pixel a miss;
 4. system: the supports again; with (u, v, f) the coordinates of (p_i - q) / l in (e1, e2, n),
    the normal equations of  min sum w (g(u, v) - f)^2  need only the 15 moments w u^a v^b
    (a + b <= 4) and the 6 sums w f u^a v^b (a + b <= 2): six RGBA32F targets, full system;
    a seventh sums the half-disc test's area-weighted offsets of the samples from r, and
    spare channels count the crease test's samples (surface.sample_beyond);
-5. solve + re-intersect (full screen): Cholesky of the 6x6 (double precision), then the ray
+5. solve + re-intersect (full screen): Cholesky of the 6x6 (double precision; where it is
+   singular, again with surface.fit's regularisation), then the ray
    meets the new quadratic within 2.5 l of r (the CPU tracer's window) -- the next t, whose
    window depth is rewritten for the next culling test. The fit's normal at the new point is
    the next n_r for the first REFERENCE_UPDATES steps, as on the CPU. At the last step the
@@ -66,7 +67,7 @@ from ..options import RenderOptions, at_least, setting
 from ..result import RenderResult
 from .polynomial import P_C, P_E1, P_E2, P_N, P_Q, P_SCALE
 from .raytrace import DEFAULT_SUPERSAMPLE, MLSScene, cached_scene, scene_kernel
-from .surface import EDGE_REACH, EDGE_SHEET_COS, EDGE_TURN_COS, REFERENCE_UPDATES, MlsKernel
+from .surface import EDGE_REACH, EDGE_SHEET_COS, EDGE_TURN_COS, REFERENCE_UPDATES, RIDGE, MlsKernel
 
 SHADER = Path(__file__).with_suffix(".glsl")
 FAR = 3.0e38
@@ -147,17 +148,17 @@ class CasterTargets:
         self.cull = ctx.framebuffer(depth_attachment=self.depth)
         self.keep = ctx.framebuffer(color_attachments=self.kept)
         self.retry = ctx.framebuffer(color_attachments=[self.failed])
-        self.covariance = ctx.framebuffer(color_attachments=self.sums, depth_attachment=self.depth)
+        self.means = ctx.framebuffer(color_attachments=self.sums, depth_attachment=self.depth)
         self.frame_fbo = ctx.framebuffer(color_attachments=self.frame)
         self.system_fbo = ctx.framebuffer(color_attachments=self.system, depth_attachment=self.depth)
-        for fbo in (self.covariance, self.system_fbo):
+        for fbo in (self.means, self.system_fbo):
             fbo.depth_mask = False  # their depth test reads the hits' depths, never writes
         self.gbuffer = GBuffer(*size)
 
     def release(self) -> None:
         for obj in (*self.state, *self.reference, *self.sums, *self.frame, *self.system, self.normal, self.albedo,
                     self.first, self.failed, *self.kept, self.depth, *self.solve, self.intersect, self.cull,
-                    self.covariance, self.frame_fbo, self.system_fbo, self.keep, self.retry):
+                    self.means, self.frame_fbo, self.system_fbo, self.keep, self.retry):
             obj.release()
         self.gbuffer.release()
 
@@ -187,9 +188,10 @@ def render_mls_gl(cloud: PointCloud, camera: Camera, options: RenderOptions, par
     view = camera.view_matrix(surface.origin)
     common = {"u_view_inv": np.linalg.inv(view), "u_scale": surface.scale, "u_domain": surface.domain,
               "u_normal_weight": 1.0 / params.normal_sigma**2, "u_boundary": params.boundary,
-              "u_edge_cos": EDGE_SHEET_COS, "u_edge_reach": EDGE_REACH, "u_edge_turn": EDGE_TURN_COS, "u_guard": 0.0}
+              "u_edge_cos": EDGE_SHEET_COS, "u_edge_reach": EDGE_REACH, "u_edge_turn": EDGE_TURN_COS,
+              "u_ridge": RIDGE, "u_guard": 0.0}
     programs = {name: renderer.program(SHADER, {f"PASS_{name.upper()}": True})
-                for name in ("intersect", "cull", "covariance", "frame", "system", "solve", "keep", "retry", "shade")}
+                for name in ("intersect", "cull", "means", "frame", "system", "solve", "keep", "retry", "shade")}
     for program in programs.values():
         apply_common(program, camera, surface.origin, ss, options, **common)
     renderer.use_color_table(options)
@@ -202,16 +204,16 @@ def render_mls_gl(cloud: PointCloud, camera: Camera, options: RenderOptions, par
         ctx.depth_func = "<="
         ctx.blend_equation = ctx.FUNC_ADD
         ctx.blend_func = ctx.ONE, ctx.ONE
-        targets.covariance.use()
-        targets.covariance.clear(0.0, 0.0, 0.0, 0.0)
-        _bind(programs["covariance"], {"u_state": targets.state[current], "u_reference": targets.reference[current]})
-        discs("covariance")
+        targets.means.use()
+        targets.means.clear(0.0, 0.0, 0.0, 0.0)
+        _bind(programs["means"], {"u_state": targets.state[current], "u_reference": targets.reference[current]})
+        discs("means")
         # 3. reference plane
         ctx.disable(ctx.BLEND | ctx.DEPTH_TEST)
         targets.frame_fbo.use()
         _bind(programs["frame"], {"u_state": targets.state[current], "u_reference": targets.reference[current],
-                                  "u_sum": targets.sums[0], "u_xx": targets.sums[1], "u_yz": targets.sums[2],
-                                  "u_color": targets.sums[3]})
+                                  "u_sum": targets.sums[0], "u_normal_sum": targets.sums[1],
+                                  "u_inside": targets.sums[2], "u_color": targets.sums[3]})
         full_screen("frame")
         # 4. normal equations of the quadratic
         ctx.enable(ctx.BLEND | ctx.DEPTH_TEST)

@@ -10,9 +10,7 @@ A fit over the reference plane H (origin q, unit normal n, tangent frame e1, e2 
 Projection moves x along n onto g: P(x) = x + l (g(u, v) - f) n. The surface's normal there is
 n - g_u e1 - g_v e2, normalised. A ray o + t d is linear in (u, v, f), so meeting g is the
 quadratic A t^2 + B t + C = 0 (`poly_ray`), solved with the numerically stable pair of roots.
-The plane's normal is the smallest eigenvector of a symmetric 3x3 covariance, found
-analytically (Smith, "Eigenvalues of a symmetric 3x3 matrix", CACM 1961: trigonometric
-eigenvalues); the quadratic's 6x6 normal equations are solved by Cholesky.
+The quadratic's 6x6 normal equations are solved by Cholesky.
 """
 
 from __future__ import annotations
@@ -24,43 +22,6 @@ import numba
 # Layout of one fitted polynomial row: q, n, e1, e2, coefficients c0..c5, colour, local width l.
 P_Q, P_N, P_E1, P_E2, P_C, P_COLOR, P_SCALE = 0, 3, 6, 9, 12, 18, 21
 POLY_SIZE = 22
-
-
-@numba.njit(cache=True, fastmath=True)
-def smallest_eigenvector(c00, c01, c02, c11, c12, c22, out):
-    """Unit eigenvector of the symmetric 3x3 matrix for its smallest eigenvalue (analytic:
-    trigonometric eigenvalues, then the largest cross product of two rows of C - l I).
-    Returns False when it is not unique (isotropic or line-like data)."""
-    p1 = c01 * c01 + c02 * c02 + c12 * c12
-    q = (c00 + c11 + c22) / 3.0
-    p2 = (c00 - q) ** 2 + (c11 - q) ** 2 + (c22 - q) ** 2 + 2.0 * p1
-    if p2 <= 1e-30 * (q * q + 1e-300):
-        return False
-    p = math.sqrt(p2 / 6.0)
-    b00, b11, b22 = (c00 - q) / p, (c11 - q) / p, (c22 - q) / p
-    b01, b02, b12 = c01 / p, c02 / p, c12 / p
-    r = 0.5 * (b00 * (b11 * b22 - b12 * b12) - b01 * (b01 * b22 - b12 * b02) + b02 * (b01 * b12 - b11 * b02))
-    r = min(1.0, max(-1.0, r))
-    phi = math.acos(r) / 3.0
-    lam = q + 2.0 * p * math.cos(phi + 2.0 * math.pi / 3.0)
-    a00, a11, a22 = c00 - lam, c11 - lam, c22 - lam
-    # rows (a00 c01 c02), (c01 a11 c12), (c02 c12 a22); the null vector is orthogonal to all
-    x0, y0, z0 = c01 * c12 - c02 * a11, c02 * c01 - a00 * c12, a00 * a11 - c01 * c01
-    x1, y1, z1 = c01 * a22 - c02 * c12, c02 * c02 - a00 * a22, a00 * c12 - c01 * c02
-    x2, y2, z2 = a11 * a22 - c12 * c12, c12 * c02 - c01 * a22, c01 * c12 - a11 * c02
-    n0, n1, n2 = x0 * x0 + y0 * y0 + z0 * z0, x1 * x1 + y1 * y1 + z1 * z1, x2 * x2 + y2 * y2 + z2 * z2
-    if n0 >= n1 and n0 >= n2:
-        x, y, z, nn = x0, y0, z0, n0
-    elif n1 >= n2:
-        x, y, z, nn = x1, y1, z1, n1
-    else:
-        x, y, z, nn = x2, y2, z2, n2
-    # Unique only if the second-smallest eigenvalue is well separated from the smallest.
-    if nn <= 1e-20 * (p * p) ** 2:
-        return False
-    inv = 1.0 / math.sqrt(nn)
-    out[0], out[1], out[2] = x * inv, y * inv, z * inv
-    return True
 
 
 @numba.njit(cache=True, fastmath=True)

@@ -9,13 +9,19 @@ oriented normals n_i) whose support |p_i - r| < 2.5 h_i holds r:
     w_i  = exp(-|p_i - r|^2 / h_i^2 - |n_i - n_r|^2 / sigma_n^2)
     l    = sum w_i h_i / sum w_i                          local kernel width: the unit of the fit
     q    = sum w_i p_i / sum w_i                          origin of the reference plane H
-    C    = sum w_i (p_i - q)(p_i - q)^T                   weighted covariance
-    n    = eigenvector of C with the smallest eigenvalue, n . n_r >= 0   normal of H (e1, e2 span H)
+    n    = sum w_i n_i / |sum w_i n_i|                    normal of H (e1, e2 span H)
     g    = argmin sum w_i (g(u_i, v_i) - f_i)^2           bivariate quadratic over H,
            g(u, v) = c0 + c1 u + c2 v + c3 u^2 + c4 u v + c5 v^2,
            (u_i, v_i, f_i) = coordinates of (p_i - q) / l in (e1, e2, n)
     P(r) = q + l (u_r e1 + v_r e2 + g(u_r, v_r) n)        (u_r, v_r) = coordinates of (r - q) / l in H
 
+H's normal is the samples' weighted mean normal (Adamson & Alexa, "Approximating and intersecting
+surfaces from points", SGP 2003), not the covariance's smallest eigenvector: on a coarse thin
+part (a tail sampled as rings far apart along it) a support may hold one ring, a planar curve
+whose plane lies across the part, and a quadratic over that plane misses the ray. The quadratic
+is undetermined there too (one ring, or two: v^2 is then a combination of 1 and v); where its
+normal equations are singular it is the smoothest that fits (Tikhonov), minimising
+sum w_i (g(u_i, v_i) - f_i)^2 + RIDGE sum w_i (c1^2 + ... + c5^2): it leans to H.
 A projection starts with its first sample's normal as n_r; the normal of the first
 REFERENCE_UPDATES fits at their projected points becomes the next n_r, then n_r is kept (the
 iteration converges to a fixed point of one operator).
@@ -90,7 +96,6 @@ from .polynomial import (
     P_SCALE,
     POLY_SIZE,
     poly_project,
-    smallest_eigenvector,
     solve_spd,
     tangent_frame,
 )
@@ -98,7 +103,7 @@ from .polynomial import (
 # Fit statuses.
 FIT_OK = 0
 FIT_TOO_FEW = 1        # fewer than MIN_NEIGHBOURS samples facing n_r in the support
-FIT_DEGENERATE = 2     # the covariance has no unique smallest eigenvector, or the system is singular
+FIT_DEGENERATE = 2     # the samples' normals cancel out, or the system is singular
 FIT_OUTSIDE = 3        # the domain test failed: no sample near enough (a hole or past the boundary)
 FIT_NOT_CONVERGED = 4  # projection did not reach the tolerance in the allowed iterations
 
@@ -115,6 +120,7 @@ WIDTH_PASSES = 2       # passes of that limit (each reaches one support further)
 EDGE_REACH = 0.25      # ... another sheet's samples count from this many l behind x
 EDGE_SHEET_COS = 0.5   # crease test: a sheet's samples have normals within 60 degrees of the fit's
 EDGE_TURN_COS = 0.5    # ... another sheet across a crease turns its normals within 60 degrees of u
+RIDGE = 1e-3           # weight of the quadratic's regularisation where its fit is singular (of sum w)
 REFERENCE_UPDATES = 2  # fits whose normal becomes the next fit's reference normal; later fits keep it
 LEAF = 8               # samples per leaf of the hierarchies
 STACK = 64             # traversal stack: twice the depth of any tree that fits in memory
@@ -358,8 +364,7 @@ def fit(x, nref, samples, poly, scratch):
 
     Coordinates over H are in units of the local kernel width l so that the normal equations
     stay well conditioned at any sampling density. Two passes over the neighbours: the
-    weighted sums and second moments about x (float64: the mean's offset from x is within a
-    support, so C = S2 - W m m^T loses nothing that matters), then the 15 moments w u^a v^b
+    weighted sums of offsets, normals, widths and colours, then the 15 moments w u^a v^b
     (a + b <= 4) and 6 sums w f u^a v^b (a + b <= 2) that make the quadratic's normal
     equations, as the GPU caster sums them.
     """
@@ -371,7 +376,8 @@ def fit(x, nref, samples, poly, scratch):
     scratch.found[0] = count
     nb, work, colors = scratch.nb, scratch.work, samples.colors
     sw = sh = mx = my = mz = cr = cg = cb = 0.0
-    sxx = sxy = sxz = syy = syz = szz = 0.0
+    snx = sny = snz = 0.0
+    normals = samples.normals
     for k in range(count):
         w = nb[k, 3]
         i = int(nb[k, 5])
@@ -381,12 +387,9 @@ def fit(x, nref, samples, poly, scratch):
         mx += w * dx
         my += w * dy
         mz += w * dz
-        sxx += w * dx * dx
-        sxy += w * dx * dy
-        sxz += w * dx * dz
-        syy += w * dy * dy
-        syz += w * dy * dz
-        szz += w * dz * dz
+        snx += w * normals[i, 0]
+        sny += w * normals[i, 1]
+        snz += w * normals[i, 2]
         cr += w * colors[i, 0]
         cg += w * colors[i, 1]
         cb += w * colors[i, 2]
@@ -397,16 +400,11 @@ def fit(x, nref, samples, poly, scratch):
     mz /= sw
     scale = sh / sw
     inv_s = 1.0 / scale
-    # covariance about the weighted mean, in units of the local width
-    inv_s2 = inv_s * inv_s
+    length = math.sqrt(snx * snx + sny * sny + snz * snz)
+    if snx * nref[0] + sny * nref[1] + snz * nref[2] <= 1e-9 * sw:
+        return FIT_DEGENERATE  # the normals cancel out, or the other sheet outweighs n_r's
     nrm = poly[P_N:P_N + 3]
-    if not smallest_eigenvector((sxx - sw * mx * mx) * inv_s2, (sxy - sw * mx * my) * inv_s2,
-                                (sxz - sw * mx * mz) * inv_s2, (syy - sw * my * my) * inv_s2,
-                                (syz - sw * my * mz) * inv_s2, (szz - sw * mz * mz) * inv_s2, nrm):
-        return FIT_DEGENERATE
-    if nrm[0] * nref[0] + nrm[1] * nref[1] + nrm[2] * nref[2] < 0.0:
-        for a in range(3):
-            nrm[a] = -nrm[a]
+    nrm[0], nrm[1], nrm[2] = snx / length, sny / length, snz / length
     e1 = poly[P_E1:P_E1 + 3]
     e2 = poly[P_E2:P_E2 + 3]
     tangent_frame(nrm, e1, e2)
@@ -444,17 +442,20 @@ def fit(x, nref, samples, poly, scratch):
         f20 += wf * u * u
         f11 += wf * u * v
         f02 += wf * v * v
-    # normal equations of the basis (1, u, v, u^2, u v, v^2): lower triangle, rhs in row 6
-    work[0, 0] = sw
-    work[1, 0], work[1, 1] = m10, m20
-    work[2, 0], work[2, 1], work[2, 2] = m01, m11, m02
-    work[3, 0], work[3, 1], work[3, 2], work[3, 3] = m20, m30, m21, m40
-    work[4, 0], work[4, 1], work[4, 2], work[4, 3], work[4, 4] = m11, m21, m12, m31, m22
-    work[5, 0], work[5, 1], work[5, 2], work[5, 3], work[5, 4], work[5, 5] = m02, m12, m03, m22, m13, m04
-    work[6, 0], work[6, 1], work[6, 2], work[6, 3], work[6, 4], work[6, 5] = f00, f10, f01, f20, f11, f02
-    coef = work[6, :6]
-    if not solve_spd(work, coef, 6):
+    for ridge in (0.0, RIDGE * sw):  # the least squares fit; where it is singular, the smoothest
+        # normal equations of the basis (1, u, v, u^2, u v, v^2): lower triangle, rhs in row 6
+        work[0, 0] = sw
+        work[1, 0], work[1, 1] = m10, m20 + ridge
+        work[2, 0], work[2, 1], work[2, 2] = m01, m11, m02 + ridge
+        work[3, 0], work[3, 1], work[3, 2], work[3, 3] = m20, m30, m21, m40 + ridge
+        work[4, 0], work[4, 1], work[4, 2], work[4, 3], work[4, 4] = m11, m21, m12, m31, m22 + ridge
+        work[5, 0], work[5, 1], work[5, 2], work[5, 3], work[5, 4], work[5, 5] = m02, m12, m03, m22, m13, m04 + ridge
+        work[6, 0], work[6, 1], work[6, 2], work[6, 3], work[6, 4], work[6, 5] = f00, f10, f01, f20, f11, f02
+        if solve_spd(work, work[6, :6], 6):
+            break
+    else:
         return FIT_DEGENERATE
+    coef = work[6, :6]
     poly[P_Q] = x[0] + mx
     poly[P_Q + 1] = x[1] + my
     poly[P_Q + 2] = x[2] + mz
