@@ -35,9 +35,9 @@ field cannot hold (a float intensity, a return number above 15), is stored as ex
 its own type (bool as uint8, float16 as float32), one scalar dimension per component, under
 its name (made unique, ASCII, at most 32 bytes). Of the derived arrays only clip_lines,
 screen_facing and thickness are written: lod_* describe another hierarchy and Phong slopes
-splats of other sizes. Fields the
-format requires but the cloud lacks get defaults (return 1 of 1); the schema in the surfel VLR
-names which dimensions hold attributes, so readers leave the defaults out. laspy's CopcReader
+splats of other sizes. Fields the format requires but the cloud lacks get defaults (return 1
+of 1); the schema in the surfel VLR names which dimensions hold attributes, so readers leave
+the defaults out. laspy's CopcReader
 gives the same values back under the dimensions' names.
 """
 

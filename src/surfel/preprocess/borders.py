@@ -11,7 +11,8 @@ angular gap of at least BORDER_GAP (an interior point of a regular sampling sees
 confirmed among its BORDER_CONFIRM nearest neighbours, because a sampling far denser on one side
 (a CAD mesh's vertices crowd at its curves) leaves a gap towards the sparse side among the
 nearest ones. Not where a neighbour faces away (n_p . n_q < SHEET_COS: the surface folds back
-there, a thin closed part). Its outward direction w_p is the middle of the gap.
+there, a thin closed part). Neighbours on another layer lying close (a body under a sheet,
+`thickness.py`) do not close a gap. Its outward direction w_p is the middle of the gap.
 
 Aerial scan lines (geospatial clouds) get no borders (`complete.py`): a line with the next line
 on one side only looks like one.
