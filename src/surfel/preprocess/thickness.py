@@ -110,11 +110,11 @@ def _layer_thickness(points, normals, index, start):  # pragma: no cover - compi
                 dx, dy, dz = points[q, 0] - points[p, 0], points[q, 1] - points[p, 1], points[q, 2] - points[p, 2]
                 d_pq = dx * normals[p, 0] + dy * normals[p, 1] + dz * normals[p, 2]
                 d_qp = -(dx * normals[q, 0] + dy * normals[q, 1] + dz * normals[q, 2])
-                tangential = math.sqrt(max(dx * dx + dy * dy + dz * dz - d_pq * d_pq, 0.0))
+                tangential2 = max(dx * dx + dy * dy + dz * dz - d_pq * d_pq, 0.0)
                 antisymmetric = 0.5 * abs(d_pq - d_qp)
-                crease = tangential * math.sqrt(max(2.0 - 2.0 * cos, 0.0)) if cos < CREASE_COS else 0.0
+                crease = math.sqrt(tangential2 * max(2.0 - 2.0 * cos, 0.0)) if cos < CREASE_COS else 0.0
                 h = max(antisymmetric - 0.5 * crease, 0.0)
-                bend = 0.5 * (abs(d_pq) + abs(d_qp)) * min(1.0, spacing2 / max(tangential * tangential, 1e-300))
+                bend = 0.5 * (abs(d_pq) + abs(d_qp)) * min(1.0, spacing2 / max(tangential2, 1e-300))
                 e = max(antisymmetric, bend)
                 slot = count  # insertion into the ascending separations
                 while slot > 0 and separation[slot - 1] > h:
