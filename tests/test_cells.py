@@ -309,12 +309,10 @@ def test_layer_thickness_separates_close_layers_and_nothing_else():
     cap = cap[cap[:, 2] > 0.2] * (1 + 0.3 * np.sqrt(4 * np.pi / 3_000))
     layered = np.concatenate([body, cap])
     tau = thickness(layered, unit(layered))
-    assert (tau[np.r_[body[:, 2] > 0.3, cap[:, 2] > 0.3]] < INFINITE_LENGTH).mean() > 0.95
-    # noise a sixth of the spacing: a few per cent of its tails look like a gap (their cap,
-    # 1.5 x the noise, still blends the layer)
-    noisy = sphere(20_000, seed=2, noise=0.004)
+    assert (tau[np.r_[body[:, 2] > 0.3, cap[:, 2] > 0.3]] < INFINITE_LENGTH).mean() > 0.9
+    noisy = sphere(20_000, seed=2, noise=0.004)  # noise a sixth of the spacing
     normals, _ = estimate_normals(noisy)
-    assert (thickness(noisy, normals) < INFINITE_LENGTH).mean() < 0.03
+    assert (thickness(noisy, normals) < INFINITE_LENGTH).mean() < 0.01
     coarse = sphere(300, seed=3)  # neighbours far down the curve
     assert (thickness(coarse, coarse) < INFINITE_LENGTH).mean() < 0.01
     wedge, _ = edge_wedge()
