@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from surfel.preprocess.grid_knn import k_nearest
+from surfel.preprocess.grid_knn import k_nearest, sorted_k_nearest
 from surfel.preprocess.neighbourhood import Neighbourhood
 
 
@@ -55,3 +55,41 @@ def test_neighbourhood_sorts_and_unsorts():
     expected, _ = cKDTree(points).query(points, k=12)
     found = np.linalg.norm(nbh.points[nbh.index] - nbh.points[:, None], axis=2)
     assert np.allclose(np.sort(found, axis=1), nbh.sort(expected), atol=1e-12)
+
+
+@pytest.mark.parametrize("name, points, k, wide", [
+    ("plane", np.c_[rng.random((20_000, 2)), np.zeros(20_000)], 16, 64),
+    ("cube", rng.random((20_000, 3)), 8, 40),
+    ("far outlier and near duplicates",
+     np.r_[rng.random((5_000, 3)), [[1e6, 0, 0]], rng.random((10, 3)) * 1e-9], 16, 64),
+    ("coincident", np.zeros((5_000, 3)), 16, 64),
+    ("clusters far apart", np.r_[rng.random((3_000, 3)), rng.random((3_000, 3)) * 1e-3 + 50.0], 16, 64),
+    ("fewer points than k", rng.random((20, 3)), 4, 20),
+])
+def test_grid_queries_match_kd_tree(name, points, k, wide):
+    """The grid's wider queries of some points (Grid.nearest) find the k-d tree's distances,
+    the point itself first, nearest first, no neighbour twice."""
+    points = np.asarray(points, np.float64)
+    _, _, grid = sorted_k_nearest(points, k)
+    rows = np.r_[np.arange(0, len(points), 7), len(points) - 1]
+    index = grid.nearest(rows, wide)
+    assert index.shape == (len(rows), wide)
+    assert np.array_equal(index[:, 0], rows)
+    found = np.linalg.norm(grid.points[index] - grid.points[rows][:, None], axis=2)
+    expected, _ = cKDTree(grid.points).query(grid.points[rows], k=wide)
+    assert np.allclose(np.sort(found, axis=1), expected, rtol=0, atol=1e-12)
+    assert (np.diff(found[:, 1:], axis=1) >= 0).all()
+    assert (np.diff(np.sort(index, axis=1), axis=1) > 0).all()
+
+
+def test_moved_neighbourhood_queries_its_own_points():
+    """A neighbourhood whose points were replaced (moved) does not query the stale grid."""
+    from dataclasses import replace
+
+    points = rng.random((2_000, 3))
+    nbh = Neighbourhood.build(points, 8)
+    moved = replace(nbh, points=nbh.points[::-1].copy())
+    rows = np.arange(0, 2_000, 10)
+    found = np.linalg.norm(moved.points[moved.nearest(rows, 30)] - moved.points[rows][:, None], axis=2)
+    expected, _ = cKDTree(moved.points).query(moved.points[rows], k=30)
+    assert np.allclose(np.sort(found, axis=1), expected, atol=1e-12)

@@ -25,7 +25,6 @@ import math
 
 import numba
 import numpy as np
-from scipy.spatial import cKDTree
 
 from .cells import SHEET_COS
 from .chunked import map_chunks
@@ -121,8 +120,7 @@ def border_outwards(nbh: Neighbourhood, normals: np.ndarray, index: np.ndarray, 
                           n, progress, "borders")
     candidates = np.flatnonzero(outwards.any(axis=1))
     if len(candidates) and n > index.shape[1]:
-        # unbalanced (sliding midpoint): built in about half the time, the same neighbours
-        _, wide = cKDTree(nbh.points, balanced_tree=False).query(nbh.points[candidates], k=min(BORDER_CONFIRM, n))
+        wide = nbh.nearest(candidates, BORDER_CONFIRM)
         outwards[candidates] = _border_outwards(nbh.points, normals, wide, candidates,
                                                 orthonormal_basis(normals[candidates]), SHEET_COS)
     return outwards

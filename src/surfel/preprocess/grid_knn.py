@@ -20,6 +20,11 @@ point still unresolved after them (an outlier far from the rest) is queried in a
 (scipy's cKDTree) instead, as is every point when some cell holds more than MAX_CELL points
 (many coincident points, which no cell width separates).
 
+Queries of some of the points (`Grid.nearest`, e.g. a wider neighbourhood of a few of them)
+reuse the grid: a point scans its own cell, then the shells r = 1, 2, ... QUERY_RINGS around
+it, skipping cells farther than the k-th found, until the k-th found lies within the margin
+m + (r - 1) h (the k-d tree takes the rest).
+
 Cell width: the mean number of points per occupied cell c(h) is measured at two coarse widths
 h0 and h0 / 2; c grows as h^e (e = 2 on a surface, 3 in a volume), so e = log2(c(h0) / c(h0/2))
 (clamped to [1, 3]), and h is chosen so that c(h) = k / CELL_SHARE: about the k nearest within
@@ -29,6 +34,7 @@ one cell width of a point on a surface.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numba
 import numpy as np
@@ -40,6 +46,8 @@ COARSE_CELLS = 64      # cells along the longest side of the first occupancy mea
 RINGS = 3              # shells of cells scanned around a point before the k-d tree takes over
 RUN_BATCH = 256        # cells searched per parallel task
 MAX_CELL = 4096        # more points in one cell (coincident points): the k-d tree for all
+QUERY_RINGS = 4        # shells of cells a query (Grid.nearest) scans before the k-d tree takes over
+QUERY_BATCH = 64       # points queried per parallel task
 # the 3 x 3 x 3 block's cell offsets, nearest first: the nearest fill the k first
 BLOCK_OFFSETS = np.array(sorted(((x, y, z) for x in (-1, 0, 1) for y in (-1, 0, 1) for z in (-1, 0, 1)),
                                 key=lambda o: abs(o[0]) + abs(o[1]) + abs(o[2])), np.int64)
@@ -240,11 +248,105 @@ def cell_width(points: np.ndarray, k: int) -> float:
     return max(h, extent / ((1 << MORTON_BITS) - 2))
 
 
-def k_nearest(points: np.ndarray, k: int, workers: int = -1) -> tuple[np.ndarray, np.ndarray]:
-    """(order, index): the points' Morton cell order, and the k nearest neighbours (int32,
+@numba.njit(cache=True)
+def _query_point(points, starts, run_keys, lo, h, k, p, best_d, best_i):  # pragma: no cover - compiled
+    """The k nearest of point p (the point itself first) into best_i, scanning its cell and
+    the shells around it (module docstring); False where QUERY_RINGS shells do not settle it."""
+    top = (1 << MORTON_BITS) - 1
+    inv_h = 1.0 / h
+    qx = _cell(points[p, 0], lo[0], inv_h)
+    qy = _cell(points[p, 1], lo[1], inv_h)
+    qz = _cell(points[p, 2], lo[2], inv_h)
+    fx = (points[p, 0] - lo[0]) - qx * h
+    fy = (points[p, 1] - lo[1]) - qy * h
+    fz = (points[p, 2] - lo[2]) - qz * h
+    best_d[0] = -1.0
+    best_i[0] = p
+    count = 1
+    margin = min(fx, h - fx, fy, h - fy, fz, h - fz)
+    for ring in range(QUERY_RINGS + 1):
+        for dx in range(-ring, ring + 1):
+            for dy in range(-ring, ring + 1):
+                for dz in range(-ring, ring + 1):
+                    cx, cy, cz = qx + dx, qy + dy, qz + dz
+                    if max(abs(dx), abs(dy), abs(dz)) != ring or min(cx, cy, cz) < 0 or max(cx, cy, cz) > top:
+                        continue
+                    if count == k and _gap(fx, dx, h) + _gap(fy, dy, h) + _gap(fz, dz, h) >= best_d[k - 1]:
+                        continue
+                    found = _find(_key(cx, cy, cz), run_keys)
+                    if found >= 0:
+                        count = _scan(points, p, starts[found], starts[found + 1], best_d, best_i, count, k)
+        if count == k and best_d[k - 1] <= margin * margin:
+            return True
+        margin += h
+    return False
+
+
+@numba.njit(parallel=True, cache=True)
+def grid_query(points, starts, run_keys, lo, h, k, rows):  # pragma: no cover - compiled
+    """The k nearest (nearest first, the point itself first) of each of the key-sorted points
+    `rows`, as int32 indices; rows of points the shells could not settle are -1."""
+    m = len(rows)
+    index = np.empty((m, k), np.int32)
+    for batch in numba.prange((m + QUERY_BATCH - 1) // QUERY_BATCH):
+        best_d = np.empty(k, np.float64)
+        best_i = np.empty(k, np.int64)
+        for r in range(batch * QUERY_BATCH, min(m, (batch + 1) * QUERY_BATCH)):
+            if _query_point(points, starts, run_keys, lo, h, k, rows[r], best_d, best_i):
+                for j in range(k):
+                    index[r, j] = best_i[j]
+            else:
+                index[r, 0] = -1
+    return index
+
+
+@dataclass(frozen=True, eq=False)
+class Grid:
+    """The points sorted by cell key (module docstring), with the cell width h, the minimum
+    corner lo, and the start and key of each occupied cell's run; `dense` when some cell holds
+    more than MAX_CELL points (the k-d tree then answers every query)."""
+
+    points: np.ndarray     # (N, 3) float64, sorted by cell key
+    lo: np.ndarray
+    h: float
+    starts: np.ndarray     # (runs + 1,) int64
+    run_keys: np.ndarray   # (runs,) int64
+    dense: bool
+
+    def nearest(self, rows: np.ndarray, k: int, workers: int = -1) -> np.ndarray:
+        """(len(rows), k) int32: the k nearest of the points `rows` (nearest first, the point
+        itself first), 1 <= k <= N; workers: threads of the k-d tree fallback."""
+        rows = np.asarray(rows, np.int64)
+        if self.dense:
+            index = np.empty((len(rows), k), np.int32)
+            unresolved = np.arange(len(rows))
+        else:
+            index = grid_query(self.points, self.starts, self.run_keys, self.lo, self.h, k, rows)
+            unresolved = np.flatnonzero(index[:, 0] < 0)
+        if len(unresolved):
+            index[unresolved] = _tree_nearest(self.points, rows[unresolved], k, workers)
+        return index
+
+
+def _tree_nearest(points: np.ndarray, rows: np.ndarray, k: int, workers: int) -> np.ndarray:
+    """The k nearest of points[rows] from a k-d tree, the point itself first, as the grid has
+    it (a coincident point may come first)."""
+    _, found = cKDTree(points).query(points[rows], k=k, workers=workers)
+    found = found.reshape(len(rows), k)
+    itself = found == rows[:, None]
+    has_self = itself.any(axis=1)
+    at = np.argmax(itself, axis=1)
+    swap = np.flatnonzero(has_self)
+    found[swap, at[swap]] = found[swap, 0]
+    found[:, 0] = rows
+    return found
+
+
+def sorted_k_nearest(points: np.ndarray, k: int, workers: int = -1) -> tuple[np.ndarray, np.ndarray, Grid]:
+    """(order, index, grid): the points' Morton cell order, the k nearest neighbours (int32,
     nearest first, the point itself first) of each point points[order[i]] as indices i into
-    that order. points: (N, 3) float64, 1 <= k <= N < 2^31; workers: threads of the k-d tree
-    fallback."""
+    that order, and the grid of the sorted points. points: (N, 3) float64, 1 <= k <= N < 2^31;
+    workers: threads of the k-d tree fallback."""
     if len(points) >= 2**31:
         raise ValueError(f"{len(points)} points: the neighbour search indexes fewer than 2^31")
     h = cell_width(points, k)
@@ -254,21 +356,19 @@ def k_nearest(points: np.ndarray, k: int, workers: int = -1) -> tuple[np.ndarray
     keys = keys[order]
     sorted_points = np.ascontiguousarray(points[order])
     starts = _runs(keys)
-    if int(np.diff(starts).max()) > MAX_CELL:
+    grid = Grid(sorted_points, lo, h, starts, keys[starts[:-1]], int(np.diff(starts).max()) > MAX_CELL)
+    if grid.dense:
         unresolved = np.arange(len(points))
         index = np.empty((len(points), k), np.int32)
     else:
-        index = grid_neighbours(sorted_points, starts, keys[starts[:-1]], lo, h, k)
+        index = grid_neighbours(sorted_points, starts, grid.run_keys, lo, h, k)
         unresolved = np.flatnonzero(index[:, 0] < 0)
     if len(unresolved):
-        _, found = cKDTree(sorted_points).query(sorted_points[unresolved], k=k, workers=workers)
-        found = found.reshape(len(unresolved), k)
-        # the point itself first, as the grid has it (a coincident point may come first)
-        itself = found == unresolved[:, None]
-        has_self = itself.any(axis=1)
-        at = np.argmax(itself, axis=1)
-        rows = np.flatnonzero(has_self)
-        found[rows, at[rows]] = found[rows, 0]
-        found[:, 0] = unresolved
-        index[unresolved] = found
+        index[unresolved] = _tree_nearest(sorted_points, unresolved, k, workers)
+    return order, index, grid
+
+
+def k_nearest(points: np.ndarray, k: int, workers: int = -1) -> tuple[np.ndarray, np.ndarray]:
+    """(order, index) of `sorted_k_nearest`."""
+    order, index, _ = sorted_k_nearest(points, k, workers)
     return order, index
