@@ -52,7 +52,13 @@ def file_normals(normals) -> np.ndarray | None:
     if normals is None:
         return None
     normals = np.asarray(normals)
-    return normals if normals.any(axis=1).all() else None
+    if normals.ndim != 2:
+        return normals if normals.any(axis=1).all() else None
+    # column by column: numpy reduces along the rows of an (N, 3) array several times slower
+    nonzero = np.zeros(len(normals), bool)
+    for column in normals.T:
+        nonzero |= column != 0
+    return normals if nonzero.all() else None
 
 
 # Bounding radii surfel renders: depths and splat sizes are float32 (up to 3.4e38, normal

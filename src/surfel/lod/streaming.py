@@ -87,7 +87,9 @@ class StreamInput:
                 records = np.fromfile(file, self.dtype, count=m)
                 if len(records) < m:
                     raise InputError(self.path, f"truncated PLY body (vertex {start + len(records)} of {self.count})")
-                positions = np.column_stack([records[c] for c in "xyz"]).astype(np.float64)
+                positions = np.empty((m, 3))  # converted as copied: one pass, not two
+                for axis, name in enumerate("xyz"):
+                    positions[:, axis] = records[name]
                 normals = (np.column_stack([records[c] for c in ("nx", "ny", "nz")]).astype(np.float32)
                            if self.has_normals else None)
                 colors = None
@@ -127,8 +129,8 @@ def checked(path: str, positions: np.ndarray, normals: np.ndarray | None, colors
         raise InputError(path, "points have NaN or infinite coordinates")
     if normals is not None:
         # zero vectors are placeholders (cloud.file_normals): the scan pass drops such normals
-        bad = ~np.isfinite(normals).all(axis=1)
-        if bad.any():
+        if not np.isfinite(normals).all():  # counted only then: a reduction along rows is slow
+            bad = ~np.isfinite(normals).all(axis=1)
             raise InputError(path, f"{int(bad.sum())} points in a chunk have NaN or infinite normals")
     for name, values in attributes.items():
         if values.dtype.kind == "f" and not np.isfinite(values).all():
