@@ -256,22 +256,27 @@ def test_compiled_border_and_cap_kernels_match_numpy():
     rng = np.random.default_rng(5)
     xy = rng.uniform(-1, 1, size=(4_000, 2))
     xy = xy[(np.hypot(*xy.T) < 1) & (xy[:, 1] > 0)]
-    nbh = Neighbourhood.build(np.column_stack([xy, 0.01 * xy[:, 0] ** 2]), 16, progress=False)
-    normals = np.tile([0.0, 0.0, 1.0], (len(nbh.points), 1))
-    frames = orthonormal_basis(normals)
-    rows = np.arange(len(nbh.points))
-    got = borders._border_outwards(nbh.points, normals, nbh.index, rows, frames, cells.SHEET_COS)
-    d = nbh.points[nbh.index] - nbh.points[:, None]
-    angles = np.sort(np.arctan2(np.einsum("nkj,nj->nk", d, frames[:, 1]), np.einsum("nkj,nj->nk", d, frames[:, 0]))
-                     [:, 1:], axis=1)
-    gaps = np.diff(np.concatenate([angles, angles[:, :1] + 2 * np.pi], axis=1), axis=1)
-    ranked = np.sort(gaps, axis=1)
-    border = (ranked[:, -1] >= borders.BORDER_GAP) & (ranked[:, -2] <= borders.INTERIOR_GAP)
-    assert border.sum() > 50 and np.array_equal(got.any(axis=1), border)
-    widest = np.argmax(gaps, axis=1)
-    middle = angles[rows, widest] + gaps[rows, widest] / 2
-    expected = np.cos(middle)[:, None] * frames[:, 0] + np.sin(middle)[:, None] * frames[:, 1]
-    assert np.allclose(got[border], expected[border], atol=1e-12)
+    # and a lattice (neighbours in the same directions, gaps of exactly 45 and 90 degrees), a
+    # half disc too, rotated off the frame's axes
+    lattice = np.stack(np.meshgrid(np.arange(-30, 31), np.arange(0, 31)), -1).reshape(-1, 2) / 30.0
+    lattice = lattice[np.hypot(*lattice.T) < 1] @ np.array([[0.8, 0.6], [-0.6, 0.8]])
+    for plane in (xy, lattice):
+        nbh = Neighbourhood.build(np.column_stack([plane, 0.01 * plane[:, 0] ** 2]), 16, progress=False)
+        normals = np.tile([0.0, 0.0, 1.0], (len(nbh.points), 1))
+        frames = orthonormal_basis(normals)
+        rows = np.arange(len(nbh.points))
+        got = borders._border_outwards(nbh.points, normals, nbh.index, rows, frames, cells.SHEET_COS)
+        d = nbh.points[nbh.index] - nbh.points[:, None]
+        angles = np.sort(np.arctan2(np.einsum("nkj,nj->nk", d, frames[:, 1]),
+                                    np.einsum("nkj,nj->nk", d, frames[:, 0]))[:, 1:], axis=1)
+        gaps = np.diff(np.concatenate([angles, angles[:, :1] + 2 * np.pi], axis=1), axis=1)
+        ranked = np.sort(gaps, axis=1)
+        border = (ranked[:, -1] >= borders.BORDER_GAP) & (ranked[:, -2] <= borders.INTERIOR_GAP)
+        assert border.sum() > 50 and np.array_equal(got.any(axis=1), border)
+        widest = np.argmax(gaps, axis=1)
+        middle = angles[rows, widest] + gaps[rows, widest] / 2
+        expected = np.cos(middle)[:, None] * frames[:, 0] + np.sin(middle)[:, None] * frames[:, 1]
+        assert np.allclose(got[border], expected[border], atol=1e-12)
     raw = rng.uniform(0.1, 1, len(nbh.points)) ** 4
     flipped = np.where(rng.uniform(size=(len(raw), 1)) < 0.3, -normals, normals)  # another surface's
     for k in (16, 15):  # an odd and an even count of neighbours
