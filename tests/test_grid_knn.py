@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from surfel.preprocess.grid_knn import k_nearest, sorted_k_nearest
+from surfel.preprocess.grid_knn import k_nearest, sorted_k_nearest, stable_order
 from surfel.preprocess.neighbourhood import Neighbourhood
 
 
@@ -93,3 +93,14 @@ def test_moved_neighbourhood_queries_its_own_points():
     found = np.linalg.norm(moved.points[moved.nearest(rows, 30)] - moved.points[rows][:, None], axis=2)
     expected, _ = cKDTree(moved.points).query(moved.points[rows], k=30)
     assert np.allclose(np.sort(found, axis=1), expected, atol=1e-12)
+
+
+def test_stable_order_is_numpys():
+    """The packed sort of the cell keys is numpy's stable argsort, duplicates in index order,
+    and so is its fallback for keys too wide to pack."""
+    keys = rng.integers(0, 1 << 20, 100_000) // 7
+    assert np.array_equal(stable_order(keys), np.argsort(keys, kind="stable"))
+    wide = rng.integers(0, 1 << 62, 1_000) | (1 << 61)
+    wide[::3] = wide[0]
+    assert np.array_equal(stable_order(wide), np.argsort(wide, kind="stable"))
+    assert np.array_equal(stable_order(np.array([5], np.int64)), [0])
