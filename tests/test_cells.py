@@ -288,3 +288,22 @@ def test_compiled_border_and_cap_kernels_match_numpy():
             median = np.array([np.median(raw[row[1:]][keep]) for row, keep in zip(index, same, strict=True)])
             reference = np.minimum(1.0, ISOLATED_FACTOR * median / raw)
             assert np.array_equal(cap, reference) and (cap < 1).sum() > 10
+
+
+def test_bound_semi_axes_is_numpys_formula():
+    """The compiled sampling bound gives numpy's values to the bit: semi-axes and radii capped
+    at BOUND_FACTOR x spacing, and the mask of the capped splats."""
+    from surfel.preprocess.spacing import BOUND_FACTOR, bound_semi_axes
+
+    rng = np.random.default_rng(3)
+    axes = rng.normal(size=(5_000, 2, 3))
+    radii = np.linalg.norm(axes, axis=2).max(axis=1) * rng.uniform(0.5, 1.5, 5_000)
+    spacing = rng.uniform(0.1, 1.0, 5_000)
+    bound = BOUND_FACTOR * spacing
+    scale = np.minimum(1.0, bound[:, None] / np.maximum(np.linalg.norm(axes, axis=2), 1e-300))
+    for r in (radii, radii.astype(np.float32)):
+        got_axes, got_radii, capped = bound_semi_axes(axes, r, spacing)
+        assert np.array_equal(got_axes, axes * scale[:, :, None])
+        assert np.array_equal(got_radii, np.minimum(r, bound))
+        assert np.array_equal(capped, (scale < 1.0).any(axis=1) | (r > bound))
+        assert 100 < capped.sum() < 4_900
