@@ -233,10 +233,17 @@ def grid_neighbours(points, starts, run_keys, lo, h, k):  # pragma: no cover - c
     return index
 
 
-def cell_width(points: np.ndarray, k: int) -> float:
-    """The cell width h of the module docstring (points (N, 3) float64, N > 0)."""
-    lo = points.min(axis=0)
-    extent = float((points.max(axis=0) - lo).max())
+def corners(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(min, max) corners of points (N, 3), column by column: numpy reduces a strided column
+    several times faster than axis 0 of an (N, 3) array."""
+    columns = [points[:, axis] for axis in range(3)]
+    return np.array([column.min() for column in columns]), np.array([column.max() for column in columns])
+
+
+def cell_width(points: np.ndarray, k: int, lo: np.ndarray, hi: np.ndarray) -> float:
+    """The cell width h of the module docstring (points (N, 3) float64, N > 0, within the
+    corners lo, hi)."""
+    extent = float((hi - lo).max())
     if extent == 0.0:
         return 1.0
     mean = []
@@ -362,8 +369,8 @@ def sorted_k_nearest(points: np.ndarray, k: int, workers: int = -1) -> tuple[np.
     workers: threads of the k-d tree fallback."""
     if len(points) >= 2**31:
         raise ValueError(f"{len(points)} points: the neighbour search indexes fewer than 2^31")
-    h = cell_width(points, k)
-    lo = points.min(axis=0)
+    lo, hi = corners(points)
+    h = cell_width(points, k, lo, hi)
     keys = cell_keys(points, lo, 1.0 / h)
     order = stable_order(keys)
     keys = keys[order]
