@@ -104,3 +104,15 @@ def test_stable_order_is_numpys():
     wide[::3] = wide[0]
     assert np.array_equal(stable_order(wide), np.argsort(wide, kind="stable"))
     assert np.array_equal(stable_order(np.array([5], np.int64)), [0])
+
+
+def test_cell_table_finds_every_occupied_cell_and_no_other():
+    """The hash table of the occupied cells gives each key's run, and -1 for keys of empty
+    cells (here the keys between and around the occupied ones)."""
+    from surfel.preprocess.grid_knn import _find, cell_table
+
+    keys = np.unique(rng.integers(0, 1 << 40, 5_000)) * 2  # even: the odd keys are empty cells
+    slots = cell_table(keys)
+    assert len(slots) >= 2 * len(keys)
+    assert all(_find(key, keys, slots) == run for run, key in enumerate(keys.tolist()))
+    assert all(_find(key + 1, keys, slots) == -1 for key in keys[::10].tolist())

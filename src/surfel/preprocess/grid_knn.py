@@ -6,7 +6,8 @@ and the points in them, lie close together in memory.
 
 Cells: with cell width h and lo the minimum corner of the points, point p lies in the cell
 q = floor((p - lo) / h) (per axis, 0 <= q < 2^21), keyed by the Morton code of q (its bits
-interleaved). The points are sorted by key, so each occupied cell is one run of them.
+interleaved). The points are sorted by key, so each occupied cell is one run of them; a hash
+table of the occupied cells' keys (open addressing) finds a cell's run.
 
 Search: a point p of cell q scans the 3 x 3 x 3 block of cells around q (gathered once per
 cell for all its points) and keeps its k nearest candidates. Every point not scanned lies
@@ -46,6 +47,7 @@ COARSE_CELLS = 64      # cells along the longest side of the first occupancy mea
 RINGS = 3              # shells of cells scanned around a point before the k-d tree takes over
 RUN_BATCH = 256        # cells searched per parallel task
 MAX_CELL = 4096        # more points in one cell (coincident points): the k-d tree for all
+HASH_MULTIPLIER = 0x5851F42D4C957F2D  # odd, below 2^63: the hash of a cell key is its product's bits 32+
 QUERY_RINGS = 4        # shells of cells a query (Grid.nearest) scans before the k-d tree takes over
 QUERY_BATCH = 64       # points queried per parallel task
 # the 3 x 3 x 3 block's cell offsets, nearest first: the nearest fill the k first
@@ -117,10 +119,38 @@ def _runs(keys):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, inline="always")
-def _find(cell_key, run_keys):  # pragma: no cover - compiled
-    """Run index of a cell key, -1 if that cell is empty."""
-    at = np.searchsorted(run_keys, cell_key)
-    return at if at < len(run_keys) and run_keys[at] == cell_key else -1
+def _slot(cell_key, mask):  # pragma: no cover - compiled
+    """The first slot of a cell key in the hash table (multiplicative hashing; int64 products wrap)."""
+    return ((cell_key * HASH_MULTIPLIER) >> 32) & mask
+
+
+@numba.njit(cache=True)
+def cell_table(run_keys):  # pragma: no cover - compiled
+    """Open-addressing hash table (linear probing, at most half full) of the occupied cells:
+    the run index of each key in its slot, -1 in empty slots."""
+    size = 2
+    while size < 2 * len(run_keys):
+        size *= 2
+    slots = np.full(size, -1, np.int64)
+    for run in range(len(run_keys)):
+        at = _slot(run_keys[run], size - 1)
+        while slots[at] >= 0:
+            at = (at + 1) & (size - 1)
+        slots[at] = run
+    return slots
+
+
+@numba.njit(cache=True, inline="always")
+def _find(cell_key, run_keys, slots):  # pragma: no cover - compiled
+    """Run index of a cell key, -1 if that cell is empty: one or two probes of the hash table,
+    where a binary search of the keys took a dozen and more."""
+    mask = len(slots) - 1
+    at = _slot(cell_key, mask)
+    while True:
+        run = slots[at]
+        if run < 0 or run_keys[run] == cell_key:
+            return run
+        at = (at + 1) & mask
 
 
 @numba.njit(cache=True, inline="always")
@@ -158,7 +188,8 @@ def _scan(points, i, start, stop, best_d, best_i, count, k):  # pragma: no cover
 
 
 @numba.njit(cache=True)
-def _search_run(points, starts, run_keys, run, lo, h, k, index, best_d, best_i, block):  # pragma: no cover - compiled
+def _search_run(points, starts, run_keys, slots, run, lo, h, k, index, best_d, best_i,
+                block):  # pragma: no cover - compiled
     """Rows of index for the points of one cell (a run of the sorted points): the 3 x 3 x 3
     block around it, gathered once into block (start, stop, dx, dy, dz), then shells of cells
     while the k-th found may lie nearer outside (module docstring); -1 in column 0 where the
@@ -175,7 +206,7 @@ def _search_run(points, starts, run_keys, run, lo, h, k, index, best_d, best_i, 
         cx, cy, cz = qx + dx, qy + dy, qz + dz
         if min(cx, cy, cz) < 0 or max(cx, cy, cz) > top:
             continue
-        found = _find(_key(cx, cy, cz), run_keys)
+        found = _find(_key(cx, cy, cz), run_keys, slots)
         if found >= 0:
             block[blocks, 0] = starts[found]
             block[blocks, 1] = starts[found + 1]
@@ -206,7 +237,7 @@ def _search_run(points, starts, run_keys, run, lo, h, k, index, best_d, best_i, 
                         cx, cy, cz = qx + dx, qy + dy, qz + dz
                         if max(abs(dx), abs(dy), abs(dz)) != ring or min(cx, cy, cz) < 0 or max(cx, cy, cz) > top:
                             continue
-                        found = _find(_key(cx, cy, cz), run_keys)
+                        found = _find(_key(cx, cy, cz), run_keys, slots)
                         if found >= 0:
                             count = _scan(points, i, starts[found], starts[found + 1], best_d, best_i, count, k)
             margin += h
@@ -218,7 +249,7 @@ def _search_run(points, starts, run_keys, run, lo, h, k, index, best_d, best_i, 
 
 
 @numba.njit(parallel=True, cache=True)
-def grid_neighbours(points, starts, run_keys, lo, h, k):  # pragma: no cover - compiled
+def grid_neighbours(points, starts, run_keys, slots, lo, h, k):  # pragma: no cover - compiled
     """The k nearest (nearest first, the point itself first) of each of the key-sorted points,
     as int32 indices into them; rows of points the grid could not resolve are -1 (module
     docstring)."""
@@ -229,7 +260,7 @@ def grid_neighbours(points, starts, run_keys, lo, h, k):  # pragma: no cover - c
         best_i = np.empty(k, np.int64)
         block = np.empty((27, 5), np.int64)
         for run in range(batch * RUN_BATCH, min(runs, (batch + 1) * RUN_BATCH)):
-            _search_run(points, starts, run_keys, run, lo, h, k, index, best_d, best_i, block)
+            _search_run(points, starts, run_keys, slots, run, lo, h, k, index, best_d, best_i, block)
     return index
 
 
@@ -256,7 +287,7 @@ def cell_width(points: np.ndarray, k: int, lo: np.ndarray, hi: np.ndarray) -> fl
 
 
 @numba.njit(cache=True)
-def _query_point(points, starts, run_keys, lo, h, k, p, best_d, best_i):  # pragma: no cover - compiled
+def _query_point(points, starts, run_keys, slots, lo, h, k, p, best_d, best_i):  # pragma: no cover - compiled
     """The k nearest of point p (the point itself first) into best_i, scanning its cell and
     the shells around it (module docstring); False where QUERY_RINGS shells do not settle it."""
     top = (1 << MORTON_BITS) - 1
@@ -280,7 +311,7 @@ def _query_point(points, starts, run_keys, lo, h, k, p, best_d, best_i):  # prag
                         continue
                     if count == k and _gap(fx, dx, h) + _gap(fy, dy, h) + _gap(fz, dz, h) >= best_d[k - 1]:
                         continue
-                    found = _find(_key(cx, cy, cz), run_keys)
+                    found = _find(_key(cx, cy, cz), run_keys, slots)
                     if found >= 0:
                         count = _scan(points, p, starts[found], starts[found + 1], best_d, best_i, count, k)
         if count == k and best_d[k - 1] <= margin * margin:
@@ -290,7 +321,7 @@ def _query_point(points, starts, run_keys, lo, h, k, p, best_d, best_i):  # prag
 
 
 @numba.njit(parallel=True, cache=True)
-def grid_query(points, starts, run_keys, lo, h, k, rows):  # pragma: no cover - compiled
+def grid_query(points, starts, run_keys, slots, lo, h, k, rows):  # pragma: no cover - compiled
     """The k nearest (nearest first, the point itself first) of each of the key-sorted points
     `rows`, as int32 indices; rows of points the shells could not settle are -1."""
     m = len(rows)
@@ -299,7 +330,7 @@ def grid_query(points, starts, run_keys, lo, h, k, rows):  # pragma: no cover - 
         best_d = np.empty(k, np.float64)
         best_i = np.empty(k, np.int64)
         for r in range(batch * QUERY_BATCH, min(m, (batch + 1) * QUERY_BATCH)):
-            if _query_point(points, starts, run_keys, lo, h, k, rows[r], best_d, best_i):
+            if _query_point(points, starts, run_keys, slots, lo, h, k, rows[r], best_d, best_i):
                 for j in range(k):
                     index[r, j] = best_i[j]
             else:
@@ -318,6 +349,7 @@ class Grid:
     h: float
     starts: np.ndarray     # (runs + 1,) int64
     run_keys: np.ndarray   # (runs,) int64
+    slots: np.ndarray      # `cell_table` of run_keys
     dense: bool
 
     def nearest(self, rows: np.ndarray, k: int, workers: int = -1) -> np.ndarray:
@@ -328,7 +360,7 @@ class Grid:
             index = np.empty((len(rows), k), np.int32)
             unresolved = np.arange(len(rows))
         else:
-            index = grid_query(self.points, self.starts, self.run_keys, self.lo, self.h, k, rows)
+            index = grid_query(self.points, self.starts, self.run_keys, self.slots, self.lo, self.h, k, rows)
             unresolved = np.flatnonzero(index[:, 0] < 0)
         if len(unresolved):
             index[unresolved] = _tree_nearest(self.points, rows[unresolved], k, workers)
@@ -376,12 +408,13 @@ def sorted_k_nearest(points: np.ndarray, k: int, workers: int = -1) -> tuple[np.
     keys = keys[order]
     sorted_points = np.ascontiguousarray(points[order])
     starts = _runs(keys)
-    grid = Grid(sorted_points, lo, h, starts, keys[starts[:-1]], int(np.diff(starts).max()) > MAX_CELL)
+    run_keys = keys[starts[:-1]]
+    grid = Grid(sorted_points, lo, h, starts, run_keys, cell_table(run_keys), int(np.diff(starts).max()) > MAX_CELL)
     if grid.dense:
         unresolved = np.arange(len(points))
         index = np.empty((len(points), k), np.int32)
     else:
-        index = grid_neighbours(sorted_points, starts, grid.run_keys, lo, h, k)
+        index = grid_neighbours(sorted_points, starts, grid.run_keys, grid.slots, lo, h, k)
         unresolved = np.flatnonzero(index[:, 0] < 0)
     if len(unresolved):
         index[unresolved] = _tree_nearest(sorted_points, unresolved, k, workers)
