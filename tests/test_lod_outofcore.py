@@ -17,7 +17,7 @@ from surfel.cloud import PointCloud
 from surfel.errors import InputError, SurfelError
 from surfel.io import load, write_ply
 from surfel.lod import binning, outofcore
-from surfel.lod.binning import fine_cells, halo_pairs, lone_cells
+from surfel.lod.binning import bin_input, fine_cells, halo_pairs, lone_cells, piece_files
 from surfel.lod.lazy import LazyHierarchy
 from surfel.lod.outofcore import (
     BYTES_PER_POINT,
@@ -27,7 +27,7 @@ from surfel.lod.outofcore import (
     parse_size,
 )
 from surfel.lod.source import is_source, open_source
-from surfel.lod.streaming import read_ahead
+from surfel.lod.streaming import open_inputs, read_ahead
 from surfel.metrics import compare_results
 from surfel.preprocess import complete
 from surfel.rendering import render
@@ -172,6 +172,31 @@ def test_partition_borders_match_in_memory(built, tmp_path, monkeypatch):
     build_outofcore(ply, tmp_path / "no_halo.lod", memory=SMALL_MEMORY, progress=False)
     index, radii, _ = leaf_splats(tmp_path / "no_halo.lod", cloud)
     assert (np.abs(radii / cloud.radii[index] - 1) > 1e-3).sum() > 100
+
+
+def test_parallel_binning_writes_what_one_process_writes(built, tmp_path, monkeypatch):
+    """A binary PLY binned by two worker processes, each a run of its chunks into pieces of
+    its own, holds for every partition and halo the bytes one process writes: the same
+    records in the same (the input's) order."""
+    from concurrent.futures import ProcessPoolExecutor
+    from multiprocessing import get_context
+
+    ply = built[0]
+    monkeypatch.setattr(binning, "CHUNK_POINTS", POINTS // 5 + 1)  # five chunks, split 3 + 2
+    folders = [tmp_path / "one", tmp_path / "two"]
+    for folder in folders:
+        folder.mkdir()
+    serial = bin_input(open_inputs(ply), folders[0], POINTS // 6, {}, False)
+    with ProcessPoolExecutor(2, mp_context=get_context("spawn")) as pool:
+        pooled = bin_input(open_inputs(ply), folders[1], POINTS // 6, {}, False, pool, 2)
+    assert serial == pooled and len(serial["counts"]) >= 6
+    pieces = 0
+    for g in range(len(serial["counts"])):
+        for suffix in ("bin", "halo"):
+            one, two = (piece_files(folder / "bins", f"part-{g:05d}", suffix) for folder in folders)
+            pieces += len(two)
+            assert b"".join(f.read_bytes() for f in one) == b"".join(f.read_bytes() for f in two)
+    assert pieces > 2 * len(serial["counts"])  # most partitions and halos came in two pieces
 
 
 @pytest.mark.parametrize("halo", [0.3, 1.5])

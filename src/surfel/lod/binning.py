@@ -18,6 +18,11 @@ so a point farther than h from every face of its cell is in no halo, nor is a po
 cell (`lone_cells`: one whose H-neighbourhood holds no cell of another partition), which most
 cells of a partition are.
 
+Pieces: binary PLY inputs are binned by the worker processes of the build in parallel, each a
+contiguous run of the input's chunks into files of its own (piece p of partition g:
+part-g.p.bin, part-g.p.halo); a partition's points are its pieces in piece order, the input's
+order, as one process binning every chunk would write them.
+
 Grouping: a stable counting sort of small integer keys (partition indices), the order and the
 start of each key's run, so that each partition's points are written in one piece.
 """
@@ -27,6 +32,8 @@ from __future__ import annotations
 import math
 import os
 import sys
+from collections.abc import Iterable
+from concurrent.futures import Executor, as_completed, wait
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -37,7 +44,7 @@ from tqdm import tqdm
 
 from ..attributes import Schema
 from ..cloud import file_normals, framing_sphere
-from .streaming import KindVote, StreamInput, all_chunks, read_ahead
+from .streaming import CHUNK_POINTS, Chunk, KindVote, StreamInput, all_chunks, read_ahead
 
 HISTOGRAM_BITS = 7
 # points of the input sampled evenly for the histogram (all of them in smaller inputs)
@@ -240,11 +247,65 @@ def record_dtype(has_normals: bool, has_colors: bool, schema: Schema) -> np.dtyp
     return np.dtype(fields)
 
 
+@dataclass(frozen=True, eq=False)
+class Bins:
+    """What pass 2 needs to bin chunks into partial/bins/ (`folder`): the plan's partition of
+    each fine cell (lookup), its lone cells, the halo width, the records' layout. A process
+    bins its chunks into its own piece p of the files, part-g.p.bin and part-g.p.halo."""
+
+    folder: Path
+    lo: np.ndarray
+    scale: float
+    res: int
+    lookup: np.ndarray
+    lone: np.ndarray
+    halo: float
+    groups: int
+    dtype: np.dtype
+    has_normals: bool
+    has_colors: bool
+    schema: Schema
+
+    def add(self, chunks: Iterable[Chunk], piece: int, bar: tqdm | None = None) -> np.ndarray:
+        """Append the chunks' points to their partitions' and halos' files of piece `piece`;
+        returns the points per partition."""
+        counts = np.zeros(self.groups, np.int64)
+        for chunk in read_ahead(iter(chunks)):
+            part = self.lookup[fine_cells(chunk.positions, self.lo, self.scale, self.res)]
+            order, starts = group_by(part, self.groups)
+            counts += np.diff(starts)
+            records = _records(chunk, self.dtype, self.has_normals, self.has_colors, self.schema)
+            _append_runs(self.folder, f"{piece}.bin", _gather(records, order), starts)
+            if self.groups > 1:
+                points, owners = halo_pairs(chunk.positions, self.lo, self.scale, self.res, self.lookup, self.lone,
+                                            part, self.halo)
+                order, starts = group_by(owners, self.groups)
+                _append_runs(self.folder, f"{piece}.halo", _gather(records, points[order]), starts)
+            del records
+            if bar is not None:
+                bar.update(len(chunk.positions))
+        return counts
+
+    def add_ply(self, inputs: list[StreamInput], chunks: list[tuple[int, int]], size: int, piece: int) -> np.ndarray:
+        """`add` of the binary PLY chunks (input, chunk index) of `size` points, in order."""
+        read = (chunk for source, index in chunks for chunk in inputs[source].ply_chunks(size, index, index + 1))
+        return self.add(read, piece)
+
+
+def piece_files(folder: Path, name: str, suffix: str) -> list[Path]:
+    """The pieces of partition `name`'s file (suffix "bin" or "halo"), in piece order: their
+    concatenation holds the points in input order."""
+    return sorted(folder.glob(f"{name}.*.{suffix}"), key=lambda path: int(path.name.split(".")[1]))
+
+
 def bin_input(inputs: list[StreamInput], partial: Path, cap: int, signature: dict,
-               progress: bool | None) -> dict:
+              progress: bool | None, pool: Executor | None = None, workers: int = 1) -> dict:
     """Passes 1 and 2 of the out-of-core build (outofcore.py's docstring) into partial/bins/:
-    part-g.bin and part-g.halo, the records (`record_dtype`) of partition g and of its halo;
-    returns the plan as saved in plan.json (`signature` included)."""
+    the pieces of part-g.bin and part-g.halo (`piece_files`), the records (`record_dtype`) of
+    partition g and of its halo; returns the plan as saved in plan.json (`signature`
+    included). Binary PLY inputs are binned by the `workers` processes of `pool`, each a
+    contiguous run of their chunks into its own piece (other inputs by this process, read
+    chunk after chunk)."""
     total = sum(i.count for i in inputs)
     lo = np.full(3, np.inf)
     hi = np.full(3, -np.inf)
@@ -289,23 +350,24 @@ def bin_input(inputs: list[StreamInput], partial: Path, cap: int, signature: dic
     kinds = vote.kinds
     schema = Schema(replace(spec, kind=kinds[spec.name]) for spec in vote.specs)
     dtype = record_dtype(has_normals, has_colors, schema)
-    bins = partial / "bins"
-    bins.mkdir()
-    groups = len(plan.cells)
-    counts = np.zeros(groups, np.int64)
+    bins = Bins(partial / "bins", lo, scale, res, lookup, lone, halo, len(plan.cells), dtype, has_normals,
+                has_colors, schema)
+    bins.folder.mkdir()
+    chunks = [(source, index) for source, i in enumerate(inputs) for index in range(-(-i.count // CHUNK_POINTS))]
     with progress_bar(total, "partition", progress) as bar:
-        for chunk in read_ahead(all_chunks(inputs)):
-            part = lookup[fine_cells(chunk.positions, lo, scale, res)]
-            order, starts = group_by(part, groups)
-            counts += np.diff(starts)
-            records = _records(chunk, dtype, has_normals, has_colors, schema)
-            _append_runs(bins, "bin", _gather(records, order), starts)
-            if groups > 1:
-                points, owners = halo_pairs(chunk.positions, lo, scale, res, lookup, lone, part, halo)
-                order, starts = group_by(owners, groups)
-                _append_runs(bins, "halo", _gather(records, points[order]), starts)
-            del records
-            bar.update(len(order))
+        if pool is not None and workers > 1 and len(chunks) > 1 and all(i.kind == "ply" for i in inputs):
+            cuts = np.linspace(0, len(chunks), min(workers, len(chunks)) + 1).round().astype(int)
+            jobs = {pool.submit(bins.add_ply, inputs, chunks[a:b], CHUNK_POINTS, piece): b - a
+                    for piece, (a, b) in enumerate(zip(cuts[:-1], cuts[1:], strict=True))}
+            counts = np.zeros(bins.groups, np.int64)
+            try:
+                for job in as_completed(jobs):
+                    counts += job.result()
+                    bar.update(min(total, jobs[job] * CHUNK_POINTS))
+            finally:
+                wait(jobs)  # no worker still writes into bins/ when an error removes it
+        else:
+            counts = bins.add(all_chunks(inputs), 0, bar)
     return {"signature": signature, "lo": lo.tolist(), "size": size, "cells": plan.cells,
             "counts": counts.tolist(), "has_normals": has_normals, "has_colors": has_colors,
             "schema": schema.to_list(), "geospatial": any(i.geospatial for i in inputs)}
