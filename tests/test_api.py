@@ -60,6 +60,40 @@ def test_pyvista_adapter_is_optional():
     assert back.is_mesh and np.allclose(back.positions, cloud.positions)
 
 
+def test_derived_clouds_check_new_values_but_not_kept_ones(monkeypatch):
+    """with_ and take check the values they bring (a NaN radius, a wrong shape, a NaN
+    attribute are refused) and only the shapes of the arrays kept or picked from a valid
+    cloud: no finite check runs over those again."""
+    from surfel.errors import InputError
+
+    rng = np.random.default_rng(2)
+    n = 1_000
+    cloud = surfel.PointCloud(rng.normal(size=(n, 3)), normals=np.tile([0.0, 0, 1], (n, 1)), radii=np.full(n, 0.1),
+                              attributes={"phong_alpha": rng.random(n)})
+    bad = np.full(n, 0.1)
+    bad[7] = np.nan
+    for changes in ({"radii": bad}, {"radii": -bad}, {"normals": np.ones((n, 2))},
+                    {"attributes": {**cloud.attributes, "phong_beta": bad}}):
+        with pytest.raises(InputError):
+            cloud.with_(**changes)
+    checked = []
+    real = np.isfinite
+
+    def counting(values, *args, **kwargs):
+        checked.append(np.shape(values))
+        return real(values, *args, **kwargs)
+
+    monkeypatch.setattr(np, "isfinite", counting)
+    assert np.array_equal(cloud.with_(radii=np.full(n, 0.2)).radii, np.full(n, 0.2, np.float32))
+    assert checked == [(n,)]  # the new radii only
+    checked.clear()
+    taken = cloud.take(slice(10, 20))
+    assert checked == [] and len(taken) == 10
+    np.testing.assert_array_equal(taken.attributes["phong_alpha"], cloud.attributes["phong_alpha"][10:20])
+    with pytest.raises(InputError):
+        cloud.take(slice(0, 10)).with_(radii=np.zeros(10))
+
+
 def test_take_keeps_every_per_point_attribute():
     rng = np.random.default_rng(1)
     n = 20

@@ -256,34 +256,62 @@ def test_compiled_border_and_cap_kernels_match_numpy():
     rng = np.random.default_rng(5)
     xy = rng.uniform(-1, 1, size=(4_000, 2))
     xy = xy[(np.hypot(*xy.T) < 1) & (xy[:, 1] > 0)]
-    nbh = Neighbourhood.build(np.column_stack([xy, 0.01 * xy[:, 0] ** 2]), 16, progress=False)
-    normals = np.tile([0.0, 0.0, 1.0], (len(nbh.points), 1))
-    frames = orthonormal_basis(normals)
-    rows = np.arange(len(nbh.points))
-    got = borders._border_outwards(nbh.points, normals, nbh.index, rows, frames, cells.SHEET_COS,
-                                   np.full(len(nbh.points), np.inf))
-    d = nbh.points[nbh.index] - nbh.points[:, None]
-    angles = np.sort(np.arctan2(np.einsum("nkj,nj->nk", d, frames[:, 1]), np.einsum("nkj,nj->nk", d, frames[:, 0]))
-                     [:, 1:], axis=1)
-    gaps = np.diff(np.concatenate([angles, angles[:, :1] + 2 * np.pi], axis=1), axis=1)
-    ranked = np.sort(gaps, axis=1)
-    border = (ranked[:, -1] >= borders.BORDER_GAP) & (ranked[:, -2] <= borders.INTERIOR_GAP)
-    assert border.sum() > 50 and np.array_equal(got.any(axis=1), border)
-    widest = np.argmax(gaps, axis=1)
-    middle = angles[rows, widest] + gaps[rows, widest] / 2
-    expected = np.cos(middle)[:, None] * frames[:, 0] + np.sin(middle)[:, None] * frames[:, 1]
-    assert np.allclose(got[border], expected[border], atol=1e-12)
+    # and a lattice (neighbours in the same directions, gaps of exactly 45 and 90 degrees), a
+    # half disc too, rotated off the frame's axes
+    lattice = np.stack(np.meshgrid(np.arange(-30, 31), np.arange(0, 31)), -1).reshape(-1, 2) / 30.0
+    lattice = lattice[np.hypot(*lattice.T) < 1] @ np.array([[0.8, 0.6], [-0.6, 0.8]])
+    for plane in (xy, lattice):
+        nbh = Neighbourhood.build(np.column_stack([plane, 0.01 * plane[:, 0] ** 2]), 16, progress=False)
+        normals = np.tile([0.0, 0.0, 1.0], (len(nbh.points), 1))
+        frames = orthonormal_basis(normals)
+        rows = np.arange(len(nbh.points))
+        got = borders._border_outwards(nbh.points, normals, nbh.index, rows, frames, cells.SHEET_COS,
+                                       np.full(len(nbh.points), np.inf))
+        d = nbh.points[nbh.index] - nbh.points[:, None]
+        angles = np.sort(np.arctan2(np.einsum("nkj,nj->nk", d, frames[:, 1]),
+                                    np.einsum("nkj,nj->nk", d, frames[:, 0]))[:, 1:], axis=1)
+        gaps = np.diff(np.concatenate([angles, angles[:, :1] + 2 * np.pi], axis=1), axis=1)
+        ranked = np.sort(gaps, axis=1)
+        border = (ranked[:, -1] >= borders.BORDER_GAP) & (ranked[:, -2] <= borders.INTERIOR_GAP)
+        assert border.sum() > 50 and np.array_equal(got.any(axis=1), border)
+        widest = np.argmax(gaps, axis=1)
+        middle = angles[rows, widest] + gaps[rows, widest] / 2
+        expected = np.cos(middle)[:, None] * frames[:, 0] + np.sin(middle)[:, None] * frames[:, 1]
+        assert np.allclose(got[border], expected[border], atol=1e-12)
     raw = rng.uniform(0.1, 1, len(nbh.points)) ** 4
-    flipped = np.where(rng.uniform(size=(len(raw), 1)) < 0.3, -normals, normals)  # another surface's
-    for k in (16, 15):  # an odd and an even count of neighbours
-        index = nbh.index[:, :k]
-        for oriented in (False, True):
-            cap = outlier_cap(raw, index, flipped, oriented)
-            same = (np.einsum("nkj,nj->nk", flipped[index[:, 1:]], flipped) > 0) | (not oriented)
-            same[~same.any(axis=1)] = True  # none on its surface: all count
-            median = np.array([np.median(raw[row[1:]][keep]) for row, keep in zip(index, same, strict=True)])
-            reference = np.minimum(1.0, ISOLATED_FACTOR * median / raw)
-            assert np.array_equal(cap, reference) and (cap < 1).sum() > 10
+    # another surface's points: many, or a few scattered ones (which have none on their surface)
+    for share in (0.3, 0.02):
+        flipped = np.where(rng.uniform(size=(len(raw), 1)) < share, -normals, normals)
+        for k in (16, 15):  # an odd and an even count of neighbours
+            index = nbh.index[:, :k]
+            for oriented in (False, True):
+                cap = outlier_cap(raw, index, flipped, oriented)
+                same = (np.einsum("nkj,nj->nk", flipped[index[:, 1:]], flipped) > 0) | (not oriented)
+                alone = ~same.any(axis=1)
+                assert alone.any() == oriented
+                same[alone] = True  # none on its surface: all count
+                median = np.array([np.median(raw[row[1:]][keep]) for row, keep in zip(index, same, strict=True)])
+                reference = np.minimum(1.0, ISOLATED_FACTOR * median / raw)
+                assert np.array_equal(cap, reference) and (cap < 1).sum() > 10
+
+
+def test_bound_semi_axes_is_numpys_formula():
+    """The compiled sampling bound gives numpy's values to the bit: semi-axes and radii capped
+    at BOUND_FACTOR x spacing, and the mask of the capped splats."""
+    from surfel.preprocess.spacing import BOUND_FACTOR, bound_semi_axes
+
+    rng = np.random.default_rng(3)
+    axes = rng.normal(size=(5_000, 2, 3))
+    radii = np.linalg.norm(axes, axis=2).max(axis=1) * rng.uniform(0.5, 1.5, 5_000)
+    spacing = rng.uniform(0.1, 1.0, 5_000)
+    bound = BOUND_FACTOR * spacing
+    scale = np.minimum(1.0, bound[:, None] / np.maximum(np.linalg.norm(axes, axis=2), 1e-300))
+    for r in (radii, radii.astype(np.float32)):
+        got_axes, got_radii, capped = bound_semi_axes(axes, r, spacing)
+        assert np.array_equal(got_axes, axes * scale[:, :, None])
+        assert np.array_equal(got_radii, np.minimum(r, bound))
+        assert np.array_equal(capped, (scale < 1.0).any(axis=1) | (r > bound))
+        assert 100 < capped.sum() < 4_900
 
 
 def test_layer_thickness_separates_close_layers_and_nothing_else():

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from surfel.preprocess.grid_knn import k_nearest
+from surfel.preprocess.grid_knn import k_nearest, sorted_k_nearest, stable_order
 from surfel.preprocess.neighbourhood import Neighbourhood
 
 
@@ -55,3 +55,64 @@ def test_neighbourhood_sorts_and_unsorts():
     expected, _ = cKDTree(points).query(points, k=12)
     found = np.linalg.norm(nbh.points[nbh.index] - nbh.points[:, None], axis=2)
     assert np.allclose(np.sort(found, axis=1), nbh.sort(expected), atol=1e-12)
+
+
+@pytest.mark.parametrize("name, points, k, wide", [
+    ("plane", np.c_[rng.random((20_000, 2)), np.zeros(20_000)], 16, 64),
+    ("cube", rng.random((20_000, 3)), 8, 40),
+    ("far outlier and near duplicates",
+     np.r_[rng.random((5_000, 3)), [[1e6, 0, 0]], rng.random((10, 3)) * 1e-9], 16, 64),
+    ("coincident", np.zeros((5_000, 3)), 16, 64),
+    ("clusters far apart", np.r_[rng.random((3_000, 3)), rng.random((3_000, 3)) * 1e-3 + 50.0], 16, 64),
+    ("fewer points than k", rng.random((20, 3)), 4, 20),
+])
+def test_grid_queries_match_kd_tree(name, points, k, wide):
+    """The grid's wider queries of some points (Grid.nearest) find the k-d tree's distances,
+    the point itself first, nearest first, no neighbour twice."""
+    points = np.asarray(points, np.float64)
+    _, _, grid = sorted_k_nearest(points, k)
+    rows = np.r_[np.arange(0, len(points), 7), len(points) - 1]
+    index = grid.nearest(rows, wide)
+    assert index.shape == (len(rows), wide)
+    assert np.array_equal(index[:, 0], rows)
+    found = np.linalg.norm(grid.points[index] - grid.points[rows][:, None], axis=2)
+    expected, _ = cKDTree(grid.points).query(grid.points[rows], k=wide)
+    assert np.allclose(np.sort(found, axis=1), expected, rtol=0, atol=1e-12)
+    assert (np.diff(found[:, 1:], axis=1) >= 0).all()
+    assert (np.diff(np.sort(index, axis=1), axis=1) > 0).all()
+
+
+def test_moved_neighbourhood_queries_its_own_points():
+    """A neighbourhood whose points were replaced (moved) does not query the stale grid."""
+    from dataclasses import replace
+
+    points = rng.random((2_000, 3))
+    nbh = Neighbourhood.build(points, 8)
+    moved = replace(nbh, points=nbh.points[::-1].copy())
+    rows = np.arange(0, 2_000, 10)
+    found = np.linalg.norm(moved.points[moved.nearest(rows, 30)] - moved.points[rows][:, None], axis=2)
+    expected, _ = cKDTree(moved.points).query(moved.points[rows], k=30)
+    assert np.allclose(np.sort(found, axis=1), expected, atol=1e-12)
+
+
+def test_stable_order_is_numpys():
+    """The packed sort of the cell keys is numpy's stable argsort, duplicates in index order,
+    and so is its fallback for keys too wide to pack."""
+    keys = rng.integers(0, 1 << 20, 100_000) // 7
+    assert np.array_equal(stable_order(keys), np.argsort(keys, kind="stable"))
+    wide = rng.integers(0, 1 << 62, 1_000) | (1 << 61)
+    wide[::3] = wide[0]
+    assert np.array_equal(stable_order(wide), np.argsort(wide, kind="stable"))
+    assert np.array_equal(stable_order(np.array([5], np.int64)), [0])
+
+
+def test_cell_table_finds_every_occupied_cell_and_no_other():
+    """The hash table of the occupied cells gives each key's run, and -1 for keys of empty
+    cells (here the keys between and around the occupied ones)."""
+    from surfel.preprocess.grid_knn import _find, cell_table
+
+    keys = np.unique(rng.integers(0, 1 << 40, 5_000)) * 2  # even: the odd keys are empty cells
+    slots = cell_table(keys)
+    assert len(slots) >= 2 * len(keys)
+    assert all(_find(key, keys, slots) == run for run, key in enumerate(keys.tolist()))
+    assert all(_find(key + 1, keys, slots) == -1 for key in keys[::10].tolist())

@@ -17,7 +17,7 @@ from surfel.cloud import PointCloud
 from surfel.errors import InputError, SurfelError
 from surfel.io import load, write_ply
 from surfel.lod import binning, outofcore
-from surfel.lod.binning import fine_cells, halo_pairs
+from surfel.lod.binning import bin_input, fine_cells, halo_pairs, lone_cells, piece_files
 from surfel.lod.lazy import LazyHierarchy
 from surfel.lod.outofcore import (
     BYTES_PER_POINT,
@@ -27,7 +27,7 @@ from surfel.lod.outofcore import (
     parse_size,
 )
 from surfel.lod.source import is_source, open_source
-from surfel.lod.streaming import read_ahead
+from surfel.lod.streaming import open_inputs, read_ahead
 from surfel.metrics import compare_results
 from surfel.preprocess import complete
 from surfel.rendering import render
@@ -174,22 +174,60 @@ def test_partition_borders_match_in_memory(built, tmp_path, monkeypatch):
     assert (np.abs(radii / cloud.radii[index] - 1) > 1e-3).sum() > 100
 
 
+def test_parallel_binning_writes_what_one_process_writes(built, tmp_path, monkeypatch):
+    """A binary PLY binned by two worker processes, each a run of its chunks into pieces of
+    its own, holds for every partition and halo the bytes one process writes: the same
+    records in the same (the input's) order."""
+    from concurrent.futures import ProcessPoolExecutor
+    from multiprocessing import get_context
+
+    ply = built[0]
+    monkeypatch.setattr(binning, "CHUNK_POINTS", POINTS // 5 + 1)  # five chunks, split 3 + 2
+    folders = [tmp_path / "one", tmp_path / "two"]
+    for folder in folders:
+        folder.mkdir()
+    serial = bin_input(open_inputs(ply), folders[0], POINTS // 6, {}, False)
+    with ProcessPoolExecutor(2, mp_context=get_context("spawn")) as pool:
+        pooled = bin_input(open_inputs(ply), folders[1], POINTS // 6, {}, False, pool, 2)
+    assert serial == pooled and len(serial["counts"]) >= 6
+    pieces = 0
+    for g in range(len(serial["counts"])):
+        for suffix in ("bin", "halo"):
+            one, two = (piece_files(folder / "bins", f"part-{g:05d}", suffix) for folder in folders)
+            pieces += len(two)
+            assert b"".join(f.read_bytes() for f in one) == b"".join(f.read_bytes() for f in two)
+    assert pieces > 2 * len(serial["counts"])  # most partitions and halos came in two pieces
+
+
 @pytest.mark.parametrize("halo", [0.3, 1.5])
-def test_halo_pairs_match_their_definition(halo):
+@pytest.mark.parametrize("layout", ["scattered", "blocks"])
+def test_halo_pairs_match_their_definition(halo, layout):
     """A point joins the halo of every other partition with a cell within Chebyshev distance
-    h of it (binning.py), checked against every cell of a small grid."""
-    res = 6
+    h of it (binning.py), checked against every cell of a small grid: partitions scattered
+    cell by cell, or blocks of cells (octants, one of them empty) where most cells are lone."""
+    res = 8
     rng = np.random.default_rng(1)
-    lookup = rng.integers(-1, 5, res ** 3).astype(np.int32)
+    if layout == "scattered":
+        lookup = rng.integers(-1, 5, res ** 3).astype(np.int32)
+    else:
+        octant = np.indices((res, res, res)) // (res // 2)
+        lookup = (octant[0] * 4 + octant[1] * 2 + octant[2]).astype(np.int32).reshape(-1)
+        lookup[lookup == 5] = -1
     points = rng.random((400, 3)) * res  # the cube [0, res]^3: cell widths of 1
     own = lookup[fine_cells(points, np.zeros(3), 1.0, res)]
-    found = set(zip(*(a.tolist() for a in halo_pairs(points, np.zeros(3), 1.0, res, lookup, own, halo)),
+    lone = lone_cells(lookup, res, halo)
+    found = set(zip(*(a.tolist() for a in halo_pairs(points, np.zeros(3), 1.0, res, lookup, lone, own, halo)),
                     strict=True))
+    # the lone cells only skip work: with none, the same pairs
+    unskipped = halo_pairs(points, np.zeros(3), 1.0, res, lookup, np.zeros(res ** 3, bool), own, halo)
+    assert found == set(zip(*(a.tolist() for a in unskipped), strict=True))
     corner = np.stack(np.meshgrid(*[np.arange(res)] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
     gap = np.maximum(np.maximum(corner[None] - points[:, None], points[:, None] - corner[None] - 1), 0).max(axis=2)
     near = (gap <= halo) & (lookup[None] >= 0) & (lookup[None] != own[:, None])
     expected = {(i, int(lookup[c])) for i, c in zip(*np.nonzero(near), strict=True)}
     assert found == expected and len(expected) > 50
+    if layout == "blocks":
+        assert lone.mean() > 0.1
 
 
 def test_interrupted_build_leaves_no_output_and_resumes(built, tmp_path, monkeypatch):

@@ -13,6 +13,8 @@ are then marked read-only in place; changing a cloud means making a new one (`wi
 from __future__ import annotations
 
 import math
+from contextlib import contextmanager
+from contextvars import ContextVar
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 
@@ -37,6 +39,20 @@ def _read_only(array: np.ndarray) -> np.ndarray:
     return array
 
 
+# ids of the arrays whose values a valid cloud holds (or a subset of them), while `with_` or
+# `take` constructs a cloud from them: their values are not checked again, only their shapes
+_CHECKED: ContextVar[frozenset[int]] = ContextVar("checked", default=frozenset())
+
+
+@contextmanager
+def _checked(arrays):
+    token = _CHECKED.set(frozenset(id(array) for array in arrays if array is not None))
+    try:
+        yield
+    finally:
+        _CHECKED.reset(token)
+
+
 def _contiguous(value, dtype) -> np.ndarray:
     """`value` as a C-contiguous array of `dtype`: the caller's array itself when it is one."""
     array = np.asarray(value, dtype=dtype)
@@ -52,7 +68,13 @@ def file_normals(normals) -> np.ndarray | None:
     if normals is None:
         return None
     normals = np.asarray(normals)
-    return normals if normals.any(axis=1).all() else None
+    if normals.ndim != 2:
+        return normals if normals.any(axis=1).all() else None
+    # column by column: numpy reduces along the rows of an (N, 3) array several times slower
+    nonzero = np.zeros(len(normals), bool)
+    for column in normals.T:
+        nonzero |= column != 0
+    return normals if nonzero.all() else None
 
 
 # Bounding radii surfel renders: depths and splat sizes are float32 (up to 3.4e38, normal
@@ -128,14 +150,19 @@ class PointCloud:
 
     def __post_init__(self):
         src = self.source
+        checked = _CHECKED.get()
+
+        def known(value, arr) -> bool:  # values a valid cloud holds: only the shape is checked
+            return arr is value and id(value) in checked
+
         pos = _contiguous(self.positions, np.float64)
         if pos.ndim != 2 or pos.shape[1] != 3:
             raise InputError(src, f"positions must have shape (N, 3), got {pos.shape}")
         n = len(pos)
         if n == 0:
             raise InputError(src, "no points")
-        bad = ~np.isfinite(pos).all(axis=1)
-        if bad.any():
+        if not known(self.positions, pos) and not np.isfinite(pos).all():
+            bad = ~np.isfinite(pos).all(axis=1)
             nan = int(np.isnan(pos).any(axis=1).sum())
             what = "NaN" if nan == int(bad.sum()) else "NaN or infinite"
             raise InputError(src, f"{int(bad.sum())} points have {what} coordinates")
@@ -146,6 +173,8 @@ class PointCloud:
             arr = _contiguous(value, dtype)
             if arr.shape != (n, *tail):
                 raise InputError(src, f"{name} must have shape {(n, *tail)}, got {arr.shape}")
+            if known(value, arr):
+                return arr
             if finite and arr.dtype.kind == "f" and not np.isfinite(arr).all():
                 count = int((~np.isfinite(arr.reshape(n, -1))).any(axis=1).sum())
                 raise InputError(src, f"{count} points have NaN or infinite {name}")
@@ -165,7 +194,7 @@ class PointCloud:
             return per_point(name, value, value.shape[1:], dtype, finite=False)
 
         normals = per_point("normals", self.normals, (3,))
-        if normals is not None:
+        if normals is not None and not known(self.normals, normals):
             # Rescale only what is not already unit length, so that unit normals survive a
             # write/read round trip bit for bit; those few in float64, where huge inputs whose
             # float32 squares overflow cannot.
@@ -179,10 +208,10 @@ class PointCloud:
                 normals = normals.copy()
                 normals[off] = (normals[off] / length[:, None]).astype(np.float32)
         colors = per_point("colors", self.colors, (3,))
-        if colors is not None and (colors.min() < 0 or colors.max() > 1):
+        if colors is not None and not known(self.colors, colors) and (colors.min() < 0 or colors.max() > 1):
             raise InputError(src, "colors must lie in [0, 1]")
         radii = per_point("radii", self.radii, ())
-        if radii is not None and not (radii > 0).all():
+        if radii is not None and not known(self.radii, radii) and not (radii > 0).all():
             raise InputError(src, f"{int((radii <= 0).sum())} points have non-positive radii")
         axes = per_point("axes", self.axes, (2, 3))
         faces = self.faces
@@ -243,8 +272,11 @@ class PointCloud:
         return len(self.positions)
 
     def with_(self, **changes) -> PointCloud:
-        """A copy with some fields replaced (validated again)."""
-        return replace(self, **changes)
+        """A copy with some fields replaced (validated again: the arrays kept from this cloud
+        only for their shapes, their values having been checked)."""
+        with _checked([self.positions, self.normals, self.colors, self.radii, self.axes,
+                       *self.attributes.values()]):
+            return replace(self, **changes)
 
     def scaled(self, factor: float) -> PointCloud:
         """The same cloud with every length multiplied by `factor`: positions (about the
@@ -270,11 +302,13 @@ class PointCloud:
         def pick(value):
             return None if value is None else value[index]
 
-        return PointCloud(self.positions[index], normals=pick(self.normals), colors=pick(self.colors),
-                          radii=pick(self.radii), axes=pick(self.axes),
-                          attributes={name: value[index] for name, value in self.attributes.items()},
-                          kinds=self.schema.kinds, geospatial=self.geospatial, source=self.source,
-                          sensors=self.sensors)
+        picked = {"positions": self.positions[index], "normals": pick(self.normals), "colors": pick(self.colors),
+                  "radii": pick(self.radii), "axes": pick(self.axes)}
+        attributes = {name: value[index] for name, value in self.attributes.items()}
+        # values picked from this cloud's are valid: only the shapes and the scale are checked
+        with _checked([*picked.values(), *attributes.values()]):
+            return PointCloud(**picked, attributes=attributes, kinds=self.schema.kinds, geospatial=self.geospatial,
+                              source=self.source, sensors=self.sensors)
 
     def sensor_positions(self) -> np.ndarray | None:
         """(N, 3) float64: the sensor position of every point, or None when none is known."""

@@ -14,7 +14,14 @@ meets that cube when along every axis
 
     d < 0:  f + (-d - 1) <= h,     d = 0: always,     d > 0:  (1 - f) + (d - 1) <= h,
 
-so a point farther than h from every face of its cell is in no halo.
+so a point farther than h from every face of its cell is in no halo, nor is a point of a lone
+cell (`lone_cells`: one whose H-neighbourhood holds no cell of another partition), which most
+cells of a partition are.
+
+Pieces: binary PLY inputs are binned by the worker processes of the build in parallel, each a
+contiguous run of the input's chunks into files of its own (piece p of partition g:
+part-g.p.bin, part-g.p.halo); a partition's points are its pieces in piece order, the input's
+order, as one process binning every chunk would write them.
 
 Grouping: a stable counting sort of small integer keys (partition indices), the order and the
 start of each key's run, so that each partition's points are written in one piece.
@@ -25,6 +32,8 @@ from __future__ import annotations
 import math
 import os
 import sys
+from collections.abc import Iterable
+from concurrent.futures import Executor, as_completed, wait
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -35,7 +44,7 @@ from tqdm import tqdm
 
 from ..attributes import Schema
 from ..cloud import file_normals, framing_sphere
-from .streaming import KindVote, StreamInput, all_chunks, read_ahead
+from .streaming import CHUNK_POINTS, Chunk, KindVote, StreamInput, all_chunks, read_ahead
 
 HISTOGRAM_BITS = 7
 # points of the input sampled evenly for the histogram (all of them in smaller inputs)
@@ -61,8 +70,27 @@ def fine_cells(positions, lo, scale, res):  # pragma: no cover - compiled
     return cells
 
 
+def halo_reach(halo: float) -> int:
+    """H of the module docstring: the cells scanned on each side, for a halo of `halo` cell widths."""
+    return max(1, math.ceil(halo))
+
+
+def lone_cells(lookup: np.ndarray, res: int, halo: float) -> np.ndarray:
+    """(res^3,) bool, flattened as lookup: the cells whose H-neighbourhood (H = halo_reach(halo))
+    holds no cell of a partition other than their own (lookup[cell]; empty cells, -1, belong
+    to none)."""
+    from scipy.ndimage import maximum_filter, minimum_filter
+
+    table = lookup.reshape(res, res, res)
+    size = 2 * halo_reach(halo) + 1
+    highest = maximum_filter(table, size, mode="constant", cval=-1)
+    lowest = minimum_filter(np.where(table < 0, np.iinfo(np.int32).max, table), size, mode="constant",
+                            cval=np.iinfo(np.int32).max)
+    return ((highest <= table) & (lowest >= table)).reshape(-1)
+
+
 @numba.njit(inline="always")
-def _halo_of(position, lo, scale, res, lookup, own, halo, reach, found):  # pragma: no cover - compiled
+def _halo_of(position, lo, scale, res, lookup, lone, own, halo, reach, found):  # pragma: no cover - compiled
     """The partitions (other than `own`) whose cells lie within `halo` cell widths of the
     position, into found[:count]; returns count."""
     x = (position[0] - lo[0]) * scale
@@ -71,6 +99,8 @@ def _halo_of(position, lo, scale, res, lookup, own, halo, reach, found):  # prag
     qx = min(max(np.int64(math.floor(x)), 0), res - 1)
     qy = min(max(np.int64(math.floor(y)), 0), res - 1)
     qz = min(max(np.int64(math.floor(z)), 0), res - 1)
+    if lone[(qx * res + qy) * res + qz]:
+        return 0  # every cell within reach is the point's own partition's, or empty
     fx = min(max(x - qx, 0.0), 1.0)
     fy = min(max(y - qy, 0.0), 1.0)
     fz = min(max(z - qz, 0.0), 1.0)
@@ -105,9 +135,10 @@ def _halo_of(position, lo, scale, res, lookup, own, halo, reach, found):  # prag
 
 
 @numba.njit(parallel=True, cache=True)
-def halo_pairs(positions, lo, scale, res, lookup, own, halo):  # pragma: no cover - compiled
-    """(point index, partition) of every halo membership (module docstring), halo in cell widths."""
-    reach = max(1, int(math.ceil(halo)))
+def halo_pairs(positions, lo, scale, res, lookup, lone, own, halo):  # pragma: no cover - compiled
+    """(point index, partition) of every halo membership (module docstring), halo in cell
+    widths; lone: `lone_cells(lookup, res, halo)`."""
+    reach = max(1, int(math.ceil(halo)))  # halo_reach
     n = len(positions)
     block = 4096
     blocks = (n + block - 1) // block
@@ -115,7 +146,7 @@ def halo_pairs(positions, lo, scale, res, lookup, own, halo):  # pragma: no cove
     for b in numba.prange(blocks):
         found = np.empty((2 * reach + 1) ** 3, np.int32)
         for i in range(b * block, min(n, (b + 1) * block)):
-            per_block[b + 1] += _halo_of(positions[i], lo, scale, res, lookup, own[i], halo, reach, found)
+            per_block[b + 1] += _halo_of(positions[i], lo, scale, res, lookup, lone, own[i], halo, reach, found)
     for b in range(blocks):
         per_block[b + 1] += per_block[b]
     points = np.empty(per_block[blocks], np.int64)
@@ -124,7 +155,7 @@ def halo_pairs(positions, lo, scale, res, lookup, own, halo):  # pragma: no cove
         found = np.empty((2 * reach + 1) ** 3, np.int32)
         out = per_block[b]
         for i in range(b * block, min(n, (b + 1) * block)):
-            count = _halo_of(positions[i], lo, scale, res, lookup, own[i], halo, reach, found)
+            count = _halo_of(positions[i], lo, scale, res, lookup, lone, own[i], halo, reach, found)
             for j in range(count):
                 points[out] = i
                 parts[out] = found[j]
@@ -216,11 +247,65 @@ def record_dtype(has_normals: bool, has_colors: bool, schema: Schema) -> np.dtyp
     return np.dtype(fields)
 
 
+@dataclass(frozen=True, eq=False)
+class Bins:
+    """What pass 2 needs to bin chunks into partial/bins/ (`folder`): the plan's partition of
+    each fine cell (lookup), its lone cells, the halo width, the records' layout. A process
+    bins its chunks into its own piece p of the files, part-g.p.bin and part-g.p.halo."""
+
+    folder: Path
+    lo: np.ndarray
+    scale: float
+    res: int
+    lookup: np.ndarray
+    lone: np.ndarray
+    halo: float
+    groups: int
+    dtype: np.dtype
+    has_normals: bool
+    has_colors: bool
+    schema: Schema
+
+    def add(self, chunks: Iterable[Chunk], piece: int, bar: tqdm | None = None) -> np.ndarray:
+        """Append the chunks' points to their partitions' and halos' files of piece `piece`;
+        returns the points per partition."""
+        counts = np.zeros(self.groups, np.int64)
+        for chunk in read_ahead(iter(chunks)):
+            part = self.lookup[fine_cells(chunk.positions, self.lo, self.scale, self.res)]
+            order, starts = group_by(part, self.groups)
+            counts += np.diff(starts)
+            records = _records(chunk, self.dtype, self.has_normals, self.has_colors, self.schema)
+            _append_runs(self.folder, f"{piece}.bin", _gather(records, order), starts)
+            if self.groups > 1:
+                points, owners = halo_pairs(chunk.positions, self.lo, self.scale, self.res, self.lookup, self.lone,
+                                            part, self.halo)
+                order, starts = group_by(owners, self.groups)
+                _append_runs(self.folder, f"{piece}.halo", _gather(records, points[order]), starts)
+            del records
+            if bar is not None:
+                bar.update(len(chunk.positions))
+        return counts
+
+    def add_ply(self, inputs: list[StreamInput], chunks: list[tuple[int, int]], size: int, piece: int) -> np.ndarray:
+        """`add` of the binary PLY chunks (input, chunk index) of `size` points, in order."""
+        read = (chunk for source, index in chunks for chunk in inputs[source].ply_chunks(size, index, index + 1))
+        return self.add(read, piece)
+
+
+def piece_files(folder: Path, name: str, suffix: str) -> list[Path]:
+    """The pieces of partition `name`'s file (suffix "bin" or "halo"), in piece order: their
+    concatenation holds the points in input order."""
+    return sorted(folder.glob(f"{name}.*.{suffix}"), key=lambda path: int(path.name.split(".")[1]))
+
+
 def bin_input(inputs: list[StreamInput], partial: Path, cap: int, signature: dict,
-               progress: bool | None) -> dict:
+              progress: bool | None, pool: Executor | None = None, workers: int = 1) -> dict:
     """Passes 1 and 2 of the out-of-core build (outofcore.py's docstring) into partial/bins/:
-    part-g.bin and part-g.halo, the records (`record_dtype`) of partition g and of its halo;
-    returns the plan as saved in plan.json (`signature` included)."""
+    the pieces of part-g.bin and part-g.halo (`piece_files`), the records (`record_dtype`) of
+    partition g and of its halo; returns the plan as saved in plan.json (`signature`
+    included). Binary PLY inputs are binned by the `workers` processes of `pool`, each a
+    contiguous run of their chunks into its own piece (other inputs by this process, read
+    chunk after chunk)."""
     total = sum(i.count for i in inputs)
     lo = np.full(3, np.inf)
     hi = np.full(3, -np.inf)
@@ -232,8 +317,10 @@ def bin_input(inputs: list[StreamInput], partial: Path, cap: int, signature: dic
         color_max = 0.0
         with progress_bar(source.count, f"scan {os.path.basename(source.path)}", progress) as bar:
             for chunk in read_ahead(source.chunks()):
-                lo = np.minimum(lo, chunk.positions.min(axis=0))
-                hi = np.maximum(hi, chunk.positions.max(axis=0))
+                # column by column: numpy reduces a strided column several times faster than axis=0
+                columns = [chunk.positions[:, axis] for axis in range(3)]
+                lo = np.minimum(lo, [column.min() for column in columns])
+                hi = np.maximum(hi, [column.max() for column in columns])
                 samples.append(chunk.positions[::stride].copy())
                 vote.add(chunk)
                 placeholders = placeholders or (chunk.normals is not None and file_normals(chunk.normals) is None)
@@ -258,26 +345,29 @@ def bin_input(inputs: list[StreamInput], partial: Path, cap: int, signature: dic
     halo = halo_width(histogram)
     del histogram
     lookup = plan.lookup(complete=stride > 1)
+    lone = lone_cells(lookup, res, halo)
     has_normals, has_colors = inputs[0].has_normals and not placeholders, any(i.has_colors for i in inputs)
     kinds = vote.kinds
     schema = Schema(replace(spec, kind=kinds[spec.name]) for spec in vote.specs)
     dtype = record_dtype(has_normals, has_colors, schema)
-    bins = partial / "bins"
-    bins.mkdir()
-    groups = len(plan.cells)
-    counts = np.zeros(groups, np.int64)
+    bins = Bins(partial / "bins", lo, scale, res, lookup, lone, halo, len(plan.cells), dtype, has_normals,
+                has_colors, schema)
+    bins.folder.mkdir()
+    chunks = [(source, index) for source, i in enumerate(inputs) for index in range(-(-i.count // CHUNK_POINTS))]
     with progress_bar(total, "partition", progress) as bar:
-        for chunk in read_ahead(all_chunks(inputs)):
-            part = lookup[fine_cells(chunk.positions, lo, scale, res)]
-            order, starts = group_by(part, groups)
-            counts += np.diff(starts)
-            _append_runs(bins, "bin", _records(chunk, order, dtype, has_normals, has_colors, schema), starts)
-            if groups > 1:
-                points, owners = halo_pairs(chunk.positions, lo, scale, res, lookup, part, halo)
-                order, starts = group_by(owners, groups)
-                _append_runs(bins, "halo", _records(chunk, points[order], dtype, has_normals, has_colors, schema),
-                             starts)
-            bar.update(len(order))
+        if pool is not None and workers > 1 and len(chunks) > 1 and all(i.kind == "ply" for i in inputs):
+            cuts = np.linspace(0, len(chunks), min(workers, len(chunks)) + 1).round().astype(int)
+            jobs = {pool.submit(bins.add_ply, inputs, chunks[a:b], CHUNK_POINTS, piece): b - a
+                    for piece, (a, b) in enumerate(zip(cuts[:-1], cuts[1:], strict=True))}
+            counts = np.zeros(bins.groups, np.int64)
+            try:
+                for job in as_completed(jobs):
+                    counts += job.result()
+                    bar.update(min(total, jobs[job] * CHUNK_POINTS))
+            finally:
+                wait(jobs)  # no worker still writes into bins/ when an error removes it
+        else:
+            counts = bins.add(all_chunks(inputs), 0, bar)
     return {"signature": signature, "lo": lo.tolist(), "size": size, "cells": plan.cells,
             "counts": counts.tolist(), "has_normals": has_normals, "has_colors": has_colors,
             "schema": schema.to_list(), "geospatial": any(i.geospatial for i in inputs)}
@@ -289,18 +379,23 @@ def halo_width(histogram: np.ndarray) -> float:
     return float(min(HALO_MAX_CELLS, HALO_SPACINGS / np.sqrt(np.median(occupied))))
 
 
-def _records(chunk, rows: np.ndarray, dtype: np.dtype, has_normals: bool, has_colors: bool,
-             schema: Schema) -> np.ndarray:
-    """The binned records (_record_dtype) of the chunk's points `rows`, in that order."""
-    records = np.empty(len(rows), dtype)
-    records["p"] = chunk.positions[rows]
+def _records(chunk, dtype: np.dtype, has_normals: bool, has_colors: bool, schema: Schema) -> np.ndarray:
+    """The binned records (record_dtype) of the chunk's points, in its order."""
+    records = np.empty(len(chunk.positions), dtype)
+    records["p"] = chunk.positions
     if has_normals:
-        records["n"] = chunk.normals[rows]
+        records["n"] = chunk.normals
     if has_colors:
-        records["c"] = chunk.colors[rows] if chunk.colors is not None else 1.0
+        records["c"] = chunk.colors if chunk.colors is not None else 1.0
     for i, name in enumerate(schema):
-        records[f"a{i}"] = chunk.attributes[name][rows]
+        records[f"a{i}"] = chunk.attributes[name]
     return records
+
+
+def _gather(records: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """records[rows], copied as opaque bytes: numpy gathers those several times faster than
+    the fields of a structured array."""
+    return records.view(np.dtype((np.void, records.dtype.itemsize)))[rows]
 
 
 def _append_runs(bins: Path, suffix: str, records: np.ndarray, starts: np.ndarray) -> None:

@@ -166,8 +166,10 @@ def _morton_codes(positions, lo, scale):  # pragma: no cover - compiled
 
 def morton_codes(positions: np.ndarray) -> np.ndarray:
     """63-bit Morton codes of positions quantised to 2^21 cells per axis of the bounding cube."""
-    lo = positions.min(axis=0)
-    extent = max(float((positions.max(axis=0) - lo).max()), 1e-300)
+    # column by column: numpy reduces a strided column several times faster than axis 0 of (N, 3)
+    columns = [positions[:, axis] for axis in range(3)]
+    lo = np.array([column.min() for column in columns])
+    extent = max(float((np.array([column.max() for column in columns]) - lo).max()), 1e-300)
     return _morton_codes(positions, lo, ((1 << MORTON_BITS) - 1) / extent)
 
 

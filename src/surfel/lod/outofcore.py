@@ -26,7 +26,8 @@ while the one before is processed (`streaming.read_ahead`):
    partition's file, and to the halo files of the partitions within the halo width h of
    them (binning.py): h = HALO_SPACINGS sample spacings, the spacing estimated from the
    median count m of the occupied histogram cells as of an evenly sampled surface,
-   cell / sqrt(m), at most HALO_MAX_CELLS cells.
+   cell / sqrt(m), at most HALO_MAX_CELLS cells. With w > 1 workers a binary PLY input is
+   binned by them, each a contiguous run of its chunks (binning.py's pieces).
 
 Each partition is then loaded with its halo, completed (radii and tangent axes estimated as
 for any cloud, `preprocess.complete`; normals from the input when it has them), stripped of
@@ -93,7 +94,7 @@ from ..cloud import PointCloud
 from ..errors import SurfelError
 from ..files import write_atomically, write_json
 from ..preprocess import INACTIVE_CLIP
-from .binning import bin_input, progress_bar, record_dtype
+from .binning import bin_input, piece_files, progress_bar, record_dtype
 from .build import ROOT_PARENT_ERROR, _merge_cells, _next_level, aggregate_attributes, build_lod, morton_codes
 from .sequential import EXTRAS, r_max_bucket, to_sequential_cloud
 from .streaming import StreamInput, open_inputs
@@ -204,7 +205,7 @@ def build_outofcore(in_path: str | os.PathLike, out_path: str | os.PathLike, *, 
                                                            initializer=_start_worker))
             for _ in range(workers):
                 pool.submit(int)
-        saved = _plan_and_bin(inputs, partial, cap, signature, resume, progress)
+        saved = _plan_and_bin(inputs, partial, cap, signature, resume, progress, pool, workers)
         has_normals, has_colors = saved["has_normals"], saved["has_colors"]
         schema = Schema.from_json(saved["schema"])
         dtype = record_dtype(has_normals, has_colors, schema)
@@ -238,7 +239,7 @@ def build_outofcore(in_path: str | os.PathLike, out_path: str | os.PathLike, *, 
 
 
 def _plan_and_bin(inputs: list[StreamInput], partial: Path, cap: int, signature: dict, resume: bool,
-                  progress: bool | None) -> dict:
+                  progress: bool | None, pool: ProcessPoolExecutor | None, workers: int) -> dict:
     """The plan (plan.json) of the build in `partial`: that of the interrupted build when
     resuming, else planned and binned now (passes 1 and 2 of the module docstring)."""
     plan_file = partial / "plan.json"
@@ -251,7 +252,7 @@ def _plan_and_bin(inputs: list[StreamInput], partial: Path, cap: int, signature:
             shutil.rmtree(partial)
         partial.mkdir(parents=True)
         try:
-            saved = bin_input(inputs, partial, cap, signature, progress)
+            saved = bin_input(inputs, partial, cap, signature, progress, pool, workers)
         except BaseException:  # binning cannot be resumed half way: leave nothing behind
             shutil.rmtree(partial, ignore_errors=True)
             raise
@@ -326,10 +327,10 @@ def _build_partition(partial: Path, name: str, dtype: np.dtype, schema: Schema, 
     then dropped."""
     from ..preprocess import complete
 
-    own = np.fromfile(partial / "bins" / f"{name}.bin", dtype)
-    halo_file = partial / "bins" / f"{name}.halo"
-    records = np.concatenate([own, np.fromfile(halo_file, dtype)]) if halo_file.exists() else own
-    count = len(own)
+    files = {suffix: piece_files(partial / "bins", name, suffix) for suffix in ("bin", "halo")}
+    own = [np.fromfile(file, dtype) for file in files["bin"]]
+    count = sum(len(piece) for piece in own)
+    records = np.concatenate(own + [np.fromfile(file, dtype) for file in files["halo"]])
     del own
     cloud = PointCloud(records["p"], normals=records["n"] if "n" in dtype.names else None,
                        colors=records["c"] if "c" in dtype.names else None, geospatial=geospatial,
@@ -364,8 +365,8 @@ def _build_partition(partial: Path, name: str, dtype: np.dtype, schema: Schema, 
     final = partial / name
     shutil.rmtree(final, ignore_errors=True)
     os.replace(work, final)
-    (partial / "bins" / f"{name}.bin").unlink(missing_ok=True)
-    halo_file.unlink(missing_ok=True)
+    for file in files["bin"] + files["halo"]:
+        file.unlink(missing_ok=True)
 
 
 def _save_array(path: Path, value: np.ndarray) -> None:

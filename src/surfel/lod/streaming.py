@@ -62,7 +62,7 @@ class StreamInput:
 
     def chunks(self, size: int = CHUNK_POINTS) -> Iterator[Chunk]:
         if self.kind == "ply":
-            yield from self._ply_chunks(size)
+            yield from self.ply_chunks(size)
         elif self.kind == "las":
             yield from self._las_chunks(size)
         else:
@@ -75,19 +75,24 @@ class StreamInput:
                             None if cloud.colors is None else cloud.colors[part],
                             {name: values[part] for name, values in cloud.attributes.items()})
 
-    def _ply_chunks(self, size: int) -> Iterator[Chunk]:
+    def ply_chunks(self, size: int, first: int = 0, stop: int | None = None) -> Iterator[Chunk]:
+        """Chunks first..stop - 1 (all by default) of `size` points of a binary PLY, read at
+        their offsets (so that processes may read parts of one file in parallel)."""
         from ..io.ply import vertex_attributes
 
         # plain reads, not a memory map of the whole file: mapped pages would count as
         # resident memory until unmapped, growing with the file
+        end = self.count if stop is None else min(self.count, stop * size)
         with open(self.path, "rb") as file:
-            for start in range(0, self.count, size):
+            for start in range(first * size, end, size):
                 m = min(size, self.count - start)
                 file.seek(self.offset + start * self.dtype.itemsize)
                 records = np.fromfile(file, self.dtype, count=m)
                 if len(records) < m:
                     raise InputError(self.path, f"truncated PLY body (vertex {start + len(records)} of {self.count})")
-                positions = np.column_stack([records[c] for c in "xyz"]).astype(np.float64)
+                positions = np.empty((m, 3))  # converted as copied: one pass, not two
+                for axis, name in enumerate("xyz"):
+                    positions[:, axis] = records[name]
                 normals = (np.column_stack([records[c] for c in ("nx", "ny", "nz")]).astype(np.float32)
                            if self.has_normals else None)
                 colors = None
@@ -127,8 +132,8 @@ def checked(path: str, positions: np.ndarray, normals: np.ndarray | None, colors
         raise InputError(path, "points have NaN or infinite coordinates")
     if normals is not None:
         # zero vectors are placeholders (cloud.file_normals): the scan pass drops such normals
-        bad = ~np.isfinite(normals).all(axis=1)
-        if bad.any():
+        if not np.isfinite(normals).all():  # counted only then: a reduction along rows is slow
+            bad = ~np.isfinite(normals).all(axis=1)
             raise InputError(path, f"{int(bad.sum())} points in a chunk have NaN or infinite normals")
     for name, values in attributes.items():
         if values.dtype.kind == "f" and not np.isfinite(values).all():

@@ -26,7 +26,6 @@ import math
 
 import numba
 import numpy as np
-from scipy.spatial import cKDTree
 
 from .cells import SHEET_COS
 from .chunked import map_chunks
@@ -54,19 +53,27 @@ def _border_outwards(points, normals, index, rows, frames, sheet_cos, layers):  
     m, k = index.shape
     outwards = np.zeros((m, 3))
     for block in numba.prange((m + KERNEL_BLOCK - 1) // KERNEL_BLOCK):
-        angles = np.empty(k)  # one buffer per block of points: an allocation per point costs as much as its work
+        # one set of buffers per block of points: an allocation per point costs as much as its work
+        keys = np.empty(k)
+        xs = np.empty(k)
+        ys = np.empty(k)
         for i in range(block * KERNEL_BLOCK, min(m, (block + 1) * KERNEL_BLOCK)):
-            _point_outwards(points, normals, index, rows, frames, sheet_cos, layers, i, angles, outwards)
+            _point_outwards(points, normals, index, rows, frames, sheet_cos, layers, i, keys, xs, ys, outwards)
     return outwards
 
 
 @numba.njit(cache=True, inline="always")
-def _point_outwards(points, normals, index, rows, frames, sheet_cos, layers, i, angles, out):  # pragma: no cover
-    """out[i]: row i of `_border_outwards`, with angles (k,) as scratch."""
+def _point_outwards(points, normals, index, rows, frames, sheet_cos, layers, i, keys, xs, ys,
+                    out):  # pragma: no cover
+    """out[i]: row i of `_border_outwards`, with keys, xs, ys (k,) as scratch.
+
+    The neighbours are sorted by the pseudo-angle a = 1 - x / (|x| + |y|), signed as y, in
+    [-2, 2]: it orders directions as their angle does, without an arctangent, and
+    da / dangle = 1 / (|cos| + |sin|)^2 lies in [1/2, 1], so a gap of less than INTERIOR_GAP / 2
+    in a is less than INTERIOR_GAP in angle: only the other gaps, a few, take arctangents."""
     k = index.shape[1]
     p = rows[i]
     used = 0
-    folded = False
     for j in range(k):
         q = index[i, j]
         facing = 0.0
@@ -80,30 +87,37 @@ def _point_outwards(points, normals, index, rows, frames, sheet_cos, layers, i, 
             y += d * frames[i, 1, a]
             antisymmetric += d * (normals[p, a] + normals[q, a])
         if facing < sheet_cos:
-            folded = True
-            break
+            return  # folded
         if q == p or (x == 0.0 and y == 0.0) or 0.5 * abs(antisymmetric) > layers[p]:
             continue
-        # insertion sort as they come: a dozen angles, no allocation
-        angle = math.atan2(y, x)
+        key = math.copysign(1.0 - x / (abs(x) + abs(y)), y)
+        # insertion sort as they come: a dozen directions, no allocation
         slot = used
-        while slot > 0 and angles[slot - 1] > angle:
-            angles[slot] = angles[slot - 1]
+        while slot > 0 and keys[slot - 1] > key:
+            keys[slot] = keys[slot - 1]
+            xs[slot] = xs[slot - 1]
+            ys[slot] = ys[slot - 1]
             slot -= 1
-        angles[slot] = angle
+        keys[slot] = key
+        xs[slot] = x
+        ys[slot] = y
         used += 1
-    if used < 3 or folded:
+    if used < 3:
         return
     widest = 0.0
     second = 0.0
     middle = 0.0
     for j in range(used):
-        following = angles[j + 1] if j + 1 < used else angles[0] + 2.0 * math.pi
-        gap = following - angles[j]
+        following = j + 1 if j + 1 < used else 0
+        turn = 4.0 if following == 0 else 0.0  # the last gap wraps around
+        if keys[following] + turn - keys[j] < 0.5 * INTERIOR_GAP:
+            continue  # narrower than INTERIOR_GAP
+        start = math.atan2(ys[j], xs[j])
+        gap = math.atan2(ys[following], xs[following]) + (2.0 * math.pi if following == 0 else 0.0) - start
         if gap > widest:
             second = widest
             widest = gap
-            middle = angles[j] + 0.5 * gap
+            middle = start + 0.5 * gap
         elif gap > second:
             second = gap
     if widest >= BORDER_GAP and second <= INTERIOR_GAP:
@@ -130,8 +144,7 @@ def border_outwards(nbh: Neighbourhood, normals: np.ndarray, index: np.ndarray, 
                           n, progress, "borders")
     candidates = np.flatnonzero(outwards.any(axis=1))
     if len(candidates) and n > index.shape[1]:
-        # unbalanced (sliding midpoint): built in about half the time, the same neighbours
-        _, wide = cKDTree(nbh.points, balanced_tree=False).query(nbh.points[candidates], k=min(BORDER_CONFIRM, n))
+        wide = nbh.nearest(candidates, BORDER_CONFIRM)
         outwards[candidates] = _border_outwards(nbh.points, normals, wide, candidates,
                                                 orthonormal_basis(normals[candidates]), SHEET_COS, layers)
     return outwards

@@ -6,7 +6,8 @@ and the points in them, lie close together in memory.
 
 Cells: with cell width h and lo the minimum corner of the points, point p lies in the cell
 q = floor((p - lo) / h) (per axis, 0 <= q < 2^21), keyed by the Morton code of q (its bits
-interleaved). The points are sorted by key, so each occupied cell is one run of them.
+interleaved). The points are sorted by key, so each occupied cell is one run of them; a hash
+table of the occupied cells' keys (open addressing) finds a cell's run.
 
 Search: a point p of cell q scans the 3 x 3 x 3 block of cells around q (gathered once per
 cell for all its points) and keeps its k nearest candidates. Every point not scanned lies
@@ -20,6 +21,11 @@ point still unresolved after them (an outlier far from the rest) is queried in a
 (scipy's cKDTree) instead, as is every point when some cell holds more than MAX_CELL points
 (many coincident points, which no cell width separates).
 
+Queries of some of the points (`Grid.nearest`, e.g. a wider neighbourhood of a few of them)
+reuse the grid: a point scans its own cell, then the shells r = 1, 2, ... QUERY_RINGS around
+it, skipping cells farther than the k-th found, until the k-th found lies within the margin
+m + (r - 1) h (the k-d tree takes the rest).
+
 Cell width: the mean number of points per occupied cell c(h) is measured at two coarse widths
 h0 and h0 / 2; c grows as h^e (e = 2 on a surface, 3 in a volume), so e = log2(c(h0) / c(h0/2))
 (clamped to [1, 3]), and h is chosen so that c(h) = k / CELL_SHARE: about the k nearest within
@@ -29,6 +35,7 @@ one cell width of a point on a surface.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numba
 import numpy as np
@@ -40,6 +47,9 @@ COARSE_CELLS = 64      # cells along the longest side of the first occupancy mea
 RINGS = 3              # shells of cells scanned around a point before the k-d tree takes over
 RUN_BATCH = 256        # cells searched per parallel task
 MAX_CELL = 4096        # more points in one cell (coincident points): the k-d tree for all
+HASH_MULTIPLIER = 0x5851F42D4C957F2D  # odd, below 2^63: the hash of a cell key is its product's bits 32+
+QUERY_RINGS = 4        # shells of cells a query (Grid.nearest) scans before the k-d tree takes over
+QUERY_BATCH = 64       # points queried per parallel task
 # the 3 x 3 x 3 block's cell offsets, nearest first: the nearest fill the k first
 BLOCK_OFFSETS = np.array(sorted(((x, y, z) for x in (-1, 0, 1) for y in (-1, 0, 1) for z in (-1, 0, 1)),
                                 key=lambda o: abs(o[0]) + abs(o[1]) + abs(o[2])), np.int64)
@@ -109,10 +119,38 @@ def _runs(keys):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, inline="always")
-def _find(cell_key, run_keys):  # pragma: no cover - compiled
-    """Run index of a cell key, -1 if that cell is empty."""
-    at = np.searchsorted(run_keys, cell_key)
-    return at if at < len(run_keys) and run_keys[at] == cell_key else -1
+def _slot(cell_key, mask):  # pragma: no cover - compiled
+    """The first slot of a cell key in the hash table (multiplicative hashing; int64 products wrap)."""
+    return ((cell_key * HASH_MULTIPLIER) >> 32) & mask
+
+
+@numba.njit(cache=True)
+def cell_table(run_keys):  # pragma: no cover - compiled
+    """Open-addressing hash table (linear probing, at most half full) of the occupied cells:
+    the run index of each key in its slot, -1 in empty slots."""
+    size = 2
+    while size < 2 * len(run_keys):
+        size *= 2
+    slots = np.full(size, -1, np.int64)
+    for run in range(len(run_keys)):
+        at = _slot(run_keys[run], size - 1)
+        while slots[at] >= 0:
+            at = (at + 1) & (size - 1)
+        slots[at] = run
+    return slots
+
+
+@numba.njit(cache=True, inline="always")
+def _find(cell_key, run_keys, slots):  # pragma: no cover - compiled
+    """Run index of a cell key, -1 if that cell is empty: one or two probes of the hash table,
+    where a binary search of the keys took a dozen and more."""
+    mask = len(slots) - 1
+    at = _slot(cell_key, mask)
+    while True:
+        run = slots[at]
+        if run < 0 or run_keys[run] == cell_key:
+            return run
+        at = (at + 1) & mask
 
 
 @numba.njit(cache=True, inline="always")
@@ -150,7 +188,8 @@ def _scan(points, i, start, stop, best_d, best_i, count, k):  # pragma: no cover
 
 
 @numba.njit(cache=True)
-def _search_run(points, starts, run_keys, run, lo, h, k, index, best_d, best_i, block):  # pragma: no cover - compiled
+def _search_run(points, starts, run_keys, slots, run, lo, h, k, index, best_d, best_i,
+                block):  # pragma: no cover - compiled
     """Rows of index for the points of one cell (a run of the sorted points): the 3 x 3 x 3
     block around it, gathered once into block (start, stop, dx, dy, dz), then shells of cells
     while the k-th found may lie nearer outside (module docstring); -1 in column 0 where the
@@ -167,7 +206,7 @@ def _search_run(points, starts, run_keys, run, lo, h, k, index, best_d, best_i, 
         cx, cy, cz = qx + dx, qy + dy, qz + dz
         if min(cx, cy, cz) < 0 or max(cx, cy, cz) > top:
             continue
-        found = _find(_key(cx, cy, cz), run_keys)
+        found = _find(_key(cx, cy, cz), run_keys, slots)
         if found >= 0:
             block[blocks, 0] = starts[found]
             block[blocks, 1] = starts[found + 1]
@@ -198,7 +237,7 @@ def _search_run(points, starts, run_keys, run, lo, h, k, index, best_d, best_i, 
                         cx, cy, cz = qx + dx, qy + dy, qz + dz
                         if max(abs(dx), abs(dy), abs(dz)) != ring or min(cx, cy, cz) < 0 or max(cx, cy, cz) > top:
                             continue
-                        found = _find(_key(cx, cy, cz), run_keys)
+                        found = _find(_key(cx, cy, cz), run_keys, slots)
                         if found >= 0:
                             count = _scan(points, i, starts[found], starts[found + 1], best_d, best_i, count, k)
             margin += h
@@ -210,7 +249,7 @@ def _search_run(points, starts, run_keys, run, lo, h, k, index, best_d, best_i, 
 
 
 @numba.njit(parallel=True, cache=True)
-def grid_neighbours(points, starts, run_keys, lo, h, k):  # pragma: no cover - compiled
+def grid_neighbours(points, starts, run_keys, slots, lo, h, k):  # pragma: no cover - compiled
     """The k nearest (nearest first, the point itself first) of each of the key-sorted points,
     as int32 indices into them; rows of points the grid could not resolve are -1 (module
     docstring)."""
@@ -221,14 +260,21 @@ def grid_neighbours(points, starts, run_keys, lo, h, k):  # pragma: no cover - c
         best_i = np.empty(k, np.int64)
         block = np.empty((27, 5), np.int64)
         for run in range(batch * RUN_BATCH, min(runs, (batch + 1) * RUN_BATCH)):
-            _search_run(points, starts, run_keys, run, lo, h, k, index, best_d, best_i, block)
+            _search_run(points, starts, run_keys, slots, run, lo, h, k, index, best_d, best_i, block)
     return index
 
 
-def cell_width(points: np.ndarray, k: int) -> float:
-    """The cell width h of the module docstring (points (N, 3) float64, N > 0)."""
-    lo = points.min(axis=0)
-    extent = float((points.max(axis=0) - lo).max())
+def corners(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(min, max) corners of points (N, 3), column by column: numpy reduces a strided column
+    several times faster than axis 0 of an (N, 3) array."""
+    columns = [points[:, axis] for axis in range(3)]
+    return np.array([column.min() for column in columns]), np.array([column.max() for column in columns])
+
+
+def cell_width(points: np.ndarray, k: int, lo: np.ndarray, hi: np.ndarray) -> float:
+    """The cell width h of the module docstring (points (N, 3) float64, N > 0, within the
+    corners lo, hi)."""
+    extent = float((hi - lo).max())
     if extent == 0.0:
         return 1.0
     mean = []
@@ -240,35 +286,142 @@ def cell_width(points: np.ndarray, k: int) -> float:
     return max(h, extent / ((1 << MORTON_BITS) - 2))
 
 
-def k_nearest(points: np.ndarray, k: int, workers: int = -1) -> tuple[np.ndarray, np.ndarray]:
-    """(order, index): the points' Morton cell order, and the k nearest neighbours (int32,
+@numba.njit(cache=True)
+def _query_point(points, starts, run_keys, slots, lo, h, k, p, best_d, best_i):  # pragma: no cover - compiled
+    """The k nearest of point p (the point itself first) into best_i, scanning its cell and
+    the shells around it (module docstring); False where QUERY_RINGS shells do not settle it."""
+    top = (1 << MORTON_BITS) - 1
+    inv_h = 1.0 / h
+    qx = _cell(points[p, 0], lo[0], inv_h)
+    qy = _cell(points[p, 1], lo[1], inv_h)
+    qz = _cell(points[p, 2], lo[2], inv_h)
+    fx = (points[p, 0] - lo[0]) - qx * h
+    fy = (points[p, 1] - lo[1]) - qy * h
+    fz = (points[p, 2] - lo[2]) - qz * h
+    best_d[0] = -1.0
+    best_i[0] = p
+    count = 1
+    margin = min(fx, h - fx, fy, h - fy, fz, h - fz)
+    for ring in range(QUERY_RINGS + 1):
+        for dx in range(-ring, ring + 1):
+            for dy in range(-ring, ring + 1):
+                for dz in range(-ring, ring + 1):
+                    cx, cy, cz = qx + dx, qy + dy, qz + dz
+                    if max(abs(dx), abs(dy), abs(dz)) != ring or min(cx, cy, cz) < 0 or max(cx, cy, cz) > top:
+                        continue
+                    if count == k and _gap(fx, dx, h) + _gap(fy, dy, h) + _gap(fz, dz, h) >= best_d[k - 1]:
+                        continue
+                    found = _find(_key(cx, cy, cz), run_keys, slots)
+                    if found >= 0:
+                        count = _scan(points, p, starts[found], starts[found + 1], best_d, best_i, count, k)
+        if count == k and best_d[k - 1] <= margin * margin:
+            return True
+        margin += h
+    return False
+
+
+@numba.njit(parallel=True, cache=True)
+def grid_query(points, starts, run_keys, slots, lo, h, k, rows):  # pragma: no cover - compiled
+    """The k nearest (nearest first, the point itself first) of each of the key-sorted points
+    `rows`, as int32 indices; rows of points the shells could not settle are -1."""
+    m = len(rows)
+    index = np.empty((m, k), np.int32)
+    for batch in numba.prange((m + QUERY_BATCH - 1) // QUERY_BATCH):
+        best_d = np.empty(k, np.float64)
+        best_i = np.empty(k, np.int64)
+        for r in range(batch * QUERY_BATCH, min(m, (batch + 1) * QUERY_BATCH)):
+            if _query_point(points, starts, run_keys, slots, lo, h, k, rows[r], best_d, best_i):
+                for j in range(k):
+                    index[r, j] = best_i[j]
+            else:
+                index[r, 0] = -1
+    return index
+
+
+@dataclass(frozen=True, eq=False)
+class Grid:
+    """The points sorted by cell key (module docstring), with the cell width h, the minimum
+    corner lo, and the start and key of each occupied cell's run; `dense` when some cell holds
+    more than MAX_CELL points (the k-d tree then answers every query)."""
+
+    points: np.ndarray     # (N, 3) float64, sorted by cell key
+    lo: np.ndarray
+    h: float
+    starts: np.ndarray     # (runs + 1,) int64
+    run_keys: np.ndarray   # (runs,) int64
+    slots: np.ndarray      # `cell_table` of run_keys
+    dense: bool
+
+    def nearest(self, rows: np.ndarray, k: int, workers: int = -1) -> np.ndarray:
+        """(len(rows), k) int32: the k nearest of the points `rows` (nearest first, the point
+        itself first), 1 <= k <= N; workers: threads of the k-d tree fallback."""
+        rows = np.asarray(rows, np.int64)
+        if self.dense:
+            index = np.empty((len(rows), k), np.int32)
+            unresolved = np.arange(len(rows))
+        else:
+            index = grid_query(self.points, self.starts, self.run_keys, self.slots, self.lo, self.h, k, rows)
+            unresolved = np.flatnonzero(index[:, 0] < 0)
+        if len(unresolved):
+            index[unresolved] = _tree_nearest(self.points, rows[unresolved], k, workers)
+        return index
+
+
+def _tree_nearest(points: np.ndarray, rows: np.ndarray, k: int, workers: int) -> np.ndarray:
+    """The k nearest of points[rows] from a k-d tree, the point itself first, as the grid has
+    it (a coincident point may come first)."""
+    _, found = cKDTree(points).query(points[rows], k=k, workers=workers)
+    found = found.reshape(len(rows), k)
+    itself = found == rows[:, None]
+    has_self = itself.any(axis=1)
+    at = np.argmax(itself, axis=1)
+    swap = np.flatnonzero(has_self)
+    found[swap, at[swap]] = found[swap, 0]
+    found[:, 0] = rows
+    return found
+
+
+def stable_order(keys: np.ndarray) -> np.ndarray:
+    """np.argsort(keys, kind="stable") of non-negative int64 keys, an order of magnitude
+    faster where each key and its index fit in 63 bits together (the keys of occupied cells
+    span far fewer than 63 bits): the plain sort of key << b | index, b the bits of an index,
+    is the stable order, unpacked from its low bits."""
+    bits = max(len(keys) - 1, 1).bit_length()
+    if len(keys) == 0 or int(keys.max()).bit_length() + bits > 63:
+        return np.argsort(keys, kind="stable")
+    packed = (keys << bits) | np.arange(len(keys), dtype=np.int64)
+    packed.sort()
+    return packed & ((1 << bits) - 1)
+
+
+def sorted_k_nearest(points: np.ndarray, k: int, workers: int = -1) -> tuple[np.ndarray, np.ndarray, Grid]:
+    """(order, index, grid): the points' Morton cell order, the k nearest neighbours (int32,
     nearest first, the point itself first) of each point points[order[i]] as indices i into
-    that order. points: (N, 3) float64, 1 <= k <= N < 2^31; workers: threads of the k-d tree
-    fallback."""
+    that order, and the grid of the sorted points. points: (N, 3) float64, 1 <= k <= N < 2^31;
+    workers: threads of the k-d tree fallback."""
     if len(points) >= 2**31:
         raise ValueError(f"{len(points)} points: the neighbour search indexes fewer than 2^31")
-    h = cell_width(points, k)
-    lo = points.min(axis=0)
+    lo, hi = corners(points)
+    h = cell_width(points, k, lo, hi)
     keys = cell_keys(points, lo, 1.0 / h)
-    order = np.argsort(keys, kind="stable")
+    order = stable_order(keys)
     keys = keys[order]
     sorted_points = np.ascontiguousarray(points[order])
     starts = _runs(keys)
-    if int(np.diff(starts).max()) > MAX_CELL:
+    run_keys = keys[starts[:-1]]
+    grid = Grid(sorted_points, lo, h, starts, run_keys, cell_table(run_keys), int(np.diff(starts).max()) > MAX_CELL)
+    if grid.dense:
         unresolved = np.arange(len(points))
         index = np.empty((len(points), k), np.int32)
     else:
-        index = grid_neighbours(sorted_points, starts, keys[starts[:-1]], lo, h, k)
+        index = grid_neighbours(sorted_points, starts, grid.run_keys, grid.slots, lo, h, k)
         unresolved = np.flatnonzero(index[:, 0] < 0)
     if len(unresolved):
-        _, found = cKDTree(sorted_points).query(sorted_points[unresolved], k=k, workers=workers)
-        found = found.reshape(len(unresolved), k)
-        # the point itself first, as the grid has it (a coincident point may come first)
-        itself = found == unresolved[:, None]
-        has_self = itself.any(axis=1)
-        at = np.argmax(itself, axis=1)
-        rows = np.flatnonzero(has_self)
-        found[rows, at[rows]] = found[rows, 0]
-        found[:, 0] = unresolved
-        index[unresolved] = found
+        index[unresolved] = _tree_nearest(sorted_points, unresolved, k, workers)
+    return order, index, grid
+
+
+def k_nearest(points: np.ndarray, k: int, workers: int = -1) -> tuple[np.ndarray, np.ndarray]:
+    """(order, index) of `sorted_k_nearest`."""
+    order, index, _ = sorted_k_nearest(points, k, workers)
     return order, index

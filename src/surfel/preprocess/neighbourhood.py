@@ -3,8 +3,9 @@
 The neighbours come from a uniform grid of Morton-ordered cells (`grid_knn.py`, exact, about
 half the CPU time of a k-d tree's queries on scanned surfaces), and the points are kept in that cell order:
 a point's neighbours then lie close to it in memory, which makes every gather of the kernels
-several times faster than in the input's order. Widening the neighbourhood queries a k-d tree
-(scipy's cKDTree, Maneewongvatana & Mount's sliding midpoint rule). `Neighbourhood.sort`
+several times faster than in the input's order. The k nearest of a few points (`nearest`) come from
+the same grid; widening the neighbourhood of every point queries a k-d tree (scipy's cKDTree,
+Maneewongvatana & Mount's sliding midpoint rule). `Neighbourhood.sort`
 takes a per-point array into that order, `unsort` back into the input's. Positions are made
 relative to their centroid, so that georeferenced coordinates (hundreds of kilometres from
 their origin) keep their precision.
@@ -21,7 +22,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .chunked import map_chunks, progress_bar
-from .grid_knn import k_nearest
+from .grid_knn import Grid, sorted_k_nearest
 
 
 def as_points(positions: np.ndarray) -> np.ndarray:
@@ -40,6 +41,7 @@ class Neighbourhood:
     points: np.ndarray  # (N, 3) float64, sorted
     index: np.ndarray   # (N, k) int32 into the sorted points
     order: np.ndarray   # (N,) input index of each sorted point
+    grid: Grid | None = None  # the grid of the points (of these very points: see `nearest`)
 
     @classmethod
     def build(cls, positions: np.ndarray, k: int, workers: int = -1,
@@ -53,9 +55,9 @@ class Neighbourhood:
         n = len(centred)
         k = max(1, min(k, n))
         with progress_bar(n, "neighbours", progress) as bar:
-            order, index = k_nearest(centred, k, workers)
+            order, index, grid = sorted_k_nearest(centred, k, workers)
             bar.update(n)
-        return cls(np.ascontiguousarray(centred[order]), index, order)
+        return cls(grid.points, index, order, grid)
 
     def widened(self, k: int, workers: int = -1, progress: bool | None = None) -> Neighbourhood:
         """The same points, in the same order, with their k nearest neighbours (self if it has
@@ -71,6 +73,16 @@ class Neighbourhood:
             return found.reshape(stop - start, k).astype(self.index.dtype)
 
         return replace(self, index=map_chunks(query, n, progress, "neighbours"))
+
+    def nearest(self, rows: np.ndarray, k: int, workers: int = -1) -> np.ndarray:
+        """(len(rows), k): the k nearest (at most N; nearest first, the point itself first) of
+        the points `rows`, from the grid, or from a k-d tree when the points are not the
+        grid's (moved: `replace(nbh, points=...)`)."""
+        k = max(1, min(k, len(self.points)))
+        if self.grid is not None and self.grid.points is self.points:
+            return self.grid.nearest(rows, k, workers)
+        _, found = cKDTree(self.points, balanced_tree=False).query(self.points[rows], k=k, workers=workers)
+        return found.reshape(len(rows), k)
 
     def first(self, k: int) -> np.ndarray:
         """The k nearest neighbours of each point (all of them if there are fewer)."""

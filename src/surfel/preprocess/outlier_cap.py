@@ -54,10 +54,12 @@ def _outlier_cap(raw, index, start, normals, same_cos):  # pragma: no cover - co
             for j in range(1, k):
                 q = index[i, j]
                 facing = normals[q, 0] * normals[p, 0] + normals[q, 1] * normals[p, 1] + normals[q, 2] * normals[p, 2]
-                _insert_sorted(every, j - 1, raw[q])
                 if facing >= same_cos:
                     _insert_sorted(same, count, raw[q])
                     count += 1
+            if not count:  # none on p's surface (rare): all of them count, sorted only then
+                for j in range(1, k):
+                    _insert_sorted(every, j - 1, raw[index[i, j]])
             values, n = (same, count) if count else (every, k - 1)
             median = (values[(n - 1) // 2] + values[n // 2]) / 2  # one middle twice if n is odd
             cap[i] = min(1.0, ISOLATED_FACTOR * median / raw[p])
