@@ -255,6 +255,21 @@ def test_interrupted_build_leaves_no_output_and_resumes(built, tmp_path, monkeyp
         json.loads((reference / "manifest.json").read_text())["nodes"]
 
 
+def test_a_partial_build_of_another_layout_is_not_resumed(built, tmp_path):
+    """A NAME.partial/ whose plan an older surfel wrote (other bin files) is refused in one
+    line naming it, not read as if it were this version's."""
+    ply, _, _, _ = built
+    out = tmp_path / "old.lod"
+    partial = tmp_path / "old.lod.partial"
+    partial.mkdir()
+    plan = {"signature": {"files": [[str(ply), ply.stat().st_size, ply.stat().st_mtime]], "memory": SMALL_MEMORY,
+                          "workers": 1}, "counts": [1]}
+    (partial / "plan.json").write_text(json.dumps(plan))
+    with pytest.raises(SurfelError, match=r"old\.lod\.partial: left by another version of surfel"):
+        build_outofcore(ply, out, memory=SMALL_MEMORY, resume=True, progress=False)
+    assert not out.exists()
+
+
 def test_cli_build_render_info(built, tmp_path):
     ply, _, _, _ = built
     runner = CliRunner()

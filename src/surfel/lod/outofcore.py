@@ -101,6 +101,7 @@ from .streaming import StreamInput, open_inputs
 
 DIR_FORMAT = "surfel-lod-dir"
 DIR_VERSION = 1
+PARTIAL_LAYOUT = 2  # how NAME.partial/ holds bins and partitions: a resume needs the same
 MANIFEST = "manifest.json"
 # memory the process needs besides one partition: interpreter, numpy/numba/scipy, input chunks
 MEMORY_OVERHEAD = 900 << 20
@@ -171,7 +172,7 @@ def attribute_key(index: int) -> str:
 
 def _input_signature(inputs: list[StreamInput], memory: int, workers: int) -> dict:
     return {"files": [[i.path, os.path.getsize(i.path), os.path.getmtime(i.path)] for i in inputs],
-            "memory": memory, "workers": workers}
+            "memory": memory, "workers": workers, "layout": PARTIAL_LAYOUT}
 
 
 def build_outofcore(in_path: str | os.PathLike, out_path: str | os.PathLike, *, memory: int = 4 << 30,
@@ -244,6 +245,9 @@ def _plan_and_bin(inputs: list[StreamInput], partial: Path, cap: int, signature:
     resuming, else planned and binned now (passes 1 and 2 of the module docstring)."""
     plan_file = partial / "plan.json"
     saved = json.loads(plan_file.read_text()) if resume and plan_file.exists() else None
+    if saved is not None and saved["signature"].get("layout") != PARTIAL_LAYOUT:
+        raise SurfelError(f"{partial}: left by another version of surfel, whose bins and partitions this one "
+                          "cannot reuse; rerun without --resume")
     if saved is not None and saved["signature"] != signature:
         raise SurfelError(f"{partial}: the input, --memory or the core count changed since the interrupted build; "
                           "rerun without --resume")
