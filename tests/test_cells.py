@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from models import turned_part
 from samples import coverage, covered_by, dense_samples, edge_wedge, nn_spacing, scan_lines, sphere, unit
 from scenes import sheet_on_body, sheet_over_body
 from surfel.cloud import PointCloud
@@ -345,6 +346,8 @@ def test_layer_thickness_separates_close_layers_and_nothing_else():
     assert (thickness(coarse, coarse) < INFINITE_LENGTH).mean() < 0.01
     wedge, _ = edge_wedge()
     assert (thickness(wedge.positions, wedge.normals) < INFINITE_LENGTH).mean() < 0.01
+    part = turned_part()  # creases of 23 degrees between a face and its corner's averaged normal
+    assert (thickness(part.positions, part.normals) < INFINITE_LENGTH).mean() < 0.001
 
 
 def test_another_layer_close_by_does_not_cut_the_cells():

@@ -16,7 +16,7 @@ Two points p, q of one smooth surface see each other below (or above) their tang
 about the same amount, d_pq = (q - p) . n_p ~ d_qp = (p - q) . n_q ~ -kappa s^2 / 2, while two
 points of parallel layers a distance h apart see each other on opposite sides, d_pq = -d_qp = -h.
 So the separation of q from p's layer is the antisymmetric part, less, where the normals lie
-more than 30 degrees apart (CREASE_COS), what a crease between their planes explains (q at
+more than 15 degrees apart (CREASE_COS), what a crease between their planes explains (q at
 tangential distance t_pq from p on a plane tilted by the angle between the normals:
 |d_pq - d_qp| is at most t_pq |n_p - n_q|):
 
@@ -58,7 +58,7 @@ from ..cloud import PointCloud
 from .chunked import map_chunks
 
 PARALLEL_COS = 0.5   # neighbours whose normals are within 60 degrees count as parallel layers
-CREASE_COS = float(np.cos(np.radians(30.0)))  # normals further apart may meet at a crease
+CREASE_COS = float(np.cos(np.radians(15.0)))  # normals further apart may meet at a crease
 GAP_FACTOR = 2.0     # a gap wider than twice the own layer's extent ...
 GAP_FLOOR = 0.1     # ... plus this fraction of the local spacing separates two layers
 FLOOR_NEIGHBOUR = 4  # the neighbour whose distance is that spacing
