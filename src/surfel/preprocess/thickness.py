@@ -60,7 +60,7 @@ from .chunked import map_chunks
 PARALLEL_COS = 0.5   # neighbours whose normals are within 60 degrees count as parallel layers
 CREASE_COS = float(np.cos(np.radians(15.0)))  # normals further apart may meet at a crease
 GAP_FACTOR = 2.0     # a gap wider than twice the own layer's extent ...
-GAP_FLOOR = 0.1     # ... plus this fraction of the local spacing separates two layers
+GAP_FLOOR = 0.1      # ... plus this fraction of the local spacing separates two layers
 FLOOR_NEIGHBOUR = 4  # the neighbour whose distance is that spacing
 MIN_LAYER = 2        # neighbours that must share the point's layer before a gap counts ...
 MIN_OTHER = 5        # ... and lie beyond it (a third of them: fewer are the tail of its noise)
