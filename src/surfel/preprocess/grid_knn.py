@@ -231,15 +231,8 @@ def _search_run(points, starts, run_keys, slots, run, lo, h, k, index, best_d, b
         ring = 1
         while (count < k or best_d[k - 1] > margin * margin) and ring < RINGS:
             ring += 1
-            for dx in range(-ring, ring + 1):
-                for dy in range(-ring, ring + 1):
-                    for dz in range(-ring, ring + 1):
-                        cx, cy, cz = qx + dx, qy + dy, qz + dz
-                        if max(abs(dx), abs(dy), abs(dz)) != ring or min(cx, cy, cz) < 0 or max(cx, cy, cz) > top:
-                            continue
-                        found = _find(_key(cx, cy, cz), run_keys, slots)
-                        if found >= 0:
-                            count = _scan(points, i, starts[found], starts[found + 1], best_d, best_i, count, k)
+            count = _scan_shell(points, i, qx, qy, qz, ring, fx, fy, fz, h, False, starts, run_keys, slots,
+                                best_d, best_i, count, k)
             margin += h
         if count < k or best_d[k - 1] > margin * margin:
             index[i, 0] = -1
@@ -286,11 +279,31 @@ def cell_width(points: np.ndarray, k: int, lo: np.ndarray, hi: np.ndarray) -> fl
     return max(h, extent / ((1 << MORTON_BITS) - 2))
 
 
+@numba.njit(cache=True, inline="always")
+def _scan_shell(points, p, qx, qy, qz, ring, fx, fy, fz, h, prune, starts, run_keys, slots, best_d, best_i, count,
+                k):  # pragma: no cover - compiled
+    """Scan the occupied cells of the shell `ring` cells around point p's cell (qx, qy, qz)
+    into its k best; with `prune`, skip a cell farther than the k-th found (p at offset
+    (fx, fy, fz) in its cell of side h). Returns the new count."""
+    top = (1 << MORTON_BITS) - 1
+    for dx in range(-ring, ring + 1):
+        for dy in range(-ring, ring + 1):
+            for dz in range(-ring, ring + 1):
+                cx, cy, cz = qx + dx, qy + dy, qz + dz
+                if max(abs(dx), abs(dy), abs(dz)) != ring or min(cx, cy, cz) < 0 or max(cx, cy, cz) > top:
+                    continue
+                if prune and count == k and _gap(fx, dx, h) + _gap(fy, dy, h) + _gap(fz, dz, h) >= best_d[k - 1]:
+                    continue
+                found = _find(_key(cx, cy, cz), run_keys, slots)
+                if found >= 0:
+                    count = _scan(points, p, starts[found], starts[found + 1], best_d, best_i, count, k)
+    return count
+
+
 @numba.njit(cache=True)
 def _query_point(points, starts, run_keys, slots, lo, h, k, p, best_d, best_i):  # pragma: no cover - compiled
     """The k nearest of point p (the point itself first) into best_i, scanning its cell and
     the shells around it (module docstring); False where QUERY_RINGS shells do not settle it."""
-    top = (1 << MORTON_BITS) - 1
     inv_h = 1.0 / h
     qx = _cell(points[p, 0], lo[0], inv_h)
     qy = _cell(points[p, 1], lo[1], inv_h)
@@ -303,17 +316,8 @@ def _query_point(points, starts, run_keys, slots, lo, h, k, p, best_d, best_i): 
     count = 1
     margin = min(fx, h - fx, fy, h - fy, fz, h - fz)
     for ring in range(QUERY_RINGS + 1):
-        for dx in range(-ring, ring + 1):
-            for dy in range(-ring, ring + 1):
-                for dz in range(-ring, ring + 1):
-                    cx, cy, cz = qx + dx, qy + dy, qz + dz
-                    if max(abs(dx), abs(dy), abs(dz)) != ring or min(cx, cy, cz) < 0 or max(cx, cy, cz) > top:
-                        continue
-                    if count == k and _gap(fx, dx, h) + _gap(fy, dy, h) + _gap(fz, dz, h) >= best_d[k - 1]:
-                        continue
-                    found = _find(_key(cx, cy, cz), run_keys, slots)
-                    if found >= 0:
-                        count = _scan(points, p, starts[found], starts[found + 1], best_d, best_i, count, k)
+        count = _scan_shell(points, p, qx, qy, qz, ring, fx, fy, fz, h, True, starts, run_keys, slots,
+                            best_d, best_i, count, k)
         if count == k and best_d[k - 1] <= margin * margin:
             return True
         margin += h
