@@ -53,6 +53,13 @@ def _checked(arrays):
         _CHECKED.reset(token)
 
 
+def corners(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(min, max) corners of points (N, 3), column by column: numpy reduces a strided column
+    several times faster than axis 0 of an (N, 3) array."""
+    columns = [points[:, axis] for axis in range(3)]
+    return np.array([column.min() for column in columns]), np.array([column.max() for column in columns])
+
+
 def _contiguous(value, dtype) -> np.ndarray:
     """`value` as a C-contiguous array of `dtype`: the caller's array itself when it is one."""
     array = np.asarray(value, dtype=dtype)
@@ -326,10 +333,8 @@ class PointCloud:
     @cached_property
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """(min, max) corners; computed once, since renderers ask every frame."""
-        # column by column: numpy reduces a strided column several times faster than axis=0 of (N, 3)
-        columns = [self.positions[:, axis] for axis in range(3)]
-        return (_read_only(np.array([column.min() for column in columns])),
-                _read_only(np.array([column.max() for column in columns])))
+        lo, hi = corners(self.positions)
+        return _read_only(lo), _read_only(hi)
 
     @cached_property
     def max_splat_radius(self) -> float:

@@ -68,7 +68,7 @@ import numpy as np
 from tqdm import tqdm
 
 from ..attributes import CATEGORICAL
-from ..cloud import PointCloud
+from ..cloud import PointCloud, corners
 from ..preprocess import INACTIVE_CLIP, clipped_away
 
 MORTON_BITS = 21  # bits per axis: 63-bit codes
@@ -166,10 +166,8 @@ def _morton_codes(positions, lo, scale):  # pragma: no cover - compiled
 
 def morton_codes(positions: np.ndarray) -> np.ndarray:
     """63-bit Morton codes of positions quantised to 2^21 cells per axis of the bounding cube."""
-    # column by column: numpy reduces a strided column several times faster than axis 0 of (N, 3)
-    columns = [positions[:, axis] for axis in range(3)]
-    lo = np.array([column.min() for column in columns])
-    extent = max(float((np.array([column.max() for column in columns]) - lo).max()), 1e-300)
+    lo, hi = corners(positions)
+    extent = max(float((hi - lo).max()), 1e-300)
     return _morton_codes(positions, lo, ((1 << MORTON_BITS) - 1) / extent)
 
 

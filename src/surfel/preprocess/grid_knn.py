@@ -41,6 +41,8 @@ import numba
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ..cloud import corners
+
 MORTON_BITS = 21       # bits of a cell coordinate per axis (3 x 21 in an int64 key)
 CELL_SHARE = 2.0       # points per occupied cell: k / this (measured fastest on scanned surfaces)
 COARSE_CELLS = 64      # cells along the longest side of the first occupancy measurement
@@ -255,13 +257,6 @@ def grid_neighbours(points, starts, run_keys, slots, lo, h, k):  # pragma: no co
         for run in range(batch * RUN_BATCH, min(runs, (batch + 1) * RUN_BATCH)):
             _search_run(points, starts, run_keys, slots, run, lo, h, k, index, best_d, best_i, block)
     return index
-
-
-def corners(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(min, max) corners of points (N, 3), column by column: numpy reduces a strided column
-    several times faster than axis 0 of an (N, 3) array."""
-    columns = [points[:, axis] for axis in range(3)]
-    return np.array([column.min() for column in columns]), np.array([column.max() for column in columns])
 
 
 def cell_width(points: np.ndarray, k: int, lo: np.ndarray, hi: np.ndarray) -> float:
