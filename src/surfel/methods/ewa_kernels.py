@@ -48,6 +48,14 @@ FAR = np.float32(3e38)
 MIN_LAYER_COS = np.float32(0.05)  # gl/common.glsl's: the least |n . view| a layer's thickness is divided by
 
 
+@nb.njit(inline="always", fastmath=True, error_model="numpy")
+def layer_offset(offset, thickness, crossing):
+    """gl/common.glsl layer_offset: the threshold `offset` capped by the thickness of the
+    splat's layer (0: no cap) as eye depth along a ray that crosses the layer at
+    |n . view| = `crossing` (preprocess/thickness.py)."""
+    return min(offset, thickness / max(crossing, MIN_LAYER_COS)) if thickness > 0 else offset
+
+
 @nb.njit(parallel=True, fastmath=True, cache=True)
 def setup_splats(positions, origin, view, normals, colors, axes, clip_lines, fields, thickness, intr, ortho, near,
                  radius_scale, sigma2, lowpass2, vis2, cutoff2, depth_offset, depth_clamp, backface,
@@ -169,11 +177,9 @@ def setup_splats(positions, origin, view, normals, colors, axes, clip_lines, fie
         row[DZ] = min(cutoff * math.sqrt(gx * gx * n00 + 2 * gx * gy * m01 + gy * gy * n11), depth_clamp * radius)
         # Threshold: the splat's own depth range over its footprint is one surface, plus z_t;
         # where another layer lies close, no farther than the layer's thickness along the ray.
-        row[ZT] = depth_offset * radius + row[DZ]
-        if thickness[i] > 0:
-            to_eye = np.float32(1.0) if ortho > 0 else math.sqrt(ex * ex + ey * ey + ez * ez)
-            crossing = abs(facing) / max(math.sqrt(nx * nx + ny * ny + nz * nz) * to_eye, np.float32(1e-30))
-            row[ZT] = min(row[ZT], thickness[i] / max(crossing, MIN_LAYER_COS))
+        to_eye = np.float32(1.0) if ortho > 0 else math.sqrt(ex * ex + ey * ey + ez * ez)
+        crossing = abs(facing) / max(math.sqrt(nx * nx + ny * ny + nz * nz) * to_eye, np.float32(1e-30))
+        row[ZT] = layer_offset(depth_offset * radius + row[DZ], thickness[i], crossing)
         c = i * color_step
         row[R], row[G], row[B] = colors[c, 0], colors[c, 1], colors[c, 2]
         row[NX], row[NY], row[NZ] = nx, ny, nz

@@ -36,7 +36,7 @@ import numpy as np
 
 from ..colors import continuous_pixel
 from ..shading import shade_pixel
-from .ewa_kernels import FAR, MIN_LAYER_COS, TILE
+from .ewa_kernels import FAR, TILE, layer_offset
 from .splatting_tiles import (
     A1X,
     A1Y,
@@ -286,10 +286,8 @@ def _setup(p, e, m, radius_scale, lowpass2, depth_offset, ewa_filter, curved, ba
     depth = -ez
     perspective = ortho <= 0
     # z_t, capped by the layer's thickness along the ray (gl/common.glsl layer_offset)
-    offset = depth_offset * max(lu, lv)
     to_eye = one / max(math.sqrt(ex * ex + ey * ey + ez * ez), tiny)
-    crossing = max(abs(facing) * inv_n * (one if not perspective else to_eye), MIN_LAYER_COS)
-    zt = min(offset, p[PT] / crossing) if p[PT] > 0 else offset
+    zt = layer_offset(depth_offset * max(lu, lv), p[PT], abs(facing) * inv_n * (one if not perspective else to_eye))
     # a corner of the bounding square behind the near plane: the GPU's quad covers the whole
     # viewport and its EWA weight is 1
     crosses_near = perspective and (depth - abs(uz) - abs(vz) < near)
