@@ -127,6 +127,7 @@ class CpuSplatBuffers:
         tiles = self.tiles_x * self.tiles_y
         self.order = tile_order(self.tiles_x, self.tiles_y)
         self.counts = np.empty((threads * BIN_CHUNKS_PER_THREAD, tiles), np.int64)
+        self.bounds = np.empty((threads * BIN_CHUNKS_PER_THREAD, 4 * k.BOUND_BLOCK), np.int32)
         self.tile_start = np.empty(tiles, np.int64)
         self.tile_count = np.empty(tiles, np.int64)
         self.present = np.empty((height, width), np.uint8)
@@ -205,7 +206,8 @@ def _render_cpu(cloud, camera, options, params, renderer, *, per_splat_shading: 
     lowpass = np.float32(params.lowpass_radius * ss if params.ewa_filter else 0.0)
     m = _camera(target, cloud.local_origin)
     k.bound_splats(buffers.packed, buffers.extras, m, np.float32(params.radius_scale), lowpass,
-                   params.backface_culling, width, height, buffers.box, buffers.tiles_x, buffers.counts)
+                   params.backface_culling, width, height, buffers.box, buffers.tiles_x, buffers.counts,
+                   buffers.bounds)
     buffers.bin()
     # one sample a pixel and no screen-space pass after it: the kernels write the final image
     composite = ss == 1 and not options.edl

@@ -3,8 +3,9 @@ states the equations; splatting.glsl is the GPU program they reproduce).
 
 1. `bound_splats` (parallel over chunks of splats): each splat's pixel box, as the GPU's quad
    (the projected corners of its disk's bounding square, and the low-pass disk), and culling
-   (conservative: the fragment tests decide which pixels it covers); and how many splats of
-   the chunk meet each TILE x TILE screen tile.
+   (conservative: the fragment tests decide which pixels it covers), for BOUND_BLOCK splats at
+   a time in one SIMD loop (`bound_block`); then how many splats of the chunk meet each
+   TILE x TILE screen tile.
 2. `tile_offsets` (serial over tiles) and `place_splats` (parallel over chunks): an index
    list per tile of the splats meeting it, in draw order.
 3. `rasterize_tiles` (parallel over tiles): each tile owns its pixels, so threads never write
@@ -128,6 +129,7 @@ from .splatting_tiles import (
 )
 
 COLOR_RGB, COLOR_CONTINUOUS, COLOR_CATEGORICAL = 0, 1, 2  # gl/colors.glsl's colour modes
+BOUND_BLOCK = 1024  # splats whose boxes bound_splats computes before counting them (in cache)
 BACK_SPLAT_WEIGHT = np.float32(1.0 / 256.0)  # splatting.glsl's: a back-facing splat's weight beside front ones
 
 
@@ -163,67 +165,86 @@ def _scalars(m):
 
 
 @nb.njit(parallel=True, fastmath=True, error_model="numpy", cache=True)
-def bound_splats(packed, extras, m, radius_scale, lowpass, backface, width, height, box, tiles_x, counts):
+def bound_splats(packed, extras, m, radius_scale, lowpass, backface, width, height, box, tiles_x, counts, scratch):
     """Each splat's pixel box in `box` (N, 4) int32, as the GPU's quad (splatting.glsl): the
     pixel centres inside the projected corners of the disk's bounding square and, with the EWA
     filter, the low-pass disk of `lowpass` pixels around the projected centre (x0, x1, y0, y1
     inclusive; x0 > x1 marks a culled splat). A splat with a corner behind the near plane gets
     the whole image. m: the frame's camera (splatting_cpu._camera). In the same pass, binning's
     count: counts (chunks, tiles) gets how many splats of each chunk of the cloud (one thread
-    each) meet each TILE x TILE tile."""
+    each) meet each TILE x TILE tile. scratch (chunks, 4 BOUND_BLOCK) int32: each chunk's boxes
+    of BOUND_BLOCK splats, computed in one SIMD loop before they are counted."""
     n = packed.shape[0]
     cam = _scalars(m)
-    ortho, near = cam[16], cam[17]
-    one = np.float32(1.0)
     chunks = counts.shape[0]
     step = (n + chunks - 1) // chunks
     for chunk in nb.prange(chunks):
         row = counts[chunk]
         row[:] = 0
-        for i in range(chunk * step, min(chunk * step + step, n)):
-            # the packed row read element by element: a row view would bring reference counting,
-            # an atomic shared by every thread, into the loop
-            ex, ey, ez = _eye(cam, packed[i, PX], packed[i, PY], packed[i, PZ])
-            nx, ny, nz = _turn(cam, packed[i, PNX], packed[i, PNY], packed[i, PNZ])
-            ux, uy, uz = _turn(cam, packed[i, PUX] * radius_scale, packed[i, PUY] * radius_scale,
-                               packed[i, PUZ] * radius_scale)
-            vx, vy, vz = _turn(cam, packed[i, PVX] * radius_scale, packed[i, PVY] * radius_scale,
-                               packed[i, PVZ] * radius_scale)
-            nx, ny, nz, ux, uy, uz, vx, vy, vz = face_camera(ex, ey, ez, nx, ny, nz, ux, uy, uz, vx, vy, vz, ortho)
-            depth = -ez
-            perspective = ortho <= 0
-            reach = math.sqrt(ux * ux + uy * uy + uz * uz) + math.sqrt(vx * vx + vy * vy + vz * vz)
-            culled = (backface & ((nz if ortho > 0 else -(nx * ex + ny * ey + nz * ez)) < 0)) \
-                | (perspective & (depth + reach < near))  # facing away, or wholly behind the near plane
-            if extras is not None:  # cut away whole (a point on a crease)
-                culled |= (extras[i, EC0] < -1) | (extras[i, EC1] < -1)
-            whole = perspective & (depth - abs(uz) - abs(vz) < near)  # a corner behind it: the whole image
-            lo_x = lo_y = np.float32(1e30)
-            hi_x = hi_y = np.float32(-1e30)
-            for corner in range(4):
-                su = -one if corner & 1 == 0 else one
-                sv = -one if corner < 2 else one
-                sx, sy = _to_pixels(ex + su * ux + sv * vx, ey + su * uy + sv * vy, ez + su * uz + sv * vz, cam)
-                lo_x, lo_y, hi_x, hi_y = min(lo_x, sx), min(lo_y, sy), max(hi_x, sx), max(hi_y, sy)
-            if lowpass > 0:
-                mx, my = _to_pixels(ex, ey, ez, cam)
-                lo_x, lo_y = min(lo_x, mx - lowpass), min(lo_y, my - lowpass)
-                hi_x, hi_y = max(hi_x, mx + lowpass), max(hi_y, my + lowpass)
-            # pixel centres x + 0.5 in [lo, hi)
-            x0 = max(int(math.ceil(max(lo_x, -one) - np.float32(0.5))), 0)
-            x1 = min(int(math.ceil(min(hi_x, np.float32(width + 1)) - np.float32(0.5))) - 1, width - 1)
-            y0 = max(int(math.ceil(max(lo_y, -one) - np.float32(0.5))), 0)
-            y1 = min(int(math.ceil(min(hi_y, np.float32(height + 1)) - np.float32(0.5))) - 1, height - 1)
-            x0, x1 = (0 if whole else x0), (width - 1 if whole else x1)
-            y0, y1 = (0 if whole else y0), (height - 1 if whole else y1)
-            empty = culled | (x0 > x1) | (y0 > y1)
-            if empty:
-                box[i, 0], box[i, 1], box[i, 2], box[i, 3] = 1, 0, 1, 0
-                continue
-            box[i, 0], box[i, 1], box[i, 2], box[i, 3] = x0, x1, y0, y1
-            for ty in range(y0 >> TILE_BITS, (y1 >> TILE_BITS) + 1):
-                for tx in range(x0 >> TILE_BITS, (x1 >> TILE_BITS) + 1):
-                    row[ty * tiles_x + tx] += 1
+        bounds = scratch[chunk]
+        end = min(chunk * step + step, n)
+        for first in range(chunk * step, end, BOUND_BLOCK):
+            last = min(first + BOUND_BLOCK, end)
+            bound_block(packed, extras, cam, radius_scale, lowpass, backface, width, height, bounds, first, last)
+            for i in range(first, last):
+                slot = i - first
+                x0, x1 = bounds[slot], bounds[slot + BOUND_BLOCK]
+                y0, y1 = bounds[slot + 2 * BOUND_BLOCK], bounds[slot + 3 * BOUND_BLOCK]
+                box[i, 0], box[i, 1], box[i, 2], box[i, 3] = x0, x1, y0, y1
+                if x0 > x1:
+                    continue
+                for ty in range(y0 >> TILE_BITS, (y1 >> TILE_BITS) + 1):
+                    for tx in range(x0 >> TILE_BITS, (x1 >> TILE_BITS) + 1):
+                        row[ty * tiles_x + tx] += 1
+
+
+@nb.njit(fastmath=True, error_model="numpy")
+def bound_block(packed, extras, cam, radius_scale, lowpass, backface, width, height, bounds, first, last):
+    """bound_splats' boxes of splats first..last-1, without branches (a SIMD loop)."""
+    ortho, near = cam[16], cam[17]
+    one = np.float32(1.0)
+    for i in range(first, last):
+        # the packed row read element by element: a row view would bring reference counting,
+        # an atomic shared by every thread, into the loop
+        ex, ey, ez = _eye(cam, packed[i, PX], packed[i, PY], packed[i, PZ])
+        nx, ny, nz = _turn(cam, packed[i, PNX], packed[i, PNY], packed[i, PNZ])
+        ux, uy, uz = _turn(cam, packed[i, PUX] * radius_scale, packed[i, PUY] * radius_scale,
+                           packed[i, PUZ] * radius_scale)
+        vx, vy, vz = _turn(cam, packed[i, PVX] * radius_scale, packed[i, PVY] * radius_scale,
+                           packed[i, PVZ] * radius_scale)
+        nx, ny, nz, ux, uy, uz, vx, vy, vz = face_camera(ex, ey, ez, nx, ny, nz, ux, uy, uz, vx, vy, vz, ortho)
+        depth = -ez
+        perspective = ortho <= 0
+        reach = math.sqrt(ux * ux + uy * uy + uz * uz) + math.sqrt(vx * vx + vy * vy + vz * vz)
+        culled = (backface & ((nz if ortho > 0 else -(nx * ex + ny * ey + nz * ez)) < 0)) \
+            | (perspective & (depth + reach < near))  # facing away, or wholly behind the near plane
+        if extras is not None:  # cut away whole (a point on a crease)
+            culled |= (extras[i, EC0] < -1) | (extras[i, EC1] < -1)
+        whole = perspective & (depth - abs(uz) - abs(vz) < near)  # a corner behind it: the whole image
+        lo_x = lo_y = np.float32(1e30)
+        hi_x = hi_y = np.float32(-1e30)
+        for corner in range(4):
+            su = -one if corner & 1 == 0 else one
+            sv = -one if corner < 2 else one
+            sx, sy = _to_pixels(ex + su * ux + sv * vx, ey + su * uy + sv * vy, ez + su * uz + sv * vz, cam)
+            lo_x, lo_y, hi_x, hi_y = min(lo_x, sx), min(lo_y, sy), max(hi_x, sx), max(hi_y, sy)
+        if lowpass > 0:
+            mx, my = _to_pixels(ex, ey, ez, cam)
+            lo_x, lo_y = min(lo_x, mx - lowpass), min(lo_y, my - lowpass)
+            hi_x, hi_y = max(hi_x, mx + lowpass), max(hi_y, my + lowpass)
+        # pixel centres x + 0.5 in [lo, hi)
+        x0 = max(int(np.ceil(max(lo_x, -one) - np.float32(0.5))), 0)
+        x1 = min(int(np.ceil(min(hi_x, np.float32(width + 1)) - np.float32(0.5))) - 1, width - 1)
+        y0 = max(int(np.ceil(max(lo_y, -one) - np.float32(0.5))), 0)
+        y1 = min(int(np.ceil(min(hi_y, np.float32(height + 1)) - np.float32(0.5))) - 1, height - 1)
+        x0, x1 = (0 if whole else x0), (width - 1 if whole else x1)
+        y0, y1 = (0 if whole else y0), (height - 1 if whole else y1)
+        empty = culled | (x0 > x1) | (y0 > y1)
+        slot = i - first
+        bounds[slot] = 1 if empty else x0
+        bounds[slot + BOUND_BLOCK] = 0 if empty else x1
+        bounds[slot + 2 * BOUND_BLOCK] = 1 if empty else y0
+        bounds[slot + 3 * BOUND_BLOCK] = 0 if empty else y1
 
 
 @nb.njit(cache=True)

@@ -16,7 +16,9 @@ larger box pixel by pixel. Per-fragment arithmetic is float32 under fastmath, wi
 (no division checks, which would keep the loops scalar); masked lanes select finite values,
 so no infinity or NaN is computed ("no depth yet" is the finite FAR). Helpers called inside
 the SIMD loops take scalars only: an array argument brings reference counting into the loop,
-which keeps it scalar.
+which keeps it scalar. So do a loop inside them (LLVM vectorizes innermost loops), a call, and
+a tuple indexed by a loop variable (numba makes it a switch); tests/test_splatting_cpu.py
+checks that the compiled loops use packed instructions.
 
 A categorical colour mode keeps per pixel the packed (weight level, palette index) of the
 heaviest fragment (colors.category_pack, MAX as the GPU's PASS_CATEGORY blending).
@@ -307,7 +309,7 @@ def visibility_tile(table, ibox, count, ox, oy, params, clip_src, field_src, nor
     (table_size(count, KEPT_ROWS)) for `attribute_tile`: the two passes meet the same rays."""
     clipping, curved = clip_src is not None, field_src is not None
     field_normals = curved and normal_src is not None
-    half = np.float32(0.5)
+    half, one = np.float32(0.5), np.float32(1.0)
     for first in range(0, count, BLOCK):
         size = min(BLOCK, count - first)
         base, box_base = table_slot(first, TABLE_ROWS), table_slot(first, 4)
@@ -321,15 +323,24 @@ def visibility_tile(table, ibox, count, ox, oy, params, clip_src, field_src, nor
             x0, y0 = ibox[jb + TEMP[0]], ibox[jb + TEMP[2]]
             wide, tall = ibox[jb + TEMP[1]] > x0, ibox[jb + TEMP[3]] > y0
             dx, dy = np.float32(x0 + ox) + half - s[0], np.float32(y0 + oy) + half - s[1]
-            for lane in range(4):  # (x0, y0), (x0 + 1, y0), (x0, y0 + 1), (x0 + 1, y0 + 1)
-                right, below = lane & 1, lane >> 1
-                z, cover, w, depth, fx, fy, fz = both_outputs(
-                    s, c, f, clipping, curved, field_normals, dx + np.float32(right), dy + np.float32(below), params,
-                    nx, ny, nz, (wide or right == 0) and (tall or below == 0))
-                tmp[TEMP[lane] + uq], tmp[TEMP[4 + lane] + uq] = z, cover
-                kept[k + KEPT[lane]], kept[k + KEPT[4 + lane]] = w, depth
-                if field_normals:
-                    kept[k + KEPT[8 + lane]], kept[k + KEPT[12 + lane]], kept[k + KEPT[16 + lane]] = fx, fy, fz
+            # the four lanes written out: a loop over them would stay a loop, which the vectorizer
+            # (innermost loops only) would take instead of the loop over the block's splats
+            z0, cover0, w0, d0, fx0, fy0, fz0 = both_outputs(s, c, f, clipping, curved, field_normals, dx, dy, params,
+                                                             nx, ny, nz, True)
+            z1, cover1, w1, d1, fx1, fy1, fz1 = both_outputs(s, c, f, clipping, curved, field_normals, dx + one, dy,
+                                                             params, nx, ny, nz, wide)
+            z2, cover2, w2, d2, fx2, fy2, fz2 = both_outputs(s, c, f, clipping, curved, field_normals, dx, dy + one,
+                                                             params, nx, ny, nz, tall)
+            z3, cover3, w3, d3, fx3, fy3, fz3 = both_outputs(s, c, f, clipping, curved, field_normals, dx + one,
+                                                             dy + one, params, nx, ny, nz, wide and tall)
+            tmp[TEMP[0] + uq], tmp[TEMP[1] + uq], tmp[TEMP[2] + uq], tmp[TEMP[3] + uq] = z0, z1, z2, z3
+            tmp[TEMP[4] + uq], tmp[TEMP[5] + uq], tmp[TEMP[6] + uq], tmp[TEMP[7] + uq] = cover0, cover1, cover2, cover3
+            kept[k + KEPT[0]], kept[k + KEPT[1]], kept[k + KEPT[2]], kept[k + KEPT[3]] = w0, w1, w2, w3
+            kept[k + KEPT[4]], kept[k + KEPT[5]], kept[k + KEPT[6]], kept[k + KEPT[7]] = d0, d1, d2, d3
+            if field_normals:
+                kept[k + KEPT[8]], kept[k + KEPT[9]], kept[k + KEPT[10]], kept[k + KEPT[11]] = fx0, fx1, fx2, fx3
+                kept[k + KEPT[12]], kept[k + KEPT[13]], kept[k + KEPT[14]], kept[k + KEPT[15]] = fy0, fy1, fy2, fy3
+                kept[k + KEPT[16]], kept[k + KEPT[17]], kept[k + KEPT[18]], kept[k + KEPT[19]] = fz0, fz1, fz2, fz3
         for q in range(size):
             uq = np.uint64(q)
             jb = box_base + uq
@@ -337,8 +348,9 @@ def visibility_tile(table, ibox, count, ox, oy, params, clip_src, field_src, nor
             p = y0 * STRIDE + x0
             for lane in range(4):
                 pl = p + (lane >> 1) * STRIDE + (lane & 1)
-                zb[pl] = min(zb[pl], tmp[TEMP[lane] + uq])
-                cov[pl] = max(cov[pl], tmp[TEMP[4 + lane] + uq])
+                row = np.uint64(lane * BLOCK)  # TEMP[lane]: a tuple indexed at run time is a switch
+                zb[pl] = min(zb[pl], tmp[row + uq])
+                cov[pl] = max(cov[pl], tmp[row + TEMP[4] + uq])
             if x1 - x0 < 2 and y1 - y0 < 2:
                 continue
             j = base + uq
@@ -382,13 +394,13 @@ def attribute_tile(table, ibox, count, ox, oy, params, clip_src, field_src, norm
             k = kept_base + uq
             for lane in range(4):
                 pl = p + (lane >> 1) * STRIDE + (lane & 1)
-                w, z = kept[k + KEPT[lane]], kept[k + KEPT[4 + lane]]
+                row = k + np.uint64(lane * BLOCK)  # KEPT[lane]: a tuple indexed at run time is a switch
+                w, z = kept[row], kept[row + KEPT[4]]
                 if w > 0 and z <= zb[pl]:
                     if levels > 0:
                         best[pl] = max(best[pl], category_pack(w, code, levels))
                     if field_normals:
-                        blend(acc, pl, w, z, r, g, b, kept[k + KEPT[8 + lane]], kept[k + KEPT[12 + lane]],
-                              kept[k + KEPT[16 + lane]])
+                        blend(acc, pl, w, z, r, g, b, kept[row + KEPT[8]], kept[row + KEPT[12]], kept[row + KEPT[16]])
                     else:
                         blend(acc, pl, w, z, r, g, b, nx, ny, nz)
             if x1 - x0 < 2 and y1 - y0 < 2:
