@@ -294,7 +294,7 @@ def test_the_hot_loops_compile_to_simd():
     tuple indexed by a loop variable (a switch), a short loop inside them, a call, or stores
     into an array it cannot tell apart from the loads keep them scalar, at about half the
     speed. On every x86-64 the vector code uses packed float instructions."""
-    from surfel.methods import splatting_kernels as k
+    from surfel.methods import splatting_bins as bins
     from surfel.methods import splatting_tiles as t
 
     count = t.BLOCK
@@ -308,5 +308,5 @@ def test_the_hot_loops_compile_to_simd():
                              *scratch) >= 32
     packed = np.zeros((count, t.PACKED), np.float32, order="F")
     camera = tuple(np.float32(v) for v in (1, 0, 0, 0, 1, 0, 0, 0, 1, 0, 0, -5, 500, 500, 256, 256, 0, 0.1, 100))
-    assert _packed_float_ops(k.bound_block, packed, extras, camera, np.float32(1.0), np.float32(1.0), False, 512,
-                             512, np.zeros(4 * k.BOUND_BLOCK, np.int32), 0, count) >= 16
+    assert _packed_float_ops(bins.bound_block, packed, extras, camera, np.float32(1.0), np.float32(1.0), False, 512,
+                             512, np.zeros(4 * bins.BOUND_BLOCK, np.int32), 0, count) >= 16

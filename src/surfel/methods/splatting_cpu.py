@@ -61,6 +61,7 @@ from ..options import check_cpu_samples
 from ..preprocess import drawn_normals, splat_thickness
 from ..result import RenderResult
 from ..shading import MODEL_IDS
+from . import splatting_bins as bins
 from . import splatting_kernels as k
 from . import splatting_tiles as t
 from .ewa import (
@@ -86,7 +87,7 @@ def pack_splats(cloud: PointCloud, extras: bool) -> tuple[np.ndarray, np.ndarray
     splat that faces the camera (preprocess.drawn_normals); the tangent axes; albedo, white
     without colours; the layer's thickness, 0 for none) and, with `extras`, (N, EXTRAS) of clip
     lines (inactive where the cloud has none) and Phong normal-field slopes (0 where none).
-    Both column-major: the per-splat loop of k.bound_splats then reads each value of
+    Both column-major: the per-splat loop of bins.bound_splats then reads each value of
     consecutive splats from consecutive addresses (about 6% of a deferred frame, against rows)."""
     n = len(cloud)
     packed = np.zeros((n, t.PACKED), np.float32, order="F")
@@ -127,7 +128,7 @@ class CpuSplatBuffers:
         tiles = self.tiles_x * self.tiles_y
         self.order = tile_order(self.tiles_x, self.tiles_y)
         self.counts = np.empty((threads * BIN_CHUNKS_PER_THREAD, tiles), np.int64)
-        self.bounds = np.empty((threads * BIN_CHUNKS_PER_THREAD, 4 * k.BOUND_BLOCK), np.int32)
+        self.bounds = np.empty((threads * BIN_CHUNKS_PER_THREAD, 4 * bins.BOUND_BLOCK), np.int32)
         self.tile_start = np.empty(tiles, np.int64)
         self.tile_count = np.empty(tiles, np.int64)
         self.present = np.empty((height, width), np.uint8)
@@ -139,12 +140,12 @@ class CpuSplatBuffers:
         self.capacity = 0
 
     def bin(self) -> None:
-        """Sort this frame's splats into tiles (after k.bound_splats counted them); make each
+        """Sort this frame's splats into tiles (after bins.bound_splats counted them); make each
         thread's table hold the largest tile."""
-        pairs, largest = k.tile_offsets(self.counts, self.tile_start, self.tile_count)
+        pairs, largest = bins.tile_offsets(self.counts, self.tile_start, self.tile_count)
         if pairs > len(self.index):  # more tile overlaps than ever before
             self.index = np.empty(pairs + pairs // 4, np.int32)
-        k.place_splats(self.box, self.tiles_x, self.counts, self.index)
+        bins.place_splats(self.box, self.tiles_x, self.counts, self.index)
         if largest > self.capacity:
             self.capacity = largest + largest // 4
             self.tables = np.zeros((self.threads, t.table_size(self.capacity)), np.float32)
@@ -205,7 +206,7 @@ def _render_cpu(cloud, camera, options, params, renderer, *, per_splat_shading: 
     per_splat = per_splat_shading and not categorical
     lowpass = np.float32(params.lowpass_radius * ss if params.ewa_filter else 0.0)
     m = _camera(target, cloud.local_origin)
-    k.bound_splats(buffers.packed, buffers.extras, m, np.float32(params.radius_scale), lowpass,
+    bins.bound_splats(buffers.packed, buffers.extras, m, np.float32(params.radius_scale), lowpass,
                    params.backface_culling, width, height, buffers.box, buffers.tiles_x, buffers.counts,
                    buffers.bounds)
     buffers.bin()
