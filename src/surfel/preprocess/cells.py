@@ -171,22 +171,24 @@ def _cell_bounds(points, normals, index, frames, i, p, features, sheet_cos, laye
 
 @numba.njit(cache=True, inline="always")
 def _clip(polygon, count, a, b, c, out):  # pragma: no cover - compiled
-    """Clip the convex polygon[:count] to the half-plane a x + b y <= c into out; returns its
-    number of vertices."""
+    """Clip the convex polygon[:count] to the half-plane a x + b y <= c into out (room for
+    count + 2 rows: one written past the last kept); returns its number of vertices. Each
+    vertex and each edge's crossing is written, and kept by counting it (no branch: which
+    vertices a line cuts off is unpredictable), each vertex's side computed once."""
     kept = 0
+    first = a * polygon[0, 0] + b * polygon[0, 1] - c
+    si = first
     for i in range(count):
         j = i + 1 if i + 1 < count else 0
-        si = a * polygon[i, 0] + b * polygon[i, 1] - c
-        sj = a * polygon[j, 0] + b * polygon[j, 1] - c
-        if si <= 0:
-            out[kept, 0] = polygon[i, 0]
-            out[kept, 1] = polygon[i, 1]
-            kept += 1
-        if (si <= 0) != (sj <= 0):
-            t = si / (si - sj)
-            out[kept, 0] = polygon[i, 0] + t * (polygon[j, 0] - polygon[i, 0])
-            out[kept, 1] = polygon[i, 1] + t * (polygon[j, 1] - polygon[i, 1])
-            kept += 1
+        sj = a * polygon[j, 0] + b * polygon[j, 1] - c if j else first
+        out[kept, 0] = polygon[i, 0]
+        out[kept, 1] = polygon[i, 1]
+        kept += si <= 0
+        t = si / (si - sj) if si != sj else 0.0  # kept only where the signs differ
+        out[kept, 0] = polygon[i, 0] + t * (polygon[j, 0] - polygon[i, 0])
+        out[kept, 1] = polygon[i, 1] + t * (polygon[j, 1] - polygon[i, 1])
+        kept += (si <= 0) != (sj <= 0)
+        si = sj
     return kept
 
 
