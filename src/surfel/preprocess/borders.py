@@ -54,18 +54,20 @@ def _border_outwards(points, normals, index, rows, frames, sheet_cos, layers):  
     outwards = np.zeros((m, 3))
     for block in numba.prange((m + KERNEL_BLOCK - 1) // KERNEL_BLOCK):
         # one set of buffers per block of points: an allocation per point costs as much as its work
+        found = np.empty((3, k))  # key, x, y as they come
         keys = np.empty(k)
         xs = np.empty(k)
         ys = np.empty(k)
         for i in range(block * KERNEL_BLOCK, min(m, (block + 1) * KERNEL_BLOCK)):
-            _point_outwards(points, normals, index, rows, frames, sheet_cos, layers, i, keys, xs, ys, outwards)
+            _point_outwards(points, normals, index, rows, frames, sheet_cos, layers, i, found, keys, xs, ys,
+                            outwards)
     return outwards
 
 
 @numba.njit(cache=True, inline="always")
-def _point_outwards(points, normals, index, rows, frames, sheet_cos, layers, i, keys, xs, ys,
+def _point_outwards(points, normals, index, rows, frames, sheet_cos, layers, i, found, keys, xs, ys,
                     out):  # pragma: no cover
-    """out[i]: row i of `_border_outwards`, with keys, xs, ys (k,) as scratch.
+    """out[i]: row i of `_border_outwards`, with found (3, k), keys, xs, ys (k,) as scratch.
 
     The neighbours are sorted by the pseudo-angle a = 1 - x / (|x| + |y|), signed as y, in
     [-2, 2]: it orders directions as their angle does, without an arctangent, and
@@ -90,20 +92,23 @@ def _point_outwards(points, normals, index, rows, frames, sheet_cos, layers, i, 
             return  # folded
         if q == p or (x == 0.0 and y == 0.0) or 0.5 * abs(antisymmetric) > layers[p]:
             continue
-        key = math.copysign(1.0 - x / (abs(x) + abs(y)), y)
-        # insertion sort as they come: a dozen directions, no allocation
-        slot = used
-        while slot > 0 and keys[slot - 1] > key:
-            keys[slot] = keys[slot - 1]
-            xs[slot] = xs[slot - 1]
-            ys[slot] = ys[slot - 1]
-            slot -= 1
-        keys[slot] = key
-        xs[slot] = x
-        ys[slot] = y
+        found[0, used] = math.copysign(1.0 - x / (abs(x) + abs(y)), y)
+        found[1, used] = x
+        found[2, used] = y
         used += 1
     if used < 3:
         return
+    # sorted by key, equal keys in their order: each direction goes to its rank, the number of
+    # keys below it and of equal ones before it (counts that compile to SIMD compares, where an
+    # insertion sort mispredicted a branch per direction)
+    for a in range(used):
+        key = found[0, a]
+        rank = 0
+        for b in range(used):
+            rank += (found[0, b] < key) | ((found[0, b] == key) & (b < a))
+        keys[rank] = key
+        xs[rank] = found[1, a]
+        ys[rank] = found[2, a]
     widest = 0.0
     second = 0.0
     middle = 0.0

@@ -80,6 +80,7 @@ CAP_SIDES = 8                  # a cell starts as a regular octagon inscribed in
 CLIP_LINES = 2                 # clip lines per splat: an edge, or an edge and a corner
 INACTIVE_CLIP = (0.0, 0.0, 1.0)  # 0 u + 0 v <= 1: cuts nothing
 PARALLEL_COS = math.cos(math.radians(30.0))  # clip lines closer in direction are one edge
+CELL_BLOCK = 1024              # points per parallel task of the cell kernels
 
 
 # ---------------------------------------------------------------------------------------------
@@ -116,19 +117,18 @@ def _crease_half_plane(points, p, q, normal_q, frame, on_plane_sin2):  # pragma:
 
 
 @numba.njit(cache=True, inline="always")
-def _cell_bounds(points, normals, index, frames, i, p, features, sheet_cos, layers):  # pragma: no cover - compiled
+def _cell_bounds(points, normals, index, frames, i, p, features, sheet_cos, layers, lines, creases,
+                 bounding):  # pragma: no cover - compiled
     """The sheet and crease rules: the half-planes a x + b y <= c of p's tangent frame
     (t, s) = frames[i] that bound its cell among its neighbours index[i], in the order they cut
     it; neighbours on another layer than p's (separation beyond layers[p], thickness.py) cut
     nothing. (Rows, not row views: a view per point costs as much as a tenth of the kernel.)
 
-    Returns (lines (k, 3), bisectors, count, bounding, reach): lines[:bisectors] are the
-    bisectors of the bounding neighbours `bounding[:bisectors]` ((a, b) = their offset),
-    lines[bisectors:count] the creases; reach is the farthest neighbour's distance."""
+    Fills the scratch lines (k, 3), creases (k, 3) and bounding (k,) and returns (bisectors,
+    count, reach): lines[:bisectors] are the bisectors of the bounding neighbours
+    `bounding[:bisectors]` ((a, b) = their offset), lines[bisectors:count] the creases; reach is
+    the farthest neighbour's distance."""
     k = index.shape[1]
-    lines = np.empty((k, 3))
-    creases = np.empty((k, 3))
-    bounding = np.empty(k, np.int64)
     bisectors = 0
     crease_count = 0
     reach = 0.0
@@ -166,37 +166,38 @@ def _cell_bounds(points, normals, index, frames, i, p, features, sheet_cos, laye
     for c in range(crease_count):  # the creases cut after every bisector
         for a in range(3):
             lines[bisectors + c, a] = creases[c, a]
-    return lines, bisectors, bisectors + crease_count, bounding, reach
+    return bisectors, bisectors + crease_count, reach
 
 
 @numba.njit(cache=True, inline="always")
 def _clip(polygon, count, a, b, c, out):  # pragma: no cover - compiled
-    """Clip the convex polygon[:count] to the half-plane a x + b y <= c into out; returns its
-    number of vertices."""
+    """Clip the convex polygon[:count] to the half-plane a x + b y <= c into out (room for
+    count + 2 rows: one written past the last kept); returns its number of vertices. Each
+    vertex and each edge's crossing is written, and kept by counting it (no branch: which
+    vertices a line cuts off is unpredictable), each vertex's side computed once."""
     kept = 0
+    first = a * polygon[0, 0] + b * polygon[0, 1] - c
+    si = first
     for i in range(count):
         j = i + 1 if i + 1 < count else 0
-        si = a * polygon[i, 0] + b * polygon[i, 1] - c
-        sj = a * polygon[j, 0] + b * polygon[j, 1] - c
-        if si <= 0:
-            out[kept, 0] = polygon[i, 0]
-            out[kept, 1] = polygon[i, 1]
-            kept += 1
-        if (si <= 0) != (sj <= 0):
-            t = si / (si - sj)
-            out[kept, 0] = polygon[i, 0] + t * (polygon[j, 0] - polygon[i, 0])
-            out[kept, 1] = polygon[i, 1] + t * (polygon[j, 1] - polygon[i, 1])
-            kept += 1
+        sj = a * polygon[j, 0] + b * polygon[j, 1] - c if j else first
+        out[kept, 0] = polygon[i, 0]
+        out[kept, 1] = polygon[i, 1]
+        kept += si <= 0
+        t = si / (si - sj) if si != sj else 0.0  # kept only where the signs differ
+        out[kept, 0] = polygon[i, 0] + t * (polygon[j, 0] - polygon[i, 0])
+        out[kept, 1] = polygon[i, 1] + t * (polygon[j, 1] - polygon[i, 1])
+        kept += (si <= 0) != (sj <= 0)
+        si = sj
     return kept
 
 
 @numba.njit(cache=True, inline="always")
-def _cell_polygon(lines, count, reach):  # pragma: no cover - compiled
+def _cell_polygon(lines, count, reach, polygon, spare):  # pragma: no cover - compiled
     """The cell: the regular CAP_SIDES-gon inscribed in the circle of radius `reach`, clipped to
-    lines[:count] in order. Returns (polygon (size, 2), its number of vertices)."""
-    size = CAP_SIDES + lines.shape[0] + 1  # each clip of a convex polygon adds at most one vertex
-    polygon = np.empty((size, 2))
-    spare = np.empty((size, 2))
+    lines[:count] in order, built in the scratch polygon and spare (CAP_SIDES + k + 1, 2) (each
+    clip of a convex polygon adds at most one vertex). Returns (the one of them holding it, its
+    number of vertices)."""
     for c in range(CAP_SIDES):
         angle = 2.0 * math.pi * c / CAP_SIDES
         polygon[c, 0] = reach * math.cos(angle)
@@ -319,15 +320,19 @@ def _covering_ellipse(polygon, vertices, co, si):  # pragma: no cover - compiled
 @numba.njit(parallel=True, cache=True)
 def _covering_radii(points, normals, index, start, frames, features, sheet_cos, layers):  # pragma: no cover
     """The covering radius of each point's cell (0 where all its neighbours coincide with it)."""
-    m = index.shape[0]
+    m, k = index.shape
     radius = np.zeros(m)
-    for i in numba.prange(m):
-        lines, _, count, _, reach = _cell_bounds(points, normals, index, frames, i, start + i, features, sheet_cos,
-                                                 layers)
-        if reach == 0.0:
-            continue
-        polygon, vertices = _cell_polygon(lines, count, reach)
-        radius[i] = _covering_radius(polygon, vertices)
+    for block in numba.prange((m + CELL_BLOCK - 1) // CELL_BLOCK):
+        # one set of scratch buffers per block: five allocations per point cost half the kernel
+        lines, creases, bounding = np.empty((k, 3)), np.empty((k, 3)), np.empty(k, np.int64)
+        polygon, spare = np.empty((CAP_SIDES + k + 1, 2)), np.empty((CAP_SIDES + k + 1, 2))
+        for i in range(block * CELL_BLOCK, min(m, (block + 1) * CELL_BLOCK)):
+            _, count, reach = _cell_bounds(points, normals, index, frames, i, start + i, features, sheet_cos,
+                                           layers, lines, creases, bounding)
+            if reach == 0.0:
+                continue
+            cell, vertices = _cell_polygon(lines, count, reach, polygon, spare)
+            radius[i] = _covering_radius(cell, vertices)
     return radius
 
 
@@ -335,33 +340,36 @@ def _covering_radii(points, normals, index, start, frames, features, sheet_cos, 
 def _covering_ellipses(points, normals, index, start, frames, features, sheet_cos, layers):  # pragma: no cover
     """The covering radius of each point's cell, and the semi-axes (m, 2) and direction
     (m, 2: cos, sin in the frame) of its covering ellipse (zero semi-axes for degenerate cells)."""
-    m = index.shape[0]
+    m, k = index.shape
     radius = np.zeros(m)
     semi = np.zeros((m, 2))
     direction = np.zeros((m, 2))
     direction[:, 0] = 1.0
-    for i in numba.prange(m):
-        p = start + i
-        lines, bisectors, count, bounding, reach = _cell_bounds(points, normals, index, frames, i, p, features,
-                                                                sheet_cos, layers)
-        if reach == 0.0:
-            continue
-        polygon, vertices = _cell_polygon(lines, count, reach)
-        radius[i] = _covering_radius(polygon, vertices)
-        if vertices < 3:
-            continue
-        # Splats "aligned along the curvature" (survey 2.1.4), so that the normal field's two
-        # slopes (eq. 8) describe the surface: the principal curvature directions, wherever the
-        # normals turn more one way than the other across the cell.
-        theta = _spread_direction(lines, bisectors)
-        curvature_theta, anisotropy = _curvature_direction(lines, bisectors, bounding, normals, frames, i, p)
-        if anisotropy * reach > CURVATURE_ANISOTROPY:
-            theta = curvature_theta
-        co = math.cos(theta)
-        si = math.sin(theta)
-        semi[i, 0], semi[i, 1] = _covering_ellipse(polygon, vertices, co, si)
-        direction[i, 0] = co
-        direction[i, 1] = si
+    for block in numba.prange((m + CELL_BLOCK - 1) // CELL_BLOCK):
+        lines, creases, bounding = np.empty((k, 3)), np.empty((k, 3)), np.empty(k, np.int64)
+        polygon, spare = np.empty((CAP_SIDES + k + 1, 2)), np.empty((CAP_SIDES + k + 1, 2))
+        for i in range(block * CELL_BLOCK, min(m, (block + 1) * CELL_BLOCK)):
+            p = start + i
+            bisectors, count, reach = _cell_bounds(points, normals, index, frames, i, p, features, sheet_cos,
+                                                   layers, lines, creases, bounding)
+            if reach == 0.0:
+                continue
+            cell, vertices = _cell_polygon(lines, count, reach, polygon, spare)
+            radius[i] = _covering_radius(cell, vertices)
+            if vertices < 3:
+                continue
+            # Splats "aligned along the curvature" (survey 2.1.4), so that the normal field's two
+            # slopes (eq. 8) describe the surface: the principal curvature directions, wherever the
+            # normals turn more one way than the other across the cell.
+            theta = _spread_direction(lines, bisectors)
+            curvature_theta, anisotropy = _curvature_direction(lines, bisectors, bounding, normals, frames, i, p)
+            if anisotropy * reach > CURVATURE_ANISOTROPY:
+                theta = curvature_theta
+            co = math.cos(theta)
+            si = math.sin(theta)
+            semi[i, 0], semi[i, 1] = _covering_ellipse(cell, vertices, co, si)
+            direction[i, 0] = co
+            direction[i, 1] = si
     return radius, semi, direction
 
 
@@ -446,22 +454,23 @@ def _clip_lines(points, normals, index, start, axes, features, outwards):  # pra
     A dropped splat keeps nothing (u <= -2, -u <= -2)."""
     m = index.shape[0]
     lines = np.empty((m, CLIP_LINES, 3), np.float32)
-    for i in numba.prange(m):
-        p = start + i
-        for line in range(CLIP_LINES):
-            if features.crease[p]:
-                lines[i, line, 0] = 1.0 - 2.0 * line
-                lines[i, line, 1] = 0.0
-                lines[i, line, 2] = -2.0
-            else:
-                lines[i, line, 0] = INACTIVE_CLIP[0]
-                lines[i, line, 1] = INACTIVE_CLIP[1]
-                lines[i, line, 2] = INACTIVE_CLIP[2]
-        if not features.crease[p]:
-            candidates = np.empty((2 * index.shape[1], 3))  # allocated here: an array returned costs as much
-            count = _crease_candidates(points, normals, index, axes, i, p, features, candidates)
-            count = _border_candidates(points, index, axes, i, p, outwards, candidates, count)
-            _nearest_creases(candidates, count, lines, i)
+    for block in numba.prange((m + CELL_BLOCK - 1) // CELL_BLOCK):
+        candidates = np.empty((2 * index.shape[1], 3))  # one per block: an allocation per point costs as much
+        for i in range(block * CELL_BLOCK, min(m, (block + 1) * CELL_BLOCK)):
+            p = start + i
+            for line in range(CLIP_LINES):
+                if features.crease[p]:
+                    lines[i, line, 0] = 1.0 - 2.0 * line
+                    lines[i, line, 1] = 0.0
+                    lines[i, line, 2] = -2.0
+                else:
+                    lines[i, line, 0] = INACTIVE_CLIP[0]
+                    lines[i, line, 1] = INACTIVE_CLIP[1]
+                    lines[i, line, 2] = INACTIVE_CLIP[2]
+            if not features.crease[p]:
+                count = _crease_candidates(points, normals, index, axes, i, p, features, candidates)
+                count = _border_candidates(points, index, axes, i, p, outwards, candidates, count)
+                _nearest_creases(candidates, count, lines, i)
     return lines
 
 

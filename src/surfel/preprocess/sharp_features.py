@@ -38,6 +38,8 @@ SHARP_ANGLE = 45.0   # degrees between neighbouring normals that make a sharp fe
 SHARP_COS = math.cos(math.radians(SHARP_ANGLE))
 FLAT_SIN2 = math.sin(math.radians(10.0)) ** 2     # a face: its neighbours this close to its plane
 ON_PLANE_SIN2 = math.sin(math.radians(3.0)) ** 2  # a point this close to a neighbour's plane lies in it
+NEAR_COS = math.cos(math.radians(0.5 * SHARP_ANGLE) - 1e-6)  # within half SHARP_ANGLE, rounding aside
+CREASE_BLOCK = 1024  # points per parallel task of `_crease_points`
 
 
 class SharpFeatures(NamedTuple):
@@ -84,32 +86,46 @@ def _crease_points(points, index, start, normals, flat):  # pragma: no cover - c
     ON_PLANE_SIN2) of two flat neighbours whose normals are more than SHARP_ANGLE apart."""
     m, k = index.shape
     crease = np.zeros(m, np.bool_)
-    for i in numba.prange(m):
-        p = start + i
-        planes = np.empty(k, np.int64)  # flat neighbours in whose tangent plane the point lies
-        count = 0
-        for j in range(k):
-            q = index[i, j]
-            if q == p or not flat[q]:
-                continue
-            side = 0.0
-            distance2 = 0.0
-            for a in range(3):
-                offset = points[p, a] - points[q, a]
-                side += offset * normals[q, a]
-                distance2 += offset * offset
-            if side * side > ON_PLANE_SIN2 * distance2:
-                continue
-            for other in range(count):
-                across = 0.0
+    for block in numba.prange((m + CREASE_BLOCK - 1) // CREASE_BLOCK):
+        # flat neighbours in whose tangent plane the point lies; one buffer per block: an
+        # allocation per point costs as much as its work
+        # (the near ones: normals within NEAR_ANGLE of p's, the far ones the others)
+        near, far = np.empty(k, np.int64), np.empty(k, np.int64)
+        for i in range(block * CREASE_BLOCK, min(m, (block + 1) * CREASE_BLOCK)):
+            p = start + i
+            nears = fars = 0
+            for j in range(k):
+                q = index[i, j]
+                if q == p or not flat[q]:
+                    continue
+                side = 0.0
+                distance2 = 0.0
+                towards_p = 0.0
                 for a in range(3):
-                    across += normals[q, a] * normals[planes[other], a]
-                if across < SHARP_COS:
-                    crease[i] = True
-            if crease[i]:
-                break
-            planes[count] = q
-            count += 1
+                    offset = points[p, a] - points[q, a]
+                    side += offset * normals[q, a]
+                    distance2 += offset * offset
+                    towards_p += normals[q, a] * normals[p, a]
+                if side * side > ON_PLANE_SIN2 * distance2:
+                    continue
+                # two normals within NEAR_ANGLE of p's lie less than SHARP_ANGLE apart (the
+                # triangle inequality of angles): on a flat face no pair needs comparing
+                is_near = towards_p >= NEAR_COS
+                for other in range(fars + (0 if is_near else nears)):
+                    o = far[other] if other < fars else near[other - fars]
+                    across = 0.0
+                    for a in range(3):
+                        across += normals[q, a] * normals[o, a]
+                    if across < SHARP_COS:
+                        crease[i] = True
+                if crease[i]:
+                    break
+                if is_near:
+                    near[nears] = q
+                    nears += 1
+                else:
+                    far[fars] = q
+                    fars += 1
     return crease
 
 

@@ -88,13 +88,29 @@ def splat_thickness(cloud: PointCloud, start: int = 0, stop: int | None = None) 
     return np.where(values < INFINITE_LENGTH, values, 0.0).astype(np.float32)
 
 
+@numba.njit(cache=True, inline="always")
+def _sort_by_rank(keys, values, n, sorted_keys, sorted_values):  # pragma: no cover - compiled
+    """keys[:n] ascending into sorted_keys, values[:n] along, equal keys in their order: each
+    goes to its rank, the number of keys below it and of equal ones before it. The counts
+    compile to SIMD compares, where sorting by insertion mispredicted a branch per key."""
+    for a in range(n):
+        key = keys[a]
+        rank = 0
+        for b in range(n):
+            rank += (keys[b] < key) | ((keys[b] == key) & (b < a))
+        sorted_keys[rank] = key
+        sorted_values[rank] = values[a]
+
+
 @numba.njit(parallel=True, cache=True)
 def _layer_thickness(points, normals, index, start):  # pragma: no cover - compiled
     """tau_p of each point p = start + i."""
     m, k = index.shape
     out = np.empty(m)
     for block in numba.prange((m + THICKNESS_BLOCK - 1) // THICKNESS_BLOCK):
-        separation, extent = np.empty(k), np.empty(k)  # one pair per block, kept sorted by separation
+        # buffers per block (an allocation per point costs as much as its work): the neighbours'
+        # separations and extents as they come, then sorted by separation
+        found_h, found_e, separation, extent = np.empty(k), np.empty(k), np.empty(k), np.empty(k)
         for i in range(block * THICKNESS_BLOCK, min(m, (block + 1) * THICKNESS_BLOCK)):
             p = start + i
             f = index[i, min(FLOOR_NEIGHBOUR, k - 1)]
@@ -115,13 +131,9 @@ def _layer_thickness(points, normals, index, start):  # pragma: no cover - compi
                 crease = math.sqrt(tangential2 * max(2.0 - 2.0 * cos, 0.0)) if cos < CREASE_COS else 0.0
                 h = max(antisymmetric - 0.5 * crease, 0.0)
                 bend = 0.5 * (abs(d_pq) + abs(d_qp)) * min(1.0, spacing2 / max(tangential2, 1e-300))
-                e = max(antisymmetric, bend)
-                slot = count  # insertion into the ascending separations
-                while slot > 0 and separation[slot - 1] > h:
-                    separation[slot], extent[slot] = separation[slot - 1], extent[slot - 1]
-                    slot -= 1
-                separation[slot], extent[slot] = h, e
+                found_h[count], found_e[count] = h, max(antisymmetric, bend)
                 count += 1
+            _sort_by_rank(found_h, found_e, count, separation, extent)
             out[i] = np.inf
             layer = 0.0
             for j in range(count):
