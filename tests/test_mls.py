@@ -43,7 +43,8 @@ def test_projection_onto_sphere():
 
 
 def test_fit_failure_statuses():
-    few = PointCloud(np.array([[0, 0, 0], [1e-3, 0, 0], [0, 1e-3, 0], [1e-3, 1e-3, 0.0]]))
+    # two samples: fewer than a plane needs (S.MIN_NEIGHBOURS)
+    few = PointCloud(np.array([[0, 0, 0], [1e-3, 0, 0.0]]), normals=np.array([[0, 0, 1.0], [0, 0, 1.0]]))
     assert S.project(S.build_surface(few), np.zeros((1, 3))).status[0] == S.FIT_TOO_FEW
     surf = S.build_surface(SPHERE)
     far = S.project(surf, np.array([[0.0, 0.0, 0.0]]) - surf.origin)  # centre: no sample near
@@ -128,6 +129,25 @@ def test_coarse_thin_part_is_whole(around, gap):
     hits = trace(scene, origins, np.broadcast_to([0.0, 0.0, -1.0], origins.shape), 0.0, 10.0)
     assert hits.hit.all(), hits.hit
     assert np.abs(hits.t - 2.9).max() <= 1e-3  # the cylinder's near side, z = 0.1
+
+
+def coarse_face() -> PointCloud:
+    """A coarse part's flat face as its mesh vertices give it: the four corners of a unit square."""
+    corners = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [1.0, 1.0, 0.0]])
+    return PointCloud(corners, normals=np.broadcast_to([0.0, 0.0, 1.0], corners.shape).copy())
+
+
+def test_a_coarse_flat_face_between_its_corners_is_surface():
+    """Issue 17 (a scanned rocker arm's large flat triangles, 2% of its surface, where only
+    their corners' supports reach): four samples facing the ray make a plane; a fit that asked
+    for six, the quadratic's coefficients, left the face a hole (no ray hit)."""
+    scene = prepare_scene(coarse_face())
+    grid = np.linspace(0.1, 0.9, 9)
+    x, y = (v.ravel() for v in np.meshgrid(grid, grid))
+    origins = np.stack([x, y, np.full_like(x, 3.0)], 1) - scene.surface.origin
+    hits = trace(scene, origins, np.broadcast_to([0.0, 0.0, -1.0], origins.shape), 0.0, 10.0)
+    assert hits.hit.all(), hits.hit
+    assert np.abs(hits.t - 3.0).max() <= 1e-6
 
 
 @requires_gl

@@ -14,7 +14,7 @@ from surfel.mls.gpu import MlsGpuParams, render_mls_gl
 from surfel.options import RenderOptions
 from surfel.preprocess import complete
 from surfel.rendering import Renderer, render
-from test_mls import RENDERER, SPHERE, assert_depth_on_torus, coarse_tail, mls_cpu, sphere_points
+from test_mls import RENDERER, SPHERE, assert_depth_on_torus, coarse_face, coarse_tail, mls_cpu, sphere_points
 
 pytestmark = requires_gl
 
@@ -121,6 +121,19 @@ def test_agrees_with_cpu_mls_on_a_coarse_thin_part():
     both = np.isfinite(cpu.depth) & np.isfinite(gpu.depth)
     # both converge to 1e-3 of the local width (0.08 here): 3e-5 of the depth
     assert np.median(np.abs(cpu.depth[both] - gpu.depth[both]) / cpu.depth[both]) <= 1e-4
+
+
+def test_a_coarse_flat_face_between_its_corners_is_surface_on_the_gpu_too():
+    """The GPU caster's fit needs as few facing samples as the CPU tracer's (surface.MIN_NEIGHBOURS):
+    a square given by its four corners is whole, at the plane's depth."""
+    cloud = coarse_face()
+    cam = frame(cloud.center, cloud.bounding_radius, eye=[0.5, 0.5, 3.0], target=[0.5, 0.5, 0.0], up=[0, 1.0, 0],
+                size=(64, 64))
+    gpu = mls_gl(cloud, cam, RenderOptions(shading="lambert"))
+    cpu = mls_cpu(cloud, cam, RenderOptions(shading="lambert"))
+    inner = ndimage.binary_erosion(cpu.alpha >= 0.5, iterations=2)
+    assert inner.sum() > 100 and (gpu.alpha[inner] >= 0.5).all()
+    assert np.abs(gpu.depth[inner] - 3.0).max() <= 1e-3
 
 
 def test_gpu_torus_depth_lies_on_the_torus():

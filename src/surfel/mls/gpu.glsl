@@ -24,7 +24,6 @@
 #define SUPPORT 2.5
 #define FAR 3.0e38
 #define MISS 1.0e38
-#define MIN_NEIGHBOURS 6.0
 #define RETRY_GAP 0.5  // a later candidate lies this many of its kernel widths beyond a failed one
 
 uniform mat4 u_view_inv;        // eye to local world
@@ -36,6 +35,7 @@ uniform float u_edge_cos;       // crease test: a sheet's samples have normals w
 uniform float u_edge_reach;     // ... another sheet's samples count from this many l behind r
 uniform float u_edge_turn;      // ... and where their normals lie within this cosine of the way out
 uniform float u_ridge;          // regularisation of a singular quadratic fit, in units of sum w (surface.RIDGE)
+uniform float u_min_neighbours; // facing samples a fit needs in its support (surface.MIN_NEIGHBOURS)
 uniform bool u_last;            // the last iteration: apply the half-disc and crease tests to its fit
 uniform bool u_update_reference;  // the fit's normal becomes the next reference normal
 uniform bool u_retry;           // a later candidate: the nearest beyond the one that failed
@@ -280,7 +280,7 @@ void main() {
     vec4 sum = texelFetch(u_sum, pix, 0), normal = texelFetch(u_normal_sum, pix, 0);
     // the fit's failure statuses: too few samples facing n_r, outside the domain, normals that
     // cancel out or turn away from n_r (surface.fit)
-    if (!current_hit(r, t) || normal.w < MIN_NEIGHBOURS || texelFetch(u_inside, pix, 0).x == 0.0) return;
+    if (!current_hit(r, t) || normal.w < u_min_neighbours || texelFetch(u_inside, pix, 0).x == 0.0) return;
     if (dot(normal.xyz, texelFetch(u_reference, pix, 0).xyz) <= 1e-9 * sum.w) return;
     vec3 m = sum.xyz / sum.w;
     vec3 n = normalize(normal.xyz);

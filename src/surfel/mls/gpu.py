@@ -67,7 +67,7 @@ from ..options import RenderOptions, at_least, setting
 from ..result import RenderResult
 from .polynomial import P_C, P_E1, P_E2, P_N, P_Q, P_SCALE
 from .raytrace import DEFAULT_SUPERSAMPLE, MLSScene, cached_scene, scene_kernel
-from .surface import EDGE_REACH, EDGE_SHEET_COS, EDGE_TURN_COS, REFERENCE_UPDATES, RIDGE, MlsKernel
+from .surface import EDGE_REACH, EDGE_SHEET_COS, EDGE_TURN_COS, MIN_NEIGHBOURS, REFERENCE_UPDATES, RIDGE, MlsKernel
 
 SHADER = Path(__file__).with_suffix(".glsl")
 FAR = 3.0e38
@@ -189,7 +189,7 @@ def render_mls_gl(cloud: PointCloud, camera: Camera, options: RenderOptions, par
     common = {"u_view_inv": np.linalg.inv(view), "u_scale": surface.scale, "u_domain": surface.domain,
               "u_normal_weight": 1.0 / params.normal_sigma**2, "u_boundary": params.boundary,
               "u_edge_cos": EDGE_SHEET_COS, "u_edge_reach": EDGE_REACH, "u_edge_turn": EDGE_TURN_COS,
-              "u_ridge": RIDGE, "u_guard": 0.0}
+              "u_ridge": RIDGE, "u_min_neighbours": float(MIN_NEIGHBOURS), "u_guard": 0.0}
     programs = {name: renderer.program(SHADER, {f"PASS_{name.upper()}": True})
                 for name in ("intersect", "cull", "means", "frame", "system", "solve", "keep", "retry", "shade")}
     for program in programs.values():

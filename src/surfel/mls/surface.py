@@ -44,8 +44,11 @@ non-linear kernel regression", 2009): samples whose oriented normal disagrees wi
 other side of a thin finger, the facing side of a gap, the far face across a crease) get little
 weight: thin parts keep both sides, gaps stay open, creases stay sharp.
 
-Domain. A fit needs MIN_NEIGHBOURS samples facing n_r (n_i . n_r > 0) in its support, and one
-of them within `domain * s_i` of r (Adamson & Alexa's domain test: no bridging of holes). A
+Domain. A fit needs MIN_NEIGHBOURS = 3 samples facing n_r (n_i . n_r > 0) in its support, and
+one of them within `domain * s_i` of r (Adamson & Alexa's domain test: no bridging of holes).
+Three make a plane, and below the quadratic's six the ridge above makes it lean to H: inside a
+coarse part's large flat triangles only its corners' supports reach (a scanned rocker arm: 2%
+of its surface had 3 to 5 of them), and the domain test, not the count, decides holes. A
 sheet that the normal weight separates from its neighbour would run on past the crease or rim
 where it ends, so where a projection converges the half-disc test of Bendels, Schnabel & Klein
 ("Detecting holes in point set surfaces", 2006) applies too: the mean of the samples, weighted
@@ -107,7 +110,7 @@ FIT_DEGENERATE = 2     # the samples' normals cancel out, or the system is singu
 FIT_OUTSIDE = 3        # the domain test failed: no sample near enough (a hole or past the boundary)
 FIT_NOT_CONVERGED = 4  # projection did not reach the tolerance in the allowed iterations
 
-MIN_NEIGHBOURS = 6     # a bivariate quadratic has 6 coefficients
+MIN_NEIGHBOURS = 3     # a plane; with fewer than 6 the quadratic is singular and leans to it (RIDGE)
 SUPPORT = 2.5          # Gaussian truncated at SUPPORT * h (weight exp(-6.25) = 0.002)
 MAX_NEIGHBOURS = 512   # neighbour buffer of one fit (a support holds ~50 on even sampling)
 CACHE = 2048           # candidate cache of a thread's fits (see `gather`)
