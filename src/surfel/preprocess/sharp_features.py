@@ -87,9 +87,9 @@ def _crease_points(points, index, start, normals, flat):  # pragma: no cover - c
     m, k = index.shape
     crease = np.zeros(m, np.bool_)
     for block in numba.prange((m + CREASE_BLOCK - 1) // CREASE_BLOCK):
-        # flat neighbours in whose tangent plane the point lies; one buffer per block: an
-        # allocation per point costs as much as its work
-        # (the near ones: normals within NEAR_ANGLE of p's, the far ones the others)
+        # flat neighbours in whose tangent plane the point lies, those with normals within half
+        # SHARP_ANGLE of p's (NEAR_COS) and the others; one buffer per block: an allocation
+        # per point costs as much as its work
         near, far = np.empty(k, np.int64), np.empty(k, np.int64)
         for i in range(block * CREASE_BLOCK, min(m, (block + 1) * CREASE_BLOCK)):
             p = start + i
@@ -108,7 +108,7 @@ def _crease_points(points, index, start, normals, flat):  # pragma: no cover - c
                     towards_p += normals[q, a] * normals[p, a]
                 if side * side > ON_PLANE_SIN2 * distance2:
                     continue
-                # two normals within NEAR_ANGLE of p's lie less than SHARP_ANGLE apart (the
+                # two normals within half SHARP_ANGLE of p's lie less than SHARP_ANGLE apart (the
                 # triangle inequality of angles): on a flat face no pair needs comparing
                 is_near = towards_p >= NEAR_COS
                 for other in range(fars + (0 if is_near else nears)):
