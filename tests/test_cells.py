@@ -112,6 +112,20 @@ def test_compiled_frames_match_the_formula():
         assert np.array_equal(orthonormal_basis(reference), np.stack([t, s], axis=1), equal_nan=True)
 
 
+def test_tangent_frames_are_the_scaled_basis_rounded_once():
+    """tangent_frames' one kernel gives the bits of its steps: unit normals, their basis, times
+    the radii in float64, rounded to float32 (zero and -0 rows, float32 inputs included)."""
+    from surfel.preprocess.frames import orthonormal_basis
+    from surfel.preprocess.frames import unit as unit_rows
+
+    rng = np.random.default_rng(5)
+    v = np.concatenate([rng.normal(size=(5_000, 3)) * 3, [[0, 0, 0], [0, 0, -1], [1e-9, 0, -1], [1, 0, -0.0]]])
+    radii = np.concatenate([rng.uniform(0, 2, 5_000), [1.0, 0.0, 2.5, 1e-30]])
+    for normals, r in ((v, radii), (v.astype(np.float32), radii.astype(np.float32))):
+        steps = orthonormal_basis(unit_rows(normals)) * np.asarray(r, np.float64)[:, None, None]
+        assert np.array_equal(tangent_frames(normals, r).view(np.uint32), steps.astype(np.float32).view(np.uint32))
+
+
 def test_cloud_bounds_are_the_corners():
     rng = np.random.default_rng(4)
     positions = rng.normal(size=(10_000, 3)) * [1, 100, 1e-3] + [5e5, -3, 0]

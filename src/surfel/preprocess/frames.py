@@ -10,7 +10,7 @@ singularity: Frisvad 2012's formula, which this revises, breaks down near z = -1
 so that (t, s, n) is orthonormal and right-handed. A circular splat of radius r has the axes
 (r t, r s).
 
-Both kernels run in one compiled pass over the rows: every estimation of `complete.py` asks
+The kernels run in one compiled pass over the rows: every estimation of `complete.py` asks
 for unit normals and tangent frames of millions of points, which numpy's temporaries made
 a visible share of a hierarchy build.
 """
@@ -52,6 +52,28 @@ def _basis(n):  # pragma: no cover - compiled
     return frames
 
 
+@numba.njit(parallel=True, cache=True)
+def _axes(v, radii):  # pragma: no cover - compiled
+    """(t, s) of the unit rows of v (N, 3) float64, times radii (N,) float64, as float32: the
+    steps of `_unit_rows` and `_basis` in one pass, with the same arithmetic (one rounding to
+    float32 at the end), so that no (N, 2, 3) float64 temporaries are written and read back."""
+    axes = np.empty((len(v), 2, 3), np.float32)
+    for i in numba.prange(len(v)):
+        length = max(math.sqrt(v[i, 0] * v[i, 0] + v[i, 1] * v[i, 1] + v[i, 2] * v[i, 2]), 1e-300)
+        x, y, z = v[i, 0] / length, v[i, 1] / length, v[i, 2] / length
+        r = radii[i]
+        sign = math.copysign(1.0, z)
+        a = -1.0 / (sign + z)
+        b = x * y * a
+        axes[i, 0, 0] = (1.0 + sign * x * x * a) * r
+        axes[i, 0, 1] = (sign * b) * r
+        axes[i, 0, 2] = (-sign * x) * r
+        axes[i, 1, 0] = b * r
+        axes[i, 1, 1] = (sign + y * y * a) * r
+        axes[i, 1, 2] = (-y) * r
+    return axes
+
+
 def unit(v: np.ndarray) -> np.ndarray:
     """Rows of v (N, 3) scaled to unit length, float64 (zero rows stay zero)."""
     return _unit_rows(np.ascontiguousarray(v, np.float64))
@@ -65,5 +87,4 @@ def orthonormal_basis(normals: np.ndarray) -> np.ndarray:
 def tangent_frames(normals: np.ndarray, radii: np.ndarray) -> np.ndarray:
     """Circular splat axes (N, 2, 3) float32: orthonormal tangents of the (unit) normals, scaled
     by the radii; (u, v, n) is right-handed."""
-    tangents = orthonormal_basis(unit(np.asarray(normals, np.float64)))
-    return (tangents * np.asarray(radii, np.float64)[:, None, None]).astype(np.float32)
+    return _axes(np.ascontiguousarray(normals, np.float64), np.ascontiguousarray(radii, np.float64))
