@@ -207,8 +207,8 @@ def _render_cpu(cloud, camera, options, params, renderer, *, per_splat_shading: 
     lowpass = np.float32(params.lowpass_radius * ss if params.ewa_filter else 0.0)
     m = _camera(target, cloud.local_origin)
     bins.bound_splats(buffers.packed, buffers.extras, m, np.float32(params.radius_scale), lowpass,
-                   params.backface_culling, width, height, buffers.box, buffers.tiles_x, buffers.counts,
-                   buffers.bounds)
+                      params.backface_culling, width, height, buffers.box, buffers.tiles_x, buffers.counts,
+                      buffers.bounds)
     buffers.bin()
     # one sample a pixel and no screen-space pass after it: the kernels write the final image
     composite = ss == 1 and not options.edl

@@ -23,14 +23,28 @@ import numba
 import numpy as np
 
 
+@numba.njit(cache=True, inline="always")
+def _unit_row(v, i):  # pragma: no cover - compiled
+    """Row i of v (N, 3) float64 divided by max(|v_i|, 1e-300)."""
+    length = max(math.sqrt(v[i, 0] * v[i, 0] + v[i, 1] * v[i, 1] + v[i, 2] * v[i, 2]), 1e-300)
+    return v[i, 0] / length, v[i, 1] / length, v[i, 2] / length
+
+
+@numba.njit(cache=True, inline="always")
+def _row_basis(x, y, z):  # pragma: no cover - compiled
+    """(t, s) of the module docstring for the unit normal (x, y, z), as six values."""
+    sign = math.copysign(1.0, z)
+    a = -1.0 / (sign + z)
+    b = x * y * a
+    return 1.0 + sign * x * x * a, sign * b, -sign * x, b, sign + y * y * a, -y
+
+
 @numba.njit(parallel=True, cache=True)
 def _unit_rows(v):  # pragma: no cover - compiled
     """Rows of v (N, 3) float64 divided by max(|v_i|, 1e-300)."""
     out = np.empty_like(v)
     for i in numba.prange(len(v)):
-        length = max(math.sqrt(v[i, 0] * v[i, 0] + v[i, 1] * v[i, 1] + v[i, 2] * v[i, 2]), 1e-300)
-        for a in range(3):
-            out[i, a] = v[i, a] / length
+        out[i, 0], out[i, 1], out[i, 2] = _unit_row(v, i)
     return out
 
 
@@ -39,38 +53,23 @@ def _basis(n):  # pragma: no cover - compiled
     """(t, s) of the module docstring for each row of n (N, 3) float64."""
     frames = np.empty((len(n), 2, 3))
     for i in numba.prange(len(n)):
-        x, y, z = n[i, 0], n[i, 1], n[i, 2]
-        sign = math.copysign(1.0, z)
-        a = -1.0 / (sign + z)
-        b = x * y * a
-        frames[i, 0, 0] = 1.0 + sign * x * x * a
-        frames[i, 0, 1] = sign * b
-        frames[i, 0, 2] = -sign * x
-        frames[i, 1, 0] = b
-        frames[i, 1, 1] = sign + y * y * a
-        frames[i, 1, 2] = -y
+        (frames[i, 0, 0], frames[i, 0, 1], frames[i, 0, 2],
+         frames[i, 1, 0], frames[i, 1, 1], frames[i, 1, 2]) = _row_basis(n[i, 0], n[i, 1], n[i, 2])
     return frames
 
 
 @numba.njit(parallel=True, cache=True)
 def _axes(v, radii):  # pragma: no cover - compiled
     """(t, s) of the unit rows of v (N, 3) float64, times radii (N,) float64, as float32: the
-    steps of `_unit_rows` and `_basis` in one pass, with the same arithmetic (one rounding to
-    float32 at the end), so that no (N, 2, 3) float64 temporaries are written and read back."""
+    steps of `_unit_rows` and `_basis` in one pass (one rounding to float32 at the end), so
+    that no (N, 2, 3) float64 temporaries are written and read back."""
     axes = np.empty((len(v), 2, 3), np.float32)
     for i in numba.prange(len(v)):
-        length = max(math.sqrt(v[i, 0] * v[i, 0] + v[i, 1] * v[i, 1] + v[i, 2] * v[i, 2]), 1e-300)
-        x, y, z = v[i, 0] / length, v[i, 1] / length, v[i, 2] / length
+        x, y, z = _unit_row(v, i)
+        tx, ty, tz, sx, sy, sz = _row_basis(x, y, z)
         r = radii[i]
-        sign = math.copysign(1.0, z)
-        a = -1.0 / (sign + z)
-        b = x * y * a
-        axes[i, 0, 0] = (1.0 + sign * x * x * a) * r
-        axes[i, 0, 1] = (sign * b) * r
-        axes[i, 0, 2] = (-sign * x) * r
-        axes[i, 1, 0] = b * r
-        axes[i, 1, 1] = (sign + y * y * a) * r
-        axes[i, 1, 2] = (-y) * r
+        axes[i, 0, 0], axes[i, 0, 1], axes[i, 0, 2] = tx * r, ty * r, tz * r
+        axes[i, 1, 0], axes[i, 1, 1], axes[i, 1, 2] = sx * r, sy * r, sz * r
     return axes
 
 
