@@ -44,11 +44,9 @@ non-linear kernel regression", 2009): samples whose oriented normal disagrees wi
 other side of a thin finger, the facing side of a gap, the far face across a crease) get little
 weight: thin parts keep both sides, gaps stay open, creases stay sharp.
 
-Domain. A fit needs MIN_NEIGHBOURS = 3 samples facing n_r (n_i . n_r > 0) in its support, and
-one of them within `domain * s_i` of r (Adamson & Alexa's domain test: no bridging of holes).
-Three make a plane, and below the quadratic's six the ridge above makes it lean to H: inside a
-coarse part's large flat triangles only its corners' supports reach (a scanned rocker arm: 2%
-of its surface had 3 to 5 of them), and the domain test, not the count, decides holes. A
+Domain. A fit needs MIN_NEIGHBOURS = 3 samples facing n_r (n_i . n_r > 0) in its support (a plane:
+inside a coarse part's large flat triangles only the corners' supports reach; below six the ridge
+makes the quadratic lean to H), and one within `domain * s_i` of r (Adamson & Alexa's domain test). A
 sheet that the normal weight separates from its neighbour would run on past the crease or rim
 where it ends, so where a projection converges the half-disc test of Bendels, Schnabel & Klein
 ("Detecting holes in point set surfaces", 2006) applies too: the mean of the samples, weighted
