@@ -70,7 +70,8 @@ def fine_cells(positions, lo, scale, res):  # pragma: no cover - compiled
     return cells
 
 
-def halo_reach(halo: float) -> int:
+@numba.njit(cache=True)
+def halo_reach(halo):  # pragma: no cover - compiled
     """H of the module docstring: the cells scanned on each side, for a halo of `halo` cell widths."""
     return max(1, math.ceil(halo))
 
@@ -138,7 +139,7 @@ def _halo_of(position, lo, scale, res, lookup, lone, own, halo, reach, found):  
 def halo_pairs(positions, lo, scale, res, lookup, lone, own, halo):  # pragma: no cover - compiled
     """(point index, partition) of every halo membership (module docstring), halo in cell
     widths; lone: `lone_cells(lookup, res, halo)`."""
-    reach = max(1, int(math.ceil(halo)))  # halo_reach
+    reach = halo_reach(halo)
     n = len(positions)
     block = 4096
     blocks = (n + block - 1) // block

@@ -37,8 +37,7 @@ its name (made unique, ASCII, at most 32 bytes). Of the derived arrays only clip
 screen_facing and thickness are written: lod_* describe another hierarchy and Phong slopes
 splats of other sizes. Fields the format requires but the cloud lacks get defaults (return 1
 of 1); the schema in the surfel VLR names which dimensions hold attributes, so readers leave
-the defaults out. laspy's CopcReader
-gives the same values back under the dimensions' names.
+the defaults out. laspy's CopcReader gives the same values back under the dimensions' names.
 """
 
 from __future__ import annotations

@@ -33,11 +33,11 @@ Then `iterations` times (default 3), at r = o + t d:
    a seventh sums the half-disc test's area-weighted offsets of the samples from r, and
    spare channels count the crease test's samples (surface.sample_beyond);
 5. solve + re-intersect (full screen): Cholesky of the 6x6 (double precision; where it is
-   singular, again with surface.fit's regularisation), then the ray
-   meets the new quadratic within 2.5 l of r (the CPU tracer's window) -- the next t, whose
-   window depth is rewritten for the next culling test. The fit's normal at the new point is
-   the next n_r for the first REFERENCE_UPDATES steps, as on the CPU. At the last step the
-   half-disc and crease tests reject a hit past the edge of its sheet.
+   singular, again with surface.fit's regularisation), then the ray meets the new quadratic
+   within 2.5 l of r (the CPU tracer's window) -- the next t, whose window depth is rewritten
+   for the next culling test. The fit's normal at the new point is the next n_r for the first
+   REFERENCE_UPDATES steps, as on the CPU. At the last step the half-disc and crease tests
+   reject a hit past the edge of its sheet.
 6. keep / retry: converged pixels keep their hit; where the fits failed, the next candidate
    (`candidates`, default 8) is the nearest intersection beyond the failed one -- the CPU
    tracer's walk on to the next bounding sphere, bounded here to a few candidates.
