@@ -11,6 +11,7 @@ from surfel.cloud import PointCloud
 from surfel.metrics import compare_results
 from surfel.mls import surface as S
 from surfel.mls.raytrace import MlsParams, prepare_scene, render_mls_cpu, trace
+from surfel.mls.widths import GAP_FRACTION, sample_spacing
 from surfel.options import RenderOptions
 from surfel.rendering import Renderer, render
 
@@ -117,18 +118,35 @@ def coarse_tail(around: int, gap: float, rings: int = 6, radius: float = 0.1) ->
     return PointCloud(radius * normals + y[:, None] * [0.0, 1.0, 0.0], normals=normals)
 
 
-@pytest.mark.parametrize("around, gap", [(24, 0.2), (12, 0.3)])
+@pytest.mark.parametrize("around, gap", [(24, 0.2), (12, 0.3), (12, 0.5)])
 def test_coarse_thin_part_is_whole(around, gap):
     """Issue 17 (the cow's tail): rays across a thin part sampled as rings far apart all meet
     it, on the cylinder. With the covariance's plane a support holding one ring fitted the
     ring's plane, across the part (24 around, 0.2 apart: no ray hit); between two rings the
-    quadratic's normal equations were singular (12 around, 0.3 apart: 29% hit)."""
+    quadratic's normal equations were singular (12 around, 0.3 apart: 29% hit). Rings 0.5
+    apart, five times the spacing round them, left the surface between them outside every
+    sample's domain (29% hit) until the kernels spanned the gap (widths.py). The kernels span
+    more of a ring than its arc of the facing side then: their quadratic misses the circle by
+    up to 6% of its radius."""
     scene = prepare_scene(coarse_tail(around, gap))
     y = np.linspace(-gap, gap, 21)  # from a ring across two gaps, through two more rings
     origins = np.stack([np.zeros_like(y), y, np.full_like(y, 3.0)], 1) - scene.surface.origin
     hits = trace(scene, origins, np.broadcast_to([0.0, 0.0, -1.0], origins.shape), 0.0, 10.0)
     assert hits.hit.all(), hits.hit
-    assert np.abs(hits.t - 2.9).max() <= 1e-3  # the cylinder's near side, z = 0.1
+    assert np.abs(hits.t - 2.9).max() <= 0.008  # the cylinder's near side, z = 0.1
+
+
+def test_kernels_widen_only_across_gaps():
+    """The tangent gap widens the kernels of rings far apart, and no others: an even grid keeps
+    its local spacing, a square's border samples too (past a border lies no gap to close)."""
+    g = np.arange(30) * 0.1
+    grid = np.stack([*(v.ravel() for v in np.meshgrid(g, g)), np.zeros(900)], 1)
+    up = np.broadcast_to([0.0, 0.0, 1.0], grid.shape)
+    spacing, local = sample_spacing(grid, up)
+    assert np.array_equal(spacing, local)
+    tail = coarse_tail(12, 0.5)
+    spacing, local = sample_spacing(tail.positions, tail.normals.astype(np.float64))
+    assert np.allclose(spacing, GAP_FRACTION * 0.5) and (local < 0.5 * spacing).all()
 
 
 def coarse_face() -> PointCloud:

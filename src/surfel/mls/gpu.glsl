@@ -24,7 +24,7 @@
 #define SUPPORT 2.5
 #define FAR 3.0e38
 #define MISS 1.0e38
-#define RETRY_GAP 0.5  // a later candidate lies this many of its kernel widths beyond a failed one
+#define RETRY_GAP 0.5  // a later candidate lies this many of its sampling's kernel widths beyond a failed one
 
 uniform mat4 u_view_inv;        // eye to local world
 uniform float u_scale;          // median kernel width: the unit of the support sums
@@ -218,8 +218,10 @@ void main() {
     float t = t_in + dt;
     if (u_retry) {
         float failed = texelFetch(u_failed, ivec2(gl_FragCoord.xy), 0).r;
-        // beyond the failed candidate's sheet: its other samples meet the ray at nearly its t
-        if (failed >= MISS || t <= failed + RETRY_GAP * points[3 * i].w) discard;
+        // beyond the failed candidate's sheet: its other samples meet the ray at nearly its t.
+        // In units of the width the sample's density gives, sqrt(a_i) u_scale: a kernel widened
+        // across a gap (widths.py) spans more than a thin part's thickness
+        if (failed >= MISS || t <= failed + RETRY_GAP * sqrt(points[3 * i + 2].w) * u_scale) discard;
     }
     out_t = vec4(t, 0.0, 0.0, 0.0);
     out_first = out_t;

@@ -26,18 +26,15 @@ A projection starts with its first sample's normal as n_r; the normal of the fir
 REFERENCE_UPDATES fits at their projected points becomes the next n_r, then n_r is kept (the
 iteration converges to a fixed point of one operator).
 
-Kernel width (adaptive MLS): h_i = h_scale * s_i, s_i the local sample spacing: the mean
-distance to the k = 8 nearest neighbours (the k-nearest neighbourhood sizes the kernel as in
-Pauly, Gross & Kobbelt, "Efficient simplification of point-sampled surfaces", 2002, and the
-per-sample widths h_i = t r_i of Guennebaud & Gross, "Algebraic point set surfaces", 2007),
-then the median over the sample and those neighbours, so that an isolated outlier takes the
-spacing of the surface near it. Dense parts (a face) keep a narrow kernel and their detail,
-sparse parts (a body) a wide one and no holes. Where dense and sparse sampling meet, a narrow
-kernel next to a wide one would leave the gap between them to the wide kernels alone; so, as
-the feature-size-proportional widths of Dey & Sun ("An adaptive MLS surface for reconstruction
-with guarantees", 2005) are Lipschitz, the widths are limited in slope along a sheet: h_i >=
-h_j - WIDTH_SLOPE |p_i - p_j| for every sample j whose support reaches p_i and whose normal
-lies within 45 degrees of n_i.
+Kernel width (adaptive MLS): h_i = h_scale * s_i, s_i the sample's spacing (widths.py): the
+mean distance to its 8 nearest neighbours, median-smoothed, or more where the sampling leaves
+a gap in its tangent plane (rings of vertices far apart along a thin part). Dense parts (a
+face) keep a narrow kernel and their detail, sparse parts (a body) a wide one and no holes.
+Where dense and sparse sampling meet, a narrow kernel next to a wide one would leave the gap
+between them to the wide kernels alone; so, as the feature-size-proportional widths of Dey &
+Sun ("An adaptive MLS surface for reconstruction with guarantees", 2005) are Lipschitz, the
+widths are limited in slope along a sheet: h_i >= h_j - WIDTH_SLOPE |p_i - p_j| for every
+sample j whose support reaches p_i and whose normal lies within 45 degrees of n_i.
 
 Normal weight (Oztireli, Guennebaud & Gross, "Feature preserving point set surfaces based on
 non-linear kernel regression", 2009): samples whose oriented normal disagrees with n_r (the
@@ -51,7 +48,7 @@ sheet that the normal weight separates from its neighbour would run on past the 
 where it ends, so where a projection converges the half-disc test of Bendels, Schnabel & Klein
 ("Detecting holes in point set surfaces", 2006) applies too: the mean of the samples, weighted
 by a_i exp(-|p_i - r|^2 / l^2 - |n_i - n_r|^2 / sigma_n^2) (a_i the area a sample stands for:
-its spacing before the slope limit, squared), may lie at most `boundary * l` from r across the
+its local spacing m_i of widths.py squared), may lie at most `boundary * l` from r across the
 tangent plane (at the edge of a half-plane it lies l / sqrt(pi) = 0.56 l away). The areas and
 the one width l keep a jump in sampling density from reading as an edge. That bound leaves a
 sheet running on by a tenth of l or so past its last samples, which a LiDAR canopy's ragged
@@ -100,6 +97,7 @@ from .polynomial import (
     solve_spd,
     tangent_frame,
 )
+from .widths import sample_spacing
 
 # Fit statuses.
 FIT_OK = 0
@@ -114,7 +112,6 @@ MAX_NEIGHBOURS = 512   # neighbour buffer of one fit (a support holds ~50 on eve
 CACHE = 2048           # candidate cache of a thread's fits (see `gather`)
 CACHE_REACH = 0.5      # ... valid within this many median kernel widths of where it was filled
 BLOCK = 256            # queries of one thread in a row: samples, or rays of one image row
-SPACING_K = 8          # spacing: mean distance to the 8 nearest neighbours, median-smoothed
 WIDTH_SLOPE = 0.5      # kernel widths fall by at most this per unit distance along a sheet
 WIDTH_SHEET_COS = 0.7  # ... a sheet: samples whose normals lie within 45 degrees
 WIDTH_PASSES = 2       # passes of that limit (each reaches one support further)
@@ -142,7 +139,8 @@ DEFAULT_KERNEL = MlsKernel()
 
 # What the compiled kernels read, in Morton order (numba takes a namedtuple of arrays whole):
 # points (N, 3), normals (N, 3) unit and oriented, h (N,) kernel widths, spacing (N,) s_i,
-# area (N,) the surface each sample stands for (its unlimited spacing squared, relative),
+# area (N,) the surface each sample stands for, (m_i / median s)^2 (m_i: widths.py; sqrt(a_i)
+# times the median width is h_scale m_i, the width its sampling density alone gives),
 # colors (N, 3), boxes (2L - 1, 2, 3) support boxes of the tree's nodes, domain, normal_weight
 # (1 / sigma_n^2), boundary (the half-disc bound), reach (of the candidate cache, CACHE_REACH h).
 Samples = namedtuple("Samples", "points normals h spacing area colors boxes domain normal_weight boundary reach")
@@ -178,19 +176,6 @@ class MLSSurface:
     def scale(self) -> float:
         """Typical kernel width (the median): a unit for tolerances reported in stats."""
         return float(np.median(self.samples.h))
-
-
-def local_spacing(points: np.ndarray, k: int = SPACING_K) -> np.ndarray:
-    """Mean distance to the k nearest neighbours, then the median of that over the point and
-    its neighbours (robust: an isolated outlier takes its neighbourhood's spacing)."""
-    k = min(k, len(points) - 1)
-    if k < 1:
-        return np.ones(len(points))
-    dist, idx = cKDTree(points).query(points, k + 1)
-    spacing = np.median(dist[:, 1:].mean(axis=1)[idx], axis=1)
-    positive_spacing = spacing[spacing > 0]
-    floor = 1e-6 * float(np.median(positive_spacing)) if positive_spacing.size else 1.0
-    return np.maximum(spacing, floor)  # duplicates: no zero-width kernel
 
 
 def leaf_tree(centers: np.ndarray, radius: np.ndarray) -> np.ndarray:
@@ -232,15 +217,15 @@ def build_surface(cloud: PointCloud, kernel: MlsKernel = DEFAULT_KERNEL) -> MLSS
     order = np.argsort(morton_codes(cloud.positions), kind="stable")
     points = np.ascontiguousarray(cloud.positions[order] - origin)
     normals = np.ascontiguousarray(oriented_normals(cloud)[order])
-    sampled = local_spacing(points)
-    area = (sampled / np.median(sampled)) ** 2
+    sampled, local = sample_spacing(points, normals)
     h = kernel.h_scale * sampled
     unit = np.ones((len(points), 3))
     for _ in range(WIDTH_PASSES):
-        provisional = Samples(points, normals, h, h / kernel.h_scale, area, unit, leaf_tree(points, SUPPORT * h), 0.0,
-                              0.0, 0.0, CACHE_REACH * float(np.median(h)))
+        provisional = Samples(points, normals, h, h / kernel.h_scale, unit[:, 0], unit,
+                              leaf_tree(points, SUPPORT * h), 0.0, 0.0, 0.0, CACHE_REACH * float(np.median(h)))
         h = limited_widths(provisional, WIDTH_SLOPE)
     spacing = h / kernel.h_scale
+    area = (local / np.median(spacing)) ** 2
     colors = np.ones((len(points), 3)) if cloud.colors is None else cloud.colors[order].astype(np.float64)
     boxes = leaf_tree(points, SUPPORT * h)
     samples = Samples(points, normals, h, spacing, area, np.ascontiguousarray(colors), boxes, float(kernel.domain),
