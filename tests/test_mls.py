@@ -11,7 +11,7 @@ from surfel.cloud import PointCloud
 from surfel.metrics import compare_results
 from surfel.mls import surface as S
 from surfel.mls.raytrace import MlsParams, prepare_scene, render_mls_cpu, trace
-from surfel.mls.widths import GAP_FRACTION, sample_spacing
+from surfel.mls.widths import GAP_FRACTION, sample_spacing, tangent_gaps
 from surfel.options import RenderOptions
 from surfel.rendering import Renderer, render
 
@@ -147,6 +147,30 @@ def test_kernels_widen_only_across_gaps():
     tail = coarse_tail(12, 0.5)
     spacing, local = sample_spacing(tail.positions, tail.normals.astype(np.float64))
     assert np.allclose(spacing, GAP_FRACTION * 0.5) and (local < 0.5 * spacing).all()
+
+
+@pytest.mark.parametrize("seed", range(2))
+def test_tangent_gap_is_the_widest_window_without_a_near_neighbour(seed):
+    """widths.tangent_gaps: neighbours at distance 1 every 90 degrees but one, which lies 3 away:
+    the 90-degree windows about it hold only that one, so the gap is 3, however the tangent
+    plane and the neighbours are turned; with all four at 1 it is 1."""
+    rng = np.random.default_rng(seed)
+    normal = rng.normal(size=3)
+    normal /= np.linalg.norm(normal)
+    e1 = np.cross(normal, rng.normal(size=3))
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(normal, e1)
+    for turn in np.linspace(0.1, 2 * np.pi, 24, endpoint=False):
+        angles = turn + np.arange(4) * np.pi / 2
+        for far in (3.0, 1.0):
+            distance = np.array([1.0, 1.0, 1.0, far])
+            offsets = distance[:, None] * (np.cos(angles)[:, None] * e1 + np.sin(angles)[:, None] * e2)
+            points = np.vstack([np.zeros(3), offsets])
+            normals = np.broadcast_to(normal, points.shape).copy()
+            order = np.argsort(distance, kind="stable")
+            dist = np.concatenate([[0.0], distance[order]])[None]
+            idx = np.concatenate([[0], 1 + order])[None]
+            assert tangent_gaps(points, normals, dist, idx, 0)[0] == far, turn
 
 
 def coarse_face() -> PointCloud:

@@ -75,9 +75,11 @@ def tangent_gaps(points, normals, dist, idx, start):
                 continue
             dx, dy, dz = points[j, 0] - points[i, 0], points[j, 1] - points[i, 1], points[j, 2] - points[i, 2]
             angle = math.atan2(dx * e2[0] + dy * e2[1] + dz * e2[2], dx * e1[0] + dy * e1[1] + dz * e1[2])
+            if angle < 0.0:
+                angle += 2.0 * math.pi  # [0, 2 pi), as the directions
             for q in range(GAP_DIRECTIONS):
                 off = abs(angle - q * (2.0 * math.pi / GAP_DIRECTIONS))
-                off = min(off, 2.0 * math.pi - off)
+                off = min(off, 2.0 * math.pi - off)  # the angle between them, [0, pi]
                 if off <= 0.25 * math.pi and nearest[q] < 0.0:
                     nearest[q] = dist[r, c]  # neighbours come nearest first
         out[r] = max(0.0, nearest.max())
