@@ -93,8 +93,11 @@ class StreamInput:
                 positions = np.empty((m, 3))  # converted as copied: one pass, not two
                 for axis, name in enumerate("xyz"):
                     positions[:, axis] = records[name]
-                normals = (np.column_stack([records[c] for c in ("nx", "ny", "nz")]).astype(np.float32)
-                           if self.has_normals else None)
+                normals = None
+                if self.has_normals:  # likewise (a column stack, then a cast, copied twice)
+                    normals = np.empty((m, 3), np.float32)
+                    for axis, name in enumerate(("nx", "ny", "nz")):
+                        normals[:, axis] = records[name]
                 colors = None
                 if self.has_colors:
                     rgb = np.column_stack([records[c] for c in ("red", "green", "blue")]).astype(np.float32)
@@ -312,3 +315,4 @@ class KindVote:
     def kinds(self) -> dict[str, str]:
         return {**self._kinds, **{name: CONTINUOUS if seen is None else CATEGORICAL
                                   for name, seen in self._distinct.items()}}
+
