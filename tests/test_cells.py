@@ -110,6 +110,9 @@ def test_compiled_frames_match_the_formula():
     s = np.stack([b, sign + y * y * a, -y], axis=1)
     with np.errstate(divide="ignore", invalid="ignore"):
         assert np.array_equal(orthonormal_basis(reference), np.stack([t, s], axis=1), equal_nan=True)
+    # the unit rows it made come back as they are (read-only); equal values made elsewhere are divided again
+    assert unit_rows(n) is n and not n.flags.writeable and unit_rows(n.copy()) is not n
+    assert np.array_equal(unit_rows(n.copy()), n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-300))
 
 
 def test_tangent_frames_are_the_scaled_basis_rounded_once():
