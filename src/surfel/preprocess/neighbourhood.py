@@ -84,6 +84,14 @@ class Neighbourhood:
         _, found = cKDTree(self.points, balanced_tree=False).query(self.points[rows], k=k, workers=workers)
         return found.reshape(len(rows), k)
 
+    def within(self, rows: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """(index, count): for each of the points `rows`, index[r, :count[r]] are certainly among
+        its k nearest (`Grid.within`; count -1 where none are known, as for points not the grid's)."""
+        k = max(1, min(k, len(self.points)))
+        if self.grid is not None and self.grid.points is self.points:
+            return self.grid.within(rows, k)
+        return np.empty((len(rows), k), np.int32), np.full(len(rows), -1, np.int64)
+
     def first(self, k: int) -> np.ndarray:
         """The k nearest neighbours of each point (all of them if there are fewer)."""
         return self.index[:, :min(k, self.index.shape[1])]
