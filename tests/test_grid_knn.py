@@ -52,6 +52,9 @@ def test_neighbourhood_sorts_and_unsorts():
     assert np.allclose(nbh.unsort(nbh.points) + points.mean(axis=0), points)
     values = rng.random(3_000)
     assert np.array_equal(nbh.unsort(nbh.sort(values)), values)
+    rows = rng.random((3_000, 2, 3)).astype(np.float32)  # rows of several values: a compiled scatter
+    unsorted = nbh.unsort(rows)
+    assert unsorted.dtype == np.float32 and np.array_equal(unsorted[nbh.order], rows)
     expected, _ = cKDTree(points).query(points, k=12)
     found = np.linalg.norm(nbh.points[nbh.index] - nbh.points[:, None], axis=2)
     assert np.allclose(np.sort(found, axis=1), nbh.sort(expected), atol=1e-12)
