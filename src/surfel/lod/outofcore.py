@@ -6,7 +6,9 @@ iterator, a directory of such tiles as one cloud; other formats are loaded whole
 streaming.py) is read twice and never held in memory, each chunk read by a background thread
 while the one before is processed (`streaming.read_ahead`):
 
-1. scan: bounds, for LAS the colour range (8-bit values in 16-bit fields), the kinds of
+1. scan (a binary PLY's positions and normals summarised in one compiled pass over its
+   records, not converted: streaming.ply_summaries): bounds, for LAS the colour range (8-bit
+   values in 16-bit fields), the kinds of
    the attributes (streaming.KindVote), whether the normals hold zero placeholders (the
    input then counts as having none, as every reader has it: `cloud.file_normals`), and an
    even sample of HISTOGRAM_SAMPLE positions (every s-th point, s = ceil(N / HISTOGRAM_SAMPLE);
