@@ -330,6 +330,11 @@ def test_bound_semi_axes_is_numpys_formula():
         assert np.array_equal(got_radii, np.minimum(r, bound))
         assert np.array_equal(capped, (scale < 1.0).any(axis=1) | (r > bound))
         assert 100 < capped.sum() < 4_900
+    # float32 axes (as complete.prepare passes them) give the bits of their float64 values
+    single = axes.astype(np.float32)
+    for got, expected in zip(bound_semi_axes(single, radii, spacing), bound_semi_axes(single.astype(np.float64), radii,
+                                                                                      spacing), strict=True):
+        assert got.dtype == expected.dtype and np.array_equal(got, expected)
 
 
 def test_layer_thickness_separates_close_layers_and_nothing_else():

@@ -179,7 +179,7 @@ def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np
         axes = tangent_frames(normals, radii)
         report["axes"] = "circular (tangent frames of the radii)"
     if spacing is not None:
-        bounded_axes, bounded_radii, capped = bound_semi_axes(axes.astype(np.float64), radii, spacing)
+        bounded_axes, bounded_radii, capped = bound_semi_axes(axes, radii, spacing)  # float32 axes taken as they are
         if bound_axes:
             axes = bounded_axes
         if bound_radii:
