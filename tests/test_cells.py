@@ -110,6 +110,9 @@ def test_compiled_frames_match_the_formula():
     s = np.stack([b, sign + y * y * a, -y], axis=1)
     with np.errstate(divide="ignore", invalid="ignore"):
         assert np.array_equal(orthonormal_basis(reference), np.stack([t, s], axis=1), equal_nan=True)
+    # the unit rows it made come back as they are (read-only); equal values made elsewhere are divided again
+    assert unit_rows(n) is n and not n.flags.writeable and unit_rows(n.copy()) is not n
+    assert np.array_equal(unit_rows(n.copy()), n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-300))
 
 
 def test_tangent_frames_are_the_scaled_basis_rounded_once():
@@ -327,6 +330,11 @@ def test_bound_semi_axes_is_numpys_formula():
         assert np.array_equal(got_radii, np.minimum(r, bound))
         assert np.array_equal(capped, (scale < 1.0).any(axis=1) | (r > bound))
         assert 100 < capped.sum() < 4_900
+    # float32 axes (as complete.prepare passes them) give the bits of their float64 values
+    single = axes.astype(np.float32)
+    for got, expected in zip(bound_semi_axes(single, radii, spacing), bound_semi_axes(single.astype(np.float64), radii,
+                                                                                      spacing), strict=True):
+        assert got.dtype == expected.dtype and np.array_equal(got, expected)
 
 
 def test_layer_thickness_separates_close_layers_and_nothing_else():
@@ -385,3 +393,44 @@ def test_a_sheet_lying_close_on_a_body_ends_at_its_last_samples():
     edge = sheet & (y > -1.3) & (np.abs(x) < 18)  # the row at y = -1
     assert (lines[edge, 0, 2] < 1).mean() > 0.9  # cut by a line
     assert (lines[~sheet & (y > 2) & (y < 18) & (np.abs(x) < 18), 0, 2] >= 1).all()  # the body alone: none
+
+
+def test_settled_candidates_keep_the_borders_of_the_full_confirmation():
+    """Candidates settled by the neighbours certainly among their BORDER_CONFIRM nearest
+    (Grid.within, borders._settled) are no borders, as the query of all those nearest finds:
+    border_outwards gives bit for bit what confirming every candidate by the query gives, on a
+    sampling denser on one side (candidates the wider neighbourhood rejects), an open sheet
+    (borders) and a lattice (ties of distance and direction)."""
+    from surfel.preprocess import borders, cells
+    from surfel.preprocess.frames import orthonormal_basis
+    from surfel.preprocess.neighbourhood import Neighbourhood
+    from surfel.preprocess.thickness import layer_thickness
+
+    assert 2 * borders.KEY_BIN < borders.INTERIOR_GAP / 2  # a full set of bins leaves no gap counted
+    p = sphere(20_000, seed=4)
+    sheet = _open_sheet(0.02).positions
+    lattice = np.stack(np.meshgrid(np.arange(40), np.arange(40), [0]), -1).reshape(-1, 3) / 40.0
+    tally = np.zeros(3, int)  # candidates settled, confirmed, rejected by the query
+    for points, normals in [(np.concatenate([p[p[:, 2] > 0.3], p[p[:, 2] <= 0.3][::6]]), None),
+                            (sheet, np.tile([0.0, 0, 1], (len(sheet), 1))),
+                            (lattice, np.tile([0.0, 0, 1], (len(lattice), 1)))]:
+        nbh = Neighbourhood.build(points, 16, progress=False)
+        normals = unit(nbh.points) if normals is None else normals
+        index = nbh.first(cells.RADIUS_NEIGHBOURS)
+        layers = layer_thickness(nbh.points, normals, index)
+        got = borders.border_outwards(nbh, normals, index, False, layers)
+        rows = np.arange(len(nbh.points))
+        first = borders._border_outwards(nbh.points, normals, index, rows, orthonormal_basis(normals), cells.SHEET_COS,
+                                         layers)
+        candidates = np.flatnonzero(first.any(axis=1))
+        expected = first.copy()
+        expected[candidates] = borders._border_outwards(nbh.points, normals, nbh.nearest(candidates, 64), candidates,
+                                                        orthonormal_basis(normals[candidates]), cells.SHEET_COS, layers)
+        assert np.array_equal(got, expected)
+        sure, count = nbh.within(candidates, borders.BORDER_CONFIRM)
+        settled = borders._settled(nbh.points, normals, sure, count, candidates, orthonormal_basis(normals[candidates]),
+                                   cells.SHEET_COS, layers)
+        assert not expected[candidates[settled]].any()
+        confirmed = expected[candidates].any(axis=1)
+        tally += [settled.sum(), confirmed.sum(), (~settled & ~confirmed).sum()]
+    assert tally[0] > 50 and tally[1] > 100 and tally[2] > 100

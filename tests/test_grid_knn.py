@@ -52,6 +52,9 @@ def test_neighbourhood_sorts_and_unsorts():
     assert np.allclose(nbh.unsort(nbh.points) + points.mean(axis=0), points)
     values = rng.random(3_000)
     assert np.array_equal(nbh.unsort(nbh.sort(values)), values)
+    rows = rng.random((3_000, 2, 3)).astype(np.float32)  # rows of several values: a compiled scatter
+    unsorted = nbh.unsort(rows)
+    assert unsorted.dtype == np.float32 and np.array_equal(unsorted[nbh.order], rows)
     expected, _ = cKDTree(points).query(points, k=12)
     found = np.linalg.norm(nbh.points[nbh.index] - nbh.points[:, None], axis=2)
     assert np.allclose(np.sort(found, axis=1), nbh.sort(expected), atol=1e-12)
@@ -116,3 +119,30 @@ def test_cell_table_finds_every_occupied_cell_and_no_other():
     assert len(slots) >= 2 * len(keys)
     assert all(_find(key, keys, slots) == run for run, key in enumerate(keys.tolist()))
     assert all(_find(key + 1, keys, slots) == -1 for key in keys[::10].tolist())
+
+
+@pytest.mark.parametrize("name, points", [
+    ("plane", np.c_[rng.random((20_000, 2)), np.zeros(20_000)]),
+    ("lattice", np.stack(np.meshgrid(np.arange(60), np.arange(60), np.arange(2)), -1).reshape(-1, 3) * 1.0),
+    ("coincident", np.zeros((5_000, 3))),
+])
+def test_points_within_reach_are_among_the_nearest(name, points):
+    """Grid.within lists, for each point, points that are among its k nearest whichever way
+    ties are broken (fewer than k others lie strictly nearer), itself included, no point twice;
+    on a plane most points get more than their grid neighbourhood's k."""
+    k, wide = 16, 64
+    _, _, grid = sorted_k_nearest(np.asarray(points, np.float64), k)
+    rows = np.arange(0, len(points), 3)
+    sure, count = grid.within(rows, wide)
+    assert sure.shape == (len(rows), wide) and ((count >= -1) & (count <= wide)).all()
+    tree = cKDTree(grid.points)
+    for r in np.flatnonzero(count > 0):
+        listed = sure[r, :count[r]]
+        assert rows[r] in listed and len(np.unique(listed)) == count[r]
+        distance = np.linalg.norm(grid.points[listed] - grid.points[rows[r]], axis=1).max()
+        nearer = tree.query_ball_point(grid.points[rows[r]], distance * (1 - 1e-12))
+        assert len(nearer) < wide
+    if name == "coincident":
+        assert (count == -1).all()  # a dense grid knows none
+    elif name == "plane":
+        assert (count > k).mean() > 0.5

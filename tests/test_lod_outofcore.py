@@ -343,3 +343,49 @@ def test_read_ahead_keeps_order_raises_read_errors_and_stops_early():
     chunks.close()  # the caller stops: the reader thread ends, having read at most a few ahead
     assert len(read) <= 4
     assert not any(t.name == "surfel-read-ahead" for t in threading.enumerate())
+
+
+def _raw_ply(path: Path, records: np.ndarray) -> None:
+    names = {"<f4": "float", "<f8": "double", "<u2": "ushort"}
+    header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(records)}"]
+    header += [f"property {names[records.dtype[name].str]} {name}" for name in records.dtype.names]
+    path.write_bytes(("\n".join(header + ["end_header"]) + "\n").encode() + records.tobytes())
+
+
+@pytest.mark.filterwarnings("ignore:overflow encountered in cast")
+def test_ply_summaries_are_those_of_the_converted_chunks(tmp_path):
+    """The scan pass summarises a binary PLY's chunks in one compiled pass over their records
+    (streaming.ply_summaries) as it summarises them converted (corners, sample, zero normals,
+    attributes), float and double columns alike, and refuses what converting them refuses:
+    NaN positions, normals beyond float32."""
+    from surfel.lod.streaming import summarise
+
+    rng = np.random.default_rng(3)
+    n = 10_000
+    for kind in ("<f4", "<f8"):
+        records = np.zeros(n, [(name, kind) for name in ("x", "y", "z", "nx", "ny", "nz")] + [("intensity", "<u2")])
+        for name in ("x", "y", "z", "nx", "ny", "nz"):
+            records[name] = rng.normal(size=n) * (100.0 if name in "xyz" else 1.0)
+        records["intensity"] = rng.integers(0, 5, n)
+        for name in ("nx", "ny", "nz"):
+            records[name][4321] = 0.0  # a placeholder, in the second chunk
+        _raw_ply(tmp_path / "in.ply", records)
+        source = open_inputs(tmp_path / "in.ply")[0]
+        fast = list(source.ply_summaries(7, 3_000))
+        slow = [summarise(chunk, 7, "ply") for chunk in source.chunks(3_000)]
+        assert len(fast) == len(slow) == 4 and [s.zero_normals for s in fast] == [False, True, False, False]
+        for a, b in zip(fast, slow, strict=True):
+            assert np.array_equal(a.lo, b.lo) and np.array_equal(a.hi, b.hi) and a.count == b.count
+            assert a.sample.dtype == np.float64 and a.sample.tobytes() == b.sample.tobytes()
+            assert a.attributes.keys() == b.attributes.keys() == {"intensity"}
+            assert np.array_equal(a.attributes["intensity"], b.attributes["intensity"])
+    for name, value in (("y", np.nan), ("nz", 1e300)):
+        bad = records.copy()
+        bad[name][5_000] = value
+        _raw_ply(tmp_path / "bad.ply", bad)
+        source = open_inputs(tmp_path / "bad.ply")[0]
+        with pytest.raises(InputError) as fast_error:
+            list(source.ply_summaries(7, 3_000))
+        with pytest.raises(InputError) as slow_error:
+            list(source.chunks(3_000))
+        assert str(fast_error.value) == str(slow_error.value)

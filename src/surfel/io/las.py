@@ -45,14 +45,16 @@ import json
 import os
 import struct
 from dataclasses import dataclass
-from typing import BinaryIO
+from typing import TYPE_CHECKING, BinaryIO
 
-import laspy
 import numpy as np
 
 from ..attributes import AttributeSpec, canonical_names
 from ..cloud import PointCloud, file_normals
 from ..errors import InputError
+
+if TYPE_CHECKING:
+    import laspy
 
 _VLR_HEADER = 54  # bytes of a VLR header (its payload follows)
 _EVLR_HEADER = 60
@@ -78,6 +80,8 @@ def read_las(path: str) -> PointCloud:
     count = check_header(path)
     geometry: dict[str, list[np.ndarray]] = {"positions": [], "normals": [], "radii": [], "rgb": []}
     scanned: dict[str, list[np.ndarray]] = {}
+    import laspy  # here, not at the top: laspy (with requests) costs every surfel process 0.1 s to import
+
     try:
         with laspy.open(path) as reader:
             has_rgb = set(COLOR_NAMES) <= set(reader.header.point_format.dimension_names)
@@ -198,6 +202,8 @@ def layout_values(points, layout: LasLayout) -> tuple[np.ndarray | None, np.ndar
 def dimension_values(points, name: str) -> np.ndarray:
     """The values of dimension `name` as the attribute holds them: flags as bool, scan angles
     in degrees, extra bytes scaled and offset as their descriptor says."""
+    import laspy
+
     dimension = points.point_format.dimension_by_name(name)
     values = np.asarray(points[name])
     if dimension.is_standard and name in ("scan_angle", "scan_angle_rank"):
@@ -208,6 +214,8 @@ def dimension_values(points, name: str) -> np.ndarray:
 
 
 def _dimension_dtype(dimension) -> np.dtype:
+    import laspy
+
     if dimension.is_standard and dimension.name in ("scan_angle", "scan_angle_rank"):
         return np.dtype(np.float32)
     if dimension.kind == laspy.DimensionKind.BitField:

@@ -43,8 +43,8 @@ from scipy.ndimage import distance_transform_edt
 from tqdm import tqdm
 
 from ..attributes import Schema
-from ..cloud import corners, file_normals, framing_sphere
-from .streaming import CHUNK_POINTS, Chunk, KindVote, StreamInput, all_chunks, read_ahead
+from ..cloud import framing_sphere
+from .streaming import CHUNK_POINTS, Chunk, KindVote, StreamInput, all_chunks, read_ahead, summarise
 
 HISTOGRAM_BITS = 7
 # points of the input sampled evenly for the histogram (all of them in smaller inputs)
@@ -316,16 +316,16 @@ def bin_input(inputs: list[StreamInput], partial: Path, cap: int, signature: dic
     samples = []
     for source in inputs:  # colour ranges of LAS files are needed before the colours are scaled
         color_max = 0.0
+        parts = (read_ahead(source.ply_summaries(stride)) if source.kind == "ply"
+                 else (summarise(chunk, stride, source.kind) for chunk in read_ahead(source.chunks())))
         with progress_bar(source.count, f"scan {os.path.basename(source.path)}", progress) as bar:
-            for chunk in read_ahead(source.chunks()):
-                chunk_lo, chunk_hi = corners(chunk.positions)
-                lo, hi = np.minimum(lo, chunk_lo), np.maximum(hi, chunk_hi)
-                samples.append(chunk.positions[::stride].copy())
-                vote.add(chunk)
-                placeholders = placeholders or (chunk.normals is not None and file_normals(chunk.normals) is None)
-                if chunk.colors is not None and source.kind == "las":
-                    color_max = max(color_max, float(chunk.colors.max()))
-                bar.update(len(chunk.positions))
+            for part in parts:
+                lo, hi = np.minimum(lo, part.lo), np.maximum(hi, part.hi)
+                samples.append(part.sample)
+                vote.add(part.attributes)
+                placeholders = placeholders or part.zero_normals
+                color_max = max(color_max, part.color_max)
+                bar.update(part.count)
         if source.kind == "las" and source.has_colors:
             # chunks were scaled by 1: 8-bit values in 16-bit fields, or real 16-bit ones
             source.color_scale = 255.0 if color_max <= 255 else 65535.0

@@ -6,9 +6,11 @@ iterator, a directory of such tiles as one cloud; other formats are loaded whole
 streaming.py) is read twice and never held in memory, each chunk read by a background thread
 while the one before is processed (`streaming.read_ahead`):
 
-1. scan: bounds, for LAS the colour range (8-bit values in 16-bit fields), the kinds of
-   the attributes (streaming.KindVote), whether the normals hold zero placeholders (the
-   input then counts as having none, as every reader has it: `cloud.file_normals`), and an
+1. scan (a binary PLY's positions and normals summarised in one compiled pass over its
+   records, not converted: streaming.ply_summaries): bounds, for LAS the colour range (8-bit
+   values in 16-bit fields), the kinds of the attributes (streaming.KindVote), whether the
+   normals hold zero placeholders (the input then counts as having none, as every reader
+   has it: `cloud.file_normals`), and an
    even sample of HISTOGRAM_SAMPLE positions (every s-th point, s = ceil(N / HISTOGRAM_SAMPLE);
    all of them in smaller inputs). The sample's point counts of the 2^7 x 2^7 x 2^7 cells of
    the bounding cube, times N / (sample size), estimate the histogram; the cube is split
@@ -211,13 +213,15 @@ def build_outofcore(in_path: str | os.PathLike, out_path: str | os.PathLike, *, 
         schema = Schema.from_json(saved["schema"])
         dtype = record_dtype(has_normals, has_colors, schema)
         parts = _build_partitions(partial, saved["counts"], dtype, schema, saved["geospatial"], pool, progress)
+        if pool is not None:  # the workers exit (their memory freed) while the top levels are built
+            pool.shutdown(wait=False)
+        stored = parts[0]["attributes"]
+        if any(part["attributes"] != stored for part in parts):
+            raise SurfelError(f"{partial}: partitions hold different attributes")
+        top = _top_tree(partial, parts, has_colors, Schema.from_json(stored))
     total = sum(saved["counts"])
     geospatial = saved["geospatial"]
     resumed = sum(part.pop("resumed") for part in parts)
-    stored = parts[0]["attributes"]
-    if any(part["attributes"] != stored for part in parts):
-        raise SurfelError(f"{partial}: partitions hold different attributes")
-    top = _top_tree(partial, parts, has_colors, Schema.from_json(stored))
     nodes = sum(p["nodes"] for p in parts) + top
     lo = np.min([p["bounds"][0] for p in parts], axis=0)
     hi = np.max([p["bounds"][1] for p in parts], axis=0)

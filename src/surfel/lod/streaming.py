@@ -15,6 +15,7 @@ values in the whole input is categorical).
 
 from __future__ import annotations
 
+import math
 import os
 import queue
 import threading
@@ -22,9 +23,11 @@ from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numba
 import numpy as np
 
 from ..attributes import CATEGORICAL, CONTINUOUS, DERIVED, MAX_CATEGORIES, AttributeSpec, known_name, resolve_kind
+from ..cloud import corners, file_normals
 from ..errors import InputError, SurfelError
 
 CHUNK_POINTS = 2_000_000
@@ -40,6 +43,57 @@ class Chunk:
     normals: np.ndarray | None
     colors: np.ndarray | None
     attributes: dict[str, np.ndarray] = field(default_factory=dict)
+
+
+@dataclass
+class Summary:
+    """What the scan pass of the out-of-core build takes from a chunk: its corners lo, hi, every
+    stride-th position from its first (float64), whether its normals hold a zero placeholder
+    (cloud.file_normals), its attributes, its largest colour value (LAS, before scaling; else
+    0) and its point count."""
+
+    lo: np.ndarray
+    hi: np.ndarray
+    sample: np.ndarray
+    zero_normals: bool
+    attributes: dict[str, np.ndarray]
+    color_max: float
+    count: int
+
+
+def summarise(chunk: Chunk, stride: int, kind: str) -> Summary:
+    """The Summary of a chunk read whole, of an input of `kind`."""
+    lo, hi = corners(chunk.positions)
+    return Summary(lo, hi, chunk.positions[::stride].copy(),
+                   chunk.normals is not None and file_normals(chunk.normals) is None, chunk.attributes,
+                   float(chunk.colors.max()) if chunk.colors is not None and kind == "las" else 0.0,
+                   len(chunk.positions))
+
+
+@numba.njit(cache=True)
+def _summarise_ply(x, y, z, nx, ny, nz, has_normals, stride):  # pragma: no cover - compiled
+    """(lo, hi, sample, finite, zero) of Summary from a PLY chunk's columns, in one pass: the
+    positions as float64 and the normals as float32, as `StreamInput.ply_chunks` converts them;
+    finite: every such value is (else the chunk is refused, as `checked` refuses it)."""
+    n = len(x)
+    lo = np.full(3, np.inf)
+    hi = np.full(3, -np.inf)
+    sample = np.empty(((n + stride - 1) // stride, 3))
+    finite = True
+    zero = False
+    for i in range(n):
+        p = (np.float64(x[i]), np.float64(y[i]), np.float64(z[i]))
+        for a in range(3):
+            finite = finite and math.isfinite(p[a])
+            lo[a] = min(lo[a], p[a])
+            hi[a] = max(hi[a], p[a])
+            if i % stride == 0:
+                sample[i // stride, a] = p[a]
+        if has_normals:
+            u, v, w = np.float32(nx[i]), np.float32(ny[i]), np.float32(nz[i])
+            finite = finite and math.isfinite(u) and math.isfinite(v) and math.isfinite(w)
+            zero = zero or (u == 0 and v == 0 and w == 0)
+    return lo, hi, sample, finite, zero
 
 
 @dataclass
@@ -93,14 +147,38 @@ class StreamInput:
                 positions = np.empty((m, 3))  # converted as copied: one pass, not two
                 for axis, name in enumerate("xyz"):
                     positions[:, axis] = records[name]
-                normals = (np.column_stack([records[c] for c in ("nx", "ny", "nz")]).astype(np.float32)
-                           if self.has_normals else None)
+                normals = None
+                if self.has_normals:  # likewise (a column stack, then a cast, copied twice)
+                    normals = np.empty((m, 3), np.float32)
+                    for axis, name in enumerate(("nx", "ny", "nz")):
+                        normals[:, axis] = records[name]
                 colors = None
                 if self.has_colors:
                     rgb = np.column_stack([records[c] for c in ("red", "green", "blue")]).astype(np.float32)
                     colors = np.clip(rgb / self.color_scale, 0.0, 1.0)
                 attributes = vertex_attributes(self.layout, records, m, self.path)
                 yield checked(self.path, positions, normals, colors, attributes)
+
+    def ply_summaries(self, stride: int, size: int = CHUNK_POINTS) -> Iterator[Summary]:
+        """The Summary of each chunk of `size` points of a binary PLY, its positions and normals
+        summarised in one compiled pass over its records, not converted (several passes)."""
+        from ..io.ply import vertex_attributes
+
+        with open(self.path, "rb") as file:
+            for index, start in enumerate(range(0, self.count, size)):
+                m = min(size, self.count - start)
+                file.seek(self.offset + start * self.dtype.itemsize)
+                records = np.fromfile(file, self.dtype, count=m)
+                if len(records) < m:
+                    raise InputError(self.path, f"truncated PLY body (vertex {start + len(records)} of {self.count})")
+                normals = [records[c] for c in ("nx", "ny", "nz")] if self.has_normals else [records["x"]] * 3
+                lo, hi, sample, finite, zero = _summarise_ply(records["x"], records["y"], records["z"], *normals,
+                                                              self.has_normals, stride)
+                attributes = vertex_attributes(self.layout, records, m, self.path)
+                if not finite or any(values.dtype.kind == "f" and not np.isfinite(values).all()
+                                     for values in attributes.values()):
+                    next(self.ply_chunks(size, index, index + 1))  # refused there, with what is wrong
+                yield Summary(lo, hi, sample, zero, attributes, 0.0, m)
 
     def _las_chunks(self, size: int) -> Iterator[Chunk]:
         import laspy
@@ -302,13 +380,15 @@ class KindVote:
             else:
                 self._distinct[spec.name] = np.zeros(0, spec.dtype)
 
-    def add(self, chunk: Chunk) -> None:
+    def add(self, attributes: dict[str, np.ndarray]) -> None:
+        """Count the distinct values of a chunk's attributes."""
         for name, seen in self._distinct.items():
             if seen is not None:
-                seen = np.union1d(seen, np.unique(chunk.attributes[name]))
+                seen = np.union1d(seen, np.unique(attributes[name]))
                 self._distinct[name] = seen if len(seen) <= MAX_CATEGORIES else None
 
     @property
     def kinds(self) -> dict[str, str]:
         return {**self._kinds, **{name: CONTINUOUS if seen is None else CATEGORICAL
                                   for name, seen in self._distinct.items()}}
+

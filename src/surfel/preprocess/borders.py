@@ -36,6 +36,10 @@ BORDER_GAP = math.radians(120.0)   # neighbours leaving a gap this wide: p is on
 INTERIOR_GAP = math.radians(100.0)  # ... unless another gap is this wide too (a scan line)
 BORDER_CONFIRM = 64                 # neighbours among which a border is confirmed
 KERNEL_BLOCK = 1024                 # points per parallel task of the kernel
+# pseudo-angle bins (of [-2, 2]) each holding a key leave no gap of 2 KEY_BIN in them, less than
+# INTERIOR_GAP / 2: the point is no border, found without sorting its neighbours
+KEY_BINS = 10
+KEY_BIN = 4.0 / KEY_BINS
 
 
 @numba.njit(parallel=True, cache=True)
@@ -72,10 +76,13 @@ def _point_outwards(points, normals, index, rows, frames, sheet_cos, layers, i, 
     The neighbours are sorted by the pseudo-angle a = 1 - x / (|x| + |y|), signed as y, in
     [-2, 2]: it orders directions as their angle does, without an arctangent, and
     da / dangle = 1 / (|cos| + |sin|)^2 lies in [1/2, 1], so a gap of less than INTERIOR_GAP / 2
-    in a is less than INTERIOR_GAP in angle: only the other gaps, a few, take arctangents."""
+    in a is less than INTERIOR_GAP in angle: only the other gaps, a few, take arctangents. When
+    each of the KEY_BINS bins of a holds a key, every gap is narrower than 2 KEY_BIN, below
+    INTERIOR_GAP / 2 (a test's assertion): the point is interior, known without the sort."""
     k = index.shape[1]
     p = rows[i]
     used = 0
+    bins = 0  # bit b set: some key lies in [-2 + b KEY_BIN, -2 + (b + 1) KEY_BIN)
     for j in range(k):
         q = index[i, j]
         facing = 0.0
@@ -92,12 +99,14 @@ def _point_outwards(points, normals, index, rows, frames, sheet_cos, layers, i, 
             return  # folded
         if q == p or (x == 0.0 and y == 0.0) or 0.5 * abs(antisymmetric) > layers[p]:
             continue
-        found[0, used] = math.copysign(1.0 - x / (abs(x) + abs(y)), y)
+        key = math.copysign(1.0 - x / (abs(x) + abs(y)), y)
+        found[0, used] = key
         found[1, used] = x
         found[2, used] = y
         used += 1
-    if used < 3:
-        return
+        bins |= 1 << min(int((key + 2.0) * (1.0 / KEY_BIN)), KEY_BINS - 1)
+    if used < 3 or bins == (1 << KEY_BINS) - 1:
+        return  # every bin holds a key: no two consecutive keys lie 2 KEY_BIN apart, no gap counts
     # sorted by key, equal keys in their order: each direction goes to its rank, the number of
     # keys below it and of equal ones before it (counts that compile to SIMD compares, where an
     # insertion sort mispredicted a branch per direction)
@@ -132,6 +141,40 @@ def _point_outwards(points, normals, index, rows, frames, sheet_cos, layers, i, 
             out[i, a] = co * frames[i, 0, a] + si * frames[i, 1, a]
 
 
+@numba.njit(parallel=True, cache=True)
+def _settled(points, normals, index, count, rows, frames, sheet_cos, layers):  # pragma: no cover - compiled
+    """Per point rows[i], True when its neighbours index[i, :count[i]], all among its
+    BORDER_CONFIRM nearest, already prove it no border there: one faces away (folded), or
+    their pseudo-angles fill every one of the KEY_BINS bins (then so do those of all its
+    BORDER_CONFIRM nearest: no gap counts). The neighbours are taken as `_point_outwards` takes them."""
+    m = len(rows)
+    settled = np.zeros(m, np.bool_)
+    for i in numba.prange(m):
+        p = rows[i]
+        bins = 0
+        for j in range(count[i]):
+            q = index[i, j]
+            facing = 0.0
+            x = 0.0
+            y = 0.0
+            antisymmetric = 0.0
+            for a in range(3):
+                facing += normals[q, a] * normals[p, a]
+                d = points[q, a] - points[p, a]
+                x += d * frames[i, 0, a]
+                y += d * frames[i, 1, a]
+                antisymmetric += d * (normals[p, a] + normals[q, a])
+            if facing < sheet_cos:
+                bins = (1 << KEY_BINS) - 1
+                break
+            if q == p or (x == 0.0 and y == 0.0) or 0.5 * abs(antisymmetric) > layers[p]:
+                continue
+            key = math.copysign(1.0 - x / (abs(x) + abs(y)), y)
+            bins |= 1 << min(int((key + 2.0) * (1.0 / KEY_BIN)), KEY_BINS - 1)
+        settled[i] = bins == (1 << KEY_BINS) - 1
+    return settled
+
+
 def border_outwards(nbh: Neighbourhood, normals: np.ndarray, index: np.ndarray, progress: bool | None,
                     layers: np.ndarray | None = None) -> np.ndarray:
     """(N, 3): the outward unit tangent of each point on the border of an open surface, zero
@@ -149,7 +192,13 @@ def border_outwards(nbh: Neighbourhood, normals: np.ndarray, index: np.ndarray, 
                           n, progress, "borders")
     candidates = np.flatnonzero(outwards.any(axis=1))
     if len(candidates) and n > index.shape[1]:
-        wide = nbh.nearest(candidates, BORDER_CONFIRM)
-        outwards[candidates] = _border_outwards(nbh.points, normals, wide, candidates,
-                                                orthonormal_basis(normals[candidates]), SHEET_COS, layers)
+        # most candidates are settled by the neighbours certainly among their BORDER_CONFIRM
+        # nearest (those of the grid cells around them), without querying those nearest
+        frames = orthonormal_basis(normals[candidates])
+        sure, count = nbh.within(candidates, BORDER_CONFIRM)
+        settled = _settled(nbh.points, normals, sure, count, candidates, frames, SHEET_COS, layers)
+        outwards[candidates[settled]] = 0.0
+        rest = candidates[~settled]
+        wide = nbh.nearest(rest, BORDER_CONFIRM)
+        outwards[rest] = _border_outwards(nbh.points, normals, wide, rest, frames[~settled], SHEET_COS, layers)
     return outwards

@@ -502,7 +502,7 @@ def _cells(nbh: Neighbourhood, normals: np.ndarray, k: int, ellipse: bool, progr
     n = len(nbh.points)
     layers = np.full(n, np.inf) if layers is None else np.asarray(layers, np.float64)
     index = nbh.first(k)
-    normals = unit(np.asarray(normals, np.float64))
+    normals = unit(normals)
     features = SharpFeatures.none(n) if features is None else features
     sheet_cos = SHEET_COS if oriented else -2.0
 
@@ -552,7 +552,7 @@ def clip_lines(nbh: Neighbourhood, normals: np.ndarray, axes: np.ndarray, featur
     neighbourhood's order: at creases, and at the borders of open surfaces given by `outwards`
     (N, 3), the border points' outward directions (`borders.border_outwards`), zero elsewhere."""
     index = nbh.first(k)
-    normals = unit(np.asarray(normals, np.float64))
+    normals = unit(normals)
 
     def chunk(start: int, stop: int) -> np.ndarray:
         return _clip_lines(nbh.points, normals, index[start:stop], start, np.asarray(axes[start:stop], np.float64),

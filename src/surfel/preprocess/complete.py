@@ -150,8 +150,9 @@ def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np
     bound_radii = radii is None
     bound_axes = axes is None and (bound_radii or elliptical)
     thickness = None
+    unit_normals = unit(normals)  # made once: every estimation below asks for them
     if bound_radii or bound_axes:  # the layers first: another layer's samples must not cut this one's cells
-        thickness = layer_thickness(nbh.points, unit(normals), nbh.first(RADIUS_NEIGHBOURS))
+        thickness = layer_thickness(nbh.points, unit_normals, nbh.first(RADIUS_NEIGHBOURS))
         if facing is not None:
             thickness[facing] = INFINITE_LENGTH  # no tangent plane, no layer
         if "thickness" not in cloud.attributes:
@@ -166,19 +167,19 @@ def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np
             reference=None if reference_spacing is None else nbh.sort(reference_spacing), progress=progress)
     features = None
     if sharp_features and radii is None and axes is None:
-        features = find_sharp_features(nbh, normals, RADIUS_NEIGHBOURS)
+        features = find_sharp_features(nbh, unit_normals, RADIUS_NEIGHBOURS)
     if radii is None:
-        radii = estimated["radii"] = covering_radii(nbh, normals, progress, features, layers=thickness)
+        radii = estimated["radii"] = covering_radii(nbh, unit_normals, progress, features, layers=thickness)
         report["radii"] = (f"estimated (Voronoi covering radius, k={RADIUS_NEIGHBOURS}, "
                            f"x{RADIUS_MARGIN}, mean {float(np.mean(radii)):.4g})")
     if axes is None and elliptical:
-        axes = covering_ellipses(nbh, normals, progress, features, layers=thickness)
+        axes = covering_ellipses(nbh, unit_normals, progress, features, layers=thickness)
         report["axes"] = f"fitted ellipses (k={RADIUS_NEIGHBOURS})"
     elif axes is None:
         axes = tangent_frames(normals, radii)
         report["axes"] = "circular (tangent frames of the radii)"
     if spacing is not None:
-        bounded_axes, bounded_radii, capped = bound_semi_axes(axes.astype(np.float64), radii, spacing)
+        bounded_axes, bounded_radii, capped = bound_semi_axes(axes, radii, spacing)  # float32 axes taken as they are
         if bound_axes:
             axes = bounded_axes
         if bound_radii:
@@ -197,8 +198,8 @@ def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np
     if features is not None:
         # aerial scan lines look like borders (borders.py)
         outwards = (np.zeros((len(nbh.points), 3)) if cloud.geospatial
-                    else border_outwards(nbh, unit(normals), nbh.first(RADIUS_NEIGHBOURS), progress, thickness))
-        lines = clip_lines(nbh, normals, axes, features, outwards, progress)
+                    else border_outwards(nbh, unit_normals, nbh.first(RADIUS_NEIGHBOURS), progress, thickness))
+        lines = clip_lines(nbh, unit_normals, axes, features, outwards, progress)
         if facing is not None:
             lines[facing] = INACTIVE_CLIP  # a disk facing the camera has no crease to end at
         attributes["clip_lines"] = nbh.unsort(lines)
@@ -206,7 +207,7 @@ def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np
                                     f"(normals > {SHARP_ANGLE:g} degrees apart) or borders, "
                                     f"{int(features.crease.sum())} crease points dropped")
     if need_field:
-        alpha, beta = field_slopes(nbh, normals, axes, progress)
+        alpha, beta = field_slopes(nbh, unit_normals, axes, progress)
         flat = facing if "screen_facing" not in cloud.attributes else nbh.sort(cloud.attributes["screen_facing"] > 0.5)
         if flat is not None:
             alpha[flat] = beta[flat] = 0.0  # facing the camera: flat, lit head-on

@@ -12,12 +12,15 @@ so that (t, s, n) is orthonormal and right-handed. A circular splat of radius r 
 
 The kernels run in one compiled pass over the rows: every estimation of `complete.py` asks
 for unit normals and tangent frames of millions of points, which numpy's temporaries made
-a visible share of a hierarchy build.
+a visible share of a hierarchy build. For the same reason `unit` gives back an array it made
+itself as it is, so that the unit normals made once are passed on to every estimation, each
+of which asks for them again.
 """
 
 from __future__ import annotations
 
 import math
+import weakref
 
 import numba
 import numpy as np
@@ -73,9 +76,20 @@ def _axes(v, radii):  # pragma: no cover - compiled
     return axes
 
 
+# the arrays `unit` made (read-only, so they still hold unit rows), by id
+_MADE: weakref.WeakValueDictionary = weakref.WeakValueDictionary()
+
+
 def unit(v: np.ndarray) -> np.ndarray:
-    """Rows of v (N, 3) scaled to unit length, float64 (zero rows stay zero)."""
-    return _unit_rows(np.ascontiguousarray(v, np.float64))
+    """Rows of v (N, 3) scaled to unit length, float64 (zero rows stay zero), read-only; an
+    array unit made is given back as it is (dividing its rows by their lengths, one up to an
+    ulp, could round them differently)."""
+    if _MADE.get(id(v)) is v:
+        return v
+    rows = _unit_rows(np.ascontiguousarray(v, np.float64))
+    rows.flags.writeable = False
+    _MADE[id(rows)] = rows
+    return rows
 
 
 def orthonormal_basis(normals: np.ndarray) -> np.ndarray:

@@ -52,6 +52,7 @@ MAX_CELL = 4096        # more points in one cell (coincident points): the k-d tr
 HASH_MULTIPLIER = 0x5851F42D4C957F2D  # odd, below 2^63: the hash of a cell key is its product's bits 32+
 QUERY_RINGS = 4        # shells of cells a query (Grid.nearest) scans before the k-d tree takes over
 QUERY_BATCH = 64       # points queried per parallel task
+SURE_SHRINK = 1e-6     # cell widths by which `grid_within` shrinks its reach: far above roundings
 # the 3 x 3 x 3 block's cell offsets, nearest first: the nearest fill the k first
 BLOCK_OFFSETS = np.array(sorted(((x, y, z) for x in (-1, 0, 1) for y in (-1, 0, 1) for z in (-1, 0, 1)),
                                 key=lambda o: abs(o[0]) + abs(o[1]) + abs(o[2])), np.int64)
@@ -369,6 +370,52 @@ def grid_query(points, starts, run_keys, slots, lo, h, k, rows):  # pragma: no c
     return index
 
 
+@numba.njit(parallel=True, cache=True)
+def grid_within(points, starts, run_keys, slots, lo, h, k, rows):  # pragma: no cover - compiled
+    """Per point p = rows[r], the points nearer to p than m - SURE_SHRINK h (m: its distance to
+    the faces of the 3 x 3 x 3 block of cells around its cell; the margin keeps out what a
+    rounding might bring in), p itself included, into index[r, :count[r]] when there are at
+    most k of them; count[r] = -1 when there are more. All points that near lie in the block,
+    so, at most k of them, each is among p's k nearest, whichever way ties are broken."""
+    m = len(rows)
+    index = np.empty((m, k), np.int32)
+    count = np.empty(m, np.int64)
+    top = (1 << MORTON_BITS) - 1
+    inv_h = 1.0 / h
+    for r in numba.prange(m):
+        p = rows[r]
+        qx = _cell(points[p, 0], lo[0], inv_h)
+        qy = _cell(points[p, 1], lo[1], inv_h)
+        qz = _cell(points[p, 2], lo[2], inv_h)
+        fx = (points[p, 0] - lo[0]) - qx * h
+        fy = (points[p, 1] - lo[1]) - qy * h
+        fz = (points[p, 2] - lo[2]) - qz * h
+        reach = min(fx + h, 2.0 * h - fx, fy + h, 2.0 * h - fy, fz + h, 2.0 * h - fz) - SURE_SHRINK * h
+        reach2 = reach * reach if reach > 0.0 else -1.0
+        c = 0
+        for o in range(27):
+            dx, dy, dz = BLOCK_OFFSETS[o, 0], BLOCK_OFFSETS[o, 1], BLOCK_OFFSETS[o, 2]
+            cx, cy, cz = qx + dx, qy + dy, qz + dz
+            if c < 0 or min(cx, cy, cz) < 0 or max(cx, cy, cz) > top or \
+                    _gap(fx, dx, h) + _gap(fy, dy, h) + _gap(fz, dz, h) >= reach2:
+                continue
+            run = _find(_key(cx, cy, cz), run_keys, slots)
+            if run < 0:
+                continue
+            for j in range(starts[run], starts[run + 1]):
+                ex = points[j, 0] - points[p, 0]
+                ey = points[j, 1] - points[p, 1]
+                ez = points[j, 2] - points[p, 2]
+                if ex * ex + ey * ey + ez * ez < reach2:
+                    if c == k:
+                        c = -1
+                        break
+                    index[r, c] = j
+                    c += 1
+        count[r] = c
+    return index, count
+
+
 @dataclass(frozen=True, eq=False)
 class Grid:
     """The points sorted by cell key (module docstring), with the cell width h, the minimum
@@ -396,6 +443,15 @@ class Grid:
         if len(unresolved):
             index[unresolved] = _tree_nearest(self.points, rows[unresolved], k, workers)
         return index
+
+    def within(self, rows: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """(index (len(rows), k) int32, count (len(rows),)): points certainly among the k nearest
+        of each of the points `rows`, index[r, :count[r]], count -1 where none are known
+        (`grid_within`; a dense grid knows none), 1 <= k <= N."""
+        rows = np.asarray(rows, np.int64)
+        if self.dense:
+            return np.empty((len(rows), k), np.int32), np.full(len(rows), -1, np.int64)
+        return grid_within(self.points, self.starts, self.run_keys, self.slots, self.lo, self.h, k, rows)
 
 
 def _tree_nearest(points: np.ndarray, rows: np.ndarray, k: int, workers: int) -> np.ndarray:

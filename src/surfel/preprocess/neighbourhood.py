@@ -18,6 +18,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
+import numba
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -84,6 +85,14 @@ class Neighbourhood:
         _, found = cKDTree(self.points, balanced_tree=False).query(self.points[rows], k=k, workers=workers)
         return found.reshape(len(rows), k)
 
+    def within(self, rows: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """(index, count): for each of the points `rows`, index[r, :count[r]] are certainly among
+        its k nearest (`Grid.within`; count -1 where none are known, as for points not the grid's)."""
+        k = max(1, min(k, len(self.points)))
+        if self.grid is not None and self.grid.points is self.points:
+            return self.grid.within(rows, k)
+        return np.empty((len(rows), k), np.int32), np.full(len(rows), -1, np.int64)
+
     def first(self, k: int) -> np.ndarray:
         """The k nearest neighbours of each point (all of them if there are fewer)."""
         return self.index[:, :min(k, self.index.shape[1])]
@@ -94,6 +103,21 @@ class Neighbourhood:
 
     def unsort(self, values: np.ndarray) -> np.ndarray:
         """Per-point values in the sorted order, put back into the input's order."""
+        values = np.asarray(values)
+        if values.ndim > 1 and values.size and values.flags.c_contiguous and values.dtype.kind in "biuf":
+            # rows of several values (axes, clip lines): numpy's scatter of them takes twice as long
+            return _scatter_rows(values.reshape(len(values), -1), self.order).reshape(values.shape)
         out = np.empty_like(values)
         out[self.order] = values
         return out
+
+
+@numba.njit(cache=True)
+def _scatter_rows(values, order):  # pragma: no cover - compiled
+    """out[order[i]] = values[i] for the rows of values (N, c)."""
+    out = np.empty_like(values)
+    for i in range(len(order)):
+        row = order[i]
+        for c in range(values.shape[1]):
+            out[row, c] = values[i, c]
+    return out

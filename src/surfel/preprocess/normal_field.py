@@ -71,7 +71,7 @@ def field_slopes(nbh: Neighbourhood, normals: np.ndarray, axes: np.ndarray, prog
     """(alpha, beta), each (N,) float32, of the splats (normals, axes) in the neighbourhood's
     order."""
     index = nbh.first(k)
-    normals = unit(np.asarray(normals, np.float64))
+    normals = unit(normals)
 
     def chunk(start: int, stop: int) -> np.ndarray:
         axes_chunk = np.asarray(axes[start:stop], np.float64)

@@ -133,7 +133,7 @@ def find_sharp_features(nbh: Neighbourhood, normals: np.ndarray, k: int) -> Shar
     """The flat points and crease points among each point's k nearest neighbours."""
     n = len(nbh.points)
     index = nbh.first(k)
-    normals = unit(np.asarray(normals, np.float64))
+    normals = unit(normals)
     flat = map_chunks(lambda start, stop: _flat_points(nbh.points, index[start:stop], start, normals), n)
     crease = map_chunks(lambda start, stop: _crease_points(nbh.points, index[start:stop], start, normals, flat), n)
     return SharpFeatures(flat, crease, SHARP_COS, ON_PLANE_SIN2)
