@@ -69,6 +69,29 @@ def _border_outwards(points, normals, index, rows, frames, sheet_cos, layers):  
 
 
 @numba.njit(cache=True, inline="always")
+def _in_frame(points, normals, frames, i, p, q):  # pragma: no cover - compiled
+    """Neighbour q of point p in p's tangent frame frames[i]: (n_p . n_q, x, y, (q - p) . (n_p +
+    n_q)), the last twice q's separation from p's layer."""
+    facing = 0.0
+    x = 0.0
+    y = 0.0
+    antisymmetric = 0.0
+    for a in range(3):
+        facing += normals[q, a] * normals[p, a]
+        d = points[q, a] - points[p, a]
+        x += d * frames[i, 0, a]
+        y += d * frames[i, 1, a]
+        antisymmetric += d * (normals[p, a] + normals[q, a])
+    return facing, x, y, antisymmetric
+
+
+@numba.njit(cache=True, inline="always")
+def _key_bit(key):  # pragma: no cover - compiled
+    """The bit of the one of KEY_BINS bins of [-2, 2] that holds the pseudo-angle `key`."""
+    return 1 << min(int((key + 2.0) * (1.0 / KEY_BIN)), KEY_BINS - 1)
+
+
+@numba.njit(cache=True, inline="always")
 def _point_outwards(points, normals, index, rows, frames, sheet_cos, layers, i, found, keys, xs, ys,
                     out):  # pragma: no cover
     """out[i]: row i of `_border_outwards`, with found (3, k), keys, xs, ys (k,) as scratch.
@@ -85,16 +108,7 @@ def _point_outwards(points, normals, index, rows, frames, sheet_cos, layers, i, 
     bins = 0  # bit b set: some key lies in [-2 + b KEY_BIN, -2 + (b + 1) KEY_BIN)
     for j in range(k):
         q = index[i, j]
-        facing = 0.0
-        x = 0.0
-        y = 0.0
-        antisymmetric = 0.0  # (q - p) . (n_p + n_q): twice q's separation from p's layer
-        for a in range(3):
-            facing += normals[q, a] * normals[p, a]
-            d = points[q, a] - points[p, a]
-            x += d * frames[i, 0, a]
-            y += d * frames[i, 1, a]
-            antisymmetric += d * (normals[p, a] + normals[q, a])
+        facing, x, y, antisymmetric = _in_frame(points, normals, frames, i, p, q)
         if facing < sheet_cos:
             return  # folded
         if q == p or (x == 0.0 and y == 0.0) or 0.5 * abs(antisymmetric) > layers[p]:
@@ -104,7 +118,7 @@ def _point_outwards(points, normals, index, rows, frames, sheet_cos, layers, i, 
         found[1, used] = x
         found[2, used] = y
         used += 1
-        bins |= 1 << min(int((key + 2.0) * (1.0 / KEY_BIN)), KEY_BINS - 1)
+        bins |= _key_bit(key)
     if used < 3 or bins == (1 << KEY_BINS) - 1:
         return  # every bin holds a key: no two consecutive keys lie 2 KEY_BIN apart, no gap counts
     # sorted by key, equal keys in their order: each direction goes to its rank, the number of
@@ -154,23 +168,13 @@ def _settled(points, normals, index, count, rows, frames, sheet_cos, layers):  #
         bins = 0
         for j in range(count[i]):
             q = index[i, j]
-            facing = 0.0
-            x = 0.0
-            y = 0.0
-            antisymmetric = 0.0
-            for a in range(3):
-                facing += normals[q, a] * normals[p, a]
-                d = points[q, a] - points[p, a]
-                x += d * frames[i, 0, a]
-                y += d * frames[i, 1, a]
-                antisymmetric += d * (normals[p, a] + normals[q, a])
+            facing, x, y, antisymmetric = _in_frame(points, normals, frames, i, p, q)
             if facing < sheet_cos:
                 bins = (1 << KEY_BINS) - 1
                 break
             if q == p or (x == 0.0 and y == 0.0) or 0.5 * abs(antisymmetric) > layers[p]:
                 continue
-            key = math.copysign(1.0 - x / (abs(x) + abs(y)), y)
-            bins |= 1 << min(int((key + 2.0) * (1.0 / KEY_BIN)), KEY_BINS - 1)
+            bins |= _key_bit(math.copysign(1.0 - x / (abs(x) + abs(y)), y))
         settled[i] = bins == (1 << KEY_BINS) - 1
     return settled
 

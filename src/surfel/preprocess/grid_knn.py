@@ -80,6 +80,15 @@ def _cell(value, lo, inv_h):  # pragma: no cover - compiled
     return min(max(np.int64(math.floor((value - lo) * inv_h)), 0), (1 << MORTON_BITS) - 1)
 
 
+@numba.njit(cache=True, inline="always")
+def _cell_of(points, p, lo, h, inv_h):  # pragma: no cover - compiled
+    """Point p's cell (qx, qy, qz) and its offsets (fx, fy, fz) from the cell's lower corner."""
+    qx = _cell(points[p, 0], lo[0], inv_h)
+    qy = _cell(points[p, 1], lo[1], inv_h)
+    qz = _cell(points[p, 2], lo[2], inv_h)
+    return qx, qy, qz, (points[p, 0] - lo[0]) - qx * h, (points[p, 1] - lo[1]) - qy * h, (points[p, 2] - lo[2]) - qz * h
+
+
 @numba.njit(parallel=True, cache=True)
 def cell_keys(points, lo, inv_h):  # pragma: no cover - compiled
     """Morton key (int64) of the cell of each point."""
@@ -330,13 +339,7 @@ def _query_point(points, starts, run_keys, slots, lo, h, k, p, best_d, best_i, s
                  spare_i):  # pragma: no cover - compiled
     """The k nearest of point p (the point itself first) into best_i, scanning its cell and
     the shells around it (module docstring); False where QUERY_RINGS shells do not settle it."""
-    inv_h = 1.0 / h
-    qx = _cell(points[p, 0], lo[0], inv_h)
-    qy = _cell(points[p, 1], lo[1], inv_h)
-    qz = _cell(points[p, 2], lo[2], inv_h)
-    fx = (points[p, 0] - lo[0]) - qx * h
-    fy = (points[p, 1] - lo[1]) - qy * h
-    fz = (points[p, 2] - lo[2]) - qz * h
+    qx, qy, qz, fx, fy, fz = _cell_of(points, p, lo, h, 1.0 / h)
     best_d[0] = -1.0
     best_i[0] = p
     count = 1
@@ -384,12 +387,7 @@ def grid_within(points, starts, run_keys, slots, lo, h, k, rows):  # pragma: no 
     inv_h = 1.0 / h
     for r in numba.prange(m):
         p = rows[r]
-        qx = _cell(points[p, 0], lo[0], inv_h)
-        qy = _cell(points[p, 1], lo[1], inv_h)
-        qz = _cell(points[p, 2], lo[2], inv_h)
-        fx = (points[p, 0] - lo[0]) - qx * h
-        fy = (points[p, 1] - lo[1]) - qy * h
-        fz = (points[p, 2] - lo[2]) - qz * h
+        qx, qy, qz, fx, fy, fz = _cell_of(points, p, lo, h, inv_h)
         reach = min(fx + h, 2.0 * h - fx, fy + h, 2.0 * h - fy, fz + h, 2.0 * h - fz) - SURE_SHRINK * h
         reach2 = reach * reach if reach > 0.0 else -1.0
         c = 0
