@@ -130,10 +130,46 @@ class StreamInput:
                             {name: values[part] for name, values in cloud.attributes.items()})
 
     def ply_chunks(self, size: int, first: int = 0, stop: int | None = None) -> Iterator[Chunk]:
-        """Chunks first..stop - 1 (all by default) of `size` points of a binary PLY, read at
-        their offsets (so that processes may read parts of one file in parallel)."""
+        """Chunks first..stop - 1 (all by default) of `size` points of a binary PLY (`_ply_records`)."""
         from ..io.ply import vertex_attributes
 
+        for records in self._ply_records(size, first, stop):
+            m = len(records)
+            positions = np.empty((m, 3))  # converted as copied: one pass, not two
+            for axis, name in enumerate("xyz"):
+                positions[:, axis] = records[name]
+            normals = None
+            if self.has_normals:  # likewise (a column stack, then a cast, copied twice)
+                normals = np.empty((m, 3), np.float32)
+                for axis, name in enumerate(("nx", "ny", "nz")):
+                    normals[:, axis] = records[name]
+            colors = None
+            if self.has_colors:
+                rgb = np.column_stack([records[c] for c in ("red", "green", "blue")]).astype(np.float32)
+                colors = np.clip(rgb / self.color_scale, 0.0, 1.0)
+            attributes = vertex_attributes(self.layout, records, m, self.path)
+            yield checked(self.path, positions, normals, colors, attributes)
+
+    def ply_summaries(self, stride: int, size: int = CHUNK_POINTS) -> Iterator[Summary]:
+        """The Summary of each chunk of `size` points of a binary PLY, its positions and normals
+        summarised in one compiled pass over its records, not converted (several passes)."""
+        from ..io.ply import vertex_attributes
+
+        for index, records in enumerate(self._ply_records(size)):
+            m = len(records)
+            normals = [records[c] for c in ("nx", "ny", "nz")] if self.has_normals else [records["x"]] * 3
+            lo, hi, sample, finite, zero = _summarise_ply(records["x"], records["y"], records["z"], *normals,
+                                                          self.has_normals, stride)
+            attributes = vertex_attributes(self.layout, records, m, self.path)
+            if not finite or any(values.dtype.kind == "f" and not np.isfinite(values).all()
+                                 for values in attributes.values()):
+                next(self.ply_chunks(size, index, index + 1))  # refused there, with what is wrong
+            yield Summary(lo, hi, sample, zero, attributes, 0.0, m)
+
+    def _ply_records(self, size: int, first: int = 0, stop: int | None = None) -> Iterator[np.ndarray]:
+        """The raw records of chunks first..stop - 1 (all by default) of `size` points of a
+        binary PLY, each read at its offset (so that processes may read parts of one file in
+        parallel); a short read is refused as a truncated body."""
         # plain reads, not a memory map of the whole file: mapped pages would count as
         # resident memory until unmapped, growing with the file
         end = self.count if stop is None else min(self.count, stop * size)
@@ -144,41 +180,7 @@ class StreamInput:
                 records = np.fromfile(file, self.dtype, count=m)
                 if len(records) < m:
                     raise InputError(self.path, f"truncated PLY body (vertex {start + len(records)} of {self.count})")
-                positions = np.empty((m, 3))  # converted as copied: one pass, not two
-                for axis, name in enumerate("xyz"):
-                    positions[:, axis] = records[name]
-                normals = None
-                if self.has_normals:  # likewise (a column stack, then a cast, copied twice)
-                    normals = np.empty((m, 3), np.float32)
-                    for axis, name in enumerate(("nx", "ny", "nz")):
-                        normals[:, axis] = records[name]
-                colors = None
-                if self.has_colors:
-                    rgb = np.column_stack([records[c] for c in ("red", "green", "blue")]).astype(np.float32)
-                    colors = np.clip(rgb / self.color_scale, 0.0, 1.0)
-                attributes = vertex_attributes(self.layout, records, m, self.path)
-                yield checked(self.path, positions, normals, colors, attributes)
-
-    def ply_summaries(self, stride: int, size: int = CHUNK_POINTS) -> Iterator[Summary]:
-        """The Summary of each chunk of `size` points of a binary PLY, its positions and normals
-        summarised in one compiled pass over its records, not converted (several passes)."""
-        from ..io.ply import vertex_attributes
-
-        with open(self.path, "rb") as file:
-            for index, start in enumerate(range(0, self.count, size)):
-                m = min(size, self.count - start)
-                file.seek(self.offset + start * self.dtype.itemsize)
-                records = np.fromfile(file, self.dtype, count=m)
-                if len(records) < m:
-                    raise InputError(self.path, f"truncated PLY body (vertex {start + len(records)} of {self.count})")
-                normals = [records[c] for c in ("nx", "ny", "nz")] if self.has_normals else [records["x"]] * 3
-                lo, hi, sample, finite, zero = _summarise_ply(records["x"], records["y"], records["z"], *normals,
-                                                              self.has_normals, stride)
-                attributes = vertex_attributes(self.layout, records, m, self.path)
-                if not finite or any(values.dtype.kind == "f" and not np.isfinite(values).all()
-                                     for values in attributes.values()):
-                    next(self.ply_chunks(size, index, index + 1))  # refused there, with what is wrong
-                yield Summary(lo, hi, sample, zero, attributes, 0.0, m)
+                yield records
 
     def _las_chunks(self, size: int) -> Iterator[Chunk]:
         import laspy
@@ -391,4 +393,3 @@ class KindVote:
     def kinds(self) -> dict[str, str]:
         return {**self._kinds, **{name: CONTINUOUS if seen is None else CATEGORICAL
                                   for name, seen in self._distinct.items()}}
-
