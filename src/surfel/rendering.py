@@ -143,13 +143,14 @@ class Renderer:
             weakref.finalize(cloud, self._released_clouds.append, value)
         return entries[key][1]
 
-    def program(self, path, defines: dict | None = None, *, geometry: bool = False):
-        """The GL program of `path` with these #defines, compiled once."""
-        key = (str(path), tuple(sorted((defines or {}).items())), geometry)
+    def program(self, path, defines: dict | None = None, *, geometry: bool = False, compute: bool = False):
+        """The GL program of `path` with these #defines (`compute`: its compute shader),
+        compiled once."""
+        key = (str(path), tuple(sorted((defines or {}).items())), geometry, compute)
         if key not in self._programs:
             from .gl.program import build_program
 
-            self._programs[key] = build_program(path, defines, geometry=geometry)
+            self._programs[key] = build_program(path, defines, geometry=geometry, compute=compute)
         return self._programs[key]
 
     def splat_buffers(self, cloud: PointCloud):

@@ -27,6 +27,20 @@ void main() {
 }
 #endif
 
+#if defined(PASS_RESOLVE) && defined(COMPUTE_SHADER)
+// The compute visibility pass's images (splatting.glsl) into the visibility target.
+layout(local_size_x = 16, local_size_y = 16) in;
+layout(r32ui, binding = 0) uniform readonly uimage2D u_nearest;
+layout(r32ui, binding = 1) uniform readonly uimage2D u_uncovered;
+layout(rg32f, binding = 2) uniform writeonly image2D u_visibility_out;
+void main() {
+    ivec2 texel = ivec2(gl_GlobalInvocationID.xy);
+    if (any(greaterThanEqual(texel, imageSize(u_nearest)))) return;
+    imageStore(u_visibility_out, texel, vec4(uintBitsToFloat(imageLoad(u_nearest, texel).x),
+                                             uintBitsToFloat(imageLoad(u_uncovered, texel).x), 0.0, 0.0));
+}
+#endif
+
 #if defined(PASS_NORMALIZE) && defined(FRAGMENT_SHADER)
 layout(location = 0) out vec4 out_shaded;
 layout(location = 1) out vec4 out_normal;

@@ -2,7 +2,9 @@
 splats with a visibility pass (Ren et al. 2002; Botsch & Kobbelt 2003; Botsch et al. 2005):
 
 1. visibility: MIN blending into an RG32F target: (eye depth + z_t, 1 - coverage), i.e. the
-   nearest surface pushed back by z_t, and how much of the pixel some splat covers;
+   nearest surface pushed back by z_t, and how much of the pixel some splat covers; or
+   (`visibility_compute`) the same minima taken by a compute program's atomics on two R32UI
+   images, then resolved into that target;
 1c. occlusion (`occlusion_pass`, optional): a full-screen triangle writes the visibility
    depth into a depth buffer, which the attribute and category passes then test their
    splats against, each drawn at the nearest depth any of its fragments can have: a
@@ -66,6 +68,20 @@ class SplatTargets:
     back_accum: list = field(default_factory=list)
     depth: object = None      # the attribute pass's depth buffer (occlusion culling)
     occlusion_fbo: object = None
+    minima: list = field(default_factory=list)  # the compute visibility pass's images and their clear values
+
+    def compute_images(self) -> list:
+        """[(nearest, its clear buffer), (uncovered, its clear buffer)]: R32UI images of the
+        bits of (depth + z_t, 1 - coverage), made on first use."""
+        if not self.minima:
+            ctx = get_context()
+            size = self.visibility.size
+            with allocating(*size):
+                for clear in (FAR, 1.0):
+                    image = ctx.texture(size, 1, dtype="u4")
+                    bits = np.full(size[0] * size[1], clear, np.float32).view(np.uint32)
+                    self.minima.append((image, ctx.buffer(bits.tobytes())))
+        return self.minima
 
     @classmethod
     def allocate(cls, width: int, height: int, guard: int = 0, back_layer: bool = False) -> SplatTargets:
@@ -92,7 +108,7 @@ class SplatTargets:
     def release(self) -> None:
         for obj in (self.visibility, self.visibility_fbo, *self.accum, self.accum_fbo, self.out,
                     self.category, self.category_fbo, self.back, self.back_fbo, *self.back_accum,
-                    self.depth, self.occlusion_fbo):
+                    self.depth, self.occlusion_fbo, *(obj for pair in self.minima for obj in pair)):
             if obj is not None:
                 obj.release()
 
@@ -128,6 +144,24 @@ class SplatPasses:
 
     def visibility_pass(self, draw) -> None:
         self._min_blended(self.visibility_fbo, (FAR, 1.0, 0.0, 0.0), draw)
+
+    def visibility_compute(self, dispatch, resolve_program) -> None:
+        """The visibility pass by a compute program: `dispatch()` runs it over the splats with
+        the two images of `SplatTargets.compute_images` bound at image units 0 and 1;
+        `resolve_program` (passes.glsl PASS_RESOLVE) then writes them into the visibility
+        target, as visibility_pass leaves it."""
+        ctx = self.ctx
+        images = self.targets.compute_images()
+        for unit, (image, clear) in enumerate(images):
+            image.write(clear)
+            image.bind_to_image(unit, read=True, write=True)
+        ctx.memory_barrier()
+        dispatch()
+        ctx.memory_barrier()
+        self.visibility.bind_to_image(2, read=False, write=True)
+        width, height = self.visibility.size
+        resolve_program.run(-(-width // 16), -(-height // 16))
+        ctx.memory_barrier()
 
     def back_pass(self, draw) -> None:
         """The back layer's depth (after visibility_pass)."""

@@ -1,7 +1,8 @@
 """GLSL loading: one source file per program, stages and passes chosen with #define.
 
 A `.glsl` file holds every stage, guarded by `#ifdef VERTEX_SHADER` / `GEOMETRY_SHADER` /
-`FRAGMENT_SHADER`; passes of a method are further `#define`s. `#include "name.glsl"` pulls in
+`FRAGMENT_SHADER`, or `COMPUTE_SHADER` for a compute program of the same source; passes of a
+method are further `#define`s. `#include "name.glsl"` pulls in
 shared code (resolved relative to the including file, then to the package's gl folder).
 Programs are compiled here and kept by their owner (`rendering.Renderer.program`).
 
@@ -57,12 +58,16 @@ def _stage(source: str, stage: str, defines: dict) -> str:
     return "\n".join(lines) + "\n#line 1\n" + source
 
 
-def build_program(path: str | Path, defines: dict | None = None, *, geometry: bool = False):
-    """Compile the program in `path` with these #defines; `program.extra` holds its source's
-    declared uniform names for `set_uniforms`."""
+def build_program(path: str | Path, defines: dict | None = None, *, geometry: bool = False, compute: bool = False):
+    """Compile the program in `path` with these #defines (`compute`: its compute shader);
+    `program.extra` holds its source's declared uniform names for `set_uniforms`."""
     ctx = get_context()
     defines = dict(defines or {})
     source = expand_includes(Path(path))
+    if compute:
+        program = ctx.compute_shader(_stage(source, "COMPUTE_SHADER", defines))
+        program.extra = {"source": Path(path).name, "uniforms": declared_uniforms(source)}
+        return program
     stages = {"vertex_shader": _stage(source, "VERTEX_SHADER", defines),
               "fragment_shader": _stage(source, "FRAGMENT_SHADER", defines)}
     if geometry:

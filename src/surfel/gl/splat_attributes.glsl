@@ -1,11 +1,40 @@
 // The per-splat vertex attributes packed by gl/splats.py (one vertex, or one instance, a splat).
-in vec3 in_center;   // position relative to the cloud's local origin
-in vec3 in_normal;   // unit normal; zero: the splat faces the camera (common.glsl face_camera)
-in vec3 in_color;    // albedo
-in vec3 in_axis_u;   // tangent axes scaled to the ellipse's semi-axes
-in vec3 in_axis_v;
-in vec2 in_field;    // Phong splatting's normal-field slopes (alpha, beta)
-in vec3 in_lod;      // sequential point tree: e_g, the parent's e_g, the distance to the parent
-in vec3 in_clip0;    // clip lines at sharp features: keep dot(xy, (u, v)) <= z
-in vec3 in_clip1;
-in float in_thickness;  // its layer's thickness, z_t's cap (preprocess/thickness.py); 0: none
+// A compute shader reads the same packed buffer as a storage buffer: load_splat(i) sets them.
+#ifdef COMPUTE_SHADER
+#define SPLAT_INPUT
+#else
+#define SPLAT_INPUT in
+#endif
+SPLAT_INPUT vec3 in_center;   // position relative to the cloud's local origin
+SPLAT_INPUT vec3 in_normal;   // unit normal; zero: the splat faces the camera (common.glsl face_camera)
+SPLAT_INPUT vec3 in_color;    // albedo
+SPLAT_INPUT vec3 in_axis_u;   // tangent axes scaled to the ellipse's semi-axes
+SPLAT_INPUT vec3 in_axis_v;
+SPLAT_INPUT vec2 in_field;    // Phong splatting's normal-field slopes (alpha, beta)
+SPLAT_INPUT vec3 in_lod;      // sequential point tree: e_g, the parent's e_g, the distance to the parent
+SPLAT_INPUT vec3 in_clip0;    // clip lines at sharp features: keep dot(xy, (u, v)) <= z
+SPLAT_INPUT vec3 in_clip1;
+SPLAT_INPUT float in_thickness;  // its layer's thickness, z_t's cap (preprocess/thickness.py); 0: none
+
+#ifdef COMPUTE_SHADER
+// The packed rows of gl/splats.py `pack`: SPLAT_FLOATS floats a splat, in the order above.
+layout(std430, binding = 0) readonly buffer PackedSplats { float packed_splats[]; };
+
+vec3 packed_vec3(int at) {
+    return vec3(packed_splats[at], packed_splats[at + 1], packed_splats[at + 2]);
+}
+
+void load_splat(int i) {
+    int at = i * SPLAT_FLOATS;
+    in_center = packed_vec3(at);
+    in_normal = packed_vec3(at + 3);
+    in_color = packed_vec3(at + 6);
+    in_axis_u = packed_vec3(at + 9);
+    in_axis_v = packed_vec3(at + 12);
+    in_field = vec2(packed_splats[at + 15], packed_splats[at + 16]);
+    in_lod = packed_vec3(at + 17);
+    in_clip0 = packed_vec3(at + 20);
+    in_clip1 = packed_vec3(at + 23);
+    in_thickness = packed_splats[at + 26];
+}
+#endif

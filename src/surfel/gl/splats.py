@@ -13,6 +13,8 @@ Every splat method reads the same layout (see splat_common.glsl):
     in_thickness (1) its layer's thickness, the cap of z_t (preprocess/thickness.py); 0 for none
 Clouds larger than CHUNK points are drawn one chunk at a time so 10M+ points fit in memory;
 a cloud's buffers are kept (by `rendering.Renderer`) so benchmarks measure drawing, not uploading.
+Compute programs read the same packed rows as storage buffers (splat_attributes.glsl
+load_splat); `compute_chunks` binds them.
 """
 
 from __future__ import annotations
@@ -24,13 +26,15 @@ import numpy as np
 from ..cloud import PointCloud
 from ..preprocess import INACTIVE_CLIP, drawn_normals, splat_thickness
 from .context import get_context
+from .program import set_uniforms
 
 CHUNK = 2_000_000
 ATTRIBUTES = ("in_center", "in_normal", "in_color", "in_axis_u", "in_axis_v", "in_field", "in_lod",
               "in_clip0", "in_clip1", "in_thickness")
 WIDTHS = (3, 3, 3, 3, 3, 2, 3, 3, 3, 1)
 LOD_EXTRAS = ("lod_emin", "lod_emax", "lod_dparent")
-FLOATS = sum(WIDTHS)
+FLOATS = sum(WIDTHS)  # splat_attributes.glsl SPLAT_FLOATS
+COMPUTE_GROUP = 64    # the local size of splatting.glsl's compute programs
 CACHE_LIMIT_BYTES = 2_000_000_000
 
 def pack(cloud: PointCloud, start: int = 0, stop: int | None = None) -> np.ndarray:
@@ -128,6 +132,26 @@ def draw(ctx, buffers: SplatBuffers, program, mode, *, instanced: bool, count: i
             for buffer, _ in buffers:
                 buffer.release()
         start += chunk
+
+
+def compute_chunks(buffers: SplatBuffers, program, count: int | None = None):
+    """Yield the number of splats of each kept chunk holding the first `count` splats (all by
+    default), each chunk's rows bound as storage buffer 0 and `program`'s u_splat_count set;
+    the caller runs `program` over `compute_groups(splats)` work groups."""
+    remaining = buffers.count if count is None else count
+    for vbo, chunk in buffers.kept:
+        splats = min(chunk, remaining)
+        remaining -= splats
+        if splats <= 0:
+            return
+        vbo.bind_to_storage_buffer(0)
+        set_uniforms(program, u_splat_count=splats)
+        yield splats
+
+
+def compute_groups(splats: int) -> int:
+    """Work groups of COMPUTE_GROUP invocations, one a splat."""
+    return max(-(-splats // COMPUTE_GROUP), 1)
 
 
 def lod_frame(cloud: PointCloud, camera, lod_error: float | None):

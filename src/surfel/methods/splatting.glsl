@@ -20,8 +20,8 @@
 #include "lod.glsl"
 #include "shading.glsl"
 #include "passes.glsl"
-#if defined(PASS_NORMALIZE) || defined(PASS_OCCLUSION)
-#define FULL_SCREEN  // passes.glsl's full-screen triangle
+#if defined(PASS_NORMALIZE) || defined(PASS_OCCLUSION) || defined(PASS_RESOLVE)
+#define FULL_SCREEN  // passes.glsl's per-pixel passes, no splats
 #endif
 
 #define DEPTH_CLAMP 32.0  // splat radii: how far the plane's depth may stray from the centre's
@@ -34,25 +34,37 @@ uniform float u_lowpass_radius;  // pixels
 uniform int u_backface_culling;
 uniform sampler2D u_kernel;      // Gaussian weight exp(-GAUSSIAN_SHARPNESS d^2) (splatting.py), indexed by d^2 in [0, 1]
 
-#ifdef VERTEX_SHADER
+// The splat's values that its fragments read: flat varyings from the vertex to the fragment
+// stage, or in the compute variant (PASS_VISIBILITY with COMPUTE_SHADER: every splat's
+// fragments visited by one invocation) plain globals, set per splat by splat_setup.
 #ifndef FULL_SCREEN
-#include "splat_attributes.glsl"
-flat out vec3 v_center;     // eye space
-flat out vec3 v_normal;     // eye space, facing the camera
-flat out vec3 v_u;          // axis_u / |axis_u|^2: dot(q - c, v_u) is the local coordinate u
-flat out vec3 v_v;
-flat out vec3 v_color;      // albedo (encoded, colors.glsl), or the per-splat shaded colour
-flat out float v_category;  // palette index of a categorical colour mode
-flat out vec2 v_center_px;  // projected centre in image pixels (for the low-pass)
-flat out float v_offset;    // z_t in eye units
-flat out float v_radius;    // largest semi-axis
-flat out float v_weight;    // EWA_FILTER: the resampling kernel's relative amplitude
-flat out vec3 v_field_u;    // alpha u_j and beta v_j: the normal field's slopes (eye space)
-flat out vec3 v_field_v;
-#ifdef CLIP_LINES
-flat out vec3 v_clip0;      // clip lines in local coordinates (sharp features)
-flat out vec3 v_clip1;
+#if defined(VERTEX_SHADER)
+#define SPLAT_VARYING flat out
+#elif defined(FRAGMENT_SHADER)
+#define SPLAT_VARYING flat in
+#else
+#define SPLAT_VARYING
 #endif
+SPLAT_VARYING vec3 v_center;     // eye space
+SPLAT_VARYING vec3 v_normal;     // eye space, facing the camera
+SPLAT_VARYING vec3 v_u;          // axis_u / |axis_u|^2: dot(q - c, v_u) is the local coordinate u
+SPLAT_VARYING vec3 v_v;
+SPLAT_VARYING vec3 v_color;      // albedo (encoded, colors.glsl), or the per-splat shaded colour
+SPLAT_VARYING float v_category;  // palette index of a categorical colour mode
+SPLAT_VARYING vec2 v_center_px;  // projected centre in image pixels (for the low-pass)
+SPLAT_VARYING float v_offset;    // z_t in eye units
+SPLAT_VARYING float v_radius;    // largest semi-axis
+SPLAT_VARYING float v_weight;    // EWA_FILTER: the resampling kernel's relative amplitude
+SPLAT_VARYING vec3 v_field_u;    // alpha u_j and beta v_j: the normal field's slopes (eye space)
+SPLAT_VARYING vec3 v_field_v;
+#ifdef CLIP_LINES
+SPLAT_VARYING vec3 v_clip0;      // clip lines in local coordinates (sharp features)
+SPLAT_VARYING vec3 v_clip1;
+#endif
+#endif
+
+#if (defined(VERTEX_SHADER) || defined(COMPUTE_SHADER)) && !defined(FULL_SCREEN)
+#include "splat_attributes.glsl"
 
 vec2 to_pixels(vec3 eye) {
     if (u_ortho > 0.0) return vec2(u_intrinsics.z + u_ortho * eye.x, u_intrinsics.w - u_ortho * eye.y);
@@ -85,10 +97,15 @@ float nearest_depth(vec3 c, vec3 n, vec2 lo, vec2 hi, float extent) {
 }
 #endif
 
-void main() {
-    const vec2 corners[4] = vec2[4](vec2(0.0, 0.0), vec2(1.0, 0.0), vec2(0.0, 1.0), vec2(1.0, 1.0));
+// What the vertex stage computes once per splat: the v_ values its fragments read, and its
+// screen box [lo, hi] (image pixels, y down): with POINT_SPRITES the square sprite around it.
+// False for a splat that draws nothing (level of detail, back-face culling, behind the near
+// plane, cut away whole by a clip line).
+bool splat_setup(out vec2 lo, out vec2 hi, out bool crosses_near) {
+    lo = hi = vec2(0.0);
+    crosses_near = false;
     vec3 c = (u_view * vec4(in_center, 1.0)).xyz;
-    if (!lod_visible(c, in_lod.x, in_lod.y, in_lod.z)) { gl_Position = LOD_CULLED; return; }
+    if (!lod_visible(c, in_lod.x, in_lod.y, in_lod.z)) return false;
     vec3 n = mat3(u_view) * in_normal;
     vec3 au = mat3(u_view) * in_axis_u * u_radius_scale;
     vec3 av = mat3(u_view) * in_axis_v * u_radius_scale;
@@ -104,15 +121,11 @@ void main() {
 #ifdef CLIP_LINES
     culled = culled || in_clip0.z < -1.0 || in_clip1.z < -1.0;  // cut away whole (a crease point)
 #endif
-    if (culled) {
-        gl_Position = vec4(2.0, 2.0, 2.0, 1.0);  // outside the clip volume: no fragments
-        return;
-    }
+    if (culled) return false;
     // Conservative screen bounding box: the projected corners of the disk's bounding square
     // (exact for the rasterized disk, unlike eq. 6's sphere approximation). A splat crossing
     // the near plane gets the whole viewport, so it is never chopped.
-    vec2 lo = vec2(1e30), hi = vec2(-1e30);
-    bool crosses_near = false;
+    lo = vec2(1e30); hi = vec2(-1e30);
     for (int i = 0; i < 4; ++i) {
         vec3 p = c + (i % 2 == 0 ? -au : au) + (i < 2 ? -av : av);
         if (u_ortho == 0.0 && -p.z < near) { crosses_near = true; break; }
@@ -152,22 +165,10 @@ void main() {
     float size = max(max(hi.x - lo.x, hi.y - lo.y), 1.0);  // covers every pixel centre in the box
     lo = box_center - 0.5 * size;  // the sprite's square
     hi = box_center + 0.5 * size;
-    gl_Position = image_to_clip(box_center);
-    gl_PointSize = size;
 #else
     if (crosses_near) { lo = vec2(0.0); hi = u_viewport; }
     lo = max(lo, vec2(-1.0)); hi = min(hi, u_viewport + 1.0);
-    gl_Position = image_to_clip(mix(lo, hi, corners[gl_VertexID]));
 #endif
-    float radius = max(length(au), length(av));
-#if defined(PASS_ATTRIBUTE) || defined(PASS_CATEGORY)
-    // Occlusion culling: the splat is drawn at the nearest depth it can have, so that the
-    // depth test (early, before the fragment shader) drops its fragments wherever even that
-    // lies behind the visible surface. Half a pixel of margin covers the rasterizer's snapping.
-    float nearest = crosses_near ? 0.0 : nearest_depth(c, n, lo - 0.5, hi + 0.5, DEPTH_CLAMP * radius);
-    gl_Position.z = 2.0 * depth_code(nearest) - 1.0;
-#endif
-
     v_center = c;
     v_normal = n;
     v_u = au / max(dot(au, au), 1e-30);
@@ -183,31 +184,38 @@ void main() {
     v_clip0 = in_clip0;
     v_clip1 = in_clip1;
 #endif
-    v_radius = radius;
+    v_radius = max(length(au), length(av));
     v_offset = layer_offset(u_depth_offset * v_radius, c, n, in_thickness);
+    return true;
+}
+
+#ifdef VERTEX_SHADER
+void main() {
+    vec2 lo, hi;
+    bool crosses_near;
+    if (!splat_setup(lo, hi, crosses_near)) {
+        gl_Position = LOD_CULLED;  // outside the clip volume: no fragments
+        return;
+    }
+#ifdef POINT_SPRITES
+    gl_Position = image_to_clip(0.5 * (lo + hi));
+    gl_PointSize = hi.x - lo.x;
+#else
+    const vec2 corners[4] = vec2[4](vec2(0.0, 0.0), vec2(1.0, 0.0), vec2(0.0, 1.0), vec2(1.0, 1.0));
+    gl_Position = image_to_clip(mix(lo, hi, corners[gl_VertexID]));
+#endif
+#if defined(PASS_ATTRIBUTE) || defined(PASS_CATEGORY)
+    // Occlusion culling: the splat is drawn at the nearest depth it can have, so that the
+    // depth test (early, before the fragment shader) drops its fragments wherever even that
+    // lies behind the visible surface. Half a pixel of margin covers the rasterizer's snapping.
+    float nearest = crosses_near ? 0.0 : nearest_depth(v_center, v_normal, lo - 0.5, hi + 0.5, DEPTH_CLAMP * v_radius);
+    gl_Position.z = 2.0 * depth_code(nearest) - 1.0;
+#endif
 }
 #endif
 #endif
 
-#ifdef FRAGMENT_SHADER
-#ifndef FULL_SCREEN
-flat in vec3 v_center;
-flat in vec3 v_normal;
-flat in vec3 v_u;
-flat in vec3 v_v;
-flat in vec3 v_color;
-flat in float v_category;
-flat in vec2 v_center_px;
-flat in float v_offset;
-flat in float v_radius;
-flat in float v_weight;
-flat in vec3 v_field_u;
-flat in vec3 v_field_v;
-#ifdef CLIP_LINES
-flat in vec3 v_clip0;
-flat in vec3 v_clip1;
-#endif
-
+#if (defined(FRAGMENT_SHADER) || defined(COMPUTE_SHADER)) && !defined(FULL_SCREEN)
 #ifdef CURVED_SPLATS
 // Curved splats: the surface whose normals are the splat's linear field is, to second order,
 // the height field h(s_u, s_v) = -(k_u s_u² + k_v s_v²) / 2 over the splat plane, with s the
@@ -239,10 +247,10 @@ bool curved_splat_hit(vec3 o, vec3 d, float denom, inout float t) {
 // the plane's depth too, so coplanar neighbours agree at grazing angles, where a pixel's
 // footprint spans many splat radii in depth; only near-parallel rays are clamped to the
 // splat's depth range. `clipped` is the clip_excess of the fragment: a splat cut at a sharp
-// feature ends at its clip lines.
-float splat_distance(out float eye_depth, out vec2 local_uv, out float clipped) {
+// feature ends at its clip lines. `frag`: the fragment's window position (gl_FragCoord.xy).
+float splat_distance(vec2 frag, out float eye_depth, out vec2 local_uv, out float clipped) {
     vec3 o, d;
-    pixel_ray(gl_FragCoord.xy, o, d);
+    pixel_ray(frag, o, d);
     float denom = dot(d, v_normal);
     float rho2 = 1e30;
     float extent = DEPTH_CLAMP * v_radius;
@@ -270,9 +278,9 @@ float splat_distance(out float eye_depth, out vec2 local_uv, out float clipped) 
 
 // The kernel distance of the resampling filter: with EWA_FILTER the union of the splat's
 // reconstruction kernel (splat_rho2) and the screen-space low-pass, else the splat's own.
-float filter_distance(float splat_rho2) {
+float filter_distance(vec2 frag, float splat_rho2) {
 #ifdef EWA_FILTER
-    vec2 delta = (image_coord(gl_FragCoord.xy) - v_center_px) / u_lowpass_radius;
+    vec2 delta = (image_coord(frag) - v_center_px) / u_lowpass_radius;
     return min(splat_rho2, dot(delta, delta));
 #else
     return splat_rho2;
@@ -280,12 +288,98 @@ float filter_distance(float splat_rho2) {
 }
 #endif
 
+#if defined(COMPUTE_SHADER) && !defined(FULL_SCREEN)
+// The compute variants visit a splat's pixels in one invocation, without the rasterizer,
+// whose cost per primitive (setting up a point sprite) is most of a splat pass's on a
+// software renderer, and which GPUs too spend on splats of a few pixels (Schütz, Kerbl &
+// Wimmer 2021, "Rendering point clouds with compute shaders and vertex order optimization").
+layout(local_size_x = 64) in;
+uniform int u_splat_count;
+
+// The window pixels (x, y: centre at +0.5) whose centres lie in the splat's sprite [lo, hi]
+// (image pixels, y down), widened by `margin` pixels, inside the render target of `size`.
+void sprite_pixels(vec2 lo, vec2 hi, float margin, ivec2 size, out ivec2 first, out ivec2 last) {
+    vec2 window_lo = vec2(lo.x + u_guard, u_viewport.y + u_guard - hi.y) - margin;
+    vec2 window_hi = vec2(hi.x + u_guard, u_viewport.y + u_guard - lo.y) + margin;
+    first = max(ivec2(ceil(window_lo - 0.5)), ivec2(0));
+    last = min(ivec2(ceil(window_hi - 0.5)) - 1, size - 1);
+}
+#endif
+
+#if defined(PASS_VISIBILITY) && defined(COMPUTE_SHADER)
+layout(r32ui, binding = 0) uniform uimage2D u_nearest;    // bits of the least depth + z_t
+layout(r32ui, binding = 1) uniform uimage2D u_uncovered;  // bits of the least 1 - coverage
+
+// The fragment shader's edge_distance, with rho's screen gradient analytic instead of a
+// fragment quad's differences: grad rho = (u grad u + v grad v) / rho, d(u, v)/d(pixel) the
+// splat plane's (for a curved splat too), or past a clip line that line's gradient. The CPU
+// backend (splatting_tiles.visibility_output) computes the same.
+float analytic_edge_distance(vec2 frag, vec2 uv, float rho2, float clipped) {
+    if (rho2 >= 1e30) return -1e30;  // the ray misses the splat
+    vec3 o, d;
+    pixel_ray(frag, o, d);
+    // d(origin) and d(direction) per image pixel in x and y (image y runs down)
+    vec3 dox = vec3(0.0), doy = vec3(0.0), ddx = vec3(0.0), ddy = vec3(0.0);
+    if (u_ortho > 0.0) { dox.x = 1.0 / u_ortho; doy.y = -1.0 / u_ortho; }
+    else { ddx.x = 1.0 / u_intrinsics.x; ddy.y = -1.0 / u_intrinsics.y; }
+    float denom = dot(d, v_normal);
+    float t = dot(v_center - o, v_normal) / denom;
+    vec3 dqx = dox + ddx * t - d * ((dot(dox, v_normal) + t * dot(ddx, v_normal)) / denom);
+    vec3 dqy = doy + ddy * t - d * ((dot(doy, v_normal) + t * dot(ddy, v_normal)) / denom);
+    vec2 du = vec2(dot(dqx, v_u), dot(dqy, v_u)), dv = vec2(dot(dqx, v_v), dot(dqy, v_v));
+    float rho = sqrt(rho2);
+    float distance = 1.0 - rho;
+    vec2 gradient = (uv.x * du + uv.y * dv) / max(rho, 1e-12);
+#ifdef CLIP_LINES
+    if (1.0 + clipped > rho) {
+        vec2 scaled = uv * u_radius_scale;
+        vec2 line = dot(v_clip0.xy, scaled) - v_clip0.z >= dot(v_clip1.xy, scaled) - v_clip1.z ? v_clip0.xy : v_clip1.xy;
+        distance = -clipped;
+        gradient = line.x * du + line.y * dv;
+    }
+#endif
+    return distance / max(length(gradient), 1e-6);
+}
+
+// The visibility pass as the fragment shader's PASS_VISIBILITY computes it, MIN-combined by
+// atomics on the bits of non-negative floats (which order as the floats do); gl/passes.py
+// resolves the two images into the visibility target.
+void main() {
+    int i = int(gl_GlobalInvocationID.x);
+    if (i >= u_splat_count) return;
+    load_splat(i);
+    vec2 lo, hi;
+    bool crosses_near;
+    if (!splat_setup(lo, hi, crosses_near)) return;
+    ivec2 first, last;
+    sprite_pixels(lo, hi, 0.0, imageSize(u_nearest), first, last);
+    for (int y = first.y; y <= last.y; ++y) {
+        for (int x = first.x; x <= last.x; ++x) {
+            vec2 frag = vec2(x, y) + 0.5;
+            float z, clipped;
+            vec2 uv;
+            float splat_rho2 = splat_distance(frag, z, uv, clipped);
+            if (max(sqrt(filter_distance(frag, splat_rho2)), 1.0 + clipped) > 1.0) continue;
+            float edge = max(analytic_edge_distance(frag, uv, splat_rho2, clipped),
+                             0.5 - length(image_coord(frag) - v_center_px));
+            uint depth = floatBitsToUint(splat_rho2 > 1.0 ? FAR_DEPTH : z + v_offset);
+            uint uncovered = floatBitsToUint(1.0 - clamp(0.5 + edge, 0.0, 1.0));
+            ivec2 texel = ivec2(x, y);
+            // most fragments lie behind one already there: a plain load spares their atomics
+            if (depth < imageLoad(u_nearest, texel).x) imageAtomicMin(u_nearest, texel, depth);
+            if (uncovered < imageLoad(u_uncovered, texel).x) imageAtomicMin(u_uncovered, texel, uncovered);
+        }
+    }
+}
+#endif
+
+#ifdef FRAGMENT_SHADER
 #ifdef PASS_VISIBILITY
 layout(location = 0) out vec4 out_depth;
 void main() {
     float z, clipped;
     vec2 uv;
-    float splat_rho2 = splat_distance(z, uv, clipped);
+    float splat_rho2 = splat_distance(gl_FragCoord.xy, z, uv, clipped);
     // Coverage for anti-aliased silhouettes, to the edge of the splat itself (its rim or a
     // clip line), not of the low-pass, which filters but covers nothing. A splat smaller than
     // a pixel covers at least a pixel-wide footprint: its own edge would leave every pixel of
@@ -293,7 +387,7 @@ void main() {
     float edge = max(edge_distance(max(sqrt(splat_rho2), 1.0 + clipped)),
                      0.5 - length(image_coord(gl_FragCoord.xy) - v_center_px));
     float coverage = clamp(0.5 + edge, 0.0, 1.0);
-    if (max(sqrt(filter_distance(splat_rho2)), 1.0 + clipped) > 1.0) discard;
+    if (max(sqrt(filter_distance(gl_FragCoord.xy, splat_rho2)), 1.0 + clipped) > 1.0) discard;
     // A low-pass fragment off the disk filters but hides nothing: the edge-on splats of an
     // occluding contour would otherwise claim a pixel-wide band of the surface behind it,
     // drawn with their grazing normals.
@@ -308,7 +402,7 @@ layout(location = 1) out vec4 out_normal;  // (w n, w z)
 void main() {
     float z, clipped;
     vec2 uv;
-    float rho2 = filter_distance(splat_distance(z, uv, clipped));
+    float rho2 = filter_distance(gl_FragCoord.xy, splat_distance(gl_FragCoord.xy, z, uv, clipped));
     if (rho2 > 1.0 || clipped > 0.0) discard;
     if (z > texelFetch(u_visibility, ivec2(gl_FragCoord.xy), 0).r) discard;  // behind the visible surface
     float w = v_weight * texture(u_kernel, vec2(rho2, 0.5)).r;
@@ -327,7 +421,7 @@ layout(location = 0) out vec4 out_category;
 void main() {  // the attribute pass's fragments and weights
     float z, clipped;
     vec2 uv;
-    float rho2 = filter_distance(splat_distance(z, uv, clipped));
+    float rho2 = filter_distance(gl_FragCoord.xy, splat_distance(gl_FragCoord.xy, z, uv, clipped));
     if (rho2 > 1.0 || clipped > 0.0) discard;
     if (z > texelFetch(u_visibility, ivec2(gl_FragCoord.xy), 0).r) discard;
     float w = v_weight * texture(u_kernel, vec2(rho2, 0.5)).r;

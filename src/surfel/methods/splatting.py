@@ -101,6 +101,13 @@ def use_point_sprites(cloud, camera, radius_scale: float, supersample: int, lowp
     return 2 * (pixels + lowpass) + 2 <= min(2 * GUARD, MAX_SPRITE)
 
 
+def use_compute_passes(sprites: bool, buffers) -> bool:
+    """Whether the visibility pass runs as a compute program (splatting.glsl's compute variant):
+    for point sprites, whose pixels one invocation visits cheaply, of a cloud whose buffers
+    stay on the GPU."""
+    return sprites and buffers.kept is not None
+
+
 def gaussian_kernel_texture(ctx):
     """The 1D Gaussian lookup table of Botsch & Kobbelt 2003, indexed by squared distance."""
     d2 = (np.arange(KERNEL_SIZE, dtype=np.float32) + 0.5) / KERNEL_SIZE
@@ -150,9 +157,15 @@ def _render(cloud, camera, options, params, renderer, *, per_splat_shading: bool
                "NORMAL_FIELD": normal_field,
                "POINT_SPRITES": sprites, "CLIP_LINES": "clip_lines" in cloud.attributes}
     categorical = options.coloring is not None and options.coloring.categorical
+    buffers = renderer.splat_buffers(cloud)
+    compute = use_compute_passes(sprites, buffers)
     passes = ("PASS_VISIBILITY", "PASS_OCCLUSION", "PASS_ATTRIBUTE", *(("PASS_CATEGORY",) if categorical else ()),
               "PASS_NORMALIZE")
     programs = {p: renderer.program(SHADER, {p: True, **variant}) for p in passes}
+    if compute:
+        for p in ("PASS_VISIBILITY", "PASS_RESOLVE"):
+            programs[p + " compute"] = renderer.program(SHADER, {p: True, "SPLAT_FLOATS": splats.FLOATS, **variant},
+                                                        compute=True)
     for program in programs.values():
         apply_common(program, camera, cloud.local_origin, ss, options,
                      u_radius_scale=params.radius_scale, u_depth_offset=params.depth_offset,
@@ -163,22 +176,30 @@ def _render(cloud, camera, options, params, renderer, *, per_splat_shading: bool
     renderer.use_color_table(options)
     kernel = gaussian_kernel_texture(ctx)
     mode = ctx.POINTS if sprites else ctx.TRIANGLE_STRIP
-    buffers = renderer.splat_buffers(cloud)
 
     def draw(program):
         return lambda: splats.draw(ctx, buffers, program, mode, instanced=not sprites, count=prefix)
 
+    def run_visibility():
+        program = programs["PASS_VISIBILITY compute"]
+        for count in splats.compute_chunks(buffers, program, prefix):
+            program.run(splats.compute_groups(count))
+
     try:
         with SplatPasses(renderer.splat_targets(width, height, guard)) as passes:
             kernel.use(0)
-            passes.visibility_pass(draw(programs["PASS_VISIBILITY"]))
+            if compute:
+                passes.visibility_compute(run_visibility, programs["PASS_RESOLVE compute"])
+            else:
+                passes.visibility_pass(draw(programs["PASS_VISIBILITY"]))
             passes.occlusion_pass(programs["PASS_OCCLUSION"])
             passes.attribute_pass(draw(programs["PASS_ATTRIBUTE"]))
             if categorical:
                 passes.category_pass(draw(programs["PASS_CATEGORY"]))
             passes.normalize_pass(programs["PASS_NORMALIZE"])
             stats = {"splats": len(cloud) if drawn is None else int(drawn.sum()), "supersample": ss,
-                     "ewa_filter": ewa_filter, "primitive": "point sprites" if sprites else "quads"}
+                     "ewa_filter": ewa_filter, "primitive": "point sprites" if sprites else "quads",
+                     "visibility": "compute" if compute else "raster"}
             return passes.result(camera, options, ss, stats)
     finally:
         kernel.release()
