@@ -260,11 +260,13 @@ def test_dump_passes_writes_the_three_passes(dense_spot, tmp_path):
 
 
 @pytest.mark.parametrize("method", ["gaussian", "deferred", "phong"])
-def test_compute_visibility_pass_agrees_with_the_rasterized_one(method, monkeypatch):
-    """The visibility pass as a compute program (point sprites) against the same pass drawn
-    by the rasterizer: the same depths, and coverage that differs only where the fragment
-    quad's differences and the analytic gradient of rho do. The CAD part's splats are cut by
-    clip lines; perspective and orthographic views."""
+def test_compute_passes_agree_with_the_rasterized_ones(method, monkeypatch):
+    """The visibility and attribute passes as compute programs (point sprites) against the
+    same passes drawn by the rasterizer: coverage differs only where the fragment quad's
+    differences and the analytic gradient of rho do, and the fixed-point sums (passes.glsl
+    ACCUMULATOR_SUMS) round the depth to about 1e-7, more where every fragment of a pixel
+    weighs little (a low-pass rim). The CAD part's splats are cut by clip lines; perspective
+    and orthographic views."""
     import models
     from surfel.methods import splatting
 
@@ -274,12 +276,57 @@ def test_compute_visibility_pass_agrees_with_the_rasterized_one(method, monkeypa
     for camera in cameras:
         computed = render(cloud, camera, method, backend="gl", shading="lambert")
         with monkeypatch.context() as patch:
-            patch.setattr(splatting, "use_compute_passes", lambda sprites, buffers: False)
+            patch.setattr(splatting, "use_compute_passes", lambda sprites, buffers, target_pixels: False)
             rasterized = render(cloud, camera, method, backend="gl", shading="lambert")
         assert (computed.stats["visibility"], rasterized.stats["visibility"]) == ("compute", "raster")
         both = (computed.alpha > 0.5) & (rasterized.alpha > 0.5)
         assert both.sum() >= 0.99 * (rasterized.alpha > 0.5).sum()
         depth_error = np.abs(computed.depth[both] - rasterized.depth[both]) / rasterized.depth[both]
-        assert np.median(depth_error) < 1e-6 and np.quantile(depth_error, 0.999) < 1e-5
+        assert np.median(depth_error) < 1e-6 and np.quantile(depth_error, 0.99) < 1e-4 and depth_error.max() < 1e-2
+        turn = np.degrees(np.arccos(np.clip((computed.normals[both] * rasterized.normals[both]).sum(-1), -1, 1)))
+        assert np.quantile(turn, 0.999) < 0.5
         assert np.abs(computed.alpha - rasterized.alpha).mean() < 2e-3
         assert compare_results(rasterized, computed)["psnr"] >= 45
+
+
+def test_compute_passes_read_the_splats_in_storage_ranges_of_any_size(monkeypatch):
+    """A cloud larger than one storage block is read in ranges (gl/splats.py compute_chunks);
+    where they split changes nothing: the minima and the integer sums do not depend on order."""
+    import models
+    from surfel.gl import splats
+    from surfel.methods import splatting
+
+    cloud = models.turned_part().with_(faces=None)
+    camera = frame(cloud.center, cloud.bounding_radius, azimuth=30, elevation=20, size=SIZE)
+    whole = render(cloud, camera, "deferred", backend="gl", shading="lambert")
+    with monkeypatch.context() as patch:
+        patch.setattr(splatting, "use_compute_passes", lambda sprites, buffers, target_pixels: True)
+        patch.setattr(splats, "max_storage_bytes", lambda: 3 * splats.COMPUTE_GROUP * splats.FLOATS * 4 + 100)
+        ranges = render(cloud, camera, "deferred", backend="gl", shading="lambert")
+    assert whole.stats["visibility"] == ranges.stats["visibility"] == "compute"
+    assert len(cloud) > 10 * 3 * splats.COMPUTE_GROUP
+    for buffer in ("color", "alpha", "depth", "normals"):
+        assert np.array_equal(getattr(whole, buffer), getattr(ranges, buffer)), buffer
+
+
+def test_a_pile_of_coincident_splats_does_not_overflow_the_fixed_point_sums(monkeypatch):
+    """5000 red splats at one point of a grey plane: their weights sum far past the range of
+    the attribute pass's fixed-point sums, which stop accumulating before it (SUM_LIMIT), so
+    the pile shows about the red the rasterized pass draws (4% off; wrapped sums: any colour)."""
+    from surfel.methods import splatting
+
+    side = np.linspace(-1.0, 1.0, 41)
+    grid = np.stack(np.meshgrid(side, side), -1).reshape(-1, 2)
+    positions = np.concatenate([np.c_[grid, np.zeros(len(grid))], np.zeros((5000, 3))])
+    colors = np.where(np.arange(len(positions))[:, None] < len(grid), 0.5, [1.0, 0.0, 0.0]).astype(np.float32)
+    normals = np.tile(np.float32([0.0, 0.0, 1.0]), (len(positions), 1))
+    cloud = PointCloud(positions, normals=normals, colors=colors, radii=np.full(len(positions), 0.06, np.float32))
+    camera = frame(cloud.center, cloud.bounding_radius, view="front", size=(64, 64))
+    computed = render(cloud, camera, "gaussian", backend="gl", shading="none")
+    with monkeypatch.context() as patch:
+        patch.setattr(splatting, "use_compute_passes", lambda sprites, buffers, target_pixels: False)
+        rasterized = render(cloud, camera, "gaussian", backend="gl", shading="none")
+    assert computed.stats["visibility"] == "compute"
+    pile = rasterized.color[..., 0] > 0.9
+    assert 0 < pile.sum() < 16
+    assert np.abs(computed.color - rasterized.color).max() < 0.1

@@ -27,17 +27,79 @@ void main() {
 }
 #endif
 
+#ifdef COMPUTE_SHADER
+// The compute attribute pass's sums (splatting.glsl): per pixel of the splat targets
+// SUM_CHANNELS uints in fixed point, SUM_SCALE units to 1, signed values in two's complement:
+// w r, w g, w b, w, w n (3), and w L, with L = log2(z / near) / log2(far / near) the eye depth
+// z on a log scale of the camera's depth range (precise to about 3e-6 of z; PASS_RESOLVE
+// turns the weighted mean of L back into the mean depth). A pixel stops accumulating past
+// SUM_LIMIT of weight (a pile of hundreds of coincident splats), so that no sum overflows.
+#define SUM_CHANNELS 8
+#define SUM_SCALE 4194304.0  // 2^22: weights to 2.4e-7
+#define SUM_LIMIT 1073741824u  // 256 of weight, half the signed range of the depth and normal sums
+layout(std430, binding = 1) buffer AccumulatorSums { uint accumulator_sums[]; };
+
+int sum_base(ivec2 texel) {
+    return (texel.y * int(u_viewport.x + 2.0 * u_guard) + texel.x) * SUM_CHANNELS;
+}
+
+uint fixed_point(float value) {
+    return uint(int(round(value * SUM_SCALE)));
+}
+
+float log_depth(float z) {
+    return clamp(log2(max(z, 1e-30) / u_depth_range.x) / log2(u_depth_range.y / u_depth_range.x), 0.0, 1.0);
+}
+
+void accumulate(ivec2 texel, float w, vec3 color, vec3 n, float z) {
+    int at = sum_base(texel);
+    uint weight = fixed_point(w);
+    if (weight == 0u) return;
+    if (atomicAdd(accumulator_sums[at + 3], weight) > SUM_LIMIT) {
+        atomicAdd(accumulator_sums[at + 3], -weight);
+        return;
+    }
+    atomicAdd(accumulator_sums[at], fixed_point(w * color.r));
+    atomicAdd(accumulator_sums[at + 1], fixed_point(w * color.g));
+    atomicAdd(accumulator_sums[at + 2], fixed_point(w * color.b));
+    atomicAdd(accumulator_sums[at + 4], fixed_point(w * n.x));
+    atomicAdd(accumulator_sums[at + 5], fixed_point(w * n.y));
+    atomicAdd(accumulator_sums[at + 6], fixed_point(w * n.z));
+    atomicAdd(accumulator_sums[at + 7], fixed_point(w * log_depth(z)));
+}
+#endif
+
 #if defined(PASS_RESOLVE) && defined(COMPUTE_SHADER)
-// The compute visibility pass's images (splatting.glsl) into the visibility target.
+// The compute visibility pass's images (splatting.glsl) into the visibility target; with
+// ACCUMULATOR_SUMS the attribute pass's sums into the two accumulators, as blending leaves
+// them, and the sums zeroed for the next frame.
 layout(local_size_x = 16, local_size_y = 16) in;
 layout(r32ui, binding = 0) uniform readonly uimage2D u_nearest;
 layout(r32ui, binding = 1) uniform readonly uimage2D u_uncovered;
 layout(rg32f, binding = 2) uniform writeonly image2D u_visibility_out;
+#ifdef ACCUMULATOR_SUMS
+layout(rgba32f, binding = 3) uniform writeonly image2D u_accum_color_out;
+layout(rgba32f, binding = 4) uniform writeonly image2D u_accum_normal_out;
+#endif
 void main() {
     ivec2 texel = ivec2(gl_GlobalInvocationID.xy);
+#ifdef ACCUMULATOR_SUMS
+    if (any(greaterThanEqual(texel, imageSize(u_accum_color_out)))) return;
+    int at = sum_base(texel);
+    float sums[SUM_CHANNELS];
+    for (int k = 0; k < SUM_CHANNELS; ++k) {
+        sums[k] = float(int(accumulator_sums[at + k])) / SUM_SCALE;
+        accumulator_sums[at + k] = 0u;
+    }
+    float weight = sums[3];
+    float depth = weight > 0.0 ? u_depth_range.x * exp2(sums[7] / weight * log2(u_depth_range.y / u_depth_range.x)) : 0.0;
+    imageStore(u_accum_color_out, texel, vec4(sums[0], sums[1], sums[2], weight));
+    imageStore(u_accum_normal_out, texel, vec4(sums[4], sums[5], sums[6], weight * depth));
+#else
     if (any(greaterThanEqual(texel, imageSize(u_nearest)))) return;
     imageStore(u_visibility_out, texel, vec4(uintBitsToFloat(imageLoad(u_nearest, texel).x),
                                              uintBitsToFloat(imageLoad(u_uncovered, texel).x), 0.0, 0.0));
+#endif
 }
 #endif
 

@@ -11,7 +11,9 @@ splats with a visibility pass (Ren et al. 2002; Botsch & Kobbelt 2003; Botsch et
    conservative early cull of hidden splats' fragments before their fragment shader runs,
    which leaves every sum unchanged (the shaders still compare each fragment's exact depth);
 2. attribute: additive blending into two RGBA32F accumulators: (w rgb, w) and (w n, w z),
-   of fragments no farther than the visibility depth;
+   of fragments no farther than the visibility depth; or (`attribute_compute`) the same sums
+   taken by a compute program's integer atomics in fixed point (passes.glsl
+   ACCUMULATOR_SUMS), then resolved into the accumulators;
 3. normalization: a full-screen triangle turns the sums into the G-buffer layout of
    targets.gbuffer_result (shaded RGB + coverage, eye normal, eye depth).
 
@@ -48,6 +50,7 @@ from .uniforms import CATEGORY_UNIT
 UNIFORM_UNITS = {"u_visibility": 1, "u_accum_color": 2, "u_accum_normal": 3, "u_category": CATEGORY_UNIT}
 BACK_LAYER_UNITS = {"u_visibility": 1, "u_back": 4}  # the back layer's programs (ewa_gl.glsl)
 FAR = 3.0e38
+SUM_CHANNELS = 8  # passes.glsl
 
 
 @dataclass
@@ -69,6 +72,8 @@ class SplatTargets:
     depth: object = None      # the attribute pass's depth buffer (occlusion culling)
     occlusion_fbo: object = None
     minima: list = field(default_factory=list)  # the compute visibility pass's images and their clear values
+    sums: object = None       # the compute attribute pass's fixed-point sums, zero between frames
+    sums_dirty: bool = False  # a frame stopped before resolving (and so zeroing) them
 
     def compute_images(self) -> list:
         """[(nearest, its clear buffer), (uncovered, its clear buffer)]: R32UI images of the
@@ -82,6 +87,19 @@ class SplatTargets:
                     bits = np.full(size[0] * size[1], clear, np.float32).view(np.uint32)
                     self.minima.append((image, ctx.buffer(bits.tobytes())))
         return self.minima
+
+    def accumulator_sums(self):
+        """The compute attribute pass's sums (passes.glsl ACCUMULATOR_SUMS: 8 uints a pixel),
+        zero, made on first use."""
+        if self.sums is None:
+            width, height = self.visibility.size
+            with allocating(width, height):
+                self.sums = get_context().buffer(reserve=SUM_CHANNELS * 4 * width * height)
+                self.sums.clear()
+        elif self.sums_dirty:
+            self.sums.clear()
+        self.sums_dirty = False
+        return self.sums
 
     @classmethod
     def allocate(cls, width: int, height: int, guard: int = 0, back_layer: bool = False) -> SplatTargets:
@@ -108,7 +126,7 @@ class SplatTargets:
     def release(self) -> None:
         for obj in (self.visibility, self.visibility_fbo, *self.accum, self.accum_fbo, self.out,
                     self.category, self.category_fbo, self.back, self.back_fbo, *self.back_accum,
-                    self.depth, self.occlusion_fbo, *(obj for pair in self.minima for obj in pair)):
+                    self.depth, self.occlusion_fbo, *(obj for pair in self.minima for obj in pair), self.sums):
             if obj is not None:
                 obj.release()
 
@@ -162,6 +180,27 @@ class SplatPasses:
         width, height = self.visibility.size
         resolve_program.run(-(-width // 16), -(-height // 16))
         ctx.memory_barrier()
+
+    def attribute_compute(self, dispatch, resolve_program) -> None:
+        """The attribute pass by a compute program (after the visibility pass): `dispatch()`
+        runs it over the splats with the visibility target at texture unit 1 and the zeroed
+        sums at storage binding 1; `resolve_program` (passes.glsl PASS_RESOLVE with
+        ACCUMULATOR_SUMS) then writes them into the accumulators, as attribute_pass leaves
+        them, and zeroes them."""
+        ctx = self.ctx
+        targets = self.targets
+        sums = targets.accumulator_sums()
+        sums.bind_to_storage_buffer(1)
+        self.visibility.use(1)
+        targets.sums_dirty = True
+        dispatch()
+        ctx.memory_barrier()
+        for unit, accumulator in zip((3, 4), self.accum, strict=True):
+            accumulator.bind_to_image(unit, read=False, write=True)
+        width, height = self.visibility.size
+        resolve_program.run(-(-width // 16), -(-height // 16))
+        ctx.memory_barrier()
+        targets.sums_dirty = False
 
     def back_pass(self, draw) -> None:
         """The back layer's depth (after visibility_pass)."""

@@ -134,19 +134,30 @@ def draw(ctx, buffers: SplatBuffers, program, mode, *, instanced: bool, count: i
         start += chunk
 
 
+def max_storage_bytes() -> int:
+    """The largest storage buffer range a shader may read (GL_MAX_SHADER_STORAGE_BLOCK_SIZE:
+    128 MiB on llvmpipe, GPUs' at least that)."""
+    return int(get_context().info["GL_MAX_SHADER_STORAGE_BLOCK_SIZE"])
+
+
 def compute_chunks(buffers: SplatBuffers, program, count: int | None = None):
-    """Yield the number of splats of each kept chunk holding the first `count` splats (all by
-    default), each chunk's rows bound as storage buffer 0 and `program`'s u_splat_count set;
-    the caller runs `program` over `compute_groups(splats)` work groups."""
+    """Yield the number of splats of each range of the kept chunks holding the first `count`
+    splats (all by default), each range's rows bound as storage buffer 0 and `program`'s
+    u_splat_count set; the caller runs `program` over `compute_groups(splats)` work groups.
+    A range fits the largest storage block and starts at a multiple of COMPUTE_GROUP splats
+    (FLOATS x 4 x 64 bytes: a multiple of 256, the largest offset alignment OpenGL allows)."""
+    row = FLOATS * 4
+    most = max(max_storage_bytes() // row // COMPUTE_GROUP * COMPUTE_GROUP, COMPUTE_GROUP)
     remaining = buffers.count if count is None else count
     for vbo, chunk in buffers.kept:
-        splats = min(chunk, remaining)
-        remaining -= splats
-        if splats <= 0:
-            return
-        vbo.bind_to_storage_buffer(0)
-        set_uniforms(program, u_splat_count=splats)
-        yield splats
+        for start in range(0, chunk, most):
+            splats = min(chunk - start, most, remaining)
+            remaining -= splats
+            if splats <= 0:
+                return
+            vbo.bind_to_storage_buffer(0, offset=start * row, size=splats * row)
+            set_uniforms(program, u_splat_count=splats)
+            yield splats
 
 
 def compute_groups(splats: int) -> int:

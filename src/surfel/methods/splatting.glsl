@@ -8,6 +8,9 @@
 //   PASS_CATEGORY    categorical colour modes: the packed (weight, palette index) of the same
 //                    fragments, MAX-blended: the heaviest splat's category per pixel (colors.glsl)
 //   PASS_NORMALIZE   full-screen: divide by the accumulated weight, then (deferred) shade
+// With COMPUTE_SHADER, PASS_VISIBILITY and PASS_ATTRIBUTE are compute programs computing the
+// same fragments, one invocation a splat (splat_setup, then its sprite's pixels), combined by
+// atomics (passes.glsl); PASS_RESOLVE (passes.glsl) turns their results into the targets.
 // Variants: PER_SPLAT_SHADING (the 2003 Gouraud look: colours shaded per splat before
 // blending) or deferred shading from blended normals (2005); EWA_FILTER (2005 screen-space
 // filter approximation: the union of the object-space disk and a screen-space low-pass);
@@ -368,6 +371,40 @@ void main() {
             // most fragments lie behind one already there: a plain load spares their atomics
             if (depth < imageLoad(u_nearest, texel).x) imageAtomicMin(u_nearest, texel, depth);
             if (uncovered < imageLoad(u_uncovered, texel).x) imageAtomicMin(u_uncovered, texel, uncovered);
+        }
+    }
+}
+#endif
+
+#if defined(PASS_ATTRIBUTE) && defined(COMPUTE_SHADER)
+// The attribute pass as the fragment shader's PASS_ATTRIBUTE computes it, summed by integer
+// atomics in fixed point (passes.glsl ACCUMULATOR_SUMS: the sums' layout, scale and
+// resolve), whose additions, unlike blended floats', give the same sums in any order.
+void main() {
+    int i = int(gl_GlobalInvocationID.x);
+    if (i >= u_splat_count) return;
+    load_splat(i);
+    vec2 lo, hi;
+    bool crosses_near;
+    if (!splat_setup(lo, hi, crosses_near)) return;
+    ivec2 first, last;
+    sprite_pixels(lo, hi, 0.0, textureSize(u_visibility, 0), first, last);
+    for (int y = first.y; y <= last.y; ++y) {
+        for (int x = first.x; x <= last.x; ++x) {
+            vec2 frag = vec2(x, y) + 0.5;
+            float z, clipped;
+            vec2 uv;
+            float rho2 = filter_distance(frag, splat_distance(frag, z, uv, clipped));
+            if (rho2 > 1.0 || clipped > 0.0) continue;
+            ivec2 texel = ivec2(x, y);
+            if (z > texelFetch(u_visibility, texel, 0).r) continue;  // behind the visible surface
+            float w = v_weight * textureLod(u_kernel, vec2(rho2, 0.5), 0.0).r;
+#ifdef NORMAL_FIELD
+            vec3 n = field_normal(v_normal + uv.x * v_field_u + uv.y * v_field_v, v_center);
+#else
+            vec3 n = v_normal;
+#endif
+            accumulate(texel, w, v_color, n, z);
         }
     }
 }

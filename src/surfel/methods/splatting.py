@@ -53,6 +53,19 @@ normals turn edge-on there) over the bright surface behind: the largest error of
 sampling (bunny thinned to every 4th point: +0.7 to +2.5 dB interior PSNR over five views;
 spot, coarsely sampled: +6 dB).
 
+Passes without the rasterizer (beyond the papers; splatting.glsl's COMPUTE_SHADER variants):
+with point sprites, the visibility and attribute passes run as compute programs, one
+invocation a splat visiting the pixels of its sprite with the fragment shader's arithmetic
+(Schütz, Kerbl & Wimmer 2021, "Rendering point clouds with compute shaders"). The
+visibility pass takes its two minima by atomic MIN on the bits of non-negative floats; the
+attribute pass sums in 32-bit fixed point by atomic ADD (gl/passes.glsl ACCUMULATOR_SUMS),
+which, unlike blended floats, gives the same sums in any order. A point sprite costs llvmpipe
+about 250 ns to set up whatever its shader (bench's 1M splats: 250 ms a pass); GPUs too
+spend more on small primitives than on their pixels. The passes agree with the rasterized
+ones (tests/test_splatting.py); the rasterized passes stay for quads (splats that may cross
+the near plane or outgrow the guard band), categorical colour modes' category pass, clouds
+streamed in chunks and targets whose sums outgrow a storage buffer.
+
 Parameters: those every blended splat method has (`params.SplatParams`: radius_scale, z_t as
 depth_offset, backface_culling, lowpass_radius r_lp) and ewa_filter, whose default is each
 paper's: on for `deferred` (`DeferredParams`), off for `gaussian` and `phong`. The program's
@@ -68,7 +81,7 @@ import numpy as np
 
 from ..gl import splats
 from ..gl.context import get_context
-from ..gl.passes import UNIFORM_UNITS, SplatPasses
+from ..gl.passes import SUM_CHANNELS, UNIFORM_UNITS, SplatPasses
 from ..gl.uniforms import apply_common
 from .params import SplatParams
 
@@ -101,11 +114,12 @@ def use_point_sprites(cloud, camera, radius_scale: float, supersample: int, lowp
     return 2 * (pixels + lowpass) + 2 <= min(2 * GUARD, MAX_SPRITE)
 
 
-def use_compute_passes(sprites: bool, buffers) -> bool:
-    """Whether the visibility pass runs as a compute program (splatting.glsl's compute variant):
-    for point sprites, whose pixels one invocation visits cheaply, of a cloud whose buffers
-    stay on the GPU."""
-    return sprites and buffers.kept is not None
+def use_compute_passes(sprites: bool, buffers, target_pixels: int) -> bool:
+    """Whether the visibility and attribute passes run as compute programs (splatting.glsl's
+    compute variants): for point sprites, whose pixels one invocation visits cheaply, of a
+    cloud whose buffers stay on the GPU, on render targets whose fixed-point sums fit one
+    storage buffer (gl/passes.py)."""
+    return sprites and buffers.kept is not None and target_pixels * SUM_CHANNELS * 4 <= splats.max_storage_bytes()
 
 
 def gaussian_kernel_texture(ctx):
@@ -158,14 +172,19 @@ def _render(cloud, camera, options, params, renderer, *, per_splat_shading: bool
                "POINT_SPRITES": sprites, "CLIP_LINES": "clip_lines" in cloud.attributes}
     categorical = options.coloring is not None and options.coloring.categorical
     buffers = renderer.splat_buffers(cloud)
-    compute = use_compute_passes(sprites, buffers)
-    passes = ("PASS_VISIBILITY", "PASS_OCCLUSION", "PASS_ATTRIBUTE", *(("PASS_CATEGORY",) if categorical else ()),
-              "PASS_NORMALIZE")
-    programs = {p: renderer.program(SHADER, {p: True, **variant}) for p in passes}
+    compute = use_compute_passes(sprites, buffers, (width + 2 * guard) * (height + 2 * guard))
+    raster = {"PASS_NORMALIZE"}
+    if not compute:
+        raster |= {"PASS_VISIBILITY", "PASS_OCCLUSION", "PASS_ATTRIBUTE"}
+    if categorical:
+        raster |= {"PASS_OCCLUSION", "PASS_CATEGORY"}
+    programs = {p: renderer.program(SHADER, {p: True, **variant}) for p in sorted(raster)}
     if compute:
-        for p in ("PASS_VISIBILITY", "PASS_RESOLVE"):
-            programs[p + " compute"] = renderer.program(SHADER, {p: True, "SPLAT_FLOATS": splats.FLOATS, **variant},
-                                                        compute=True)
+        for name, defines in (("visibility", {"PASS_VISIBILITY": True}), ("attribute", {"PASS_ATTRIBUTE": True}),
+                              ("resolve visibility", {"PASS_RESOLVE": True}),
+                              ("resolve sums", {"PASS_RESOLVE": True, "ACCUMULATOR_SUMS": True})):
+            programs[name] = renderer.program(SHADER, {**defines, "SPLAT_FLOATS": splats.FLOATS, **variant},
+                                              compute=True)
     for program in programs.values():
         apply_common(program, camera, cloud.local_origin, ss, options,
                      u_radius_scale=params.radius_scale, u_depth_offset=params.depth_offset,
@@ -180,20 +199,25 @@ def _render(cloud, camera, options, params, renderer, *, per_splat_shading: bool
     def draw(program):
         return lambda: splats.draw(ctx, buffers, program, mode, instanced=not sprites, count=prefix)
 
-    def run_visibility():
-        program = programs["PASS_VISIBILITY compute"]
-        for count in splats.compute_chunks(buffers, program, prefix):
-            program.run(splats.compute_groups(count))
+    def run(name):
+        def dispatch():
+            program = programs[name]
+            for count in splats.compute_chunks(buffers, program, prefix):
+                program.run(splats.compute_groups(count))
+        return dispatch
 
     try:
         with SplatPasses(renderer.splat_targets(width, height, guard)) as passes:
             kernel.use(0)
             if compute:
-                passes.visibility_compute(run_visibility, programs["PASS_RESOLVE compute"])
+                passes.visibility_compute(run("visibility"), programs["resolve visibility"])
+                passes.attribute_compute(run("attribute"), programs["resolve sums"])
             else:
                 passes.visibility_pass(draw(programs["PASS_VISIBILITY"]))
-            passes.occlusion_pass(programs["PASS_OCCLUSION"])
-            passes.attribute_pass(draw(programs["PASS_ATTRIBUTE"]))
+            if "PASS_OCCLUSION" in programs:
+                passes.occlusion_pass(programs["PASS_OCCLUSION"])
+            if not compute:
+                passes.attribute_pass(draw(programs["PASS_ATTRIBUTE"]))
             if categorical:
                 passes.category_pass(draw(programs["PASS_CATEGORY"]))
             passes.normalize_pass(programs["PASS_NORMALIZE"])
