@@ -228,14 +228,26 @@ void main() {
 // hit, so that single precision keeps it). False where the ray misses the curved surface:
 // it passes beyond the splat's contour, where the flat splat would stick out past the true
 // outline of a curved surface, over whatever lies behind it.
-bool curved_splat_hit(vec3 o, vec3 d, float denom, inout float t) {
+float curved_quadratic(vec3 o, vec3 d, float denom, float t, out float qb, out float qc) {
     vec3 eu = normalize(v_u), ev = normalize(v_v), p0 = o + d * t - v_center;
     float ku = dot(v_field_u, v_u), kv = dot(v_field_v, v_v);
     float a0 = dot(p0, eu), a1 = dot(d, eu), b0 = dot(p0, ev), b1 = dot(d, ev);
     float qa = 0.5 * (ku * a1 * a1 + kv * b1 * b1);
-    float qb = denom + ku * a0 * a1 + kv * b0 * b1;
-    float qc = 0.5 * (ku * a0 * a0 + kv * b0 * b0);
-    float disc = qb * qb - 4.0 * qa * qc;
+    qb = denom + ku * a0 * a1 + kv * b0 * b1;
+    qc = 0.5 * (ku * a0 * a0 + kv * b0 * b0);
+    return qb * qb - 4.0 * qa * qc;
+}
+
+float curved_discriminant(vec2 frag) {
+    vec3 o, d;
+    pixel_ray(frag, o, d);
+    float denom = dot(d, v_normal), qb, qc;
+    return curved_quadratic(o, d, denom, dot(v_center - o, v_normal) / denom, qb, qc);
+}
+
+bool curved_splat_hit(vec3 o, vec3 d, float denom, inout float t) {
+    float qb, qc;
+    float disc = curved_quadratic(o, d, denom, t, qb, qc);
     if (disc < 0.0) return false;
     float h = -0.5 * (qb + (qb < 0.0 ? -1.0 : 1.0) * sqrt(disc));
     if (h != 0.0) t += qc / h;
@@ -315,8 +327,11 @@ layout(r32ui, binding = 1) uniform uimage2D u_uncovered;  // bits of the least 1
 
 // The fragment shader's edge_distance, with rho's screen gradient analytic instead of a
 // fragment quad's differences: grad rho = (u grad u + v grad v) / rho, d(u, v)/d(pixel) the
-// splat plane's (for a curved splat too), or past a clip line that line's gradient. The CPU
-// backend (splatting_tiles.visibility_output) computes the same.
+// splat plane's (for a curved splat too), or past a clip line that line's gradient. A curved
+// splat also ends at its contour, where the discriminant of its quadratic falls to 0: the
+// distance to that is the discriminant over its forward differences (where a fragment quad's
+// neighbour misses the splat, the fragment shader's differences blow up to the same effect).
+// The CPU backend (splatting_tiles.visibility_output) computes the same.
 float analytic_edge_distance(vec2 frag, vec2 uv, float rho2, float clipped) {
     if (rho2 >= 1e30) return -1e30;  // the ray misses the splat
     vec3 o, d;
@@ -341,7 +356,13 @@ float analytic_edge_distance(vec2 frag, vec2 uv, float rho2, float clipped) {
         gradient = line.x * du + line.y * dv;
     }
 #endif
-    return distance / max(length(gradient), 1e-6);
+    float edge = distance / max(length(gradient), 1e-6);
+#ifdef CURVED_SPLATS
+    float disc = curved_discriminant(frag);
+    vec2 disc_gradient = vec2(curved_discriminant(frag + vec2(1.0, 0.0)), curved_discriminant(frag + vec2(0.0, 1.0))) - disc;
+    edge = min(edge, disc / max(length(disc_gradient), 1e-30));
+#endif
+    return edge;
 }
 
 // The visibility pass as the fragment shader's PASS_VISIBILITY computes it, MIN-combined by

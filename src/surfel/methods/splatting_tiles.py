@@ -151,6 +151,31 @@ def splat_extras(table, clip_src, field_src, j):
 
 
 @nb.njit(inline="always", fastmath=True, error_model="numpy")
+def curved_quadratic(f, w, u, v, dx, dy):
+    """The coefficients (qa, qb, qc) of the ray-surface quadratic of a curved splat with normal
+    field f at the pixel offset (dx, dy), whose ray meets the plane at (u, v) with W = w
+    (splatting.glsl curved_quadratic), and the ray's tangent components (a1, b1)."""
+    ku, kv, lu, lv, a10, a1x, a1y, b10, b1x, b1y = f[0], f[1], f[2], f[3], f[4], f[5], f[6], f[7], f[8], f[9]
+    a1, b1 = a10 + a1x * dx + a1y * dy, b10 + b1x * dx + b1y * dy
+    a0, b0 = u * lu, v * lv
+    half = np.float32(0.5)
+    return (half * (ku * a1 * a1 + kv * b1 * b1), w + ku * a0 * a1 + kv * b0 * b1,
+            half * (ku * a0 * a0 + kv * b0 * b0), a1, b1)
+
+
+@nb.njit(inline="always", fastmath=True, error_model="numpy")
+def curved_discriminant(s, f, dx, dy):
+    """The discriminant of a curved splat's ray-surface quadratic at the pixel offset (dx, dy):
+    negative where the ray passes beyond the splat's contour (splatting.glsl)."""
+    w0, wx, wy, u0, ux, uy, v0, vx, vy = s[2], s[3], s[4], s[8], s[9], s[10], s[11], s[12], s[13]
+    one = np.float32(1.0)
+    w = w0 + wx * dx + wy * dy
+    iw = one / (w if abs(w) > np.float32(1e-12) else one)
+    qa, qb, qc, a1, b1 = curved_quadratic(f, w, (u0 + ux * dx + uy * dy) * iw, (v0 + vx * dx + vy * dy) * iw, dx, dy)
+    return qb * qb - np.float32(4.0) * qa * qc
+
+
+@nb.njit(inline="always", fastmath=True, error_model="numpy")
 def fragment(s, c, f, clipping, curved, dx, dy, params):
     """Where the ray of the pixel at offset (dx, dy) meets the splat of geometry s, clip lines c
     and normal field f (splatting.glsl splat_distance and filter_distance), without branches:
@@ -170,13 +195,9 @@ def fragment(s, c, f, clipping, curved, dx, dy, params):
     if curved:
         # the curved splat of the normal field: the root of the ray-surface quadratic nearest the
         # plane's hit (splatting.glsl curved_splat_hit), moving t, u, v and the depth along d.
-        ku, kv, lu, lv, a10, a1x, a1y, b10, b1x, b1y = f[0], f[1], f[2], f[3], f[4], f[5], f[6], f[7], f[8], f[9]
-        a1, b1 = a10 + a1x * dx + a1y * dy, b10 + b1x * dx + b1y * dy
-        a0, b0 = u * lu, v * lv
+        lu, lv = f[2], f[3]
+        qa, qb, qc, a1, b1 = curved_quadratic(f, w, u, v, dx, dy)
         half = np.float32(0.5)
-        qa = half * (ku * a1 * a1 + kv * b1 * b1)
-        qb = w + ku * a0 * a1 + kv * b0 * b1
-        qc = half * (ku * a0 * a0 + kv * b0 * b0)
         disc = qb * qb - np.float32(4.0) * qa * qc
         hit = hit and disc >= 0
         root = math.sqrt(max(disc, np.float32(0.0)))
@@ -202,17 +223,20 @@ def fragment(s, c, f, clipping, curved, dx, dy, params):
 @nb.njit(inline="always", fastmath=True, error_model="numpy")
 def visibility_fragment(s, c, f, clipping, curved, dx, dy, params):
     """A fragment's visibility-pass output (`visibility_output`)."""
-    return visibility_output(s, c, fragment(s, c, f, clipping, curved, dx, dy, params), clipping, dx, dy, params)
+    return visibility_output(s, c, f, fragment(s, c, f, clipping, curved, dx, dy, params), clipping, curved, dx, dy,
+                             params)
 
 
 @nb.njit(inline="always", fastmath=True, error_model="numpy")
-def visibility_output(s, c, hit_record, clipping, dx, dy, params):
+def visibility_output(s, c, f, hit_record, clipping, curved, dx, dy, params):
     """The visibility-pass output (splatting.glsl PASS_VISIBILITY) of the fragment whose
     `fragment` results are `hit_record`: its depth + z_t
     (FAR when discarded or off the disk) and its coverage of the pixel (0 when discarded), 0.5 + the signed
     distance in pixels to the splat's edge, where rho = max(|(u, v)|, 1 + clip excess) is 1,
-    from rho's screen-space gradient (analytic here, a quad's differences on the GPU), and at
-    least the footprint of a pixel-wide disk at the projected centre (sub-pixel splats)."""
+    from rho's screen-space gradient (analytic here and in the GPU's compute pass, a quad's
+    differences in its fragment shader), for a curved splat no farther than its contour (where
+    the discriminant of its quadratic, over its forward differences, falls to 0), and at least
+    the footprint of a pixel-wide disk at the projected centre (sub-pixel splats)."""
     kept, kernel2, z, u, v, rho2, clipped, hit, iw = hit_record
     mx, my, w0, wx, wy, z0, zx, zy, u0, ux, uy, v0, vx, vy, cz, radius, weight, zt = s
     one, tiny = np.float32(1.0), np.float32(1e-6)
@@ -232,6 +256,11 @@ def visibility_output(s, c, hit_record, clipping, dx, dy, params):
         distance = -clipped if cut else distance
         gradient = math.sqrt(lx * lx + ly * ly) if cut else gradient
     edge = distance / max(gradient, tiny)  # one division of selected operands: SIMD-safe
+    if curved:  # forward differences one pixel right and one up (the GPU's window +x and +y)
+        disc = curved_discriminant(s, f, dx, dy)
+        ddx = curved_discriminant(s, f, dx + one, dy) - disc
+        ddy = curved_discriminant(s, f, dx, dy - one) - disc
+        edge = min(edge, disc / max(math.sqrt(ddx * ddx + ddy * ddy), np.float32(1e-30)))
     edge = max(edge if hit else np.float32(-1e30), np.float32(0.5) - math.sqrt(dx * dx + dy * dy))
     coverage = min(max(np.float32(0.5) + edge, np.float32(0.0)), one)
     # a low-pass fragment off the disk filters but hides nothing
@@ -294,7 +323,7 @@ def both_outputs(s, c, f, clipping, curved, field_normals, dx, dy, params, nx, n
     splat: (depth + z_t, coverage, w, depth, normal), those of a discarded fragment where
     `inside` (the splat's box) is False."""
     hit_record = fragment(s, c, f, clipping, curved, dx, dy, params)
-    z, cover = visibility_output(s, c, hit_record, clipping, dx, dy, params)
+    z, cover = visibility_output(s, c, f, hit_record, clipping, curved, dx, dy, params)
     w, depth, fx, fy, fz = attribute_output(s, f, hit_record, field_normals, nx, ny, nz)
     zero = np.float32(0.0)
     return (z if inside else FAR), (cover if inside else zero), (w if inside else zero), depth, fx, fy, fz
