@@ -77,9 +77,11 @@ NAME. An interrupted build leaves only NAME.partial/ (never a complete-looking N
 
 from __future__ import annotations
 
+import ctypes
 import json
 import math
 import os
+import platform
 import re
 import shutil
 import time
@@ -309,10 +311,27 @@ def _start_worker() -> None:
     from .format import warm_up
 
     numba.set_num_threads(1)
+    _keep_freed_memory()
     warm_up()
     rng = np.random.default_rng(0)
     sphere = rng.normal(size=(64, 3))
     complete(PointCloud(sphere, normals=sphere), progress=False)
+
+
+M_TRIM_THRESHOLD, M_MMAP_MAX = -1, -4  # glibc's mallopt parameters (malloc.h)
+
+
+def _keep_freed_memory() -> None:
+    """With glibc, a worker serves every allocation from its heap and keeps what it frees
+    (mallopt: no mmap, no trimming), so that a partition reuses the pages of the one before
+    instead of mapping fresh ones, which the kernel faults in and zeroes one by one. Its peak
+    memory stays its largest partition's. 20M points, 2 workers: system time 10 to 8 s, wall
+    time 4% less."""
+    if platform.libc_ver()[0] != "glibc":
+        return
+    libc = ctypes.CDLL(None)  # the C library this process already uses
+    libc.mallopt(M_MMAP_MAX, 0)
+    libc.mallopt(M_TRIM_THRESHOLD, 2**31 - 1)
 
 
 def _replace_dir(partial: Path, out: Path) -> None:
