@@ -311,13 +311,23 @@ float filter_distance(vec2 frag, float splat_rho2) {
 layout(local_size_x = 64) in;
 uniform int u_splat_count;
 
-// The window pixels (x, y: centre at +0.5) whose centres lie in the splat's sprite [lo, hi]
-// (image pixels, y down), widened by `margin` pixels, inside the render target of `size`.
-void sprite_pixels(vec2 lo, vec2 hi, float margin, ivec2 size, out ivec2 first, out ivec2 last) {
-    vec2 window_lo = vec2(lo.x + u_guard, u_viewport.y + u_guard - hi.y) - margin;
-    vec2 window_hi = vec2(hi.x + u_guard, u_viewport.y + u_guard - lo.y) + margin;
+// This invocation's splat set up (splat_setup), and the window pixels (x, y: centre at +0.5)
+// whose centres lie in its sprite, as the rasterizer's, inside the render target of `size`;
+// false where there is no such splat or it draws nothing.
+bool invocation_splat(ivec2 size, out ivec2 first, out ivec2 last) {
+    first = ivec2(0);
+    last = ivec2(-1);
+    int i = int(gl_GlobalInvocationID.x);
+    if (i >= u_splat_count) return false;
+    load_splat(i);
+    vec2 lo, hi;  // image pixels, y down
+    bool crosses_near;
+    if (!splat_setup(lo, hi, crosses_near)) return false;
+    vec2 window_lo = vec2(lo.x + u_guard, u_viewport.y + u_guard - hi.y);
+    vec2 window_hi = vec2(hi.x + u_guard, u_viewport.y + u_guard - lo.y);
     first = max(ivec2(ceil(window_lo - 0.5)), ivec2(0));
     last = min(ivec2(ceil(window_hi - 0.5)) - 1, size - 1);
+    return true;
 }
 #endif
 
@@ -369,14 +379,8 @@ float analytic_edge_distance(vec2 frag, vec2 uv, float rho2, float clipped) {
 // atomics on the bits of non-negative floats (which order as the floats do); gl/passes.py
 // resolves the two images into the visibility target.
 void main() {
-    int i = int(gl_GlobalInvocationID.x);
-    if (i >= u_splat_count) return;
-    load_splat(i);
-    vec2 lo, hi;
-    bool crosses_near;
-    if (!splat_setup(lo, hi, crosses_near)) return;
     ivec2 first, last;
-    sprite_pixels(lo, hi, 0.0, imageSize(u_nearest), first, last);
+    if (!invocation_splat(imageSize(u_nearest), first, last)) return;
     for (int y = first.y; y <= last.y; ++y) {
         for (int x = first.x; x <= last.x; ++x) {
             vec2 frag = vec2(x, y) + 0.5;
@@ -402,14 +406,8 @@ void main() {
 // atomics in fixed point (passes.glsl ACCUMULATOR_SUMS: the sums' layout, scale and
 // resolve), whose additions, unlike blended floats', give the same sums in any order.
 void main() {
-    int i = int(gl_GlobalInvocationID.x);
-    if (i >= u_splat_count) return;
-    load_splat(i);
-    vec2 lo, hi;
-    bool crosses_near;
-    if (!splat_setup(lo, hi, crosses_near)) return;
     ivec2 first, last;
-    sprite_pixels(lo, hi, 0.0, textureSize(u_visibility, 0), first, last);
+    if (!invocation_splat(textureSize(u_visibility, 0), first, last)) return;
     for (int y = first.y; y <= last.y; ++y) {
         for (int x = first.x; x <= last.x; ++x) {
             vec2 frag = vec2(x, y) + 0.5;
