@@ -41,6 +41,11 @@ rng = np.random.default_rng(7)
     ("fewer points than k", rng.random((5, 3)), 5),
     ("one point", rng.random((1, 3)), 1),
     ("georeferenced line", np.c_[np.linspace(0, 10, 4_000), np.zeros(4_000), np.zeros(4_000)] + 4e5, 6),
+    # neighbour distances jumping from point to point: the bound from the point before fails
+    ("dense blobs in a sparse plane", np.r_[np.c_[rng.random((8_000, 2)), np.zeros(8_000)],
+                                            (rng.random((40, 1, 3)) * [1, 1, 0]
+                                             + rng.normal(size=(40, 100, 3)) * 1e-4).reshape(-1, 3)], 16),
+    ("uniform volume, k = 24", rng.random((20_000, 3)), 24),
 ])
 def test_grid_matches_kd_tree(name, points, k):
     assert_exact(np.asarray(points, np.float64), k)

@@ -9,9 +9,19 @@ q = floor((p - lo) / h) (per axis, 0 <= q < 2^21), keyed by the Morton code of q
 interleaved). The points are sorted by key, so each occupied cell is one run of them; a hash
 table of the occupied cells' keys (open addressing) finds a cell's run.
 
-Search: a point p of cell q scans the 3 x 3 x 3 block of cells around q (gathered once per
-cell for all its points) and keeps its k nearest candidates. Every point not scanned lies
-outside the block, at least
+Search: a point p of cell q scans the 3 x 3 x 3 block of cells around q (gathered once per cell
+for all its points) and keeps its k nearest candidates. It computes the distances to all of
+them at once (a loop that compiles to SIMD), and offers to its sorted k best only the
+candidates within a bound: whenever k - 1 others lie within it, the k nearest are among them,
+offered in the order they are found, so ties are broken as offering all would break them. The
+bound is d + s / 4, else d + s, else none, with d the distance from the point before (in cell
+order) to its k-th nearest and s the step between the two points: by the triangle inequality
+the k nearest of the point before lie within d + s. On a scanned surface about 22 of 105
+candidates are offered; each insertion costs a mispredicted branch, so a search of 16 nearest
+takes 60-65% of the time that offering every candidate took (in a uniform volume at k = 24,
+with some 320 candidates, 1.5 times as long).
+
+Every point not scanned lies outside the block, at least
 
     m = min over axes a of min(p_a - lo_a - (q_a - 1) h, lo_a + (q_a + 2) h - p_a)
 
@@ -193,11 +203,37 @@ def _rank_sort(best_d, best_i, spare_d, spare_i, k):  # pragma: no cover - compi
 
 
 @numba.njit(cache=True, inline="always")
+def _fill(d, j, best_d, best_i, spare_d, spare_i, count, k):  # pragma: no cover - compiled
+    """Keep (d, j) as the k best's entry `count` < k, sorting them once there are k
+    (`_rank_sort`); returns the new count."""
+    best_d[count] = d
+    best_i[count] = j
+    count += 1
+    if count == k:
+        _rank_sort(best_d, best_i, spare_d, spare_i, k)
+    return count
+
+
+@numba.njit(cache=True, inline="always")
+def _insert(d, j, best_d, best_i, k):  # pragma: no cover - compiled
+    """Insert (d, j), d below the k-th distance, into the sorted k best, after the equal
+    distances before it; returns the new k-th distance."""
+    slot = k - 1
+    while slot > 0 and best_d[slot - 1] > d:
+        best_d[slot] = best_d[slot - 1]
+        best_i[slot] = best_i[slot - 1]
+        slot -= 1
+    best_d[slot] = d
+    best_i[slot] = j
+    return best_d[k - 1]
+
+
+@numba.njit(cache=True, inline="always")
 def _scan(points, i, start, stop, best_d, best_i, spare_d, spare_i, count, k):  # pragma: no cover - compiled
-    """Offer points start:stop to point i's k best, sorted once there are k (the first k - 1
-    offered are kept as they come, then sorted at once by `_rank_sort`; later ones are
-    inserted); returns the new count."""
+    """Offer points start:stop (but i) to point i's k best, kept as they come until there are
+    k (`_fill`), then inserted where nearer than the k-th (`_insert`); returns the new count."""
     px, py, pz = points[i, 0], points[i, 1], points[i, 2]
+    worst = best_d[k - 1] if count == k else 0.0
     for j in range(start, stop):
         if j == i:
             continue
@@ -206,64 +242,105 @@ def _scan(points, i, start, stop, best_d, best_i, spare_d, spare_i, count, k):  
         dz = points[j, 2] - pz
         d = dx * dx + dy * dy + dz * dz
         if count < k:
-            best_d[count] = d
-            best_i[count] = j
-            count += 1
+            count = _fill(d, j, best_d, best_i, spare_d, spare_i, count, k)
             if count == k:
-                _rank_sort(best_d, best_i, spare_d, spare_i, k)
+                worst = best_d[k - 1]
             continue
-        if d >= best_d[k - 1]:
+        if d >= worst:
             continue
-        slot = k - 1
-        while slot > 0 and best_d[slot - 1] > d:
-            best_d[slot] = best_d[slot - 1]
-            best_i[slot] = best_i[slot - 1]
-            slot -= 1
-        best_d[slot] = d
-        best_i[slot] = j
+        worst = _insert(d, j, best_d, best_i, k)
     return count
 
 
 @numba.njit(cache=True)
-def _search_run(points, starts, run_keys, slots, run, lo, h, k, index, best_d, best_i, spare_d, spare_i,
-                block):  # pragma: no cover - compiled
-    """Rows of index for the points of one cell (a run of the sorted points): the 3 x 3 x 3
-    block around it, gathered once into block (start, stop, dx, dy, dz), then shells of cells
-    while the k-th found may lie nearer outside (module docstring); -1 in column 0 where the
-    shells up to RINGS do not settle it."""
+def _gather_block(points, starts, run_keys, slots, qx, qy, qz, block):  # pragma: no cover - compiled
+    """The points of the 3 x 3 x 3 cells around cell (qx, qy, qz), the cell itself first, in
+    the order the block offsets give: coordinates into block[0:3], indices into block[3];
+    returns their number."""
     top = (1 << MORTON_BITS) - 1
+    m = 0
+    for o in range(27):
+        cx, cy, cz = qx + BLOCK_OFFSETS[o, 0], qy + BLOCK_OFFSETS[o, 1], qz + BLOCK_OFFSETS[o, 2]
+        if min(cx, cy, cz) < 0 or max(cx, cy, cz) > top:
+            continue
+        run = _find(_key(cx, cy, cz), run_keys, slots)
+        if run < 0:
+            continue
+        for j in range(starts[run], starts[run + 1]):
+            for a in range(3):
+                block[a, m] = points[j, a]
+            block[3, m] = j
+            m += 1
+    return m
+
+
+@numba.njit(cache=True, inline="always")
+def _within(dist, m, bound, near_d, near_c):  # pragma: no cover - compiled
+    """The candidates c < m with dist[c] <= bound, in order, into near_d, near_c; their number."""
+    near = 0
+    for c in range(m):
+        near_d[near] = dist[c]
+        near_c[near] = c
+        near += dist[c] <= bound
+    return near
+
+
+@numba.njit(cache=True)
+def _search_run(points, starts, run_keys, slots, run, lo, h, k, index, best_d, best_i, spare_d, spare_i, block,
+                dist, near_d, near_c, previous):  # pragma: no cover - compiled
+    """Rows of index for the points of one cell (a run of the sorted points): the 3 x 3 x 3
+    block around it, gathered once into `block` (`_gather_block`), then shells of cells while
+    the k-th found may lie nearer outside (module docstring); -1 in column 0 where the shells
+    up to RINGS do not settle it. `previous` (reach, x, y, z), carried from point to point:
+    the distance to the k-th nearest of the point before, and that point."""
     inv_h = 1.0 / h
     first = starts[run]
     qx = _cell(points[first, 0], lo[0], inv_h)
     qy = _cell(points[first, 1], lo[1], inv_h)
     qz = _cell(points[first, 2], lo[2], inv_h)
-    blocks = 0
-    for o in range(27):
-        dx, dy, dz = BLOCK_OFFSETS[o, 0], BLOCK_OFFSETS[o, 1], BLOCK_OFFSETS[o, 2]
-        cx, cy, cz = qx + dx, qy + dy, qz + dz
-        if min(cx, cy, cz) < 0 or max(cx, cy, cz) > top:
-            continue
-        found = _find(_key(cx, cy, cz), run_keys, slots)
-        if found >= 0:
-            block[blocks, 0] = starts[found]
-            block[blocks, 1] = starts[found + 1]
-            block[blocks, 2] = dx
-            block[blocks, 3] = dy
-            block[blocks, 4] = dz
-            blocks += 1
+    m = _gather_block(points, starts, run_keys, slots, qx, qy, qz, block)
+    wanted = min(k, m) - 1  # neighbours besides the point itself
+    xs, ys, zs = block[0], block[1], block[2]
     for i in range(first, starts[run + 1]):
-        best_d[0] = -1.0  # the point itself, first
+        px, py, pz = points[i, 0], points[i, 1], points[i, 2]
+        for c in range(m):
+            ex = xs[c] - px
+            ey = ys[c] - py
+            ez = zs[c] - pz
+            dist[c] = ex * ex + ey * ey + ez * ez
+        dist[i - first] = np.nan  # the point itself comes first, by hand; NaN is within no bound
+        # only candidates within d + s / 4, else d + s, else all can be among the k nearest
+        # (module docstring: d, s from the point before)
+        near = 0
+        if previous[0] >= 0.0:
+            ex = px - previous[1]
+            ey = py - previous[2]
+            ez = pz - previous[3]
+            step = math.sqrt(ex * ex + ey * ey + ez * ez)
+            near = _within(dist, m, (previous[0] + 0.25 * step) ** 2, near_d, near_c)
+            if near < wanted:
+                near = _within(dist, m, (previous[0] + step) ** 2, near_d, near_c)
+        if near < wanted:
+            near = _within(dist, m, np.inf, near_d, near_c)
+        best_d[0] = -1.0
         best_i[0] = i
         count = 1
-        fx = (points[i, 0] - lo[0]) - qx * h  # the point's offset in its cell
-        fy = (points[i, 1] - lo[1]) - qy * h
-        fz = (points[i, 2] - lo[2]) - qz * h
-        for b in range(blocks):
-            # a cell farther than the k-th found holds none of the k nearest
-            if count == k and _gap(fx, block[b, 2], h) + _gap(fy, block[b, 3], h) + \
-                    _gap(fz, block[b, 4], h) >= best_d[k - 1]:
+        worst = 0.0
+        for c in range(near):
+            d = near_d[c]
+            if count < k:
+                count = _fill(d, near_c[c], best_d, best_i, spare_d, spare_i, count, k)
+                if count == k:
+                    worst = best_d[k - 1]
                 continue
-            count = _scan(points, i, block[b, 0], block[b, 1], best_d, best_i, spare_d, spare_i, count, k)
+            if d >= worst:
+                continue
+            worst = _insert(d, near_c[c], best_d, best_i, k)
+        for c in range(1, count):
+            best_i[c] = np.int64(block[3, best_i[c]])
+        fx = (px - lo[0]) - qx * h  # the point's offset in its cell
+        fy = (py - lo[1]) - qy * h
+        fz = (pz - lo[2]) - qz * h
         margin = min(fx + h, 2.0 * h - fx, fy + h, 2.0 * h - fy, fz + h, 2.0 * h - fz)
         ring = 1
         while (count < k or best_d[k - 1] > margin * margin) and ring < RINGS:
@@ -271,6 +348,8 @@ def _search_run(points, starts, run_keys, slots, run, lo, h, k, index, best_d, b
             count = _scan_shell(points, i, qx, qy, qz, ring, fx, fy, fz, h, False, starts, run_keys, slots,
                                 best_d, best_i, spare_d, spare_i, count, k)
             margin += h
+        previous[0] = math.sqrt(best_d[k - 1]) if count == k else -1.0
+        previous[1], previous[2], previous[3] = px, py, pz
         if count < k or best_d[k - 1] > margin * margin:
             index[i, 0] = -1
             continue
@@ -285,16 +364,30 @@ def grid_neighbours(points, starts, run_keys, slots, lo, h, k):  # pragma: no co
     docstring)."""
     runs = len(starts) - 1
     index = np.empty((len(points), k), np.int32)
+    most = 27 * max_run(starts)  # points a block can hold
     for batch in numba.prange((runs + RUN_BATCH - 1) // RUN_BATCH):
         best_d = np.empty(k, np.float64)
         best_i = np.empty(k, np.int64)
         spare_d = np.empty(k, np.float64)
         spare_i = np.empty(k, np.int64)
-        block = np.empty((27, 5), np.int64)
+        block = np.empty((4, most), np.float64)
+        dist = np.empty(most, np.float64)
+        near_d = np.empty(most, np.float64)
+        near_c = np.empty(most, np.int64)
+        previous = np.full(4, -1.0)
         for run in range(batch * RUN_BATCH, min(runs, (batch + 1) * RUN_BATCH)):
             _search_run(points, starts, run_keys, slots, run, lo, h, k, index, best_d, best_i, spare_d, spare_i,
-                        block)
+                        block, dist, near_d, near_c, previous)
     return index
+
+
+@numba.njit(cache=True)
+def max_run(starts):  # pragma: no cover - compiled
+    """The most points of one run."""
+    most = 0
+    for run in range(len(starts) - 1):
+        most = max(most, starts[run + 1] - starts[run])
+    return most
 
 
 def cell_width(points: np.ndarray, k: int, lo: np.ndarray, hi: np.ndarray) -> float:
