@@ -358,13 +358,13 @@ def _search_run(points, starts, run_keys, slots, run, lo, h, k, index, best_d, b
 
 
 @numba.njit(parallel=True, cache=True)
-def grid_neighbours(points, starts, run_keys, slots, lo, h, k):  # pragma: no cover - compiled
+def grid_neighbours(points, starts, run_keys, slots, lo, h, k, largest):  # pragma: no cover - compiled
     """The k nearest (nearest first, the point itself first) of each of the key-sorted points,
     as int32 indices into them; rows of points the grid could not resolve are -1 (module
-    docstring)."""
+    docstring). largest: the most points of one cell."""
     runs = len(starts) - 1
     index = np.empty((len(points), k), np.int32)
-    most = 27 * max_run(starts)  # points a block can hold
+    most = 27 * largest  # points a block can hold
     for batch in numba.prange((runs + RUN_BATCH - 1) // RUN_BATCH):
         best_d = np.empty(k, np.float64)
         best_i = np.empty(k, np.int64)
@@ -379,15 +379,6 @@ def grid_neighbours(points, starts, run_keys, slots, lo, h, k):  # pragma: no co
             _search_run(points, starts, run_keys, slots, run, lo, h, k, index, best_d, best_i, spare_d, spare_i,
                         block, dist, near_d, near_c, previous)
     return index
-
-
-@numba.njit(cache=True)
-def max_run(starts):  # pragma: no cover - compiled
-    """The most points of one run."""
-    most = 0
-    for run in range(len(starts) - 1):
-        most = max(most, starts[run + 1] - starts[run])
-    return most
 
 
 def cell_width(points: np.ndarray, k: int, lo: np.ndarray, hi: np.ndarray) -> float:
@@ -587,12 +578,13 @@ def sorted_k_nearest(points: np.ndarray, k: int, workers: int = -1) -> tuple[np.
     sorted_points = np.ascontiguousarray(points[order])
     starts = _runs(keys)
     run_keys = keys[starts[:-1]]
-    grid = Grid(sorted_points, lo, h, starts, run_keys, cell_table(run_keys), int(np.diff(starts).max()) > MAX_CELL)
+    largest = int(np.diff(starts).max())
+    grid = Grid(sorted_points, lo, h, starts, run_keys, cell_table(run_keys), largest > MAX_CELL)
     if grid.dense:
         unresolved = np.arange(len(points))
         index = np.empty((len(points), k), np.int32)
     else:
-        index = grid_neighbours(sorted_points, starts, grid.run_keys, grid.slots, lo, h, k)
+        index = grid_neighbours(sorted_points, starts, grid.run_keys, grid.slots, lo, h, k, largest)
         unresolved = np.flatnonzero(index[:, 0] < 0)
     if len(unresolved):
         index[unresolved] = _tree_nearest(sorted_points, unresolved, k, workers)
