@@ -309,8 +309,8 @@ def _search_run(points, starts, run_keys, slots, run, lo, h, k, index, best_d, b
             ez = zs[c] - pz
             dist[c] = ex * ex + ey * ey + ez * ez
         dist[i - first] = np.nan  # the point itself comes first, by hand; NaN is within no bound
-        # only candidates within d + s / 4, else d + s, else all can be among the k nearest
-        # (module docstring: d, s from the point before)
+        # offer those within d + s / 4, else d + s, else all: the first bound that holds k - 1
+        # of them holds the k nearest (module docstring: d, s from the point before)
         near = 0
         if previous[0] >= 0.0:
             ex = px - previous[1]
