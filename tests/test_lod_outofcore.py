@@ -314,10 +314,14 @@ def test_bad_inputs_are_one_line_errors(tmp_path):
         LazyHierarchy(tmp_path)
 
 
-def test_parse_size():
+def test_parse_size(tmp_path):
     assert parse_size("4GB") == 4 << 30 and parse_size("512mb") == 512 << 20 and parse_size("1000") == 1000
     with pytest.raises(SurfelError):
         parse_size("lots")
+    result = CliRunner().invoke(main, ["lod", "build", "in.ply", "-o", str(tmp_path / "out.lod"), "--memory", "5XB"])
+    assert result.exit_code == 2
+    assert result.output == "surfel: error: --memory: cannot read the size '5XB' (use e.g. 512MB or 4GB)\n"
+    assert not any(tmp_path.iterdir())
 
 
 def test_read_ahead_keeps_order_raises_read_errors_and_stops_early():

@@ -386,8 +386,11 @@ def lod_build(input, output, stats, memory, resume):
         from .lod.outofcore import build_outofcore, parse_size
 
         check_folder(output, "--output")
-        result = build_outofcore(input, output.rstrip("/"), memory=parse_size(memory), resume=resume,
-                                 stats_path=stats)
+        try:
+            budget = parse_size(memory)
+        except SurfelError as error:
+            raise SurfelError(f"--memory: {error}") from None
+        result = build_outofcore(input, output.rstrip("/"), memory=budget, resume=resume, stats_path=stats)
         click.echo(f"{output}: {result['points']} points, {result['nodes']} nodes in {result['partitions']} "
                    f"partitions, {result['ms'] / 1000:.0f} s ({result['points_per_s'] / 1e6:.2f} M points/s)",
                    err=True)
