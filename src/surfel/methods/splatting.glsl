@@ -301,6 +301,28 @@ float filter_distance(vec2 frag, float splat_rho2) {
     return splat_rho2;
 #endif
 }
+
+#if defined(PASS_ATTRIBUTE) || defined(PASS_CATEGORY)
+// The attribute pass's fragment at window position `frag`, as its fragment shader, its
+// compute program and the category pass take it: false where it is dropped (outside the
+// filtered splat, cut by a clip line, or behind the visible surface); else its kernel weight
+// w, eye depth z and normal n (the normal field's with NORMAL_FIELD). The kernel texture has
+// one level, so textureLod (which compute programs need) reads what texture() would.
+bool attribute_fragment(vec2 frag, out float w, out float z, out vec3 n) {
+    float clipped;
+    vec2 uv;
+    float rho2 = filter_distance(frag, splat_distance(frag, z, uv, clipped));
+    w = 0.0;
+    n = v_normal;
+    if (rho2 > 1.0 || clipped > 0.0) return false;
+    if (z > texelFetch(u_visibility, ivec2(frag), 0).r) return false;  // behind the visible surface
+    w = v_weight * textureLod(u_kernel, vec2(rho2, 0.5), 0.0).r;
+#ifdef NORMAL_FIELD
+    n = field_normal(v_normal + uv.x * v_field_u + uv.y * v_field_v, v_center);
+#endif
+    return true;
+}
+#endif
 #endif
 
 #if defined(COMPUTE_SHADER) && !defined(FULL_SCREEN)
@@ -410,20 +432,9 @@ void main() {
     if (!invocation_splat(textureSize(u_visibility, 0), first, last)) return;
     for (int y = first.y; y <= last.y; ++y) {
         for (int x = first.x; x <= last.x; ++x) {
-            vec2 frag = vec2(x, y) + 0.5;
-            float z, clipped;
-            vec2 uv;
-            float rho2 = filter_distance(frag, splat_distance(frag, z, uv, clipped));
-            if (rho2 > 1.0 || clipped > 0.0) continue;
-            ivec2 texel = ivec2(x, y);
-            if (z > texelFetch(u_visibility, texel, 0).r) continue;  // behind the visible surface
-            float w = v_weight * textureLod(u_kernel, vec2(rho2, 0.5), 0.0).r;
-#ifdef NORMAL_FIELD
-            vec3 n = field_normal(v_normal + uv.x * v_field_u + uv.y * v_field_v, v_center);
-#else
-            vec3 n = v_normal;
-#endif
-            accumulate(texel, w, v_color, n, z);
+            float w, z;
+            vec3 n;
+            if (attribute_fragment(vec2(x, y) + 0.5, w, z, n)) accumulate(ivec2(x, y), w, v_color, n, z);
         }
     }
 }
@@ -456,18 +467,10 @@ void main() {
 layout(location = 0) out vec4 out_color;   // (w rgb, w)
 layout(location = 1) out vec4 out_normal;  // (w n, w z)
 void main() {
-    float z, clipped;
-    vec2 uv;
-    float rho2 = filter_distance(gl_FragCoord.xy, splat_distance(gl_FragCoord.xy, z, uv, clipped));
-    if (rho2 > 1.0 || clipped > 0.0) discard;
-    if (z > texelFetch(u_visibility, ivec2(gl_FragCoord.xy), 0).r) discard;  // behind the visible surface
-    float w = v_weight * texture(u_kernel, vec2(rho2, 0.5)).r;
+    float w, z;
+    vec3 n;
+    if (!attribute_fragment(gl_FragCoord.xy, w, z, n)) discard;
     out_color = vec4(w * v_color, w);
-#ifdef NORMAL_FIELD
-    vec3 n = field_normal(v_normal + uv.x * v_field_u + uv.y * v_field_v, v_center);
-#else
-    vec3 n = v_normal;
-#endif
     out_normal = vec4(w * n, w * z);
 }
 #endif
@@ -475,12 +478,9 @@ void main() {
 #ifdef PASS_CATEGORY
 layout(location = 0) out vec4 out_category;
 void main() {  // the attribute pass's fragments and weights
-    float z, clipped;
-    vec2 uv;
-    float rho2 = filter_distance(gl_FragCoord.xy, splat_distance(gl_FragCoord.xy, z, uv, clipped));
-    if (rho2 > 1.0 || clipped > 0.0) discard;
-    if (z > texelFetch(u_visibility, ivec2(gl_FragCoord.xy), 0).r) discard;
-    float w = v_weight * texture(u_kernel, vec2(rho2, 0.5)).r;
+    float w, z;
+    vec3 n;
+    if (!attribute_fragment(gl_FragCoord.xy, w, z, n)) discard;
     out_category = vec4(category_pack(w, v_category), -1.0, 0.0, 0.0);
 }
 #endif
