@@ -303,10 +303,10 @@ def test_the_hot_loops_compile_to_simd():
     scratch = [np.zeros(t.TEMP_ROWS * t.BLOCK, np.float32), np.zeros(t.table_size(count, t.KEPT_ROWS), np.float32),
                np.zeros(t.STRIDE ** 2, np.float32), np.zeros(t.STRIDE ** 2, np.float32)]
     params = (np.float32(1.0), np.float32(0.0), np.float32(32.0))
-    extras = np.zeros((count, t.EXTRAS), np.float32, order="F")
+    extras = np.zeros((t.EXTRAS, count), np.float32)
     assert _packed_float_ops(t.visibility_tile, table, boxes, count, 0, 0, params, None, extras, None,
                              *scratch) >= 32
-    packed = np.zeros((count, t.PACKED), np.float32, order="F")
+    packed = np.zeros((t.PACKED, count), np.float32)
     camera = tuple(np.float32(v) for v in (1, 0, 0, 0, 1, 0, 0, 0, 1, 0, 0, -5, 500, 500, 256, 256, 0, 0.1, 100))
     assert _packed_float_ops(bins.bound_block, packed, extras, camera, np.float32(1.0), np.float32(1.0), False, 512,
                              512, np.zeros(4 * bins.BOUND_BLOCK, np.int32), 0, count) >= 16

@@ -124,8 +124,14 @@ def splat_categories(cloud: PointCloud, options: RenderOptions) -> tuple[np.ndar
 
 
 def splat_colors(cloud: PointCloud) -> np.ndarray:
-    """(N, 3) albedo, or (1, 3) white for a cloud without colours."""
-    return cloud.colors if cloud.colors is not None else np.ones((1, 3), np.float32)
+    """(N, 3) albedo, or (1, 3) white for a cloud without colours; read-only either way, as a
+    cloud's arrays are, so that the kernels are compiled for one kind of array (numba compiles
+    writable and read-only arguments separately)."""
+    if cloud.colors is not None:
+        return cloud.colors
+    white = np.ones((1, 3), np.float32)
+    white.flags.writeable = False
+    return white
 
 
 def splat_clip_lines(cloud: PointCloud) -> np.ndarray:

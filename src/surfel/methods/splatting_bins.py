@@ -59,7 +59,7 @@ def camera_scalars(m):
 
 @nb.njit(parallel=True, fastmath=True, error_model="numpy", cache=True)
 def bound_splats(packed, extras, m, radius_scale, lowpass, backface, width, height, box, tiles_x, counts, scratch):
-    """Each splat's pixel box in `box` (N, 4) int32, as the GPU's quad (splatting.glsl): the
+    """Each splat's pixel box in `box` (4, N) int32, as the GPU's quad (splatting.glsl): the
     pixel centres inside the projected corners of the disk's bounding square and, with the EWA
     filter, the low-pass disk of `lowpass` pixels around the projected centre (x0, x1, y0, y1
     inclusive; x0 > x1 marks a culled splat). A splat with a corner behind the near plane gets
@@ -67,7 +67,7 @@ def bound_splats(packed, extras, m, radius_scale, lowpass, backface, width, heig
     count: counts (chunks, tiles) gets how many splats of each chunk of the cloud (one thread
     each) meet each TILE x TILE tile. scratch (chunks, 4 BOUND_BLOCK) int32: each chunk's boxes
     of BOUND_BLOCK splats, computed in one SIMD loop before they are counted."""
-    n = packed.shape[0]
+    n = packed.shape[1]
     cam = camera_scalars(m)
     chunks = counts.shape[0]
     step = (n + chunks - 1) // chunks
@@ -83,7 +83,7 @@ def bound_splats(packed, extras, m, radius_scale, lowpass, backface, width, heig
                 slot = i - first
                 x0, x1 = bounds[slot], bounds[slot + BOUND_BLOCK]
                 y0, y1 = bounds[slot + 2 * BOUND_BLOCK], bounds[slot + 3 * BOUND_BLOCK]
-                box[i, 0], box[i, 1], box[i, 2], box[i, 3] = x0, x1, y0, y1
+                box[0, i], box[1, i], box[2, i], box[3, i] = x0, x1, y0, y1
                 if x0 > x1:
                     continue
                 for ty in range(y0 >> TILE_BITS, (y1 >> TILE_BITS) + 1):
@@ -97,14 +97,14 @@ def bound_block(packed, extras, cam, radius_scale, lowpass, backface, width, hei
     ortho, near = cam[16], cam[17]
     one = np.float32(1.0)
     for i in range(first, last):
-        # the packed row read element by element: a row view would bring reference counting,
+        # the packed column read element by element: a column view would bring reference counting,
         # an atomic shared by every thread, into the loop
-        ex, ey, ez = eye_space(cam, packed[i, PX], packed[i, PY], packed[i, PZ])
-        nx, ny, nz = rotate(cam, packed[i, PNX], packed[i, PNY], packed[i, PNZ])
-        ux, uy, uz = rotate(cam, packed[i, PUX] * radius_scale, packed[i, PUY] * radius_scale,
-                           packed[i, PUZ] * radius_scale)
-        vx, vy, vz = rotate(cam, packed[i, PVX] * radius_scale, packed[i, PVY] * radius_scale,
-                           packed[i, PVZ] * radius_scale)
+        ex, ey, ez = eye_space(cam, packed[PX, i], packed[PY, i], packed[PZ, i])
+        nx, ny, nz = rotate(cam, packed[PNX, i], packed[PNY, i], packed[PNZ, i])
+        ux, uy, uz = rotate(cam, packed[PUX, i] * radius_scale, packed[PUY, i] * radius_scale,
+                           packed[PUZ, i] * radius_scale)
+        vx, vy, vz = rotate(cam, packed[PVX, i] * radius_scale, packed[PVY, i] * radius_scale,
+                           packed[PVZ, i] * radius_scale)
         nx, ny, nz, ux, uy, uz, vx, vy, vz = face_camera(ex, ey, ez, nx, ny, nz, ux, uy, uz, vx, vy, vz, ortho)
         depth = -ez
         perspective = ortho <= 0
@@ -112,7 +112,7 @@ def bound_block(packed, extras, cam, radius_scale, lowpass, backface, width, hei
         culled = (backface & ((nz if ortho > 0 else -(nx * ex + ny * ey + nz * ez)) < 0)) \
             | (perspective & (depth + reach < near))  # facing away, or wholly behind the near plane
         if extras is not None:  # cut away whole (a point on a crease)
-            culled |= (extras[i, EC0] < -1) | (extras[i, EC1] < -1)
+            culled |= (extras[EC0, i] < -1) | (extras[EC1, i] < -1)
         whole = perspective & (depth - abs(uz) - abs(vz) < near)  # a corner behind it: the whole image
         lo_x = lo_y = np.float32(1e30)
         hi_x = hi_y = np.float32(-1e30)
@@ -163,16 +163,16 @@ def tile_offsets(counts, tile_start, tile_count):
 def place_splats(box, tiles_x, places, index):
     """Binning's scatter: each chunk's splats (one thread each) into the index lists of the
     tiles they meet, from `places` (chunks, tiles), which tile_offsets made."""
-    n = box.shape[0]
+    n = box.shape[1]
     chunks = places.shape[0]
     step = (n + chunks - 1) // chunks
     for chunk in nb.prange(chunks):
         row = places[chunk]
         for i in range(chunk * step, min(chunk * step + step, n)):
-            if box[i, 0] > box[i, 1]:
+            if box[0, i] > box[1, i]:
                 continue
-            tx0, tx1 = box[i, 0] >> TILE_BITS, box[i, 1] >> TILE_BITS
-            for ty in range(box[i, 2] >> TILE_BITS, (box[i, 3] >> TILE_BITS) + 1):
+            tx0, tx1 = box[0, i] >> TILE_BITS, box[1, i] >> TILE_BITS
+            for ty in range(box[2, i] >> TILE_BITS, (box[3, i] >> TILE_BITS) + 1):
                 for tx in range(tx0, tx1 + 1):
                     t = ty * tiles_x + tx
                     index[row[t]] = i

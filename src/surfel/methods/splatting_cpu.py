@@ -82,26 +82,28 @@ BIN_CHUNKS_PER_THREAD = 4
 
 
 def pack_splats(cloud: PointCloud, extras: bool) -> tuple[np.ndarray, np.ndarray | None]:
-    """A cloud's splats as the kernels read them, made once per cloud: (N, PACKED) float32
+    """A cloud's splats as the kernels read them, made once per cloud: (PACKED, N) float32
     (centre relative to the local origin, as the GPU path uploads it; unit normal, zero for a
     splat that faces the camera (preprocess.drawn_normals); the tangent axes; albedo, white
-    without colours; the layer's thickness, 0 for none) and, with `extras`, (N, EXTRAS) of clip
+    without colours; the layer's thickness, 0 for none) and, with `extras`, (EXTRAS, N) of clip
     lines (inactive where the cloud has none) and Phong normal-field slopes (0 where none).
-    Both column-major: the per-splat loop of bins.bound_splats then reads each value of
-    consecutive splats from consecutive addresses (about 6% of a deferred frame, against rows)."""
+    One column per splat: the per-splat loop of bins.bound_splats then reads each value of
+    consecutive splats from consecutive addresses (about 6% of a deferred frame, against rows).
+    Row-major (N, PACKED) in Fortran order would store the same, but numba types an array of
+    one splat as C-ordered, which compiled every kernel a second time for it (about 40 s)."""
     n = len(cloud)
-    packed = np.zeros((n, t.PACKED), np.float32, order="F")
-    packed[:, t.PX:t.PZ + 1] = cloud.positions - np.asarray(cloud.local_origin, np.float64)
-    packed[:, t.PNX:t.PNZ + 1] = drawn_normals(cloud)
-    packed[:, t.PUX:t.PVZ + 1] = splat_axes(cloud).reshape(n, 6)
-    packed[:, t.PR:t.PB + 1] = splat_colors(cloud)
-    packed[:, t.PT] = splat_thickness(cloud)
+    packed = np.zeros((t.PACKED, n), np.float32)
+    packed[t.PX:t.PZ + 1] = (cloud.positions - np.asarray(cloud.local_origin, np.float64)).T
+    packed[t.PNX:t.PNZ + 1] = drawn_normals(cloud).T
+    packed[t.PUX:t.PVZ + 1] = splat_axes(cloud).reshape(n, 6).T
+    packed[t.PR:t.PB + 1] = splat_colors(cloud).T
+    packed[t.PT] = splat_thickness(cloud)
     if not extras:
         return packed, None
-    rows = np.empty((n, t.EXTRAS), np.float32, order="F")
-    rows[:, t.EA0:t.EC1 + 1] = splat_clip_lines(cloud).reshape(-1, 6)
-    rows[:, t.EALPHA:t.EBETA + 1] = splat_fields(cloud)
-    return packed, rows
+    extra = np.empty((t.EXTRAS, n), np.float32)
+    extra[t.EA0:t.EC1 + 1] = splat_clip_lines(cloud).reshape(-1, 6).T
+    extra[t.EALPHA:t.EBETA + 1] = splat_fields(cloud).T
+    return packed, extra
 
 
 class CpuSplatBuffers:
@@ -112,7 +114,7 @@ class CpuSplatBuffers:
     def __init__(self, cloud: PointCloud, extras: bool):
         self.packed, self.extras = pack_splats(cloud, extras)
         count = len(cloud)
-        self.box = np.empty((count, 4), np.int32, order="F")  # column-major, as `packed`
+        self.box = np.empty((4, count), np.int32)  # a column per splat, as `packed`
         self.index = np.empty(count + count // 4 + 1, np.int32)
         self.capacity = 0
         self.size = None

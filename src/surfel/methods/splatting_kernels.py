@@ -4,7 +4,7 @@ states the equations; splatting.glsl is the GPU program they reproduce).
 1. binning (splatting_bins.py): each splat's pixel box, and per TILE x TILE screen tile
    the list of the splats that meet it, in draw order.
 2. `rasterize_tiles` (parallel over tiles): each tile owns its pixels, so threads never write
-   the same memory. A tile copies its splats' packed inputs (one 64-byte row each) into its
+   the same memory. A tile copies its splats' packed inputs (one column of 16 values each) into its
    thread's table (splatting_tiles.py), then, in that table:
    - setup (`_setup_tile`, SIMD over a table block): what the vertex shader computes, once per
      splat: the eye-space splat, its back-face flip, the EWA weight, and the coefficients
@@ -367,18 +367,18 @@ def rasterize_tiles(packed, extras, box, index, tile_start, tile_count, order, t
         thread = nb.get_thread_id()
         table, ibox, tmp, store = tables[thread], boxes[thread], temp[thread], kept[thread]
         zb, cov, acc = zbuf[thread], cover[thread], accum[thread]
-        # stage the tile's splats: one packed row each, its extras and its box
+        # stage the tile's splats: one packed column each, its extras and its box
         start = tile_start[t]
         for slot in range(count):
             i = index[start + slot]
             j, jb = table_slot(slot, TABLE_ROWS), table_slot(slot, 4)
             for col in range(PACKED):
-                table[j + np.uint64(col * BLOCK)] = packed[i, col]
+                table[j + np.uint64(col * BLOCK)] = packed[col, i]
             if extras is not None:
                 for col in range(EXTRAS):
-                    table[j + np.uint64((PACKED + col) * BLOCK)] = extras[i, col]
+                    table[j + np.uint64((PACKED + col) * BLOCK)] = extras[col, i]
             for col in range(4):
-                ibox[jb + np.uint64(col * BLOCK)] = box[i, col]
+                ibox[jb + np.uint64(col * BLOCK)] = box[col, i]
         _setup_tile(table, ibox, count, ox, oy, m, radius_scale, lowpass2, depth_offset, ewa_filter, clip_src,
                     field_src, per_splat_model < 0)
         if per_splat_model >= 0:  # Botsch & Kobbelt 2003: each splat's colour shaded, then blended

@@ -36,11 +36,11 @@ from ..colors import CODE_SCALE, category_pack
 from .ewa_kernels import FAR, TILE
 from .splatting import GAUSSIAN_SHARPNESS, KERNEL_SIZE
 
-# Columns of a cloud's packed inputs (splatting_cpu.pack_splats): one row per splat; PT its
+# Rows of a cloud's packed inputs (splatting_cpu.pack_splats): one column per splat; PT its
 # layer's thickness, the cap of z_t (0: none).
 (PX, PY, PZ, PNX, PNY, PNZ, PUX, PUY, PUZ, PVX, PVY, PVZ, PR, PG, PB, PT) = range(16)
 PACKED = 16
-# Columns of its extras: two clip lines a u + b v <= c (surfel.preprocess) and the normal
+# Rows of its extras: two clip lines a u + b v <= c (surfel.preprocess) and the normal
 # field's slopes alpha, beta (Phong splatting).
 (EA0, EB0, EC0, EA1, EB1, EC1, EALPHA, EBETA) = range(8)
 EXTRAS = 8
