@@ -15,7 +15,7 @@ LAYERS = [
     ("io", ["io"]),
     ("preprocess", ["preprocess"]),
     ("lod", ["lod"]),
-    ("appearance", ["shading", "colors", "edl", "options", "result"]),
+    ("appearance", ["shading", "colors", "edl", "pinholes", "options", "result"]),
     ("gl", ["gl"]),
     ("methods", ["methods", "mls"]),
     ("rendering", ["rendering", "metrics"]),

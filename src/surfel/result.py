@@ -10,6 +10,7 @@ import numpy as np
 
 from .edl import eye_dome_lighting
 from .files import write_atomically, write_json
+from .pinholes import fill_pinholes
 
 
 @numba.njit(parallel=True, cache=True)
@@ -89,9 +90,11 @@ class RenderResult:
 
     @classmethod
     def from_samples(cls, shaded, coverage, depth, normals, *, supersample: int, options, stats: dict,
-                     indices=None) -> RenderResult:
-        """The output buffers of a method's samples: eye-dome lighting, then a box filter
-        down to the output size, then compositing over the background.
+                     indices=None, pinholes: bool = False) -> RenderResult:
+        """The output buffers of a method's samples: with `pinholes` (the splatting methods),
+        the samples through which the surface shows what lies behind it filled (surfel.pinholes;
+        stats["pinholes"] counts them), then eye-dome lighting, then a box filter down to the
+        output size, then compositing over the background.
 
         shaded (sH, sW, 3), coverage (sH, sW) in [0, 1], depth (sH, sW) (inf empty),
         normals (sH, sW, 3); `options` (RenderOptions): the background, and the `edl`
@@ -104,6 +107,10 @@ class RenderResult:
         """
         s = int(supersample)
         background = options.background
+        if pinholes:
+            shaded, coverage, depth, normals, indices, filled = fill_pinholes(shaded, coverage, depth, normals,
+                                                                              indices)
+            stats = dict(stats, pinholes=filled)
         if options.edl:
             term = eye_dome_lighting(np.where(coverage > 0, depth, np.inf), options.edl_radius * s,
                                      options.edl_strength)

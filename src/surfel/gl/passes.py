@@ -271,7 +271,7 @@ class SplatPasses:
         ctx.finish()
 
     def result(self, camera, options, supersample: int, stats: dict):
-        result = gbuffer_result(self.out, camera, options, supersample, stats)
+        result = gbuffer_result(self.out, camera, options, supersample, stats, pinholes=True)
         if options.dump_passes is not None:
             self.dump(options.dump_passes, result)
         return result

@@ -91,12 +91,14 @@ class GBuffer:
             obj.release()
 
 
-def gbuffer_result(gbuffer: GBuffer, camera, options, supersample: int, stats: dict, *, surface=None):
+def gbuffer_result(gbuffer: GBuffer, camera, options, supersample: int, stats: dict, *, surface=None,
+                   pinholes: bool = False):
     """The RenderResult of a G-buffer laid out as every method writes it: target 0 = shaded
     RGB and coverage, target 1 = eye normal and, in a categorical colour mode, the palette
     index of the category the shaders picked, target 2 = eye depth. `surface`: for methods
     without splats, a function of the sample depths (H, W) giving each sample's albedo and
-    palette index (colors.surface_albedo), or None; the samples are shaded again with them."""
+    palette index (colors.surface_albedo), or None; the samples are shaded again with them.
+    `pinholes`: fill them (RenderResult.from_samples), for the splatting methods."""
     from ..colors import shade_samples
     from ..result import RenderResult
 
@@ -114,4 +116,5 @@ def gbuffer_result(gbuffer: GBuffer, camera, options, supersample: int, stats: d
     elif options.coloring is not None and options.coloring.categorical:
         indices = np.where(coverage > 0, np.round(normals[..., 3]), -1).astype(np.int32)
     return RenderResult.from_samples(rgb, coverage, depth, np.ascontiguousarray(normals[..., :3]),
-                                     supersample=supersample, options=options, stats=stats, indices=indices)
+                                     supersample=supersample, options=options, stats=stats, indices=indices,
+                                     pinholes=pinholes)

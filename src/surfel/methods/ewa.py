@@ -206,7 +206,7 @@ def resolve_accumulators(acc: np.ndarray, camera: Camera, options: RenderOptions
         indices = np.where(alpha > 0, np.take_along_axis(layer_indices, top[None], 0)[0], -1).astype(np.int32)
     stats = dict(stats, full_weight=full)
     return RenderResult.from_samples(color, alpha, depth_out, normals_out, supersample=supersample,
-                                     options=options, stats=stats, indices=indices)
+                                     options=options, stats=stats, indices=indices, pinholes=True)
 
 
 def spatially_ordered(cloud: PointCloud) -> PointCloud:

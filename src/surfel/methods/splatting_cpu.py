@@ -58,6 +58,7 @@ import numpy as np
 
 from ..cloud import PointCloud
 from ..options import check_cpu_samples
+from ..pinholes import fill_pinholes
 from ..preprocess import drawn_normals, splat_thickness
 from ..result import RenderResult
 from ..shading import MODEL_IDS
@@ -231,7 +232,9 @@ def _render_cpu(cloud, camera, options, params, renderer, *, per_splat_shading: 
                       buffers.accum, buffers.best, buffers.present, color, alpha, depth, normals, indices)
     k.finish_surrounded(buffers.present, color, alpha, depth, normals, background, composite)
     stats = {"splats": len(cloud), "supersample": ss, "ewa_filter": params.ewa_filter}
-    if composite:
-        return RenderResult(color, alpha, depth, normals, stats)
+    if composite:  # already over the background: the pinholes of its pixels filled (as from_samples does)
+        color, alpha, depth, normals, _, filled = fill_pinholes(color, alpha, depth, normals,
+                                                                indices if categorical else None)
+        return RenderResult(color, alpha, depth, normals, dict(stats, pinholes=filled))
     return RenderResult.from_samples(color, alpha, depth, normals, supersample=ss, options=options, stats=stats,
-                                     indices=indices if categorical else None)
+                                     indices=indices if categorical else None, pinholes=True)

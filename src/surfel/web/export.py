@@ -10,9 +10,11 @@ fields, coverage from edge_distance() and surrounded(), point sprites on a guard
 quads. The cloud is completed for the method the page opens with. Colour modes are surfel.colors'
 (gl/colors.glsl decodes them in the same passes, with the same tables); eye-dome lighting
 is gl/edl.glsl, the twin of surfel.edl, in the page's last pass (display.glsl), which also
-box-filters supersamples without mixing categories. The camera, options and colour mode it
-opens with are the exporter's (the same request rows as `surfel render`); everything
-travels inside the file (gzip-compressed, base64), nothing is fetched.
+box-filters supersamples without mixing categories; before it, pinholes.glsl fills the
+samples through which the surface shows what lies behind it, as surfel.pinholes does. The
+camera, options and colour mode it opens with are the exporter's (the same request rows as
+`surfel render`); everything travels inside the file (gzip-compressed, base64), nothing is
+fetched.
 """
 
 from __future__ import annotations
@@ -64,7 +66,8 @@ _COMMENT = re.compile(r"//[^\n]*|/\*.*?\*/", re.S)
 def shader_sources() -> dict[str, str]:
     """The page's programs, includes resolved and comments dropped (GLSL ES wants ASCII; the
     comments live in the .glsl files)."""
-    sources = {"splat": expand_includes(SPLATTING, (HERE,)), "display": expand_includes(HERE / "display.glsl", (GL,))}
+    sources = {"splat": expand_includes(SPLATTING, (HERE,)), "display": expand_includes(HERE / "display.glsl", (GL,)),
+               "pinholes": expand_includes(HERE / "pinholes.glsl", ())}
     return {name: "\n".join(line.rstrip() for line in _COMMENT.sub("", text).splitlines() if line.strip())
             for name, text in sources.items()}
 

@@ -8,7 +8,8 @@
 // section 2.2.2): the CPU draws a prefix of the list and gl/lod.glsl's vertex test picks
 // the cut, at a coarser error while the camera moves. The camera is surfel.camera's. Colour
 // modes are surfel.colors' (gl/colors.glsl in the splat passes; categories through the
-// category pass), eye-dome lighting and the box filter are display.glsl's.
+// category pass), the pinhole fill is pinholes.glsl's (surfel.pinholes), eye-dome lighting and
+// the box filter are display.glsl's.
 "use strict";
 (() => {
   const META = JSON.parse(document.getElementById("surfel-meta").textContent);
@@ -189,9 +190,11 @@
     const acc = [0, 1].map(() => texture(tw, th, gl.RGBA32F, gl.RGBA, gl.FLOAT));
     const cat = texture(tw, th, gl.R32F, gl.RED, gl.FLOAT);
     const gbuf = [0, 1, 2].map(() => texture(w, h, gl.RGBA32F, gl.RGBA, gl.FLOAT));
-    const fbos = [framebuffer([vis]), framebuffer(acc), framebuffer([cat]), framebuffer(gbuf)];
-    targets = { key: `${w}x${h}+${guard}`, vis, acc, cat, gbuf, fbos, textures: [vis, ...acc, cat, ...gbuf],
-                visFbo: fbos[0], accFbo: fbos[1], catFbo: fbos[2], gFbo: fbos[3] };
+    const spare = [0, 1, 2].map(() => texture(w, h, gl.RGBA32F, gl.RGBA, gl.FLOAT));  // pinholes' other round
+    const fbos = [framebuffer([vis]), framebuffer(acc), framebuffer([cat]), framebuffer(gbuf), framebuffer(spare)];
+    targets = { key: `${w}x${h}+${guard}`, vis, acc, cat, gbuf, spare, fbos,
+                textures: [vis, ...acc, cat, ...gbuf, ...spare],
+                visFbo: fbos[0], accFbo: fbos[1], catFbo: fbos[2], gFbo: fbos[3], spareFbo: fbos[4] };
     return targets;
   }
 
@@ -403,6 +406,14 @@
     bindTexture(UNIT.accumColor, t.acc[0]); bindTexture(UNIT.accumNormal, t.acc[1]);
     setUniforms(program("splat", { ...variant, PASS_NORMALIZE: true }), common);
     gl.drawArrays(gl.TRIANGLES, 0, 3);
+    // pinholes (surfel.pinholes): two rounds, into the spare G-buffer and back
+    for (const [from, into] of [[t.gbuf, t.spareFbo], [t.spare, t.gFbo]]) {
+      gl.bindFramebuffer(gl.FRAMEBUFFER, into);
+      bindTexture(UNIT.shaded, from[0]); bindTexture(UNIT.gnormal, from[1]); bindTexture(UNIT.gdepth, from[2]);
+      setUniforms(program("pinholes", {}), { u_shaded: UNIT.shaded, u_gnormal: UNIT.gnormal, u_gdepth: UNIT.gdepth,
+                                             u_categorical: categorical ? 1 : 0 });
+      gl.drawArrays(gl.TRIANGLES, 0, 3);
+    }
     // the canvas: supersamples filtered, categories coloured, eye-dome lighting, background
     gl.bindFramebuffer(gl.FRAMEBUFFER, null);
     gl.viewport(0, 0, W, H);

@@ -1,0 +1,86 @@
+"""surfel.pinholes on sample buffers made by hand: which samples it fills and with what, and
+what it must leave alone (slopes, a valley seen along its line, outlines, float rounding)."""
+
+import numpy as np
+
+from surfel.pinholes import fill_pinholes
+
+H = W = 12
+
+
+def plane(slope_x=0.01, slope_y=0.02, base=3.0):
+    """Buffers of a covered, tilted plane: colour varying over the image, normals +z."""
+    y, x = np.mgrid[0:H, 0:W].astype(np.float32)
+    depth = (base + slope_x * x + slope_y * y).astype(np.float32)
+    shaded = np.stack([x / W, y / H, np.full_like(x, 0.5)], axis=-1).astype(np.float32)
+    coverage = np.ones((H, W), np.float32)
+    normals = np.zeros((H, W, 3), np.float32)
+    normals[..., 2] = 1
+    return shaded, coverage, depth, normals
+
+
+def neighbours(a, y, x):
+    return np.concatenate([a[y - 1, x - 1:x + 2], a[y, [x - 1, x + 1]], a[y + 1, x - 1:x + 2]])
+
+
+def test_a_sample_showing_the_far_side_takes_its_neighbours_surface():
+    shaded, coverage, depth, normals = plane()
+    expected_color = neighbours(shaded, 5, 6).mean(axis=0)
+    expected_depth = neighbours(depth, 5, 6).mean()
+    depth[5, 6] += 0.5  # the far side of the object, seen through a gap between splats
+    shaded[5, 6] = 0.1
+    normals[5, 6] = (0, 0, -1)
+    shaded, coverage, depth, normals, _, filled = fill_pinholes(shaded, coverage, depth, normals)
+    assert filled == 1
+    np.testing.assert_allclose(shaded[5, 6], expected_color, rtol=1e-6)
+    np.testing.assert_allclose(depth[5, 6], expected_depth, rtol=1e-6)
+    np.testing.assert_allclose(normals[5, 6], (0, 0, 1))
+
+
+def test_an_uncovered_sample_inside_the_surface_is_covered():
+    shaded, coverage, depth, normals = plane()
+    coverage[4, 4] = 0
+    coverage[3, 3] = 0.5  # a neighbour partly covered: the filled coverage is the mean
+    shaded, coverage, depth, normals, _, filled = fill_pinholes(shaded, coverage, depth, normals)
+    assert filled == 1
+    assert np.isclose(coverage[4, 4], 7.5 / 8)
+    assert np.isfinite(depth[4, 4])
+
+
+def test_a_pinhole_of_two_samples_is_filled_in_two_rounds():
+    shaded, coverage, depth, normals = plane()
+    depth[5, 5] += 0.5
+    depth[5, 6] += 0.6
+    _, _, depth, _, _, filled = fill_pinholes(shaded, coverage, depth, normals)
+    assert filled == 2
+    assert depth[5, 5] < 3.3 and depth[5, 6] < 3.3
+
+
+def test_slopes_valleys_outlines_and_rounding_are_left_alone():
+    shaded, coverage, depth, normals = plane(slope_x=0.3, slope_y=-0.2)
+    depth[:, 6] += 0.4  # a valley seen along its line: its samples have two neighbours as deep
+    coverage[:, 9:] = 0  # an outline: the background beyond it
+    before = [a.copy() for a in (shaded, coverage, depth, normals)]
+    *after, _, filled = fill_pinholes(shaded, coverage, depth, normals)
+    assert filled == 0
+    before[2] = np.where(before[1] > 0, before[2], np.inf)
+    for a, b in zip(after, before, strict=True):
+        np.testing.assert_array_equal(a, b)
+    shaded, coverage, depth, normals = plane(slope_x=0, slope_y=0)
+    depth[2, 2] += 4e-6  # float rounding of a plane facing the view
+    assert fill_pinholes(shaded, coverage, depth, normals)[-1] == 0
+
+
+def test_a_categorical_pinhole_copies_the_commonest_category_and_never_blends():
+    shaded, coverage, depth, normals = plane()
+    indices = np.full((H, W), 2, np.int32)
+    indices[4:7, 7] = 5  # three of the eight neighbours in category 5, five in category 2
+    shaded[indices == 5] = (1.0, 0.0, 0.0)
+    shaded[indices == 2] = (0.0, 0.0, 1.0)
+    depth[5, 6] += 0.5
+    indices[5, 6] = 9
+    shaded, _, depth, _, indices, filled = fill_pinholes(shaded, coverage, depth, normals, indices)
+    assert filled == 1
+    assert indices[5, 6] == 2
+    np.testing.assert_array_equal(shaded[5, 6], (0.0, 0.0, 1.0))
+    assert depth[5, 6] in neighbours(depth, 5, 6)
