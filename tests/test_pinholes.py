@@ -63,7 +63,6 @@ def test_slopes_valleys_outlines_and_rounding_are_left_alone():
     before = [a.copy() for a in (shaded, coverage, depth, normals)]
     *after, _, filled = fill_pinholes(shaded, coverage, depth, normals)
     assert filled == 0
-    before[2] = np.where(before[1] > 0, before[2], np.inf)
     for a, b in zip(after, before, strict=True):
         np.testing.assert_array_equal(a, b)
     shaded, coverage, depth, normals = plane(slope_x=0, slope_y=0)

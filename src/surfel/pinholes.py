@@ -40,14 +40,20 @@ _NEIGHBOURS = ((-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1,
 
 
 @numba.njit(cache=True, inline="always")
-def _is_pinhole(depth, y, x):  # pragma: no cover - compiled
+def _depth(depth, coverage, y, x):  # pragma: no cover - compiled
+    """The sample's depth, inf where nothing covers it (what depth holds there varies by backend)."""
+    return depth[y, x] if coverage[y, x] > 0 else np.float32(np.inf)
+
+
+@numba.njit(cache=True, inline="always")
+def _is_pinhole(depth, coverage, y, x):  # pragma: no cover - compiled
     h, w = depth.shape
     if y == 0 or x == 0 or y == h - 1 or x == w - 1:
         return False
-    z = depth[y, x]
+    z = _depth(depth, coverage, y, x)
     behind, near, far = 0, np.inf, -np.inf
     for dy, dx in _NEIGHBOURS:
-        q = depth[y + dy, x + dx]
+        q = _depth(depth, coverage, y + dy, x + dx)
         if q < z:
             near, far = min(near, q), max(far, q)
         else:
@@ -58,62 +64,65 @@ def _is_pinhole(depth, y, x):  # pragma: no cover - compiled
 
 
 @numba.njit(parallel=True, cache=True)
-def _find(depth, found):  # pragma: no cover - compiled
+def _find(depth, coverage, found):  # pragma: no cover - compiled
     """found[y, x] = whether sample (y, x) is a pinhole; how many are."""
     h, w = depth.shape
     count = 0
     for y in numba.prange(h):
         for x in range(w):
-            hole = _is_pinhole(depth, y, x)
+            hole = _is_pinhole(depth, coverage, y, x)
             found[y, x] = hole
             if hole:
                 count += 1
     return count
 
 
-@numba.njit(cache=True)
+@numba.njit(parallel=True, cache=True)
 def _fill(found, shaded, coverage, depth, normals, indices, categorical):  # pragma: no cover - compiled
     """Each pinhole of `found` filled in place from its front neighbours. All are computed
     before any is written, so that the order of the pinholes does not matter."""
     ys, xs = np.nonzero(found)
-    values = np.empty((len(ys), 8), np.float32)  # colour, coverage, depth, normal
+    values = np.zeros((len(ys), 8), np.float32)  # colour, coverage, depth, normal
     labels = np.empty(len(ys), np.int32)
-    for k in range(len(ys)):
+    for k in numba.prange(len(ys)):
         y, x = ys[k], xs[k]
-        z = depth[y, x]
-        row = values[k]
-        if categorical:  # a copy of the first front neighbour showing the most common category
+        z = _depth(depth, coverage, y, x)
+        source = -1  # in a categorical mode: the first front neighbour showing the commonest category
+        if categorical:
             best_votes = 0
-            for dy, dx in _NEIGHBOURS:
-                qy, qx = y + dy, x + dx
-                if depth[qy, qx] >= z:
+            for i in range(8):
+                qy, qx = y + _NEIGHBOURS[i][0], x + _NEIGHBOURS[i][1]
+                if _depth(depth, coverage, qy, qx) >= z:
                     continue
                 votes = 0
-                for ey, ex in _NEIGHBOURS:
-                    if depth[y + ey, x + ex] < z and indices[y + ey, x + ex] == indices[qy, qx]:
+                for dy, dx in _NEIGHBOURS:
+                    if _depth(depth, coverage, y + dy, x + dx) < z and indices[y + dy, x + dx] == indices[qy, qx]:
                         votes += 1
                 if votes > best_votes:
-                    best_votes, labels[k] = votes, indices[qy, qx]
-                    row[:3], row[3], row[4], row[5:] = shaded[qy, qx], coverage[qy, qx], depth[qy, qx], normals[qy, qx]
-            continue
-        row[:] = 0
+                    best_votes, source = votes, i
+            labels[k] = indices[y + _NEIGHBOURS[source][0], x + _NEIGHBOURS[source][1]]
         count = 0
-        for dy, dx in _NEIGHBOURS:
-            qy, qx = y + dy, x + dx
-            if depth[qy, qx] < z:
-                count += 1
-                row[:3] += shaded[qy, qx]
-                row[3] += coverage[qy, qx]
-                row[4] += depth[qy, qx]
-                row[5:] += normals[qy, qx]
-        row[:5] /= count
-        length = np.sqrt(np.sum(row[5:] * row[5:]))
-        if length > 0:
-            row[5:] /= length
-    for k in range(len(ys)):
+        for i in range(8):
+            qy, qx = y + _NEIGHBOURS[i][0], x + _NEIGHBOURS[i][1]
+            if (categorical and i != source) or _depth(depth, coverage, qy, qx) >= z:
+                continue
+            count += 1
+            for c in range(3):
+                values[k, c] += shaded[qy, qx, c]
+                values[k, 5 + c] += normals[qy, qx, c]
+            values[k, 3] += coverage[qy, qx]
+            values[k, 4] += depth[qy, qx]
+        for c in range(5):
+            values[k, c] /= count
+        length = np.sqrt(values[k, 5] ** 2 + values[k, 6] ** 2 + values[k, 7] ** 2)
+        for c in range(5, 8):
+            values[k, c] = values[k, c] / length if length > 0 else values[k, c]
+    for k in numba.prange(len(ys)):
         y, x = ys[k], xs[k]
-        row = values[k]
-        shaded[y, x], coverage[y, x], depth[y, x], normals[y, x] = row[:3], row[3], row[4], row[5:]
+        for c in range(3):
+            shaded[y, x, c] = values[k, c]
+            normals[y, x, c] = values[k, 5 + c]
+        coverage[y, x], depth[y, x] = values[k, 3], values[k, 4]
         if categorical:
             indices[y, x] = labels[k]
 
@@ -122,18 +131,16 @@ def fill_pinholes(shaded: np.ndarray, coverage: np.ndarray, depth: np.ndarray, n
                   indices: np.ndarray | None = None):
     """(shaded, coverage, depth, normals, indices, filled) with the pinholes of the module
     docstring filled, in place where the buffers are already contiguous float32 (int32 for
-    `indices`): shaded (H, W, 3), coverage (H, W), depth (H, W), normals (H, W, 3), indices
-    (H, W) or None. Depth comes back inf where nothing is covered; `filled` counts the
-    samples filled."""
-    depth = np.ascontiguousarray(np.where(coverage > 0, depth, np.inf), np.float32)
+    `indices`): shaded (H, W, 3), coverage (H, W), depth (H, W) (any value where coverage is
+    0), normals (H, W, 3), indices (H, W) or None; `filled` counts the samples filled."""
     shaded, coverage = np.ascontiguousarray(shaded, np.float32), np.ascontiguousarray(coverage, np.float32)
-    normals = np.ascontiguousarray(normals, np.float32)
+    depth, normals = np.ascontiguousarray(depth, np.float32), np.ascontiguousarray(normals, np.float32)
     categorical = indices is not None
     labels = np.ascontiguousarray(indices, np.int32) if categorical else np.zeros((1, 1), np.int32)
     found = np.empty(depth.shape, np.bool_)
     filled = 0
     for _ in range(ROUNDS):
-        count = _find(depth, found)
+        count = _find(depth, coverage, found)
         if count == 0:
             break
         filled += count
