@@ -56,18 +56,24 @@ def test_a_pinhole_of_two_samples_is_filled_in_two_rounds():
     assert depth[5, 5] < 3.3 and depth[5, 6] < 3.3
 
 
-def test_slopes_valleys_outlines_and_rounding_are_left_alone():
-    shaded, coverage, depth, normals = plane(slope_x=0.3, slope_y=-0.2)
-    depth[:, 6] += 0.4  # a valley seen along its line: its samples have two neighbours as deep
-    coverage[:, 9:] = 0  # an outline: the background beyond it
+def unchanged(shaded, coverage, depth, normals) -> bool:
     before = [a.copy() for a in (shaded, coverage, depth, normals)]
     *after, _, filled = fill_pinholes(shaded, coverage, depth, normals)
-    assert filled == 0
-    for a, b in zip(after, before, strict=True):
-        np.testing.assert_array_equal(a, b)
+    return filled == 0 and all(np.array_equal(a, b) for a, b in zip(after, before, strict=True))
+
+
+def test_slopes_grooves_outlines_and_rounding_are_left_alone():
+    assert unchanged(*plane(slope_x=0.3, slope_y=-0.2))  # steep: neighbours far in front and far behind
+    shaded, coverage, depth, normals = plane(slope_x=0, slope_y=0)
+    depth[6, :] += 0.4  # a groove one sample wide: the two along it are no nearer than each of its samples
+    assert unchanged(shaded, coverage, depth, normals)
+    shaded, coverage, depth, normals = plane(slope_x=0, slope_y=0)
+    coverage[:, 9:] = 0  # an outline: the background beyond it
+    coverage[:5, 8] = 0  # with a step in it
+    assert unchanged(shaded, coverage, depth, normals)
     shaded, coverage, depth, normals = plane(slope_x=0, slope_y=0)
     depth[2, 2] += 4e-6  # float rounding of a plane facing the view
-    assert fill_pinholes(shaded, coverage, depth, normals)[-1] == 0
+    assert unchanged(shaded, coverage, depth, normals)
 
 
 def test_a_categorical_pinhole_copies_the_commonest_category_and_never_blends():

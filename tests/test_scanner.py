@@ -186,9 +186,9 @@ def test_no_pinholes_show_the_far_side_of_a_scan(scanned_spot, backend, monkeypa
         sizes = np.bincount(labels.ravel())
         return int((behind & (sizes[labels] <= 3)).sum())
 
-    filled = specks()
-    monkeypatch.setattr(pinholes, "ROUNDS", 0)
-    assert specks() > 100 > 30 > filled
+    assert specks() < 30
+    monkeypatch.setattr(pinholes, "ROUNDS", 0)  # the same count without the fill: the check sees pinholes
+    assert specks() > 100
 
 
 def test_scanned_normals_select_their_scale():

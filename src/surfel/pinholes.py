@@ -18,13 +18,14 @@ neighbours puts z_p within their range, so a slope never qualifies; a crease see
 valley has its two neighbours along the valley no nearer than p, and an outline has
 uncovered neighbours, so neither does. The tolerance keeps float rounding of a flat surface
 out. A pinhole takes the mean colour, coverage, depth and (unit) normal of its neighbours in
-front; in a categorical colour mode, whose colours never mix, the values of the first of them
-that shows the category most of them show. Two rounds: a
-pinhole of two samples has its second sample's neighbours complete after the first round.
+front. In a categorical colour mode, whose colours never mix, it takes the values of the
+first of them that shows the category most of them show. Two rounds: a pinhole of two
+samples has its second sample's neighbours complete after the first round.
 
 RenderResult.from_samples applies this to the samples of the splatting methods, on every
-backend, before eye-dome lighting and the box filter (the CPU splatting kernels, which
-composite one-sample renders themselves, apply it to their output).
+backend, before eye-dome lighting and the box filter; the CPU splatting path, which
+composites one-sample renders in its kernels, applies it to their output. The exported page
+runs the same rule in web/pinholes.glsl.
 """
 
 from __future__ import annotations
