@@ -13,10 +13,7 @@ float depth_code(float eye_depth) {
 }
 
 #if (defined(PASS_NORMALIZE) || defined(PASS_OCCLUSION)) && defined(VERTEX_SHADER)
-void main() {  // full-screen triangle
-    vec2 p = vec2((gl_VertexID << 1) & 2, gl_VertexID & 2);
-    gl_Position = vec4(2.0 * p - 1.0, 0.0, 1.0);
-}
+#include "full_screen.glsl"
 #endif
 
 #if defined(PASS_OCCLUSION) && defined(FRAGMENT_SHADER)

@@ -8,10 +8,7 @@
 #include "edl.glsl"
 
 #ifdef VERTEX_SHADER
-void main() {  // full-screen triangle
-    vec2 p = vec2((gl_VertexID << 1) & 2, gl_VertexID & 2);
-    gl_Position = vec4(2.0 * p - 1.0, 0.0, 1.0);
-}
+#include "full_screen.glsl"
 #endif
 
 #ifdef FRAGMENT_SHADER
