@@ -374,3 +374,23 @@ def test_clip_lines_of_sharp_features_survive_the_hierarchy(tmp_path, turned_par
         ref = render(mesh, cam, "mesh", shading="lambert")
         metrics = compare_results(ref, render(seq, cam, "deferred", shading="lambert", lod_error=1.0))
         assert metrics["psnr"] >= 27 and metrics["holes"] <= 0.001, metrics
+
+
+def test_leaves_compile_once_whatever_the_cloud_holds():
+    """A cloud without colours, radii or axes passes read-only stand-ins like the arrays it
+    has, so the leaf kernel compiles one signature for all of them (each a compile of about a
+    second in every out-of-core worker)."""
+    from surfel.lod.build import _init_leaves
+
+    rng = np.random.default_rng(1)
+    positions = rng.random((50, 3))
+    normals = np.tile([0.0, 0.0, 1.0], (50, 1))
+    axes = np.tile([[[0.01, 0, 0], [0, 0.01, 0]]], (50, 1, 1))
+    clouds = [PointCloud(positions, normals=normals, colors=rng.random((50, 3)), axes=axes),
+              PointCloud(positions, normals=normals, radii=np.full(50, 0.01)),
+              PointCloud(positions, normals=normals, colors=rng.random((50, 3)), radii=np.full(50, 0.01), axes=axes)]
+    lod.build_lod(clouds[0], progress=False)
+    signatures = set(_init_leaves.signatures)
+    for cloud in clouds[1:]:
+        lod.build_lod(cloud, progress=False)
+    assert set(_init_leaves.signatures) == signatures

@@ -393,3 +393,35 @@ def test_ply_summaries_are_those_of_the_converted_chunks(tmp_path):
         with pytest.raises(InputError) as slow_error:
             list(source.chunks(3_000))
         assert str(fast_error.value) == str(slow_error.value)
+
+
+def test_workers_share_the_warm_up(monkeypatch):
+    """Each stage's tasks are split among the workers, a stage starts when every worker is
+    through the one before, and every worker ends having run every task (the others' from
+    numba's cache): what lets the pool compile each kernel once from an empty cache."""
+    import threading
+    from multiprocessing import get_context
+
+    log = []
+    lock = threading.Lock()
+
+    def task(name):
+        def run():
+            with lock:
+                log.append((threading.current_thread().name, name))
+        return run
+
+    monkeypatch.setattr(outofcore, "WARM_UP_STAGES", ((task("a"), task("b")), (task("c"), task("d"))))
+    context = get_context("spawn")
+    tickets, barrier = context.Value("i", 0), context.Barrier(2)
+    workers = [threading.Thread(target=outofcore._start_worker, args=(tickets, barrier), name=f"w{i}")
+               for i in range(2)]
+    for worker in workers:
+        worker.start()
+    for worker in workers:
+        worker.join(30)
+    first = [name for _, name in log[:4]]
+    assert sorted(first[:2]) == ["a", "b"] and sorted(first[2:]) == ["c", "d"]  # once each, stage by stage
+    assert {who for who, _ in log[:2]} == {"w0", "w1"} and {who for who, _ in log[2:4]} == {"w0", "w1"}
+    for who in ("w0", "w1"):
+        assert sorted(name for w, name in log[4:] if w == who) == ["a", "b", "c", "d"]

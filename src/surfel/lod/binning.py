@@ -372,6 +372,15 @@ def bin_input(inputs: list[StreamInput], partial: Path, cap: int, signature: dic
             "schema": schema.to_list(), "geospatial": any(i.geospatial for i in inputs)}
 
 
+def warm_up() -> None:
+    """Load (or compile) the kernels that bin a chunk, on two points of a chunk's types."""
+    positions = np.zeros((2, 3))
+    lookup = np.zeros(8, np.int32)
+    part = lookup[fine_cells(positions, np.zeros(3), 1.0, 2)]
+    group_by(part, 1)
+    halo_pairs(positions, np.zeros(3), 1.0, 2, lookup, np.zeros(8, bool), part, 1.0)
+
+
 def halo_width(histogram: np.ndarray) -> float:
     """The halo width h in fine-cell widths (outofcore.py's docstring, pass 2)."""
     occupied = histogram[histogram > 0]

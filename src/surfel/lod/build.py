@@ -171,6 +171,14 @@ def morton_codes(positions: np.ndarray) -> np.ndarray:
     return _morton_codes(positions, lo, ((1 << MORTON_BITS) - 1) / extent)
 
 
+def _absent(shape: tuple[int, ...]) -> np.ndarray:
+    """An empty float32 stand-in for an array the cloud lacks, read-only like the cloud's own:
+    numba compiles one kernel whichever arrays a cloud has."""
+    empty = np.empty(shape, np.float32)
+    empty.flags.writeable = False
+    return empty
+
+
 @numba.njit(parallel=True, cache=True)
 def _init_leaves(order, in_pos, in_col, in_axes, in_normals, in_radii,
                  pos, col, nrm, rad, axes, weight):  # pragma: no cover - compiled
@@ -397,9 +405,9 @@ def build_lod(cloud: PointCloud, *, progress: bool | None = None) -> LodTree:
     representative = np.empty(capacity, np.int64)
     representative[:n] = np.arange(n)
     _init_leaves(point_index, cloud.positions,
-                 cloud.colors if with_color else np.empty((0, 3), np.float32),
-                 cloud.axes if cloud.axes is not None else np.empty((0, 2, 3), np.float32),
-                 cloud.normals, cloud.radii if cloud.radii is not None else np.empty(0, np.float32),
+                 cloud.colors if with_color else _absent((0, 3)),
+                 cloud.axes if cloud.axes is not None else _absent((0, 2, 3)),
+                 cloud.normals, cloud.radii if cloud.radii is not None else _absent((0,)),
                  pos, col, nrm, rad, axes, weight)
     # slab bounds are build-time state only; float64 keeps the induction exact
     lo = np.zeros(capacity, np.float64)

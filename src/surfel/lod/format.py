@@ -108,9 +108,11 @@ def build_command(in_path: str | os.PathLike, out_path: str | os.PathLike,
     return stats
 
 
-def warm_up() -> None:
-    """Load (or compile) the numba kernels and start their thread pool on a tiny tree."""
+def warm_up() -> LodTree:
+    """Load (or compile) the numba kernels and start their thread pool on a tiny tree; the tree."""
     positions = np.array([[0.0, 0, 0], [1.0, 0, 0], [0, 1.0, 0]])
     tiny = PointCloud(positions, normals=np.tile([0.0, 0, 1], (3, 1)), colors=np.full((3, 3), 0.5),
                       axes=np.tile([[[0.5, 0, 0], [0, 0.5, 0]]], (3, 1, 1)))
-    to_sequential_cloud(build_lod(tiny, progress=False))
+    tree = build_lod(tiny, progress=False)
+    to_sequential_cloud(tree)
+    return tree

@@ -38,7 +38,9 @@ arrays in sequential order. With the halo, the neighbour queries of points at a 
 border find the neighbours across it, so their radii, axes and clip lines are those of the
 in-memory build (where the halo reaches far enough: two hops of neighbours on an evenly
 sampled surface). Inputs of PARALLEL_MIN_POINTS or more are built by a pool of w worker
-processes, one partition each at a time on one core, largest first.
+processes, one partition each at a time on one core, largest first. The workers start with
+the input's scan and load their numba kernels; the first build after an install compiles
+them, each worker its share (`_start_worker`).
 
 Top levels: the partition roots become the leaves of a small tree built by the same merge
 rule (`build._merge_cells`, attributes by `build.aggregate_attributes` from the roots'), so
@@ -89,6 +91,7 @@ from concurrent.futures import ProcessPoolExecutor, as_completed
 from contextlib import ExitStack
 from multiprocessing import get_context
 from pathlib import Path
+from threading import BrokenBarrierError
 
 import numba
 import numpy as np
@@ -205,9 +208,11 @@ def build_outofcore(in_path: str | os.PathLike, out_path: str | os.PathLike, *, 
     signature = _input_signature(inputs, memory, workers)
     with ExitStack() as stack:
         pool = None
-        if workers > 1:  # started now, so that the workers load their kernels while the input is binned
-            pool = stack.enter_context(ProcessPoolExecutor(workers, mp_context=get_context("spawn"),
-                                                           initializer=_start_worker))
+        if workers > 1:  # started now, so that the workers load their kernels while the input is scanned
+            context = get_context("spawn")
+            pool = stack.enter_context(ProcessPoolExecutor(
+                workers, mp_context=context, initializer=_start_worker,
+                initargs=(context.Value("i", 0), context.Barrier(workers))))
             for _ in range(workers):
                 pool.submit(int)
         saved = _plan_and_bin(inputs, partial, cap, signature, resume, progress, pool, workers)
@@ -303,19 +308,91 @@ def _build_partitions(partial: Path, counts: list[int], dtype: np.dtype, schema:
             for name, done in zip(names, finished, strict=True)]
 
 
-def _start_worker() -> None:
-    """A worker builds one partition at a time on one core (the pool gives the parallelism);
-    it loads its kernels first."""
-    import numba
-
-    from ..preprocess import complete
-    from .format import warm_up
-
+def _start_worker(tickets, stage_done) -> None:
+    """A worker builds one partition at a time on one thread (the pool gives the parallelism);
+    it loads its kernels first. From an empty numba cache (the first build after an install)
+    the workers share the compiling: in each of WARM_UP_STAGES worker i runs tasks i, i + w,
+    ..., waits for the others, and so loads their kernels from the cache instead of compiling
+    them too. `tickets` (a shared counter) numbers the workers; `stage_done` is a barrier of
+    all w of them."""
     numba.set_num_threads(1)
-    warm_up()
-    rng = np.random.default_rng(0)
-    sphere = rng.normal(size=(64, 3))
+    with tickets.get_lock():
+        ticket = tickets.value
+        tickets.value += 1
+    workers = stage_done.parties
+    for stage in WARM_UP_STAGES:
+        for task in stage[ticket % workers::workers]:
+            task()
+        try:
+            stage_done.wait(WARM_UP_TIMEOUT)
+        except BrokenBarrierError:
+            pass  # a worker that never came: this one compiles the rest itself
+    for stage in WARM_UP_STAGES:
+        for task in stage:
+            task()
+
+
+def _warm_neighbours() -> None:
+    """The kernels of the neighbour search, and of the sharp features and clip lines that
+    use it (cells.py, sharp_features.py), as `preprocess.complete` runs them."""
+    from ..preprocess.cells import RADIUS_NEIGHBOURS, clip_lines
+    from ..preprocess.frames import tangent_frames
+    from ..preprocess.sharp_features import find_sharp_features
+
+    nbh, normals = _warm_up_neighbourhood()
+    features = find_sharp_features(nbh, normals, RADIUS_NEIGHBOURS)
+    axes = tangent_frames(np.array(normals), np.ones(len(normals)))  # writable, as complete's normals are
+    clip_lines(nbh, normals, axes, features, np.zeros((len(normals), 3)), False)
+
+
+def _warm_borders() -> None:
+    """The kernels of the borders (borders.py) and of the wider queries that confirm them,
+    after `_warm_neighbours`."""
+    from ..preprocess.borders import BORDER_CONFIRM, border_outwards
+    from ..preprocess.cells import RADIUS_NEIGHBOURS
+
+    nbh, normals = _warm_up_neighbourhood()
+    rows = np.arange(8)
+    nbh.within(rows, BORDER_CONFIRM)
+    nbh.nearest(rows, BORDER_CONFIRM)
+    border_outwards(nbh, normals, nbh.first(RADIUS_NEIGHBOURS), False, np.full(len(normals), np.inf))
+
+
+def _warm_up_neighbourhood():
+    """(neighbourhood, unit normals) of 64 points on a sphere."""
+    from ..preprocess.cells import RADIUS_NEIGHBOURS
+    from ..preprocess.frames import unit
+    from ..preprocess.neighbourhood import Neighbourhood
+
+    nbh = Neighbourhood.build(_warm_up_sphere(), RADIUS_NEIGHBOURS, progress=False)
+    return nbh, unit(nbh.points)
+
+
+def _warm_hierarchy() -> None:
+    """The kernels that bin chunks, build and sequentialise a tree and summarise its root."""
+    from . import binning, format
+
+    binning.warm_up()
+    _root_summary(format.warm_up())
+
+
+def _warm_completion() -> None:
+    """Everything else `preprocess.complete` runs on a partition with normals."""
+    from ..preprocess import complete
+
+    sphere = _warm_up_sphere()
     complete(PointCloud(sphere, normals=sphere), progress=False)
+
+
+def _warm_up_sphere() -> np.ndarray:
+    return np.random.default_rng(0).normal(size=(64, 3))
+
+
+# The workers' first tasks (_start_worker), compiled from an empty cache in about 10 s each,
+# then the completion, whose borders and queries (7 of its 14 s) the other worker compiles and
+# caches before the completion reaches them.
+WARM_UP_STAGES = ((_warm_neighbours, _warm_hierarchy), (_warm_completion, _warm_borders))
+WARM_UP_TIMEOUT = 600.0  # seconds a worker waits for the others' stage before compiling it itself
 
 
 M_TRIM_THRESHOLD, M_MMAP_MAX = -1, -4  # glibc's mallopt parameters (malloc.h)
