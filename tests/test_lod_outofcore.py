@@ -396,32 +396,44 @@ def test_ply_summaries_are_those_of_the_converted_chunks(tmp_path):
 
 
 def test_workers_share_the_warm_up(monkeypatch):
-    """Each stage's tasks are split among the workers, a stage starts when every worker is
-    through the one before, and every worker ends having run every task (the others' from
-    numba's cache): what lets the pool compile each kernel once from an empty cache."""
+    """Every warm-up task is run first by one worker alone, a task that needs another starts
+    after it, both workers take tasks, and each worker ends having run every task once (the
+    others' loading their kernels from numba's cache): what lets the pool compile each kernel
+    once from an empty cache."""
     import threading
+    import time
     from multiprocessing import get_context
 
     log = []
     lock = threading.Lock()
 
-    def task(name):
-        def run():
+    def task(index):
+        def run():  # the first run compiles (takes a while), later ones load from the cache
             with lock:
-                log.append((threading.current_thread().name, name))
+                fresh = all(entry[2] != index for entry in log)
+                log.append(("start", threading.current_thread().name, index))
+            time.sleep((0.3 if index in (0, 4) else 0.05) if fresh else 0.0)
+            with lock:
+                log.append(("end", threading.current_thread().name, index))
         return run
 
-    monkeypatch.setattr(outofcore, "WARM_UP_STAGES", ((task("a"), task("b")), (task("c"), task("d"))))
+    monkeypatch.setattr(outofcore, "WARM_UP_TASKS", tuple(task(i) for i in range(5)))
+    monkeypatch.setattr(outofcore, "WARM_UP_AFTER", {3: 0, 4: 0})
     context = get_context("spawn")
-    tickets, barrier = context.Value("i", 0), context.Barrier(2)
-    workers = [threading.Thread(target=outofcore._start_worker, args=(tickets, barrier), name=f"w{i}")
-               for i in range(2)]
+    taken, done = context.Value("i", 0), [context.Event() for _ in range(5)]
+    workers = [threading.Thread(target=outofcore._start_worker, args=(taken, done), name=f"w{i}") for i in range(2)]
     for worker in workers:
         worker.start()
     for worker in workers:
         worker.join(30)
-    first = [name for _, name in log[:4]]
-    assert sorted(first[:2]) == ["a", "b"] and sorted(first[2:]) == ["c", "d"]  # once each, stage by stage
-    assert {who for who, _ in log[:2]} == {"w0", "w1"} and {who for who, _ in log[2:4]} == {"w0", "w1"}
-    for who in ("w0", "w1"):
-        assert sorted(name for w, name in log[4:] if w == who) == ["a", "b", "c", "d"]
+    runs = {(who, index) for kind, who, index in log if kind == "start"}
+    assert len(runs) == 10 == len(log) // 2  # each worker ran each task once
+    first = {}
+    for at, (_, who, index) in enumerate(log):
+        first.setdefault(index, (who, at))
+    for index, (who, _) in first.items():
+        other_start = next(i for i, e in enumerate(log) if e[0] == "start" and e[2] == index and e[1] != who)
+        assert other_start > log.index(("end", who, index))  # never two fresh runs of one task
+    end_of_0 = log.index(("end", first[0][0], 0))
+    assert all(first[i][1] > end_of_0 for i in (3, 4))
+    assert {who for who, _ in first.values()} == {"w0", "w1"}

@@ -90,7 +90,7 @@ def lone_cells(lookup: np.ndarray, res: int, halo: float) -> np.ndarray:
     return ((highest <= table) & (lowest >= table)).reshape(-1)
 
 
-@numba.njit(inline="always")
+@numba.njit(cache=True)  # called, not inlined: inlined in both loops it doubled their compile time
 def _halo_of(position, lo, scale, res, lookup, lone, own, halo, reach, found):  # pragma: no cover - compiled
     """The partitions (other than `own`) whose cells lie within `halo` cell widths of the
     position, into found[:count]; returns count."""

@@ -91,7 +91,6 @@ from concurrent.futures import ProcessPoolExecutor, as_completed
 from contextlib import ExitStack
 from multiprocessing import get_context
 from pathlib import Path
-from threading import BrokenBarrierError
 
 import numba
 import numpy as np
@@ -212,7 +211,7 @@ def build_outofcore(in_path: str | os.PathLike, out_path: str | os.PathLike, *, 
             context = get_context("spawn")
             pool = stack.enter_context(ProcessPoolExecutor(
                 workers, mp_context=context, initializer=_start_worker,
-                initargs=(context.Value("i", 0), context.Barrier(workers))))
+                initargs=(context.Value("i", 0), [context.Event() for _ in WARM_UP_TASKS])))
             for _ in range(workers):
                 pool.submit(int)
         saved = _plan_and_bin(inputs, partial, cap, signature, resume, progress, pool, workers)
@@ -308,27 +307,31 @@ def _build_partitions(partial: Path, counts: list[int], dtype: np.dtype, schema:
             for name, done in zip(names, finished, strict=True)]
 
 
-def _start_worker(tickets, stage_done) -> None:
+def _start_worker(taken, done) -> None:
     """A worker builds one partition at a time on one thread (the pool gives the parallelism);
     it loads its kernels first. From an empty numba cache (the first build after an install)
-    the workers share the compiling: in each of WARM_UP_STAGES worker i runs tasks i, i + w,
-    ..., waits for the others, and so loads their kernels from the cache instead of compiling
-    them too. `tickets` (a shared counter) numbers the workers; `stage_done` is a barrier of
-    all w of them."""
+    the workers share the compiling: each takes the next of WARM_UP_TASKS (`taken`, a shared
+    counter) until none is left, a task in WARM_UP_AFTER once the one it needs is done (`done`,
+    an event per task), and then runs the others' tasks as they are done, which loads their
+    kernels from the cache instead of compiling them again."""
     numba.set_num_threads(1)
-    with tickets.get_lock():
-        ticket = tickets.value
-        tickets.value += 1
-    workers = stage_done.parties
-    for stage in WARM_UP_STAGES:
-        for task in stage[ticket % workers::workers]:
-            task()
-        try:
-            stage_done.wait(WARM_UP_TIMEOUT)
-        except BrokenBarrierError:
-            pass  # a worker that never came: this one compiles the rest itself
-    for stage in WARM_UP_STAGES:
-        for task in stage:
+    deadline = time.monotonic() + WARM_UP_TIMEOUT
+    mine = set()
+    while True:
+        with taken.get_lock():
+            index = taken.value
+            taken.value += 1
+        if index >= len(WARM_UP_TASKS):
+            break
+        if index in WARM_UP_AFTER:
+            done[WARM_UP_AFTER[index]].wait(max(0.0, deadline - time.monotonic()))
+        WARM_UP_TASKS[index]()
+        done[index].set()
+        mine.add(index)
+    for index, task in enumerate(WARM_UP_TASKS):
+        if index not in mine:
+            # past the deadline (a worker died), this one compiles the task itself
+            done[index].wait(max(0.0, deadline - time.monotonic()))
             task()
 
 
@@ -368,11 +371,17 @@ def _warm_up_neighbourhood():
     return nbh, unit(nbh.points)
 
 
-def _warm_hierarchy() -> None:
-    """The kernels that bin chunks, build and sequentialise a tree and summarise its root."""
-    from . import binning, format
+def _warm_binning() -> None:
+    """The kernels that bin chunks."""
+    from . import binning
 
     binning.warm_up()
+
+
+def _warm_tree() -> None:
+    """The kernels that build and sequentialise a tree and summarise its root."""
+    from . import format
+
     _root_summary(format.warm_up())
 
 
@@ -388,11 +397,13 @@ def _warm_up_sphere() -> np.ndarray:
     return np.random.default_rng(0).normal(size=(64, 3))
 
 
-# The workers' first tasks (_start_worker), compiled from an empty cache in about 10 s each,
-# then the completion, whose borders and queries (7 of its 14 s) the other worker compiles and
-# caches before the completion reaches them.
-WARM_UP_STAGES = ((_warm_neighbours, _warm_hierarchy), (_warm_completion, _warm_borders))
-WARM_UP_TIMEOUT = 600.0  # seconds a worker waits for the others' stage before compiling it itself
+# The workers' first tasks (_start_worker), in the order they are taken. From an empty cache
+# they compile in 10, 2.5, 5.5, 7 and 7 s; the completion reaches the kernels of the borders
+# last, when the other worker has them cached. After a render (the demo) only the binning
+# and the tree are left to compile, by one worker each.
+WARM_UP_TASKS = (_warm_neighbours, _warm_binning, _warm_tree, _warm_completion, _warm_borders)
+WARM_UP_AFTER = {3: 0, 4: 0}  # task: the task whose kernels it calls (compiled first, not twice)
+WARM_UP_TIMEOUT = 600.0  # seconds of warm-up after which a worker stops waiting for the others
 
 
 M_TRIM_THRESHOLD, M_MMAP_MAX = -1, -4  # glibc's mallopt parameters (malloc.h)
