@@ -4,7 +4,8 @@ Dachsbacher, Vogelgsang & Stamminger 2003, "Sequential point trees" (survey sect
 `build` makes the octree hierarchy with its errors, `traverse` the reference recursive
 selection, `sequential` the GPU-friendly list with the CPU prefix and the per-point
 [r_min, r_max] test (surfel/gl/lod.glsl is its shader twin), `format` the file.
-Beyond memory: `outofcore` builds a partitioned hierarchy in a bounded memory budget,
+Beyond memory: `outofcore` builds a partitioned hierarchy in a bounded memory budget (its
+workers' kernels loaded by `worker_warm_up`),
 `lazy` reads it as far as a view needs, `copc`/`copc_write` read and write COPC files, and
 `source` is the protocol both lazy readers follow.
 """

@@ -40,7 +40,7 @@ in-memory build (where the halo reaches far enough: two hops of neighbours on an
 sampled surface). Inputs of PARALLEL_MIN_POINTS or more are built by a pool of w worker
 processes, one partition each at a time on one core, largest first. The workers start with
 the input's scan and load their numba kernels; the first build after an install compiles
-them, each worker its share (`_start_worker`).
+them, each worker its share (worker_warm_up.py).
 
 Top levels: the partition roots become the leaves of a small tree built by the same merge
 rule (`build._merge_cells`, attributes by `build.aggregate_attributes` from the roots'), so
@@ -100,6 +100,7 @@ from ..cloud import PointCloud
 from ..errors import SurfelError
 from ..files import write_atomically, write_json
 from ..preprocess import INACTIVE_CLIP
+from . import worker_warm_up
 from .binning import bin_input, piece_files, progress_bar, record_dtype
 from .build import ROOT_PARENT_ERROR, _merge_cells, _next_level, aggregate_attributes, build_lod, morton_codes
 from .sequential import EXTRAS, r_max_bucket, to_sequential_cloud
@@ -309,101 +310,26 @@ def _build_partitions(partial: Path, counts: list[int], dtype: np.dtype, schema:
 
 def _start_worker(taken, done) -> None:
     """A worker builds one partition at a time on one thread (the pool gives the parallelism);
-    it loads its kernels first. From an empty numba cache (the first build after an install)
-    the workers share the compiling: each takes the next of WARM_UP_TASKS (`taken`, a shared
-    counter) until none is left, a task in WARM_UP_AFTER once the one it needs is done (`done`,
-    an event per task), and then runs the others' tasks as they are done, which loads their
-    kernels from the cache instead of compiling them again."""
+    it loads its kernels first, sharing their compiling with the other workers
+    (worker_warm_up.py: `taken` and `done` are its shared counter and events)."""
     numba.set_num_threads(1)
-    deadline = time.monotonic() + WARM_UP_TIMEOUT
-    mine = set()
-    while True:
-        with taken.get_lock():
-            index = taken.value
-            taken.value += 1
-        if index >= len(WARM_UP_TASKS):
-            break
-        if index in WARM_UP_AFTER:
-            done[WARM_UP_AFTER[index]].wait(max(0.0, deadline - time.monotonic()))
-        WARM_UP_TASKS[index]()
-        done[index].set()
-        mine.add(index)
-    for index, task in enumerate(WARM_UP_TASKS):
-        if index not in mine:
-            # past the deadline (a worker died), this one compiles the task itself
-            done[index].wait(max(0.0, deadline - time.monotonic()))
-            task()
+    worker_warm_up.share(WARM_UP_TASKS, WARM_UP_AFTER, taken, done)
 
 
-def _warm_neighbours() -> None:
-    """The kernels of the neighbour search, and of the sharp features and clip lines that
-    use it (cells.py, sharp_features.py), as `preprocess.complete` runs them."""
-    from ..preprocess.cells import RADIUS_NEIGHBOURS, clip_lines
-    from ..preprocess.frames import tangent_frames
-    from ..preprocess.sharp_features import find_sharp_features
-
-    nbh, normals = _warm_up_neighbourhood()
-    features = find_sharp_features(nbh, normals, RADIUS_NEIGHBOURS)
-    axes = tangent_frames(np.array(normals), np.ones(len(normals)))  # writable, as complete's normals are
-    clip_lines(nbh, normals, axes, features, np.zeros((len(normals), 3)), False)
-
-
-def _warm_borders() -> None:
-    """The kernels of the borders (borders.py) and of the wider queries that confirm them,
-    after `_warm_neighbours`."""
-    from ..preprocess.borders import BORDER_CONFIRM, border_outwards
-    from ..preprocess.cells import RADIUS_NEIGHBOURS
-
-    nbh, normals = _warm_up_neighbourhood()
-    rows = np.arange(8)
-    nbh.within(rows, BORDER_CONFIRM)
-    nbh.nearest(rows, BORDER_CONFIRM)
-    border_outwards(nbh, normals, nbh.first(RADIUS_NEIGHBOURS), False, np.full(len(normals), np.inf))
-
-
-def _warm_up_neighbourhood():
-    """(neighbourhood, unit normals) of 64 points on a sphere."""
-    from ..preprocess.cells import RADIUS_NEIGHBOURS
-    from ..preprocess.frames import unit
-    from ..preprocess.neighbourhood import Neighbourhood
-
-    nbh = Neighbourhood.build(_warm_up_sphere(), RADIUS_NEIGHBOURS, progress=False)
-    return nbh, unit(nbh.points)
-
-
-def _warm_binning() -> None:
-    """The kernels that bin chunks."""
-    from . import binning
-
-    binning.warm_up()
-
-
-def _warm_tree() -> None:
+def _warm_up_tree() -> None:
     """The kernels that build and sequentialise a tree and summarise its root."""
     from . import format
 
     _root_summary(format.warm_up())
 
 
-def _warm_completion() -> None:
-    """Everything else `preprocess.complete` runs on a partition with normals."""
-    from ..preprocess import complete
-
-    sphere = _warm_up_sphere()
-    complete(PointCloud(sphere, normals=sphere), progress=False)
-
-
-def _warm_up_sphere() -> np.ndarray:
-    return np.random.default_rng(0).normal(size=(64, 3))
-
-
-# The workers' first tasks (_start_worker), in the order they are taken. From an empty cache
-# they compile in 10, 2.5, 5.5, 7 and 7 s; the completion reaches the kernels of the borders
-# last, when the other worker has them cached. After a render (the demo) only the binning
-# and the tree are left to compile, by one worker each.
-WARM_UP_TASKS = (_warm_neighbours, _warm_binning, _warm_tree, _warm_completion, _warm_borders)
+# The workers' first tasks, in the order they are taken. From an empty cache they compile in
+# 10, 2.5, 5.5, 7 and 7 s; the completion reaches the kernels of the borders last, when the
+# other worker has them cached. After a render (the demo) only the binning and the tree are
+# left to compile, by one worker each.
+WARM_UP_TASKS = (worker_warm_up.neighbours, worker_warm_up.binned, _warm_up_tree, worker_warm_up.completion,
+                 worker_warm_up.borders)
 WARM_UP_AFTER = {3: 0, 4: 0}  # task: the task whose kernels it calls (compiled first, not twice)
-WARM_UP_TIMEOUT = 600.0  # seconds of warm-up after which a worker stops waiting for the others
 
 
 M_TRIM_THRESHOLD, M_MMAP_MAX = -1, -4  # glibc's mallopt parameters (malloc.h)

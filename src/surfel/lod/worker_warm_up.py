@@ -1,0 +1,91 @@
+"""The warm-up of the out-of-core build's workers: loading, or from an empty numba cache (the
+first build after an install) compiling, the kernels a partition is built with, shared among
+the workers so that each kernel is compiled once.
+
+`share(tasks, after, taken, done)`: a worker takes the next task (`taken`, a counter shared by
+the workers) until none is left, a task listed in `after` once the task it needs is done
+(`done`, an event per task), and then runs the others' tasks as they are done: those load
+their kernels from numba's cache instead of compiling them again.
+
+The tasks below run what `preprocess.complete`, binning and the tree build run, on a few
+points of the same types, so that they compile the very signatures a partition needs.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from ..cloud import PointCloud
+from ..preprocess import complete
+from ..preprocess.borders import BORDER_CONFIRM, border_outwards
+from ..preprocess.cells import RADIUS_NEIGHBOURS, clip_lines
+from ..preprocess.frames import tangent_frames, unit
+from ..preprocess.neighbourhood import Neighbourhood
+from ..preprocess.sharp_features import find_sharp_features
+from . import binning
+
+TIMEOUT = 600.0  # seconds of warm-up after which a worker stops waiting for the others
+
+
+def share(tasks, after: dict[int, int], taken, done) -> None:
+    """Run this worker's share of `tasks`, then the others' (module docstring)."""
+    deadline = time.monotonic() + TIMEOUT
+    mine = set()
+    while True:
+        with taken.get_lock():
+            index = taken.value
+            taken.value += 1
+        if index >= len(tasks):
+            break
+        if index in after:
+            done[after[index]].wait(max(0.0, deadline - time.monotonic()))
+        tasks[index]()
+        done[index].set()
+        mine.add(index)
+    for index, task in enumerate(tasks):
+        if index not in mine:
+            # past the deadline (a worker died), this one compiles the task itself
+            done[index].wait(max(0.0, deadline - time.monotonic()))
+            task()
+
+
+def neighbours() -> None:
+    """The kernels of the neighbour search, and of the sharp features and clip lines that
+    use it (cells.py, sharp_features.py)."""
+    nbh, normals = _neighbourhood()
+    features = find_sharp_features(nbh, normals, RADIUS_NEIGHBOURS)
+    axes = tangent_frames(np.array(normals), np.ones(len(normals)))  # writable, as complete's normals are
+    clip_lines(nbh, normals, axes, features, np.zeros((len(normals), 3)), False)
+
+
+def borders() -> None:
+    """The kernels of the borders (borders.py) and of the wider queries that confirm them,
+    after `neighbours`."""
+    nbh, normals = _neighbourhood()
+    rows = np.arange(8)
+    nbh.within(rows, BORDER_CONFIRM)
+    nbh.nearest(rows, BORDER_CONFIRM)
+    border_outwards(nbh, normals, nbh.first(RADIUS_NEIGHBOURS), False, np.full(len(normals), np.inf))
+
+
+def binned() -> None:
+    """The kernels that bin chunks."""
+    binning.warm_up()
+
+
+def completion() -> None:
+    """Everything else `preprocess.complete` runs on a partition with normals."""
+    sphere = _sphere()
+    complete(PointCloud(sphere, normals=sphere), progress=False)
+
+
+def _neighbourhood() -> tuple[Neighbourhood, np.ndarray]:
+    """(neighbourhood, unit normals) of 64 points on a sphere."""
+    nbh = Neighbourhood.build(_sphere(), RADIUS_NEIGHBOURS, progress=False)
+    return nbh, unit(nbh.points)
+
+
+def _sphere() -> np.ndarray:
+    return np.random.default_rng(0).normal(size=(64, 3))
