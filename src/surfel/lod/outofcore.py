@@ -100,7 +100,7 @@ from ..cloud import PointCloud
 from ..errors import SurfelError
 from ..files import write_atomically, write_json
 from ..preprocess import INACTIVE_CLIP
-from . import worker_warm_up
+from . import binning, worker_warm_up
 from .binning import bin_input, piece_files, progress_bar, record_dtype
 from .build import ROOT_PARENT_ERROR, _merge_cells, _next_level, aggregate_attributes, build_lod, morton_codes
 from .sequential import EXTRAS, r_max_bucket, to_sequential_cloud
@@ -327,7 +327,7 @@ def _warm_up_tree() -> None:
 # 10, 2.5, 5.5, 7 and 7 s; the completion reaches the kernels of the borders last, when the
 # other worker has them cached. After a render (the demo) only the binning and the tree are
 # left to compile, by one worker each.
-WARM_UP_TASKS = (worker_warm_up.neighbours, worker_warm_up.binned, _warm_up_tree, worker_warm_up.completion,
+WARM_UP_TASKS = (worker_warm_up.neighbours, binning.warm_up, _warm_up_tree, worker_warm_up.completion,
                  worker_warm_up.borders)
 WARM_UP_AFTER = {3: 0, 4: 0}  # task: the task whose kernels it calls (compiled first, not twice)
 

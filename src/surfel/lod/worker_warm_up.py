@@ -7,8 +7,9 @@ the workers) until none is left, a task listed in `after` once the task it needs
 (`done`, an event per task), and then runs the others' tasks as they are done: those load
 their kernels from numba's cache instead of compiling them again.
 
-The tasks below run what `preprocess.complete`, binning and the tree build run, on a few
-points of the same types, so that they compile the very signatures a partition needs.
+The tasks below, with `binning.warm_up` and outofcore's tree task, run what binning,
+`preprocess.complete` and the tree build run, on a few points of the same types, so that they
+compile the very signatures a partition needs.
 """
 
 from __future__ import annotations
@@ -24,7 +25,6 @@ from ..preprocess.cells import RADIUS_NEIGHBOURS, clip_lines
 from ..preprocess.frames import tangent_frames, unit
 from ..preprocess.neighbourhood import Neighbourhood
 from ..preprocess.sharp_features import find_sharp_features
-from . import binning
 
 TIMEOUT = 600.0  # seconds of warm-up after which a worker stops waiting for the others
 
@@ -68,11 +68,6 @@ def borders() -> None:
     nbh.within(rows, BORDER_CONFIRM)
     nbh.nearest(rows, BORDER_CONFIRM)
     border_outwards(nbh, normals, nbh.first(RADIUS_NEIGHBOURS), False, np.full(len(normals), np.inf))
-
-
-def binned() -> None:
-    """The kernels that bin chunks."""
-    binning.warm_up()
 
 
 def completion() -> None:
