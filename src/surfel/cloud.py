@@ -34,7 +34,8 @@ from .attributes import (
 from .errors import InputError
 
 
-def _read_only(array: np.ndarray) -> np.ndarray:
+def read_only(array: np.ndarray) -> np.ndarray:
+    """`array`, made read-only (in place), as every array of a cloud is."""
     array.setflags(write=False)
     return array
 
@@ -246,7 +247,7 @@ class PointCloud:
                 raise InputError(src, f"{len(sensors)} sensors need an integer attribute 'scan' indexing them")
         for array in (pos, normals, colors, radii, axes, faces, sensors, *attributes.values()):
             if array is not None:
-                _read_only(array)
+                read_only(array)
         for name, value in [("positions", pos), ("normals", normals), ("colors", colors), ("radii", radii),
                             ("axes", axes), ("faces", faces), ("attributes", attributes), ("kinds", kinds),
                             ("sensors", sensors)]:
@@ -334,7 +335,7 @@ class PointCloud:
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """(min, max) corners; computed once, since renderers ask every frame."""
         lo, hi = corners(self.positions)
-        return _read_only(lo), _read_only(hi)
+        return read_only(lo), read_only(hi)
 
     @cached_property
     def max_splat_radius(self) -> float:

@@ -68,7 +68,7 @@ import numpy as np
 from tqdm import tqdm
 
 from ..attributes import CATEGORICAL
-from ..cloud import PointCloud, corners
+from ..cloud import PointCloud, corners, read_only
 from ..preprocess import INACTIVE_CLIP, clipped_away
 
 MORTON_BITS = 21  # bits per axis: 63-bit codes
@@ -174,9 +174,7 @@ def morton_codes(positions: np.ndarray) -> np.ndarray:
 def _absent(shape: tuple[int, ...]) -> np.ndarray:
     """An empty float32 stand-in for an array the cloud lacks, read-only like the cloud's own:
     numba compiles one kernel whichever arrays a cloud has."""
-    empty = np.empty(shape, np.float32)
-    empty.flags.writeable = False
-    return empty
+    return read_only(np.empty(shape, np.float32))
 
 
 @numba.njit(parallel=True, cache=True)

@@ -65,7 +65,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..camera import Camera
-from ..cloud import PointCloud
+from ..cloud import PointCloud, read_only
 from ..options import RenderOptions, check_cpu_samples, non_negative, open_unit_interval, positive, setting
 from ..preprocess import INACTIVE_CLIP, drawn_normals, splat_thickness
 from ..result import RenderResult
@@ -127,11 +127,7 @@ def splat_colors(cloud: PointCloud) -> np.ndarray:
     """(N, 3) albedo, or (1, 3) white for a cloud without colours; read-only either way, as a
     cloud's arrays are, so that the kernels are compiled for one kind of array (numba compiles
     writable and read-only arguments separately)."""
-    if cloud.colors is not None:
-        return cloud.colors
-    white = np.ones((1, 3), np.float32)
-    white.flags.writeable = False
-    return white
+    return cloud.colors if cloud.colors is not None else read_only(np.ones((1, 3), np.float32))
 
 
 def splat_clip_lines(cloud: PointCloud) -> np.ndarray:

@@ -25,6 +25,8 @@ import weakref
 import numba
 import numpy as np
 
+from ..cloud import read_only
+
 
 @numba.njit(cache=True, inline="always")
 def _unit_row(v, i):  # pragma: no cover - compiled
@@ -86,8 +88,7 @@ def unit(v: np.ndarray) -> np.ndarray:
     ulp, could round them differently)."""
     if _MADE.get(id(v)) is v:
         return v
-    rows = _unit_rows(np.ascontiguousarray(v, np.float64))
-    rows.flags.writeable = False
+    rows = read_only(_unit_rows(np.ascontiguousarray(v, np.float64)))
     _MADE[id(rows)] = rows
     return rows
 
