@@ -395,6 +395,55 @@ def test_ply_summaries_are_those_of_the_converted_chunks(tmp_path):
         assert str(fast_error.value) == str(slow_error.value)
 
 
+WARM_UP_THEN_PARTITION = """
+import sys
+import numpy as np
+from numba.core.registry import CPUDispatcher
+from surfel.attributes import Schema
+from surfel.cloud import PointCloud
+from surfel.lod import binning, outofcore
+from surfel.preprocess import complete
+
+bins, normals, geospatial = (arg == "1" for arg in sys.argv[1:])
+tasks, after = outofcore.warm_up_tasks(bins, normals, geospatial)
+assert (binning.warm_up in tasks) == bins
+assert set(after.values()) == {0} and len(after) == 2  # the neighbour search comes first
+for index in (0, *after):
+    tasks[index]()
+
+
+def signatures():
+    return {(name, key, str(signature)) for name, module in list(sys.modules.items())
+            if name.startswith("surfel.preprocess.") for key, value in vars(module).items()
+            if isinstance(value, CPUDispatcher) for signature in value.signatures}
+
+
+before = signatures()
+records = np.zeros(3000, binning.record_dtype(normals, False, Schema()))
+records["p"] = np.random.default_rng(2).random((3000, 3)) * [100.0, 100.0, 5.0]
+if normals:
+    records["n"] = [0.0, 0.0, 1.0]
+complete(PointCloud(records["p"], normals=records["n"] if normals else None, geospatial=geospatial), progress=False)
+print(sorted(signatures() - before))
+"""
+
+
+@pytest.mark.parametrize("needs", ["110", "001"], ids=["ply with normals", "las"])
+def test_the_warm_up_compiles_what_a_partition_needs(needs):
+    """The workers' warm-up follows the input: no binning where this process bins (LAS), and a
+    completion that estimates normals where the input has none, so that building a partition
+    afterwards needs no preprocessing kernel of its own (each a second or more to compile in
+    every worker on the first build). In a fresh process, whose kernels come from numba's
+    cache: the kernels a partition needs are exactly those the warm-up loaded."""
+    import subprocess
+    import sys
+
+    run = subprocess.run([sys.executable, "-c", WARM_UP_THEN_PARTITION, *needs], capture_output=True, text=True,
+                         timeout=600)
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.strip() == "[]"
+
+
 def test_workers_share_the_warm_up(monkeypatch):
     """Every warm-up task is run first by one worker alone, a task that needs another starts
     after it, both workers take tasks, and each worker ends having run every task once (the
@@ -417,11 +466,11 @@ def test_workers_share_the_warm_up(monkeypatch):
                 log.append(("end", threading.current_thread().name, index))
         return run
 
-    monkeypatch.setattr(outofcore, "WARM_UP_TASKS", tuple(task(i) for i in range(5)))
-    monkeypatch.setattr(outofcore, "WARM_UP_AFTER", {3: 0, 4: 0})
+    monkeypatch.setattr(outofcore, "warm_up_tasks", lambda *needs: ([task(i) for i in range(5)], {3: 0, 4: 0}))
     context = get_context("spawn")
     taken, done = context.Value("i", 0), [context.Event() for _ in range(5)]
-    workers = [threading.Thread(target=outofcore._start_worker, args=(taken, done), name=f"w{i}") for i in range(2)]
+    workers = [threading.Thread(target=outofcore._start_worker, args=(taken, done, (True, True, False)),
+                                name=f"w{i}") for i in range(2)]
     for worker in workers:
         worker.start()
     for worker in workers:

@@ -354,7 +354,7 @@ def bin_input(inputs: list[StreamInput], partial: Path, cap: int, signature: dic
     bins.folder.mkdir()
     chunks = [(source, index) for source, i in enumerate(inputs) for index in range(-(-i.count // CHUNK_POINTS))]
     with progress_bar(total, "partition", progress) as bar:
-        if pool is not None and workers > 1 and len(chunks) > 1 and all(i.kind == "ply" for i in inputs):
+        if pool is not None and workers > 1 and len(chunks) > 1 and binned_by_workers(inputs):
             cuts = np.linspace(0, len(chunks), min(workers, len(chunks)) + 1).round().astype(int)
             jobs = {pool.submit(bins.add_ply, inputs, chunks[a:b], CHUNK_POINTS, piece): b - a
                     for piece, (a, b) in enumerate(zip(cuts[:-1], cuts[1:], strict=True))}
@@ -370,6 +370,12 @@ def bin_input(inputs: list[StreamInput], partial: Path, cap: int, signature: dic
     return {"signature": signature, "lo": lo.tolist(), "size": size, "cells": plan.cells,
             "counts": counts.tolist(), "has_normals": has_normals, "has_colors": has_colors,
             "schema": schema.to_list(), "geospatial": any(i.geospatial for i in inputs)}
+
+
+def binned_by_workers(inputs: list[StreamInput]) -> bool:
+    """Whether a pool's workers bin `inputs` (binary PLY files, read at offsets) rather than
+    this process (LAS chunks are decoded in order)."""
+    return all(i.kind == "ply" for i in inputs)
 
 
 def warm_up() -> None:

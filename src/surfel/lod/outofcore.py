@@ -80,6 +80,7 @@ NAME. An interrupted build leaves only NAME.partial/ (never a complete-looking N
 from __future__ import annotations
 
 import ctypes
+import functools
 import json
 import math
 import os
@@ -210,9 +211,12 @@ def build_outofcore(in_path: str | os.PathLike, out_path: str | os.PathLike, *, 
         pool = None
         if workers > 1:  # started now, so that the workers load their kernels while the input is scanned
             context = get_context("spawn")
+            # as binning will find them (normals given as placeholders only are estimated too)
+            needs = (binning.binned_by_workers(inputs), inputs[0].has_normals, any(i.geospatial for i in inputs))
+            events = [context.Event() for _ in warm_up_tasks(*needs)[0]]
             pool = stack.enter_context(ProcessPoolExecutor(
                 workers, mp_context=context, initializer=_start_worker,
-                initargs=(context.Value("i", 0), [context.Event() for _ in WARM_UP_TASKS])))
+                initargs=(context.Value("i", 0), events, needs)))
             for _ in range(workers):
                 pool.submit(int)
         saved = _plan_and_bin(inputs, partial, cap, signature, resume, progress, pool, workers)
@@ -308,12 +312,13 @@ def _build_partitions(partial: Path, counts: list[int], dtype: np.dtype, schema:
             for name, done in zip(names, finished, strict=True)]
 
 
-def _start_worker(taken, done) -> None:
+def _start_worker(taken, done, needs: tuple[bool, bool, bool]) -> None:
     """A worker builds one partition at a time on one thread (the pool gives the parallelism);
     it loads its kernels first, sharing their compiling with the other workers
-    (worker_warm_up.py: `taken` and `done` are its shared counter and events)."""
+    (worker_warm_up.py: `taken` and `done` are its shared counter and events; `needs` are
+    `warm_up_tasks`' arguments)."""
     numba.set_num_threads(1)
-    worker_warm_up.share(WARM_UP_TASKS, WARM_UP_AFTER, taken, done)
+    worker_warm_up.share(*warm_up_tasks(*needs), taken, done)
 
 
 def _warm_up_tree() -> None:
@@ -323,13 +328,20 @@ def _warm_up_tree() -> None:
     _root_summary(format.warm_up())
 
 
-# The workers' first tasks, in the order they are taken. From an empty cache they compile in
-# 10, 2.5, 5.5, 7 and 7 s; the completion reaches the kernels of the borders last, when the
-# other worker has them cached. After a render (the demo) only the binning and the tree are
-# left to compile, by one worker each.
-WARM_UP_TASKS = (worker_warm_up.neighbours, binning.warm_up, _warm_up_tree, worker_warm_up.completion,
-                 worker_warm_up.borders)
-WARM_UP_AFTER = {3: 0, 4: 0}  # task: the task whose kernels it calls (compiled first, not twice)
+def warm_up_tasks(bins: bool, normals: bool, geospatial: bool) -> tuple[list, dict[int, int]]:
+    """The workers' first tasks, in the order they are taken, and {task: the task whose kernels
+    it calls} (that one is compiled first, not twice): the binning's if the workers bin
+    (`binning.binned_by_workers`), the completion of partitions with or without `normals`.
+
+    From an empty cache they compile in 10, 2.5, 5.5, 7 and 7 s (a PLY with normals); the
+    completion reaches the kernels of the borders last, when the other worker has them cached.
+    After a render (the demo) only the binning and the tree are left to compile, by one worker
+    each."""
+    completion = functools.partial(worker_warm_up.completion, normals, geospatial)
+    tasks = [worker_warm_up.neighbours, *([binning.warm_up] if bins else []), _warm_up_tree, completion,
+             worker_warm_up.borders]
+    after = {tasks.index(completion): 0, tasks.index(worker_warm_up.borders): 0}
+    return tasks, after
 
 
 M_TRIM_THRESHOLD, M_MMAP_MAX = -1, -4  # glibc's mallopt parameters (malloc.h)

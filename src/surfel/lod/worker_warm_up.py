@@ -70,10 +70,11 @@ def borders() -> None:
     border_outwards(nbh, normals, nbh.first(RADIUS_NEIGHBOURS), False, np.full(len(normals), np.inf))
 
 
-def completion() -> None:
-    """Everything else `preprocess.complete` runs on a partition with normals."""
+def completion(normals: bool, geospatial: bool) -> None:
+    """Everything else `preprocess.complete` runs on a partition: with its normals, or
+    estimating them (PCA; for a geospatial cloud facing +Z)."""
     sphere = _sphere()
-    complete(PointCloud(sphere, normals=sphere), progress=False)
+    complete(PointCloud(sphere, normals=sphere if normals else None, geospatial=geospatial), progress=False)
 
 
 def _neighbourhood() -> tuple[Neighbourhood, np.ndarray]:
