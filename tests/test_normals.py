@@ -91,3 +91,49 @@ def test_scale_selection_on_a_noisy_sphere():
     assert np.percentile(selected_error, 95) < 4
     clean = sphere(20_000)
     assert np.array_equal(estimate_normals(clean)[0], estimate_normals(clean, select_scale=True)[0])
+
+
+def test_propagation_tree_is_a_minimum_spanning_forest():
+    """Prim's forest of the propagation (numba) weighs what scipy's minimum spanning tree of the
+    same symmetric kNN graph weighs: two implementations of one tree."""
+    from scipy import sparse
+    from scipy.sparse import csgraph
+
+    from surfel.preprocess.neighbourhood import Neighbourhood
+    from surfel.preprocess.normals import ORIENT_NEIGHBOURS, _propagate, pca_normals
+
+    rng = np.random.default_rng(4)
+    parts = [sphere(3_000, seed=5), 0.3 * sphere(500, seed=6) + [4, 0, 0], rng.uniform(-1, 1, (400, 3)) + [0, 5, 0]]
+    nbh = Neighbourhood.build(np.concatenate(parts), 16, progress=False)
+    normals = pca_normals(nbh, 16, False)[0]
+    cols = np.ascontiguousarray(nbh.first(ORIENT_NEIGHBOURS + 1)[:, 1:])
+    sign, parent, component, count, dots = _propagate(cols, normals)
+    n = len(cols)
+    weight = 1.0 - np.abs(np.einsum("ij,ikj->ik", normals, normals[cols])) + 1e-6
+    graph = sparse.csr_matrix((weight.ravel(), cols.ravel(), np.arange(0, cols.size + 1, cols.shape[1])), (n, n))
+    expected = csgraph.minimum_spanning_tree(graph.maximum(graph.T)).sum()
+    tree = parent >= 0
+    got = (1.0 - np.abs(np.einsum("ij,ij->i", normals[tree], normals[parent[tree]])) + 1e-6).sum()
+    assert abs(got - expected) < 1e-9 * n
+    assert count == csgraph.connected_components(graph, directed=False)[0] and count >= 3
+    assert (component[parent[tree]] == component[tree]).all()
+    # each point agrees with its parent
+    assert (sign[tree] * sign[parent[tree]] * np.sign(dots[tree]) >= 0).all()
+
+
+def test_geospatial_objects_keep_one_orientation():
+    """A closed object in a LAS file (a terrestrial scan, a building's eaves): its normals are
+    propagated, not each turned to +Z, so neighbours never face apart (they would read as the
+    two sides of a sheet); a terrain patch still faces up."""
+    from surfel.cloud import PointCloud
+    from surfel.preprocess import prepare
+
+    ball = sphere(20_000) * 10.0 + [500.0, 300.0, 20.0]
+    cloud, report = prepare(PointCloud(ball, geospatial=True), progress=False)
+    outward = np.einsum("ij,ij->i", cloud.normals, ball - [500.0, 300.0, 20.0])
+    assert min((outward > 0).mean(), (outward < 0).mean()) == 0.0, report["normals"]
+    rng = np.random.default_rng(7)
+    xy = rng.uniform(0, 100, (20_000, 2))
+    ground = np.c_[xy, 5 * np.sin(xy[:, 0] / 15) + 3 * np.cos(xy[:, 1] / 20)]
+    terrain, _ = prepare(PointCloud(ground, geospatial=True), progress=False)
+    assert (terrain.normals[:, 2] > 0).all()

@@ -7,9 +7,9 @@ FIELD_NEIGHBOURS), serves every estimation, in this order, each using the ones b
   1. normals (`normals.py`): u x v of given axes, else PCA (each point's neighbourhood size
      selected when the cloud is noisy and not geospatial, and k_normals is the default),
      oriented towards the sensor when its position is known (`sensor`, or the cloud's
-     `sensors`), +Z for geospatial clouds (aerial scans, seen from above), or by propagation
-     and outward; with them, from the same PCA, the points drawn facing the camera
-     (`structure.py`);
+     `sensors`), else by propagation, each connected part facing up (+Z) for geospatial clouds
+     (aerial scans, seen from above) or outward; with them, from the same PCA, the points
+     drawn facing the camera (`structure.py`);
   2. with the splats, the thickness of each point's layer (`thickness.py`), which caps z_t
      where another surface lies within a splat radius and keeps that surface's samples out of
      the cells (splats given with the cloud keep their z_t);
@@ -50,6 +50,8 @@ from .spacing import BOUND_FACTOR, bound_semi_axes, sampling_spacing
 from .structure import round_radii, scans_surroundings, screen_facing
 from .thickness import layer_thickness
 
+UP = np.array([0.0, 0.0, 1.0])  # a geospatial cloud's up axis
+
 
 def complete(cloud: PointCloud, *, needs_radii: bool = True, elliptical: bool = False,
              normal_field: bool = False, progress: bool | None = None,
@@ -81,8 +83,8 @@ def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np
     guided by the given normals, else by normals estimated as below, then estimate from them.
 
     normals: estimated if None: towards the sensor (`sensor` (3,), else the cloud's own
-    `sensors`) if known; geospatial clouds (aerial scans, seen from above) face +Z; otherwise
-    propagated and outward. A cloud with axes but no normals gets u x v, the orientation its
+    `sensors`) if known; otherwise propagated, each part facing up (+Z) for geospatial clouds
+    (aerial scans, seen from above) or outward. A cloud with axes but no normals gets u x v, the orientation its
     splats already have. With estimated normals, attributes["screen_facing"] marks the points
     drawn as round splats facing the camera (`structure.py`).
     radii: estimated if None (covering radii of the tangent-plane Voronoi cells).
@@ -110,10 +112,9 @@ def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np
     towards_sensor = None if sensors is None else nbh.sort(sensors - cloud.positions)
     if towards_sensor is not None:
         towards, how = towards_sensor, "facing the sensor"
-    elif cloud.geospatial:
-        towards, how = np.array([0.0, 0.0, 1.0]), "facing up (+Z)"
     else:
-        towards, how = None, "oriented by MST propagation, outward"
+        towards, how = None, f"oriented by MST propagation, {'facing up (+Z)' if cloud.geospatial else 'outward'}"
+    up = UP if cloud.geospatial else None
     # geospatial tiles keep one scale: millions of points, and aerial noise is not an object's
     select = not cloud.geospatial and k_normals == NORMAL_NEIGHBOURS
     estimated: dict = {}
@@ -125,7 +126,7 @@ def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np
     positions = None
     if smooth:
         guide = normals if normals is not None else from_axes if given["axes"] is not None else \
-            oriented_normals(nbh, k_normals, towards, progress, select)[0]
+            oriented_normals(nbh, k_normals, towards, progress, select, up)[0]
         moved = smoothed_points(nbh, guide, progress)
         positions = cloud.positions + nbh.unsort(moved - nbh.points)
         report["smooth"] = (f"MLS projection (k={SMOOTH_NEIGHBOURS}), mean move "
@@ -136,7 +137,7 @@ def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np
         normals = estimated["normals"] = from_axes
         report["normals"] = "from the splat axes (u x v)"
     elif normals is None:
-        normals, ambiguous, eigenvalues, selected = oriented_normals(nbh, k_normals, towards, progress, select)
+        normals, ambiguous, eigenvalues, selected = oriented_normals(nbh, k_normals, towards, progress, select, up)
         estimated["normals"] = normals
         scale = f"k per point in {SCALES[0]}..{SCALES[-1]} (noisy)" if selected else f"k={k_normals}"
         report["normals"] = f"estimated (PCA, {scale}, {how})"

@@ -27,14 +27,20 @@ neighbourhoods searched.
 
 Orientation: towards a viewpoint when the sensor position is known; otherwise consistently by
 propagation (Hoppe, DeRose, Duchamp, McDonald & Stuetzle 1992, "Surface reconstruction from
-unorganized points"): a minimum spanning tree of the kNN graph (ORIENT_NEIGHBOURS per point;
-Hoppe's Riemannian graph adds the Euclidean MST to connect everything, here each connected
-component is oriented on its own) with edge weights 1 - |n_i . n_j| (so flips propagate
-across nearly parallel normals first), walked breadth-first, every node taking the sign that
-agrees with its parent. Each connected component then faces outward as a whole: it is flipped
-when the flux sum_i n_i . (p_i - centroid) is negative, which by the divergence theorem (the
-flux of p - c through a closed surface is 3 x its volume) is the outward choice for closed
-scans, and does not hinge on one seed point's normal.
+unorganized points"): a minimum spanning tree of the symmetric kNN graph (ORIENT_NEIGHBOURS per
+point; Hoppe's Riemannian graph adds the Euclidean MST to connect everything, here each
+connected component is oriented on its own) with edge weights 1 - |n_i . n_j| (so flips
+propagate across nearly parallel normals first), grown by Prim's algorithm (an indexed binary
+heap, in numba), every point taking the sign that agrees with its tree parent. Each connected
+component then faces outward as a whole: it is flipped when the flux
+sum_i n_i . (p_i - centroid) is negative, which by the divergence theorem (the flux of p - c
+through a closed surface is 3 x its volume) is the outward choice for closed scans, and does
+not hinge on one seed point's normal. A geospatial cloud (an aerial tile, seen from above)
+has an up direction instead: each component faces up as a whole, sum_i n_i . up >= 0, unless
+it rises as much as it falls (|sum| < AMBIGUOUS_COS sum |n_i . up|: walls, a closed object),
+when the flux decides. Facing +Z point by point would flip half of every steep surface at
+random (walls, crowns, an object's sides), and neighbours facing apart read as the two sides
+of a sheet or a crease to every estimation after.
 
 `ambiguous` counts the points whose orientation is a guess:
   * degenerate neighbourhoods without a tangent plane: the two smallest covariance
@@ -43,7 +49,8 @@ scans, and does not hinge on one seed point's normal.
   * sign decisions taken against a nearly perpendicular reference, |cos| < AMBIGUOUS_COS:
     the tree parent's normal, or the direction to the viewpoint;
   * every point of a component without an outside: |flux| < AMBIGUOUS_COS x
-    sum_i |n_i . (p_i - c)| (a flat patch, a single point), whose sign is arbitrary.
+    sum_i |n_i . (p_i - c)| (a flat patch, a single point), and, given an up direction,
+    without one either, whose sign is arbitrary.
 """
 
 from __future__ import annotations
@@ -52,8 +59,6 @@ import math
 
 import numba
 import numpy as np
-from scipy import sparse
-from scipy.sparse import csgraph
 
 from .chunked import map_chunks
 from .neighbourhood import Neighbourhood, as_points
@@ -133,18 +138,6 @@ def _pca(points, index, start):  # pragma: no cover - compiled
     return values, vectors
 
 
-@numba.njit(cache=True)
-def _cumulative_sign(order, parent, relative):  # pragma: no cover - compiled
-    """Product of the relative signs along the path to the root: BFS order puts every parent
-    before its children, so one pass suffices."""
-    sign = relative.copy()
-    for node in order:
-        p = parent[node]
-        if p >= 0:
-            sign[node] *= sign[p]
-    return sign
-
-
 def pca_normals(nbh: Neighbourhood, k: int, progress: bool | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Unoriented unit normals (N, 3) float64, the degenerate-neighbourhood mask, and the
     covariance eigenvalues (N, 3) float64, ascending (what `structure.py` reads the shape of a
@@ -199,49 +192,130 @@ def orient_towards(normals: np.ndarray, towards: np.ndarray) -> np.ndarray:
     return np.abs(dot) < AMBIGUOUS_COS * np.linalg.norm(towards, axis=1)
 
 
-def _spanning_forest(nbh: Neighbourhood, normals: np.ndarray) -> tuple[int, np.ndarray, np.ndarray, np.ndarray]:
-    """The minimum spanning forest of the propagation graph: (components, the component of
-    each point, breadth-first order, each point's parent or -1 at a component's seed)."""
-    n = len(nbh.points)
-    cols = np.ascontiguousarray(nbh.first(ORIENT_NEIGHBOURS + 1)[:, 1:])
-    kg = cols.shape[1]
-    # + epsilon: a weight of 0 would be no edge in a sparse graph
-    weights = map_chunks(lambda start, stop: 1.0 - np.abs(np.einsum("ij,ikj->ik", normals[start:stop],
-                                                                    normals[cols[start:stop]])) + 1e-6, n)
-    # Rows are sorted already: build the CSR directly instead of sorting N k COO entries.
-    graph = sparse.csr_matrix((weights.ravel(), cols.ravel(), np.arange(0, n * kg + 1, kg)), shape=(n, n))
-    tree = csgraph.minimum_spanning_tree(graph).tocoo()
-    count, labels = csgraph.connected_components(tree, directed=False)
-    seeds = np.unique(labels, return_index=True)[1]  # any point will do: the flux decides the sign
-    # One breadth-first walk over all components: a virtual root (node n) joined to every seed.
-    root = n
-    rows = np.concatenate([tree.row, np.full(count, root, tree.row.dtype)])
-    cols_t = np.concatenate([tree.col, seeds.astype(tree.col.dtype)])
-    forest = sparse.csr_matrix((np.ones(len(rows)), (rows, cols_t)), shape=(n + 1, n + 1))
-    order, parent = csgraph.breadth_first_order(forest, root, directed=False, return_predecessors=True)
-    parent = parent[:n].astype(np.int64)
-    parent[parent == root] = -1
-    return count, labels, order[order != root], parent
+@numba.njit(cache=True, inline="always")
+def _sift_up(heap, place, key, at):  # pragma: no cover - compiled
+    """Move heap[at] up the binary min-heap (by key) until its parent's key is not larger."""
+    node = heap[at]
+    while at > 0:
+        up = (at - 1) // 2
+        if key[heap[up]] <= key[node]:
+            break
+        heap[at] = heap[up]
+        place[heap[at]] = at
+        at = up
+    heap[at] = node
+    place[node] = at
 
 
-def orient_by_propagation(nbh: Neighbourhood, normals: np.ndarray) -> np.ndarray:
+@numba.njit(cache=True, inline="always")
+def _sift_down(heap, place, key, size, at):  # pragma: no cover - compiled
+    """Move heap[at] down the binary min-heap (by key) until no child's key is smaller."""
+    node = heap[at]
+    while True:
+        child = 2 * at + 1
+        if child >= size:
+            break
+        if child + 1 < size and key[heap[child + 1]] < key[heap[child]]:
+            child += 1
+        if key[heap[child]] >= key[node]:
+            break
+        heap[at] = heap[child]
+        place[heap[at]] = at
+        at = child
+    heap[at] = node
+    place[node] = at
+
+
+@numba.njit(cache=True)
+def _propagate(index, normals):  # pragma: no cover - compiled
+    """Prim's minimum spanning forest of the symmetric kNN graph of `index` (N, k), edge weight
+    1 - |n_i . n_j|, grown from the lowest unvisited point of each component, with an indexed
+    binary heap (O(N) memory). Each point takes the sign agreeing with its tree parent's.
+    Returns (sign (N,) int8, parent (N,) or -1 at a seed, component (N,), the number of
+    components, the dot product with the parent (1 at a seed))."""
+    n, k = index.shape
+    # the reverse lists: j lists i when i lists j, so that the graph is symmetric
+    starts = np.zeros(n + 1, np.int64)
+    for i in range(n):
+        for j in range(k):
+            starts[index[i, j] + 1] += 1
+    for i in range(n):
+        starts[i + 1] += starts[i]
+    cursor = starts[:-1].copy()
+    listed_by = np.empty(n * k, np.int64)
+    for i in range(n):
+        for j in range(k):
+            q = index[i, j]
+            listed_by[cursor[q]] = i
+            cursor[q] += 1
+    sign = np.zeros(n, np.int8)
+    parent = np.full(n, -1, np.int64)
+    component = np.full(n, -1, np.int64)
+    dots = np.ones(n)
+    key = np.full(n, np.inf)
+    towards = np.full(n, -1, np.int64)  # the visited point of the lightest edge to each point
+    heap = np.empty(n, np.int64)
+    place = np.full(n, -1, np.int64)  # position in the heap, -1 outside it
+    done = np.zeros(n, np.bool_)
+    components = 0
+    for seed in range(n):
+        if done[seed]:
+            continue
+        size = 1
+        heap[0] = seed
+        place[seed] = 0
+        key[seed] = 0.0
+        while size > 0:
+            u = heap[0]
+            place[u] = -1
+            size -= 1
+            if size > 0:
+                heap[0] = heap[size]
+                place[heap[0]] = 0
+                _sift_down(heap, place, key, size, 0)
+            done[u] = True
+            component[u] = components
+            via = towards[u]
+            if via < 0:
+                sign[u] = 1
+            else:
+                d = normals[u, 0] * normals[via, 0] + normals[u, 1] * normals[via, 1] + normals[u, 2] * normals[via, 2]
+                parent[u] = via
+                dots[u] = d
+                sign[u] = sign[via] if d >= 0.0 else -sign[via]
+            for side in range(2):
+                count = k if side == 0 else starts[u + 1] - starts[u]
+                for j in range(count):
+                    v = index[u, j] if side == 0 else listed_by[starts[u] + j]
+                    if done[v] or v == u:
+                        continue
+                    # + epsilon as in Hoppe's graph: parallel normals still make an edge
+                    w = 1.0 - abs(normals[u, 0] * normals[v, 0] + normals[u, 1] * normals[v, 1]
+                                  + normals[u, 2] * normals[v, 2]) + 1e-6
+                    if w < key[v]:
+                        key[v] = w
+                        towards[v] = u
+                        if place[v] < 0:
+                            heap[size] = v
+                            place[v] = size
+                            size += 1
+                        _sift_up(heap, place, key, place[v])
+        components += 1
+    return sign, parent, component, components, dots
+
+
+def orient_by_propagation(nbh: Neighbourhood, normals: np.ndarray, up: np.ndarray | None = None) -> np.ndarray:
     """Orient normals (in place) consistently over the kNN graph (Hoppe et al. 1992), each
-    component outward; returns the mask of points whose sign decision was ambiguous."""
+    component outward, or facing `up` where it says which way is up; returns the mask of points
+    whose sign decision was ambiguous."""
     pts = nbh.points
     n = len(pts)
     if nbh.first(ORIENT_NEIGHBOURS + 1).shape[1] == 1:  # single points: no graph
         return np.ones(n, bool)
-    count, labels, order, parent = _spanning_forest(nbh, normals)
-    has_parent = parent >= 0
-
-    def parent_dots(start: int, stop: int) -> np.ndarray:
-        p = np.where(has_parent[start:stop], parent[start:stop], np.arange(start, stop))
-        return np.einsum("ij,ij->i", normals[start:stop], normals[p])
-
-    dots = map_chunks(parent_dots, n)
-    relative = np.where(dots < 0, -1, 1).astype(np.int8)
-    ambiguous = has_parent & (np.abs(dots) < AMBIGUOUS_COS)
-    sign = _cumulative_sign(order, parent, relative)
+    cols = np.ascontiguousarray(nbh.first(ORIENT_NEIGHBOURS + 1)[:, 1:])
+    sign, parent, labels, count, dots = _propagate(cols, np.ascontiguousarray(normals, np.float64))
+    sign = sign.astype(np.float64)
+    ambiguous = (parent >= 0) & (np.abs(dots) < AMBIGUOUS_COS)
     # Each component as a whole faces outward: positive flux of (p - centroid).
     size = np.bincount(labels, minlength=count)
     centroid = np.stack([np.bincount(labels, pts[:, a], count) for a in range(3)], axis=1) / size[:, None]
@@ -249,18 +323,26 @@ def orient_by_propagation(nbh: Neighbourhood, normals: np.ndarray) -> np.ndarray
     flux = np.bincount(labels, sign * radial, count)
     total = np.bincount(labels, np.abs(radial), count)
     spread = np.bincount(labels, np.linalg.norm(pts - centroid[labels], axis=1), count)
+    no_outside = np.abs(flux) <= np.maximum(AMBIGUOUS_COS * total, 1e-9 * spread)
+    if up is not None:
+        rising = normals @ np.asarray(up, np.float64)
+        vote = np.bincount(labels, sign * rising, count)
+        level = np.abs(vote) <= AMBIGUOUS_COS * np.bincount(labels, np.abs(rising), count)
+        flux = np.where(level, flux, vote)
+        no_outside &= level
     sign = np.where(flux[labels] < 0, -sign, sign)
     # No outside (a flat patch, a single point): the whole component's orientation is a guess.
-    ambiguous |= (np.abs(flux) <= np.maximum(AMBIGUOUS_COS * total, 1e-9 * spread))[labels]
+    ambiguous |= no_outside[labels]
     normals *= sign[:, None]
     return ambiguous
 
 
 def oriented_normals(nbh: Neighbourhood, k: int, towards: np.ndarray | None,
-                     progress: bool | None, select_scale: bool = False
+                     progress: bool | None, select_scale: bool = False, up: np.ndarray | None = None
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool]:
     """Unit normals (N, 3) float64 facing `towards` ((3,) or (N, 3), in the sorted order), or
-    propagated and outward if None; the ambiguous mask; the covariance eigenvalues (N, 3);
+    propagated if None, each component outward, or facing `up` (3,) where it rises or falls
+    (module docstring); the ambiguous mask; the covariance eigenvalues (N, 3);
     whether the scale was selected. select_scale: a noisy cloud's normals take each point's
     scale (module docstring), else k."""
     normals, ambiguous, eigenvalues = pca_normals(nbh, k, progress)
@@ -270,7 +352,7 @@ def oriented_normals(nbh: Neighbourhood, k: int, towards: np.ndarray | None,
     if towards is not None:
         ambiguous |= orient_towards(normals, towards)
     else:
-        ambiguous |= orient_by_propagation(nbh, normals)
+        ambiguous |= orient_by_propagation(nbh, normals, up)
     return normals, ambiguous, eigenvalues, selected
 
 
