@@ -33,12 +33,12 @@ within sqrt(3) s_D of one (within sqrt(2) s_D on a horizontal surface). The spla
 r_own the stored radius (extra-bytes dimension "radius"), for files that have one. Normals
 come from the extra-bytes dimensions normal_x/y/z when present.
 
-Files without them are estimated (`surfel.preprocess.complete`: PCA normals facing up (+Z), or
-the sensor given by `sensors`; screen-facing points; covering radii bounded by the sampling),
-node by node, and what a view estimated is kept in the source, so that later views (an orbit, a
-batch) estimate only the nodes they load for the first time. A node of depth d is estimated on
-the sample of its level: its points with the loaded points of depth <= d within
-CONTEXT_SPACINGS node spacings s_d of them, never the deeper ones. That sample is the cut
+Files without them are estimated (`surfel.preprocess.complete`: PCA normals propagated, each
+part facing up (+Z), or facing the sensor given by `sensors`; screen-facing points; covering
+radii bounded by the sampling), node by node, and what a view estimated is kept in the source,
+so that later views (an orbit, a batch) estimate only the nodes they load for the first time.
+A node of depth d is estimated on the sample of its level: its points with the loaded points
+of depth <= d within CONTEXT_SPACINGS node spacings s_d of them, never the deeper ones. That sample is the cut
 wherever the node is the finest loaded, in any view, so there its points keep their own
 radius; a point whose location holds a finer loaded node Y takes Y's typical radius (the median
 of its points', estimated on Y's level, which includes that point), the size of the sample it

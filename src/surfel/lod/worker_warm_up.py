@@ -72,7 +72,7 @@ def borders() -> None:
 
 def completion(normals: bool, geospatial: bool) -> None:
     """Everything else `preprocess.complete` runs on a partition: with its normals, or
-    estimating them (PCA; for a geospatial cloud facing +Z)."""
+    estimating them (PCA, propagated; for a geospatial cloud facing up)."""
     sphere = _sphere()
     complete(PointCloud(sphere, normals=sphere if normals else None, geospatial=geospatial), progress=False)
 

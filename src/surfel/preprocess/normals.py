@@ -242,7 +242,7 @@ def _propagate(index, normals):  # pragma: no cover - compiled
     for i in range(n):
         starts[i + 1] += starts[i]
     cursor = starts[:-1].copy()
-    listed_by = np.empty(n * k, np.int64)
+    listed_by = np.empty(n * k, np.int32)  # point indices, < 2^31 (neighbourhood.py)
     for i in range(n):
         for j in range(k):
             q = index[i, j]
