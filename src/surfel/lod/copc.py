@@ -36,20 +36,20 @@ come from the extra-bytes dimensions normal_x/y/z when present.
 Files without them are estimated (`surfel.preprocess.complete`: PCA normals propagated, each
 part facing up (+Z), or facing the sensor given by `sensors`; screen-facing points; covering
 radii bounded by the sampling), node by node, and what a view estimated is kept in the source,
-so that later views (an orbit, a batch) estimate only the nodes they load for the first time.
-A node of depth d is estimated on the sample of its level: its points with the loaded points
-of depth <= d within CONTEXT_SPACINGS node spacings s_d of them, never the deeper ones. That sample is the cut
-wherever the node is the finest loaded, in any view, so there its points keep their own
-radius; a point whose location holds a finer loaded node Y takes Y's typical radius (the median
-of its points', estimated on Y's level, which includes that point), the size of the sample it
-is drawn in. The sampling bound's reference spacing (spacing.py) is, for a node the hierarchy
-lists no children of (its level's sample is the full one), the survey's (`survey_spacing`: the
-median horizontal nearest-neighbour distance among the points of the deepest nodes the
-hierarchy lists, SURVEY_NODES of them with their ancestors' points in their cubes, read once per
-source); for a node with children, whose level is a subsample, the median horizontal
-nearest-neighbour distance of its level's sample. A node's nominal s_d would not do: one that
-holds all the points left in its cube is as dense as the survey, one over water sparser, and
-some writers state spacings far finer than their points.
+so that later views (an orbit, a batch) estimate only the nodes they load for the first time. A
+node of depth d is estimated on the sample of its level: its points with the loaded points of
+depth <= d within CONTEXT_SPACINGS node spacings s_d of them, never the deeper ones. That sample
+is the cut wherever the node is the finest loaded, in any view, so there its points keep their
+own radius; a point whose location holds a finer loaded node Y takes Y's typical radius (the
+median of its points', estimated on Y's level, which includes that point), the size of the
+sample it is drawn in. The sampling bound's reference spacing (spacing.py) is, for a node the
+hierarchy lists no children of (its level's sample is the full one), the survey's
+(`survey_spacing`: the median horizontal nearest-neighbour distance among the points of the
+deepest nodes the hierarchy lists, SURVEY_NODES of them with their ancestors' points in their
+cubes, read once per source); for a node with children, whose level is a subsample, the median
+horizontal nearest-neighbour distance of its level's sample. A node's nominal s_d would not do:
+one that holds all the points left in its cube is as dense as the survey, one over water
+sparser, and some writers state spacings far finer than their points.
 Colours: RGB (16-bit fields; divided by 255 when no value exceeds 255), else intensity as grey.
 Every other dimension of the loaded nodes is decoded and becomes an attribute, as
 `surfel.io.las` reads a LAS file (the surfel VLR's schema when the file has one); kinds that
