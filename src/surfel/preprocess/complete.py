@@ -85,8 +85,9 @@ def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np
     normals: estimated if None: towards the sensor (`sensor` (3,), else the cloud's own
     `sensors`) if known; otherwise propagated, each part facing up (+Z) for geospatial clouds
     (aerial scans, seen from above) or outward. A cloud with axes but no normals gets u x v,
-    the orientation its splats already have. With estimated normals, attributes["screen_facing"] marks the points
-    drawn as round splats facing the camera (`structure.py`).
+    the orientation its splats already have. With estimated normals,
+    attributes["screen_facing"] marks the points drawn as round splats facing the camera
+    (`structure.py`).
     radii: estimated if None (covering radii of the tangent-plane Voronoi cells).
     axes: if None, fitted ellipses when `elliptical`, else circular frames of the radii.
     Estimated radii and axes are bounded by the sampling (`spacing.py`), whose reference spacing

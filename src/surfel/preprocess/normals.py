@@ -310,9 +310,10 @@ def orient_by_propagation(nbh: Neighbourhood, normals: np.ndarray, up: np.ndarra
     whose sign decision was ambiguous."""
     pts = nbh.points
     n = len(pts)
-    if nbh.first(ORIENT_NEIGHBOURS + 1).shape[1] == 1:  # single points: no graph
+    nearest = nbh.first(ORIENT_NEIGHBOURS + 1)
+    if nearest.shape[1] == 1:  # single points: no graph
         return np.ones(n, bool)
-    cols = np.ascontiguousarray(nbh.first(ORIENT_NEIGHBOURS + 1)[:, 1:])
+    cols = np.ascontiguousarray(nearest[:, 1:])
     sign, parent, labels, count, dots = _propagate(cols, np.ascontiguousarray(normals, np.float64))
     sign = sign.astype(np.float64)
     ambiguous = (parent >= 0) & (np.abs(dots) < AMBIGUOUS_COS)
