@@ -98,6 +98,29 @@ def test_sparse_returns_stay_dots_and_dense_ground_covers():
     assert (prepared.radii[dry] >= 0.7).mean() > 0.95  # about the spacing: the ground closes
 
 
+def test_an_object_stored_as_las_keeps_its_surface_closed():
+    """A ball sampled at random, stored as a geospatial cloud (a terrestrial scan in a LAS file):
+    seen from above its two halves overlap and its sides pile up, so the horizontal spacing
+    understates its surface's. The bound must not cut its splats until the far side shows
+    through: seen from the front, every pixel of the disk shows the near half."""
+    rng = np.random.default_rng(5)
+    unit = rng.normal(size=(20_000, 3))
+    unit /= np.linalg.norm(unit, axis=1, keepdims=True)
+    centre = np.array([500.0, 300.0, 20.0])
+    cloud = PointCloud(unit * 10.0 + centre, geospatial=True)
+    prepared, report = prepare(cloud, progress=False)
+    bound = report["splat_bound"]
+    assert bound["reference_spacing"] < 0.4 * bound["surface_reference_spacing"]
+    assert bound["capped"] < 0.3 * len(cloud), bound
+    camera = frame(centre, 10.0, view="front", size=(256, 256), ortho_height=24.0)
+    result = render(prepared, camera, "deferred", backend="cpu", shading="lambert")
+    pixels, _ = camera.project(prepared.positions)
+    disk = _inside_hull(pixels, (256, 256), shrink=6.0)
+    _, (centre_depth,) = camera.project(centre[None])
+    assert (result.alpha[disk] < 0.99).mean() < 1e-3
+    assert (result.depth[disk] > centre_depth).mean() < 2e-3  # the far half shows through nowhere
+
+
 def test_the_spacing_of_a_scan_grows_with_the_range_from_its_sensor():
     """A wall scanned from a sensor at a constant angular step: the reference spacing is that step
     times the range, so the far part of the wall keeps splats as large as its sampling needs."""

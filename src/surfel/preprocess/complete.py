@@ -166,7 +166,8 @@ def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np
         ranges = None if towards_sensor is None else np.linalg.norm(towards_sensor, axis=1)
         spacing, spacing_report = sampling_spacing(
             nbh, geospatial=cloud.geospatial, ranges=ranges, framing_radius=cloud.bounding_radius,
-            reference=None if reference_spacing is None else nbh.sort(reference_spacing), progress=progress)
+            reference=None if reference_spacing is None else nbh.sort(reference_spacing),
+            surface=None if facing is None else ~facing, progress=progress)
     features = None
     if sharp_features and radii is None and axes is None:
         features = find_sharp_features(nbh, unit_normals, RADIUS_NEIGHBOURS)

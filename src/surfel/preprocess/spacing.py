@@ -17,7 +17,24 @@ estimated semi-axis is capped at
              scan's angular step, the median of s_local / r over the scan;
            * otherwise a geospatial cloud (an airborne tile, sampled evenly by design): the
              median horizontal nearest-neighbour distance over the tile (of REFERENCE_SAMPLE
-             points spread over it), the point spacing of the survey;
+             points spread over it), the point spacing of the survey, s_h; on the points
+             with a tangent plane (the surfaces, structure.py) at least
+
+                 ONE_LAYER_RATIO x median{s_local over those points}
+
+             On one surface the median nearest-neighbour distance is 0.57 (samples at random)
+             to 1 (a grid) times the median s_local, so an s_h below that says that surfaces
+             overlap seen from above: the returns of one pulse stacked through a canopy, the
+             layers and steep sides of an object in a terrestrial scan or a photogrammetric
+             cloud stored as LAS. There s_h understates each surface's own spacing (4.7 times
+             on a bunny sampled at random), and its bound cut the splats of well-sampled
+             surfaces until the far side showed through, as dark specks under eye-dome
+             lighting. The floor is a single layer's ratio, not the least one: a bound of
+             2.5 x 0.57 s_local still cuts the largest cells of samples at random. Points
+             without a tangent plane (vegetation, wires) keep s_h, and so do the surfaces
+             of a tile whose s_h is above the floor, or where most points have no tangent
+             plane: there the few that do are patches scattered through vegetation, sparse
+             among its returns, and a floor from their spacing would make them blobs;
            * none for other clouds (points sampled from a surface, whose sampling may vary
              legitimately): the local spacing alone bounds them.
 
@@ -49,6 +66,10 @@ BOUND_FACTOR = 2.5          # semi-axes at most this x the spacing: past the 1.2
 LOCAL_NEIGHBOURS = 4        # distinct neighbours whose median distance is the local spacing
 REFERENCE_SAMPLE = 20_000   # points whose horizontal nearest neighbour gives the tile's spacing
 REFERENCE_NEIGHBOURS = 8    # neighbours searched for the nearest distinct one (duplicates)
+ONE_LAYER_RATIO = 0.7       # nearest-neighbour distance / s_local on one surface: 0.57 at random,
+                            # about 0.6 along airborne scan lines, 0.85 on a jittered grid
+SURFACE_MAJORITY = 0.5      # share of points with a tangent plane above which their spacing is
+                            # the surfaces' own, not that of patches scattered through vegetation
 LONE_POINT_FRACTION = 0.2   # spacing of a cloud without two distinct points / its framing radius
 
 
@@ -104,12 +125,13 @@ def horizontal_spacing(points: np.ndarray) -> float | None:
 
 def sampling_spacing(nbh: Neighbourhood, *, geospatial: bool, ranges: np.ndarray | None,
                      framing_radius: float, reference: np.ndarray | None = None,
-                     progress: bool | None = None) -> tuple[np.ndarray, dict]:
+                     surface: np.ndarray | None = None, progress: bool | None = None) -> tuple[np.ndarray, dict]:
     """s = min(s_local, s_ref) (N,) float64 in the neighbourhood's order (module docstring),
     and its report: the reference model and its value.
 
     ranges: each point's distance to its sensor (sorted order), or None when no sensor is known.
     reference: s_ref (N,) (sorted order) when the caller knows it (a COPC node's spacing).
+    surface: (N,) bool (sorted order), the points with a tangent plane; None: all of them.
     """
     local = local_spacing(nbh, progress)
     report: dict = {"local": f"median distance to {LOCAL_NEIGHBOURS} nearest distinct neighbours"}
@@ -128,6 +150,14 @@ def sampling_spacing(nbh: Neighbourhood, *, geospatial: bool, ranges: np.ndarray
             reference = np.full(len(local), horizontal)
             report["reference"] = "median horizontal nearest-neighbour distance of the tile"
             report["reference_spacing"] = horizontal
+            surface = np.ones(len(local), np.bool_) if surface is None else surface
+            surfaces = local[surface & np.isfinite(local)]
+            one_layer = ONE_LAYER_RATIO * float(np.median(surfaces)) if len(surfaces) else 0.0
+            if one_layer > horizontal and surface.mean() >= SURFACE_MAJORITY:
+                reference[surface] = one_layer
+                report["surface_reference_spacing"] = one_layer
+                report["reference"] += (f", on surfaces {ONE_LAYER_RATIO:g} x their median local spacing "
+                                        f"(layers overlap seen from above)")
     spacing = local if reference is None else np.fmin(local, reference)
     missing = ~np.isfinite(spacing)
     if missing.any():
