@@ -20,7 +20,7 @@ from surfel.lod.copc import CopcSource
 from surfel.lod.copc_write import write_copc
 from surfel.lod.source import open_source
 from surfel.metrics import compare_results
-from surfel.rendering import render
+from surfel.rendering import Renderer, render
 
 REAL_COPC = DATA / "simple_with_page.copc.laz"  # laspy's, BSD licence
 SIZE = (256, 256)
@@ -176,3 +176,23 @@ def test_build_command_and_cli_render(tmp_path):
     result = CliRunner().invoke(main, ["render", str(broken), "-o", str(tmp_path / "broken.png")])
     assert result.exit_code == 2 and "broken.copc.laz" in result.output
     assert len(result.output.strip().splitlines()) == 1
+
+
+def test_a_tile_without_rgb_looks_the_same_as_laz_and_as_copc(tmp_path):
+    """Converting a LAZ tile without RGB to COPC must not change its default picture: both
+    default to the elevation ramp, and intensity stays an attribute to colour by."""
+    from surfel.lod.copc_write import build_command
+    from surfel.request import parse_render
+
+    tile = DATA / "classified.laz"
+    copc = tmp_path / "classified.copc.laz"
+    build_command(tile, copc)
+    modes = {}
+    for path in (tile, copc):
+        for color in (None, "intensity"):
+            request = parse_render({"input": str(path), "output": str(tmp_path / "unused.png"), "size": "64x64",
+                                    **({} if color is None else {"color": color})})
+            result = request.render(Renderer())
+            modes[path.name, color] = result.stats["color"]
+    assert modes == {("classified.laz", None): "elevation", ("classified.copc.laz", None): "elevation",
+                     ("classified.laz", "intensity"): "intensity", ("classified.copc.laz", "intensity"): "intensity"}

@@ -50,7 +50,9 @@ cubes, read once per source); for a node with children, whose level is a subsamp
 horizontal nearest-neighbour distance of its level's sample. A node's nominal s_d would not do:
 one that holds all the points left in its cube is as dense as the survey, one over water
 sparser, and some writers state spacings far finer than their points.
-Colours: RGB (16-bit fields; divided by 255 when no value exceeds 255), else intensity as grey.
+Colours: RGB (16-bit fields; divided by 255 when no value exceeds 255), else none, as
+`surfel.io.las` reads a LAS file: the default colour mode is then elevation whether a tile is
+LAZ or COPC, and intensity is an attribute (`--color intensity`).
 Every other dimension of the loaded nodes is decoded and becomes an attribute, as
 `surfel.io.las` reads a LAS file (the surfel VLR's schema when the file has one); kinds that
 the file does not state are fixed by the first cut, so that they do not change between views.
@@ -163,7 +165,6 @@ class CopcSource:
         if key_code(0, 0, 0, 0).item() not in self._entries:
             raise InputError(self.path, "COPC hierarchy has no root node")
         self._rgb_scale: float | None = None      # 255 or 65535, fixed by the first cut
-        self._intensity_scale: float | None = None
         self._kinds: dict[str, str] | None = None  # the attributes' kinds, fixed by the first cut
         self._estimates: dict[int, NodeEstimate] = {}  # by key code: what earlier views estimated
         self._survey_spacing: float | None = None  # read once, when first estimating
@@ -532,15 +533,7 @@ class CopcSource:
                 self._rgb_scale = 255.0 if rgb.max() <= 255 else 65535.0
             if self._rgb_scale is not None:
                 return np.minimum(rgb / self._rgb_scale, 1.0)
-        intensity = np.asarray(record["intensity"], np.float32)
-        if self._intensity_scale is None and intensity.max() > 0:
-            # fixed by the first cut (the coarse levels sample the whole file), so that the
-            # grey of a point does not change from view to view
-            self._intensity_scale = float(np.percentile(intensity, 99)) or float(intensity.max())
-        if self._intensity_scale is None:
-            return None
-        grey = np.clip(intensity / self._intensity_scale, 0, 1) * 0.8 + 0.2
-        return np.repeat(grey[:, None], 3, axis=1)
+        return None
 
 
 def _frustum(camera: Camera, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
