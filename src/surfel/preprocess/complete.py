@@ -164,10 +164,12 @@ def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np
     spacing = None
     if bound_radii or bound_axes:
         ranges = None if towards_sensor is None else np.linalg.norm(towards_sensor, axis=1)
+        drawn_facing = facing if "screen_facing" not in cloud.attributes else \
+            nbh.sort(cloud.attributes["screen_facing"] > 0.5)
         spacing, spacing_report = sampling_spacing(
             nbh, geospatial=cloud.geospatial, ranges=ranges, framing_radius=cloud.bounding_radius,
             reference=None if reference_spacing is None else nbh.sort(reference_spacing),
-            surface=None if facing is None else ~facing, progress=progress)
+            surface=None if drawn_facing is None else ~drawn_facing, progress=progress)
     features = None
     if sharp_features and radii is None and axes is None:
         features = find_sharp_features(nbh, unit_normals, RADIUS_NEIGHBOURS)
