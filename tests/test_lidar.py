@@ -98,6 +98,23 @@ def test_sparse_returns_stay_dots_and_dense_ground_covers():
     assert (prepared.radii[dry] >= 0.7).mean() > 0.95  # about the spacing: the ground closes
 
 
+def test_sparse_returns_stay_dots_on_terrain_sampled_at_random():
+    """The same lake in ground sampled at random, where the nearest-neighbour spacing is 0.57 of
+    the local spacing and the surfaces' floor applies: the water's splats still reach less than
+    the 4 spacings that count as far from every return (issue 14)."""
+    rng = np.random.default_rng(3)
+    ground = rng.uniform(0, 60, (3600, 2))
+    water = np.stack(np.meshgrid(np.arange(18, 43.0, 8), np.arange(18, 43.0, 8)), -1).reshape(-1, 2)
+    xy = np.concatenate([ground[np.hypot(*(ground - 30).T) >= 15], water])
+    cloud = PointCloud(np.c_[xy, rng.normal(0, 0.02, len(xy))] + [500_000, 4_000_000, 100], geospatial=True)
+    prepared, report = prepare(cloud, progress=False)
+    bound = report["splat_bound"]
+    assert bound["surface_reference_spacing"] > bound["reference_spacing"]
+    is_water = np.hypot(*(xy - 30).T) < 14
+    reach = np.linalg.norm(prepared.axes[is_water], axis=2).max()
+    assert reach < 3.5 * bound["reference_spacing"], reach / bound["reference_spacing"]
+
+
 def test_an_object_stored_as_las_keeps_its_surface_closed():
     """A ball sampled at random, stored as a geospatial cloud (a terrestrial scan in a LAS file):
     seen from above its two halves overlap and its sides pile up, so the horizontal spacing

@@ -30,7 +30,9 @@ estimated semi-axis is capped at
              on a bunny sampled at random), and its bound cut the splats of well-sampled
              surfaces until the far side showed through, as dark specks under eye-dome
              lighting. The floor is a single layer's ratio, not the least one: a bound of
-             2.5 x 0.57 s_local still cuts the largest cells of samples at random. Points
+             2.5 x 0.57 s_local still cuts the largest cells of samples at random. On one
+             layer it lets a splat reach at most 2.5 x 0.7 / 0.57 = 3.1 s_h, inside the 4 s_h
+             past which a pixel is far from every return (benchmarks/lidar_readability.py). Points
              without a tangent plane (vegetation, wires) keep s_h, and so do the surfaces
              of a tile whose s_h is above the floor, or where most points have no tangent
              plane: there the few that do are patches scattered through vegetation, sparse
@@ -156,8 +158,7 @@ def sampling_spacing(nbh: Neighbourhood, *, geospatial: bool, ranges: np.ndarray
             if one_layer > horizontal and surface.mean() >= SURFACE_MAJORITY:
                 reference[surface] = one_layer
                 report["surface_reference_spacing"] = one_layer
-                report["reference"] += (f", on surfaces {ONE_LAYER_RATIO:g} x their median local spacing "
-                                        f"(layers overlap seen from above)")
+                report["reference"] += f", on surfaces at least {ONE_LAYER_RATIO:g} x their median local spacing"
     spacing = local if reference is None else np.fmin(local, reference)
     missing = ~np.isfinite(spacing)
     if missing.any():
