@@ -200,6 +200,34 @@ def test_sharp_edge_splats_end_at_the_edge():
     assert ((disk[..., 0] > 0.01 * h) | (disk[..., 2] > 0.01 * h)).mean() > 0.5
 
 
+def test_a_face_cuts_the_splats_of_a_coarse_curved_surface_meeting_it():
+    """A flat cap on a cylinder sampled as a CAD part's mesh is, 12 vertices round: the side's
+    normals turn 30 degrees from vertex to vertex, so no point there is flat, but the cap is.
+    The rim's splats (normals averaged over cap and side) end at the cap's plane instead of
+    standing above it."""
+    around = 12
+    step = 2 * np.pi / around
+    angles = step * np.arange(around)
+    circle = np.stack([np.cos(angles), np.sin(angles), np.zeros(around)], 1)
+    side = np.concatenate([circle - [0, 0, k * step] for k in range(1, 8)])
+    grid = np.arange(-1, 1 + 1e-9, step / 2)
+    x, y = (values.ravel() for values in np.meshgrid(grid, grid))
+    inside = np.hypot(x, y) < 1 - step / 4
+    cap = np.stack([x[inside], y[inside], np.zeros(inside.sum())], 1)
+    normals = np.concatenate([side * [1, 1, 0], np.tile([0.0, 0, 1], (len(cap), 1)), unit(circle + [0, 0, 1])])
+    prepared, _ = prepare(PointCloud(np.concatenate([side, cap, circle]), normals=normals))
+    rim = np.arange(len(side) + len(cap), len(prepared))
+    lines = prepared.attributes["clip_lines"][rim].astype(np.float64)
+    axes = prepared.axes[rim].astype(np.float64)
+    uv = np.random.default_rng(1).uniform(-1, 1, (4000, 2))
+    uv = uv[(uv ** 2).sum(1) <= 1]
+    kept = ((lines[:, None, :, 0] * uv[None, :, None, 0] + lines[:, None, :, 1] * uv[None, :, None, 1])
+            <= lines[:, None, :, 2]).all(axis=2)
+    height = prepared.positions[rim, 2:3] + uv[None, :, 0] * axes[:, None, 0, 2] + uv[None, :, 1] * axes[:, None, 1, 2]
+    assert kept.any(axis=1).all()
+    assert height[kept].max() < 1e-4 * step
+
+
 def test_smooth_surfaces_get_no_clip_lines():
     """A coarsely sampled sphere has neighbours with very different normals, but no faces:
     its splats stay whole disks."""

@@ -9,13 +9,14 @@ cut at creases. This module finds where:
   * flat points: those whose neighbours with normals within SHARP_ANGLE lie within FLAT_SIN2
     of their tangent plane (faces; not coarsely sampled curved surfaces, whose neighbours'
     planes would facet them);
-  * two flat neighbours p, q with normals more than SHARP_ANGLE apart lie across a crease: the
-    line where their tangent planes meet;
+  * a point p and a flat neighbour q with normals more than SHARP_ANGLE apart lie across a
+    crease, the line where their tangent planes meet, whether p is flat too or lies on a
+    coarsely sampled curved surface meeting q's face (only a face's plane makes an edge);
   * crease points, which lie (within ON_PLANE_SIN2) in the planes of two flat neighbours more
     than SHARP_ANGLE apart (on the edge itself, their normals averaged over both faces), stick
     out of one face or the other whatever their orientation: they are dropped.
 
-What is done with it is the cells' (`cells.py`): a flat point's cell ends at the crease instead
+What is done with it is the cells' (`cells.py`): a point's cell ends at such a crease instead
 of at the bisector, and its clip lines are the nearest such creases; crease points are cut away
 whole and bound no cell. Those kernels share the crease geometry, so they live in one module
 (numba's on-disk cache does not see a change to a function in another file).
@@ -45,7 +46,7 @@ CREASE_BLOCK = 1024  # points per parallel task of `_crease_points`
 class SharpFeatures(NamedTuple):
     """Where the cells end (a numba argument: masks in the neighbourhood's sorted order)."""
 
-    flat: np.ndarray      # (N,) bool: faces, whose cells end at creases
+    flat: np.ndarray      # (N,) bool: faces, whose planes end their neighbours' cells at creases
     crease: np.ndarray    # (N,) bool: crease points, dropped
     sharp_cos: float      # normals of two faces with a smaller dot product meet at a crease
     on_plane_sin2: float  # squared sine within which a point lies in a plane
