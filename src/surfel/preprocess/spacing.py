@@ -31,12 +31,13 @@ estimated semi-axis is capped at
              surfaces until the far side showed through, as dark specks under eye-dome
              lighting. The floor is a single layer's ratio, not the least one: a bound of
              2.5 x 0.57 s_local still cuts the largest cells of samples at random. On one
-             layer it lets a splat reach at most 2.5 x 0.7 / 0.57 = 3.1 s_h, inside the 4 s_h
-             past which a pixel is far from every return (benchmarks/lidar_readability.py). Points
-             without a tangent plane (vegetation, wires) keep s_h, and so do the surfaces
-             of a tile whose s_h is above the floor, or where most points have no tangent
-             plane: there the few that do are patches scattered through vegetation, sparse
-             among its returns, and a floor from their spacing would make them blobs;
+             layer it lets a splat reach at most 2.5 x 0.7 / 0.57 = 3.1 s_h, inside the
+             4 s_h past which a pixel is far from every return (lidar_readability.py in
+             benchmarks/). Points without a tangent plane (vegetation, wires) keep s_h, and
+             so do the surfaces of a tile whose s_h is above the floor, or where most points
+             have no tangent plane: there the few that do are patches scattered through
+             vegetation, sparse among its returns, and a floor from their spacing would make
+             them blobs;
            * none for other clouds (points sampled from a surface, whose sampling may vary
              legitimately): the local spacing alone bounds them.
 
