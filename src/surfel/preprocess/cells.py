@@ -35,12 +35,10 @@ creases: `sharp_features.py`):
     for a neighbour q on a face (a flat point) whose normal lies more than SHARP_ANGLE from p's,
     p's cell ends at the line where their tangent planes meet instead of at the bisector, so that
     its radius reaches the edge and no further. p may lie on a face too, or on a coarsely sampled
-    curved surface meeting the face (a CAD part's cylinder or fillet, its normals turning tens of
-    degrees from vertex to vertex): a face's plane is a true edge, so it cuts both; the tangent
-    plane of a coarse curved surface is not, so it cuts nothing (it would facet the surface).
-    On a coarse CAD part this keeps the rims' splats from standing out past the faces they meet
-    (the rocker arm's vertices: deferred 32.6 -> 35.3 dB front, 30.8 -> 32.2 dB at az60el20).
-    p keeps its centre's side of q's plane, g(X) = n_q . (X - q) having
+    curved surface meeting the face (a CAD part's cylinder or fillet, normals turning tens of
+    degrees a vertex), whose rim splats would stand out past the face: a face's plane is a true
+    edge; the tangent plane of a coarse curved surface is not, and cuts nothing (it would facet
+    it). p keeps its centre's side of q's plane, g(X) = n_q . (X - q) having
     the sign of g(p); if its centre lies in that plane (within ON_PLANE_SIN2, on the crease
     line), the side away from q. Crease points bound no cell.
     Each splat then carries up to CLIP_LINES clip lines a u + b v <= c in its local coordinates
