@@ -147,6 +147,9 @@ def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np
         facing = screen_facing(eigenvalues, raw_scan=scans_surroundings(located))
         attributes["screen_facing"] = nbh.unsort(facing.astype(np.float32))
         report["screen_facing"] = int(facing.sum())
+    # the points drawn facing the camera: as the cloud flags them, else as estimated now
+    drawn_facing = facing if "screen_facing" not in cloud.attributes else \
+        nbh.sort(cloud.attributes["screen_facing"] > 0.5)
     radii, axes = given["radii"], given["axes"]
     # what is estimated from the positions is bounded by their sampling (circles of given radii keep them)
     bound_radii = radii is None
@@ -164,8 +167,6 @@ def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np
     spacing = None
     if bound_radii or bound_axes:
         ranges = None if towards_sensor is None else np.linalg.norm(towards_sensor, axis=1)
-        drawn_facing = facing if "screen_facing" not in cloud.attributes else \
-            nbh.sort(cloud.attributes["screen_facing"] > 0.5)
         spacing, spacing_report = sampling_spacing(
             nbh, geospatial=cloud.geospatial, ranges=ranges, framing_radius=cloud.bounding_radius,
             reference=None if reference_spacing is None else nbh.sort(reference_spacing),
@@ -213,9 +214,8 @@ def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np
                                     f"{int(features.crease.sum())} crease points dropped")
     if need_field:
         alpha, beta = field_slopes(nbh, unit_normals, axes, progress)
-        flat = facing if "screen_facing" not in cloud.attributes else nbh.sort(cloud.attributes["screen_facing"] > 0.5)
-        if flat is not None:
-            alpha[flat] = beta[flat] = 0.0  # facing the camera: flat, lit head-on
+        if drawn_facing is not None:
+            alpha[drawn_facing] = beta[drawn_facing] = 0.0  # facing the camera: flat, lit head-on
         attributes.update(phong_alpha=nbh.unsort(alpha), phong_beta=nbh.unsort(beta))
         report["normal_field"] = f"fitted (least squares, k={FIELD_NEIGHBOURS})"
     if attributes.keys() != cloud.attributes.keys():
