@@ -11,6 +11,7 @@ from scenes import sheet_on_body, sheet_over_body
 from surfel.cloud import PointCloud
 from surfel.preprocess import (
     INACTIVE_CLIP,
+    clipped_away,
     estimate_normals,
     estimate_radii,
     fit_ellipses,
@@ -235,6 +236,23 @@ def test_smooth_surfaces_get_no_clip_lines():
     prepared, report = prepare(PointCloud(p, normals=p))
     lines = prepared.attributes.get("clip_lines")
     assert lines is None or (lines[:, :, 2] >= 1).all()
+
+
+def test_a_surface_sampled_from_both_sides_keeps_its_splats():
+    """A scan that sees an open shell from inside and out: denoised, the samples facing either
+    way interleave in one plane, and each one's plane holds the others. That is no crease: no
+    point is dropped, and no splat away from the sheet's border is cut."""
+    rng = np.random.default_rng(3)
+    grid = np.arange(-1, 1 + 1e-9, 0.05)
+    x, y = (values.ravel() for values in np.meshgrid(grid, grid))
+    points = np.stack([x, y, np.zeros(len(x))], 1)
+    normals = unit(np.array([0.0, 0, 1]) + rng.normal(0, 0.03, (len(x), 3)) * [1, 1, 0])
+    normals[rng.random(len(x)) < 0.5] *= -1
+    prepared, _ = prepare(PointCloud(points, normals=normals))
+    lines = prepared.attributes["clip_lines"]
+    inner = np.abs(points).max(axis=1) < 0.8
+    assert not clipped_away(prepared).any()
+    assert (lines[inner, :, 2] >= 1).all()
 
 
 # --- borders of open surfaces ------------------------------------------------------------------

@@ -14,8 +14,8 @@ Radii (`estimate_radii`): each splat covers its own Voronoi cell.
     far side of a thin sheet) do not cut the cell, nor do neighbours whose oriented normals face
     away (n_p . n_q < SHEET_COS, the other side of a sheet, a surface of its own that would cut
     this side's cells into holes), nor those of another layer lying close (`thickness.py`).
-    Radii far above those of the neighbours on the point's surface are capped
-    (`outlier_cap.py`) so that stray points do not become blobs.
+    Radii far above those of the neighbours on the point's surface are capped (`outlier_cap.py`)
+    so that stray points do not become blobs.
 
 Ellipses (`fit_ellipses`, for Phong splatting, Botsch, Spernat & Kobbelt 2004):
     axis directions are the principal curvature directions ("aligned along the curvature",
@@ -23,24 +23,24 @@ Ellipses (`fit_ellipses`, for Phong splatting, Botsch, Spernat & Kobbelt 2004):
     neighbours' normals) where the normals turn more one way than the other (by
     CURVATURE_ANISOTROPY across the cell), else the principal directions of the neighbours
     projected into the tangent plane; the semi-axes are those of the smallest-area ellipse with
-    these directions that contains the point's Voronoi cell (aspect at most
-    ELLIPSE_MAX_ASPECT): with semi-axes (e^(tau/2), e^(-tau/2)) x scale, the needed scale^2 is a
-    maximum of functions convex in tau, so a golden-section search finds tau. Times
-    RADIUS_MARGIN and the same outlier cap: the covering rule of the radii, never with more area
-    than the disk (the disk is one of the candidates). u is the major axis, (u, v, n)
-    right-handed.
+    these directions that contains the point's Voronoi cell (aspect at most ELLIPSE_MAX_ASPECT):
+    with semi-axes (e^(tau/2), e^(-tau/2)) x scale, the needed scale^2 is a maximum of functions
+    convex in tau, so a golden-section search finds tau. Times RADIUS_MARGIN and the same outlier
+    cap: the covering rule of the radii, never with more area than the disk (one of the
+    candidates). u is the major axis, (u, v, n) right-handed.
 
 Cells at creases (Zwicker et al. 2002, Pauly et al. 2003; which points are flat and which lie on
 creases: `sharp_features.py`):
     for a neighbour q on a face (a flat point) whose normal lies more than SHARP_ANGLE from p's,
-    p's cell ends at the line where their tangent planes meet instead of at the bisector, so that
-    its radius reaches the edge and no further. p may lie on a face too, or on a coarsely sampled
+    p's cell ends at the line where their tangent planes meet instead of at the bisector, so
+    that its radius reaches the edge and no further. p may lie on a face too, or on a coarse
     curved surface meeting the face (a CAD part's cylinder or fillet, normals turning tens of
     degrees a vertex), whose rim splats would stand out past the face: a face's plane is a true
     edge; the tangent plane of a coarse curved surface is not, and cuts nothing (it would facet
-    it). p keeps its centre's side of q's plane, g(X) = n_q . (X - q) having
-    the sign of g(p); if its centre lies in that plane (within ON_PLANE_SIN2, on the crease
-    line), the side away from q. Crease points bound no cell.
+    it). p keeps its centre's side of q's plane, g(X) = n_q . (X - q) having the sign of g(p);
+    if its centre lies in that plane (within ON_PLANE_SIN2, on the crease line), the side away
+    from q. Crease points bound no cell. A q facing away (n_p . n_q < SHEET_COS) that lies in
+    p's face (within FLAT_SIN2 of its plane) is the same surface seen from behind: no crease.
     Each splat then carries up to CLIP_LINES clip lines a u + b v <= c in its local coordinates
     (u, v) (1 on the rim), attributes["clip_lines"] (N, CLIP_LINES, 3), (a, b) a unit vector:
     the crease nearest its centre, then the nearest in another direction (more than
@@ -68,7 +68,7 @@ from .frames import orthonormal_basis, unit
 from .neighbourhood import Neighbourhood
 from .normals import pca_normals
 from .outlier_cap import outlier_cap
-from .sharp_features import SharpFeatures
+from .sharp_features import SHEET_COS, SharpFeatures
 from .thickness import layer_thickness
 
 RADIUS_NEIGHBOURS = 16         # neighbours bounding a Voronoi cell: enough to reach the next scan
@@ -78,7 +78,6 @@ RADIUS_MARGIN = 1.2            # covering radius x this: curvature, normal noise
 ELLIPSE_MAX_ASPECT = 4.0       # no needles: major / minor semi-axis at most this
 CURVATURE_ANISOTROPY = 0.05    # radians by which the normals turn more one way than the other
                                # across a cell, above which an ellipse follows the curvature
-SHEET_COS = -0.5               # neighbours' normals more than 120 degrees apart: two sides of a sheet
 CAP_SIDES = 8                  # a cell starts as a regular octagon inscribed in the circle through
                                # the farthest neighbour: open cells (borders) stop there
 CLIP_LINES = 2                 # clip lines per splat: an edge, or an edge and a corner
@@ -399,6 +398,10 @@ def _crease_candidates(points, normals, index, axes, i, p, features, candidates)
             facing += normals[q, a] * normals[p, a]
         if facing >= features.sharp_cos or features.crease[q] or not features.flat[q]:
             continue
+        if facing < features.sheet_cos:  # in p's face: the same surface seen from behind (rare)
+            offset = points[q] - points[p]
+            if np.dot(offset, normals[p]) ** 2 <= features.flat_sin2 * np.dot(offset, offset):
+                continue
         la, lb, lc = _crease_half_plane(points, p, q, normals[q], axes[i], features.on_plane_sin2)
         length = math.sqrt(la * la + lb * lb)
         if length < 1e-6 or lc >= length:  # parallel planes, or the line misses the splat
@@ -462,16 +465,12 @@ def _clip_lines(points, normals, index, start, axes, features, outwards):  # pra
         candidates = np.empty((2 * index.shape[1], 3))  # one per block: an allocation per point costs as much
         for i in range(block * CELL_BLOCK, min(m, (block + 1) * CELL_BLOCK)):
             p = start + i
+            dropped = features.crease[p]
             for line in range(CLIP_LINES):
-                if features.crease[p]:
-                    lines[i, line, 0] = 1.0 - 2.0 * line
-                    lines[i, line, 1] = 0.0
-                    lines[i, line, 2] = -2.0
-                else:
-                    lines[i, line, 0] = INACTIVE_CLIP[0]
-                    lines[i, line, 1] = INACTIVE_CLIP[1]
-                    lines[i, line, 2] = INACTIVE_CLIP[2]
-            if not features.crease[p]:
+                lines[i, line, 0] = 1.0 - 2.0 * line if dropped else INACTIVE_CLIP[0]
+                lines[i, line, 1] = 0.0 if dropped else INACTIVE_CLIP[1]
+                lines[i, line, 2] = -2.0 if dropped else INACTIVE_CLIP[2]
+            if not dropped:
                 count = _crease_candidates(points, normals, index, axes, i, p, features, candidates)
                 count = _border_candidates(points, index, axes, i, p, outwards, candidates, count)
                 _nearest_creases(candidates, count, lines, i)

@@ -14,7 +14,13 @@ cut at creases. This module finds where:
     coarsely sampled curved surface meeting q's face (only a face's plane makes an edge);
   * crease points, which lie (within ON_PLANE_SIN2) in the planes of two flat neighbours more
     than SHARP_ANGLE apart (on the edge itself, their normals averaged over both faces), stick
-    out of one face or the other whatever their orientation: they are dropped.
+    out of one face or the other whatever their orientation: they are dropped;
+  * a flat neighbour whose oriented normal faces away from the point's (n_p . n_q < SHEET_COS)
+    samples the same surface from its other side when it lies in the point's face (within
+    FLAT_SIN2 of its plane; a scan that sees an open shell from inside and out: denoised, the
+    two sides' samples interleave in one plane). It makes no crease: it would cut the point's
+    splat near its centre, and two such neighbours would drop the point. A thin sheet's other
+    side, off that plane, still clips.
 
 What is done with it is the cells' (`cells.py`): a point's cell ends at such a crease instead
 of at the bisector, and its clip lines are the nearest such creases; crease points are cut away
@@ -39,6 +45,7 @@ SHARP_ANGLE = 45.0   # degrees between neighbouring normals that make a sharp fe
 SHARP_COS = math.cos(math.radians(SHARP_ANGLE))
 FLAT_SIN2 = math.sin(math.radians(10.0)) ** 2     # a face: its neighbours this close to its plane
 ON_PLANE_SIN2 = math.sin(math.radians(3.0)) ** 2  # a point this close to a neighbour's plane lies in it
+SHEET_COS = -0.5     # neighbours' normals more than 120 degrees apart: two sides of a sheet
 NEAR_COS = math.cos(math.radians(0.5 * SHARP_ANGLE) - 1e-6)  # within half SHARP_ANGLE, rounding aside
 CREASE_BLOCK = 1024  # points per parallel task of `_crease_points`
 
@@ -50,11 +57,13 @@ class SharpFeatures(NamedTuple):
     crease: np.ndarray    # (N,) bool: crease points, dropped
     sharp_cos: float      # normals of two faces with a smaller dot product meet at a crease
     on_plane_sin2: float  # squared sine within which a point lies in a plane
+    sheet_cos: float      # a neighbour facing away more than this is another side: no crease
+    flat_sin2: float      # squared sine within which a neighbour lies in a face's plane
 
     @classmethod
     def none(cls, n: int) -> SharpFeatures:
         """No sharp features: no point is flat, none is dropped."""
-        return cls(np.zeros(n, bool), np.zeros(n, bool), SHARP_COS, ON_PLANE_SIN2)
+        return cls(np.zeros(n, bool), np.zeros(n, bool), SHARP_COS, ON_PLANE_SIN2, SHEET_COS, FLAT_SIN2)
 
 
 @numba.njit(parallel=True, cache=True)
@@ -82,9 +91,10 @@ def _flat_points(points, index, start, normals):  # pragma: no cover - compiled
 
 
 @numba.njit(parallel=True, cache=True)
-def _crease_points(points, index, start, normals, flat):  # pragma: no cover - compiled
+def _crease_points(points, index, start, normals, flat, sheet_cos):  # pragma: no cover - compiled
     """Whether each point start + i lies on a crease itself: in the tangent planes (within
-    ON_PLANE_SIN2) of two flat neighbours whose normals are more than SHARP_ANGLE apart."""
+    ON_PLANE_SIN2) of two flat neighbours whose normals are more than SHARP_ANGLE apart, neither
+    facing away from its own (sheet_cos)."""
     m, k = index.shape
     crease = np.zeros(m, np.bool_)
     for block in numba.prange((m + CREASE_BLOCK - 1) // CREASE_BLOCK):
@@ -107,7 +117,7 @@ def _crease_points(points, index, start, normals, flat):  # pragma: no cover - c
                     side += offset * normals[q, a]
                     distance2 += offset * offset
                     towards_p += normals[q, a] * normals[p, a]
-                if side * side > ON_PLANE_SIN2 * distance2:
+                if side * side > ON_PLANE_SIN2 * distance2 or towards_p < sheet_cos:
                     continue
                 # two normals within half SHARP_ANGLE of p's lie less than SHARP_ANGLE apart (the
                 # triangle inequality of angles): on a flat face no pair needs comparing
@@ -136,5 +146,6 @@ def find_sharp_features(nbh: Neighbourhood, normals: np.ndarray, k: int) -> Shar
     index = nbh.first(k)
     normals = unit(normals)
     flat = map_chunks(lambda start, stop: _flat_points(nbh.points, index[start:stop], start, normals), n)
-    crease = map_chunks(lambda start, stop: _crease_points(nbh.points, index[start:stop], start, normals, flat), n)
-    return SharpFeatures(flat, crease, SHARP_COS, ON_PLANE_SIN2)
+    crease = map_chunks(lambda start, stop: _crease_points(nbh.points, index[start:stop], start, normals, flat,
+                                                           SHEET_COS), n)
+    return SharpFeatures(flat, crease, SHARP_COS, ON_PLANE_SIN2, SHEET_COS, FLAT_SIN2)
