@@ -398,10 +398,10 @@ def _crease_candidates(points, normals, index, axes, i, p, features, candidates)
             facing += normals[q, a] * normals[p, a]
         if facing >= features.sharp_cos or features.crease[q] or not features.flat[q]:
             continue
-        if facing < features.sheet_cos:  # in p's face: the same surface seen from behind (rare)
+        if facing < features.sheet_cos:  # rare, so allocating below costs nothing on the usual path
             offset = points[q] - points[p]
             if np.dot(offset, normals[p]) ** 2 <= features.flat_sin2 * np.dot(offset, offset):
-                continue
+                continue  # in p's face: the same surface seen from behind
         la, lb, lc = _crease_half_plane(points, p, q, normals[q], axes[i], features.on_plane_sin2)
         length = math.sqrt(la * la + lb * lb)
         if length < 1e-6 or lc >= length:  # parallel planes, or the line misses the splat

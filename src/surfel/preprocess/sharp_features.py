@@ -94,7 +94,7 @@ def _flat_points(points, index, start, normals):  # pragma: no cover - compiled
 def _crease_points(points, index, start, normals, flat, sheet_cos):  # pragma: no cover - compiled
     """Whether each point start + i lies on a crease itself: in the tangent planes (within
     ON_PLANE_SIN2) of two flat neighbours whose normals are more than SHARP_ANGLE apart, neither
-    facing away from its own (sheet_cos)."""
+    facing away from the point's (n_p . n_q < sheet_cos: its surface seen from behind)."""
     m, k = index.shape
     crease = np.zeros(m, np.bool_)
     for block in numba.prange((m + CREASE_BLOCK - 1) // CREASE_BLOCK):
