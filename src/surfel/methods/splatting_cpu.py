@@ -197,8 +197,7 @@ def _render_cpu(cloud, camera, options, params, renderer, *, per_splat_shading: 
     target = target_camera(camera, ss)
     width, height = target.width, target.height
     check_cpu_samples(width, height)
-    clip_lines = "clip_lines" in cloud.attributes
-    extras = clip_lines or curved
+    extras = "clip_lines" in cloud.attributes or curved
     buffers = renderer.cached(cloud, ("cpu splat buffers", extras), lambda: CpuSplatBuffers(cloud, extras))
     buffers.frame(width, height)
     color_mode, palette, levels = _color_mode(options)
@@ -224,8 +223,8 @@ def _render_cpu(cloud, camera, options, params, renderer, *, per_splat_shading: 
     k.rasterize_tiles(buffers.packed, buffers.extras, buffers.box, buffers.index, buffers.tile_start,
                       buffers.tile_count, buffers.order, buffers.tiles_x, width, height, m,
                       np.float32(params.radius_scale), lowpass, np.float32(params.depth_offset),
-                      np.float32(DEPTH_CLAMP), buffers.extras if clip_lines else None,
-                      buffers.extras if curved else None, buffers.extras if normal_field else None,
+                      np.float32(DEPTH_CLAMP), buffers.extras, buffers.extras if curved else None,
+                      buffers.extras if normal_field else None,
                       model if per_splat else -1,
                       -1 if per_splat else model, color_mode, palette, levels, background, composite,
                       buffers.tables, buffers.boxes, buffers.temp, buffers.kept, buffers.zbuf, buffers.cover,

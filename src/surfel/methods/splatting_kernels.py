@@ -339,8 +339,12 @@ def rasterize_tiles(packed, extras, box, index, tile_start, tile_count, order, t
     (threads, table_size(largest tile)), boxes (threads, 4 x that), temp (threads,
     TEMP_ROWS x BLOCK), kept (threads, table_size(largest tile, KEPT_ROWS)), zbuf, cover
     (threads, STRIDE²), accum (threads, LAYER, STRIDE²).
-    clip_src, field_src, normal_src: the extras where the cloud has clip lines, where splats are
-    curved by their normal fields, where they are shaded with them too (`phong`); else None.
+    clip_src, field_src, normal_src: the extras where splats are clipped, where they are curved
+    by their normal fields, where they are shaded with them too (`phong`); else None, which
+    compiles a kernel without that arithmetic. The renderer clips wherever it has the extras
+    (inactive lines where the cloud has none): a curved cloud without clip lines then shares the
+    kernel of one with them (a signature costs about 30 s to compile), while a plain cloud keeps
+    the kernel without extras.
     per_splat_model / deferred_model: the shading.MODEL_IDS value applied per splat
     (`gaussian`) or per pixel (`deferred`, `phong`, and every method in a categorical colour
     mode), -1 for the other. color_mode: COLOR_RGB, COLOR_CONTINUOUS (`palette` the colour map's
