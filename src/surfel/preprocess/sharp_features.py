@@ -91,10 +91,10 @@ def _flat_points(points, index, start, normals):  # pragma: no cover - compiled
 
 
 @numba.njit(parallel=True, cache=True)
-def _crease_points(points, index, start, normals, flat, sheet_cos):  # pragma: no cover - compiled
+def _crease_points(points, index, start, normals, flat):  # pragma: no cover - compiled
     """Whether each point start + i lies on a crease itself: in the tangent planes (within
     ON_PLANE_SIN2) of two flat neighbours whose normals are more than SHARP_ANGLE apart, neither
-    facing away from the point's (n_p . n_q < sheet_cos: its surface seen from behind)."""
+    facing away from the point's (n_p . n_q < SHEET_COS: its surface seen from behind)."""
     m, k = index.shape
     crease = np.zeros(m, np.bool_)
     for block in numba.prange((m + CREASE_BLOCK - 1) // CREASE_BLOCK):
@@ -117,7 +117,7 @@ def _crease_points(points, index, start, normals, flat, sheet_cos):  # pragma: n
                     side += offset * normals[q, a]
                     distance2 += offset * offset
                     towards_p += normals[q, a] * normals[p, a]
-                if side * side > ON_PLANE_SIN2 * distance2 or towards_p < sheet_cos:
+                if side * side > ON_PLANE_SIN2 * distance2 or towards_p < SHEET_COS:
                     continue
                 # two normals within half SHARP_ANGLE of p's lie less than SHARP_ANGLE apart (the
                 # triangle inequality of angles): on a flat face no pair needs comparing
@@ -146,6 +146,5 @@ def find_sharp_features(nbh: Neighbourhood, normals: np.ndarray, k: int) -> Shar
     index = nbh.first(k)
     normals = unit(normals)
     flat = map_chunks(lambda start, stop: _flat_points(nbh.points, index[start:stop], start, normals), n)
-    crease = map_chunks(lambda start, stop: _crease_points(nbh.points, index[start:stop], start, normals, flat,
-                                                           SHEET_COS), n)
+    crease = map_chunks(lambda start, stop: _crease_points(nbh.points, index[start:stop], start, normals, flat), n)
     return SharpFeatures(flat, crease, SHARP_COS, ON_PLANE_SIN2, SHEET_COS, FLAT_SIN2)
