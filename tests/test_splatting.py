@@ -309,6 +309,25 @@ def test_compute_passes_read_the_splats_in_storage_ranges_of_any_size(monkeypatc
         assert np.array_equal(getattr(whole, buffer), getattr(ranges, buffer)), buffer
 
 
+@pytest.mark.parametrize("method", ["deferred", "phong"])
+def test_a_cloud_without_colours_sums_no_colours_and_draws_the_same(method):
+    """Without colours every splat's albedo code is the same (gl/splats.py NO_COLOR), so the
+    compute attribute pass leaves its colour sums out (passes.glsl UNIFORM_COLOR) and the
+    resolve writes them as the weight times that code: every buffer is exactly that of the
+    cloud given that colour at every point, which sums them."""
+    import models
+    from surfel.gl import splats
+
+    cloud = models.turned_part().with_(faces=None, colors=None)
+    painted = cloud.with_(colors=np.full((len(cloud), 3), splats.NO_COLOR, np.float32))
+    camera = frame(cloud.center, cloud.bounding_radius, azimuth=30, elevation=20, size=SIZE)
+    plain, summed = (render(c, camera, method, backend="gl", shading="lambert") for c in (cloud, painted))
+    assert plain.stats["visibility"] == summed.stats["visibility"] == "compute"
+    assert plain.alpha.mean() > 0.1
+    for buffer in ("color", "alpha", "depth", "normals"):
+        assert np.array_equal(getattr(plain, buffer), getattr(summed, buffer)), buffer
+
+
 def test_a_pile_of_coincident_splats_does_not_overflow_the_fixed_point_sums(monkeypatch):
     """5000 red splats at one point of a grey plane: their weights sum far past the range of
     the attribute pass's fixed-point sums, which stop accumulating before it (SUM_LIMIT), so

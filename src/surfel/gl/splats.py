@@ -36,6 +36,7 @@ LOD_EXTRAS = ("lod_emin", "lod_emax", "lod_dparent")
 FLOATS = sum(WIDTHS)  # splat_attributes.glsl SPLAT_FLOATS
 COMPUTE_GROUP = 64    # the local size of splatting.glsl's compute programs
 CACHE_LIMIT_BYTES = 2_000_000_000
+NO_COLOR = 1.0  # the albedo code packed for every splat of a cloud without colours
 
 def pack(cloud: PointCloud, start: int = 0, stop: int | None = None) -> np.ndarray:
     """(n, FLOATS) float32 interleaved attributes for points [start, stop)."""
@@ -44,7 +45,7 @@ def pack(cloud: PointCloud, start: int = 0, stop: int | None = None) -> np.ndarr
     out = np.empty((n, FLOATS), np.float32)
     out[:, 0:3] = cloud.positions[start:stop] - cloud.local_origin
     out[:, 3:6] = drawn_normals(cloud, start, stop) if cloud.normals is not None else (0, 0, 1)
-    out[:, 6:9] = cloud.colors[start:stop] if cloud.colors is not None else 1.0
+    out[:, 6:9] = cloud.colors[start:stop] if cloud.colors is not None else NO_COLOR
     if cloud.axes is not None:
         out[:, 9:15] = cloud.axes[start:stop].reshape(n, 6)
     else:

@@ -351,6 +351,17 @@ bool invocation_splat(ivec2 size, out ivec2 first, out ivec2 last) {
     last = min(ivec2(ceil(window_hi - 0.5)) - 1, size - 1);
     return true;
 }
+
+// The compute passes visit the pixels of [first, last] row by row in one loop, stepping with
+// this: llvmpipe runs the invocations of a work group in lockstep, and two nested loops'
+// bookkeeping cost the attribute pass about 8% more (bench, 1M splats).
+ivec2 next_pixel(ivec2 texel, int first_x, int last_x) {
+    return texel.x < last_x ? ivec2(texel.x + 1, texel.y) : ivec2(first_x, texel.y + 1);
+}
+
+int pixel_count(ivec2 first, ivec2 last) {
+    return max(last.x - first.x + 1, 0) * max(last.y - first.y + 1, 0);
+}
 #endif
 
 #if defined(PASS_VISIBILITY) && defined(COMPUTE_SHADER)
@@ -403,22 +414,20 @@ float analytic_edge_distance(vec2 frag, vec2 uv, float rho2, float clipped) {
 void main() {
     ivec2 first, last;
     if (!invocation_splat(imageSize(u_nearest), first, last)) return;
-    for (int y = first.y; y <= last.y; ++y) {
-        for (int x = first.x; x <= last.x; ++x) {
-            vec2 frag = vec2(x, y) + 0.5;
-            float z, clipped;
-            vec2 uv;
-            float splat_rho2 = splat_distance(frag, z, uv, clipped);
-            if (max(sqrt(filter_distance(frag, splat_rho2)), 1.0 + clipped) > 1.0) continue;
-            float edge = max(analytic_edge_distance(frag, uv, splat_rho2, clipped),
-                             0.5 - length(image_coord(frag) - v_center_px));
-            uint depth = floatBitsToUint(splat_rho2 > 1.0 ? FAR_DEPTH : z + v_offset);
-            uint uncovered = floatBitsToUint(1.0 - clamp(0.5 + edge, 0.0, 1.0));
-            ivec2 texel = ivec2(x, y);
-            // most fragments lie behind one already there: a plain load spares their atomics
-            if (depth < imageLoad(u_nearest, texel).x) imageAtomicMin(u_nearest, texel, depth);
-            if (uncovered < imageLoad(u_uncovered, texel).x) imageAtomicMin(u_uncovered, texel, uncovered);
-        }
+    ivec2 texel = first;
+    for (int k = pixel_count(first, last); k > 0; --k, texel = next_pixel(texel, first.x, last.x)) {
+        vec2 frag = vec2(texel) + 0.5;
+        float z, clipped;
+        vec2 uv;
+        float splat_rho2 = splat_distance(frag, z, uv, clipped);
+        if (max(sqrt(filter_distance(frag, splat_rho2)), 1.0 + clipped) > 1.0) continue;
+        float edge = max(analytic_edge_distance(frag, uv, splat_rho2, clipped),
+                         0.5 - length(image_coord(frag) - v_center_px));
+        uint depth = floatBitsToUint(splat_rho2 > 1.0 ? FAR_DEPTH : z + v_offset);
+        uint uncovered = floatBitsToUint(1.0 - clamp(0.5 + edge, 0.0, 1.0));
+        // most fragments lie behind one already there: a plain load spares their atomics
+        if (depth < imageLoad(u_nearest, texel).x) imageAtomicMin(u_nearest, texel, depth);
+        if (uncovered < imageLoad(u_uncovered, texel).x) imageAtomicMin(u_uncovered, texel, uncovered);
     }
 }
 #endif
@@ -430,12 +439,11 @@ void main() {
 void main() {
     ivec2 first, last;
     if (!invocation_splat(textureSize(u_visibility, 0), first, last)) return;
-    for (int y = first.y; y <= last.y; ++y) {
-        for (int x = first.x; x <= last.x; ++x) {
-            float w, z;
-            vec3 n;
-            if (attribute_fragment(vec2(x, y) + 0.5, w, z, n)) accumulate(ivec2(x, y), w, v_color, n, z);
-        }
+    ivec2 texel = first;
+    for (int k = pixel_count(first, last); k > 0; --k, texel = next_pixel(texel, first.x, last.x)) {
+        float w, z;
+        vec3 n;
+        if (attribute_fragment(vec2(texel) + 0.5, w, z, n)) accumulate(texel, w, v_color, n, z);
     }
 }
 #endif

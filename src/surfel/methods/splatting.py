@@ -180,9 +180,12 @@ def _render(cloud, camera, options, params, renderer, *, per_splat_shading: bool
         raster |= {"PASS_OCCLUSION", "PASS_CATEGORY"}
     programs = {p: renderer.program(SHADER, {p: True, **variant}) for p in sorted(raster)}
     if compute:
-        for name, defines in (("visibility", {"PASS_VISIBILITY": True}), ("attribute", {"PASS_ATTRIBUTE": True}),
+        # one albedo code for every splat: the sums skip it (gl/passes.glsl UNIFORM_COLOR)
+        uniform = {"UNIFORM_COLOR": splats.NO_COLOR if cloud.colors is None and not per_splat_shading else False}
+        for name, defines in (("visibility", {"PASS_VISIBILITY": True}),
+                              ("attribute", {"PASS_ATTRIBUTE": True, **uniform}),
                               ("resolve visibility", {"PASS_RESOLVE": True}),
-                              ("resolve sums", {"PASS_RESOLVE": True, "ACCUMULATOR_SUMS": True})):
+                              ("resolve sums", {"PASS_RESOLVE": True, "ACCUMULATOR_SUMS": True, **uniform})):
             programs[name] = renderer.program(SHADER, {**defines, "SPLAT_FLOATS": splats.FLOATS, **variant},
                                               compute=True)
     for program in programs.values():
