@@ -76,6 +76,47 @@ def _box_filter_categories(shaded, coverage, indices, s):  # pragma: no cover - 
     return out
 
 
+@numba.njit(parallel=True, cache=True)
+def _box_filter(shaded, coverage, depth, normals, s, background, premult, given):  # pragma: no cover - compiled
+    """s x s blocks of samples to output pixels: coverage (clamped to [0, 1]) averaged; colour
+    averaged premultiplied by it (or `premult` where `given`) and composited over the
+    background; the nearest covered depth (inf for none); the coverage-weighted mean normal
+    made unit (0 for none)."""
+    h, w = coverage.shape[0] // s, coverage.shape[1] // s
+    color = np.empty((h, w, 3), np.float32)
+    alpha = np.empty((h, w), np.float32)
+    depth_out = np.empty((h, w), np.float32)
+    normals_out = np.zeros((h, w, 3), np.float32)
+    samples = np.float32(s * s)
+    for y in numba.prange(h):
+        for x in range(w):
+            a = np.float32(0.0)
+            nearest = np.float32(np.inf)
+            rgb = np.zeros(3, np.float32)
+            normal = np.zeros(3, np.float32)
+            for k in range(s * s):
+                ys, xs = y * s + k // s, x * s + k % s
+                c = min(max(coverage[ys, xs], np.float32(0.0)), np.float32(1.0))
+                if c <= 0:
+                    continue
+                a += c
+                nearest = min(nearest, depth[ys, xs])
+                for i in range(3):
+                    rgb[i] += shaded[ys, xs, i] * c
+                    normal[i] += normals[ys, xs, i] * c
+            a /= samples
+            alpha[y, x] = a
+            depth_out[y, x] = nearest
+            for i in range(3):
+                mean = premult[y, x, i] if given else rgb[i] / samples
+                color[y, x, i] = min(max(mean + (1 - a) * background[i], np.float32(0.0)), np.float32(1.0))
+            length = np.sqrt(normal[0] ** 2 + normal[1] ** 2 + normal[2] ** 2)
+            if length > 1e-12:
+                for i in range(3):
+                    normals_out[y, x, i] = normal[i] / length
+    return color, alpha, depth_out, normals_out
+
+
 @dataclass(eq=False)
 class RenderResult:
     """color (H, W, 3) composited over the background; alpha (H, W) coverage in [0, 1];
@@ -116,30 +157,15 @@ class RenderResult:
                                      options.edl_strength)
             shaded = shaded * term[..., None]
             stats = dict(stats, edl={"strength": options.edl_strength, "radius": options.edl_radius})
+        buffers = [np.ascontiguousarray(a, np.float32) for a in (shaded, coverage, depth, normals)]
+        background = np.asarray(background, np.float32)
         if s == 1:  # nothing to filter: composite and mask in one pass
-            buffers = (np.ascontiguousarray(a, np.float32) for a in (shaded, coverage, depth, normals))
-            return cls(*_composite_over(*buffers, np.asarray(background, np.float32)), stats)
-        cov = np.clip(coverage.astype(np.float32), 0, 1)
-        bg = np.asarray(background, np.float32).reshape(1, 1, 3)
-        h, w = coverage.shape[0] // s, coverage.shape[1] // s
-
-        def blocks(a):
-            return a.reshape(h, s, w, s, *a.shape[2:])
-
-        alpha = blocks(cov).mean(axis=(1, 3))
-        if indices is None:
-            premult = blocks(shaded * cov[..., None]).mean(axis=(1, 3))
-        else:
-            premult = _box_filter_categories(np.ascontiguousarray(shaded, np.float32), cov,
+            return cls(*_composite_over(*buffers, background), stats)
+        premult = np.empty((0, 0, 3), np.float32)  # the box filter's own, unless categories pick it
+        if indices is not None:
+            premult = _box_filter_categories(buffers[0], np.clip(buffers[1], 0, 1),
                                              np.ascontiguousarray(indices, np.int32), s)
-        color = premult + (1 - alpha[..., None]) * bg
-        d = np.where(cov > 0, depth, np.inf).astype(np.float32)
-        depth_out = blocks(d).min(axis=(1, 3))
-        nsum = blocks(normals * cov[..., None]).sum(axis=(1, 3))
-        length = np.linalg.norm(nsum, axis=-1, keepdims=True)
-        normals_out = np.where(length > 1e-12, nsum / np.maximum(length, 1e-12), 0).astype(np.float32)
-        return cls(np.clip(color, 0, 1).astype(np.float32), alpha.astype(np.float32), depth_out,
-                   normals_out, stats)
+        return cls(*_box_filter(*buffers, s, background, premult, indices is not None), stats)
 
     @property
     def width(self) -> int:
