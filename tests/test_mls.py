@@ -205,6 +205,35 @@ def test_crease_part_keeps_its_creases(turned_part, view):
     assert metrics["psnr"] >= 32.5 and metrics["holes"] <= 0.001 and metrics["spill"] <= 0.001
 
 
+@pytest.mark.parametrize("view", ["perspective", "orthographic", "inside"])
+def test_rays_outside_every_spheres_footprint_are_not_traced(view, monkeypatch):
+    """Camera rays are traced only where a bounding sphere's screen footprint holds their
+    pixel centre (raytrace.primary_candidates): tracing every ray gives the same buffers. A
+    camera among the spheres (inside the torus' tube) has some across its eye plane: it
+    traces every ray."""
+    from surfel.camera import Camera
+    from surfel.mls import raytrace
+
+    cloud = torus_cloud(10_000)
+    cameras = {"perspective": frame(cloud.center, cloud.bounding_radius, size=(96, 96), elevation=35.0),
+               "orthographic": frame(cloud.center, cloud.bounding_radius, size=(96, 96), elevation=35.0,
+                                     ortho_height="auto"),
+               "inside": Camera.look_at((1.0, 0.0, 0.0), (1.0, 0.0, 1.0), size=(96, 96), fov=60.0)}
+    camera = cameras[view]
+    culled = mls_cpu(cloud, camera, RenderOptions(shading="lambert"))
+    with monkeypatch.context() as patch:
+        patch.setattr(raytrace, "primary_candidates", lambda scene, view_matrix, cam: np.arange(cam.width * cam.height))
+        every = mls_cpu(cloud, camera, RenderOptions(shading="lambert"))
+    assert every.stats["traced"] == every.stats["rays"] and culled.stats["hits"] == every.stats["hits"] > 0
+    if view == "inside":
+        assert culled.stats["traced"] == culled.stats["rays"]
+    else:
+        assert culled.stats["traced"] < 0.7 * culled.stats["rays"]
+    assert np.array_equal(culled.alpha, every.alpha)
+    np.testing.assert_allclose(culled.color, every.color, atol=1e-5)
+    np.testing.assert_allclose(culled.depth, every.depth, rtol=1e-6)
+
+
 def test_shadows_darken():
     cam = frame(SPHERE.center, SPHERE.bounding_radius, size=(64, 64))
     lit = mls_cpu(SPHERE, cam, RenderOptions(shading="phong"))

@@ -4,7 +4,11 @@ Every sample p_i carries a bounding sphere of radius domain * s_i (the domain te
 surface.py accepts exactly the points within such a sphere, so the spheres enclose the
 surface) and the polynomial fitted at p_i (precomputed once per cloud, cached weakly).
 The spheres sit in a bounding volume hierarchy: an implicit complete binary tree over the
-points sorted in Morton order, 8 spheres a leaf. Per ray (numba, parallel over rays):
+points sorted in Morton order, 8 spheres a leaf. A camera ray whose pixel centre lies in
+no sphere's screen footprint (the projected bounding box of the sphere's bounding cube,
+`primary_candidates`) meets no sphere and is not traced: most rays of a frame miss, and
+those that pass near the surface would descend the hierarchy for nothing. Per ray traced
+(numba, parallel over rays):
 
 1. collect the spheres the ray passes through and visit them nearest entry first;
 2. intersect the ray with the sphere centre's polynomial inside the sphere (poly_ray);
@@ -269,6 +273,59 @@ def trace_rays(origins, directions, t_min, t_max, samples, polys, radius, boxes,
             out_fits[r] = fits
 
 
+@numba.njit(cache=True, parallel=True)
+def sphere_footprints(centres, radius, intrinsics, ortho_scale, height, width):  # pragma: no cover
+    """(height, width) mask of the pixels whose centre ray may meet a sphere (eye-space
+    centres, radii; radius 0: no sphere): each sphere marks the pixel centres in the screen
+    box of its bounding cube's corners, grown by a pixel. A sphere across the eye's plane may
+    meet any ray: every pixel is marked. `intrinsics` fx, fy, cx, cy; `ortho_scale` world
+    units a pixel (0: perspective)."""
+    fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
+    mask = np.zeros((height, width), np.bool_)
+    n = centres.shape[0]
+    across = np.zeros(n, np.bool_)
+    for i in numba.prange(n):
+        r = radius[i]
+        x, y, z = centres[i, 0], centres[i, 1], centres[i, 2]
+        if r <= 0.0 or z - r > 0.0:  # no sphere, or wholly behind the rays' start
+            continue
+        if ortho_scale > 0.0:
+            u0, u1 = cx + (x - r) / ortho_scale, cx + (x + r) / ortho_scale
+            v0, v1 = cy - (y + r) / ortho_scale, cy - (y - r) / ortho_scale
+        elif z + r >= 0.0:
+            across[i] = True
+            continue
+        else:
+            u0 = v0 = np.inf
+            u1 = v1 = -np.inf
+            for corner in range(4):  # X / -Z and Y / -Z are extreme at the cube's corners
+                depth = -(z + (r if corner < 2 else -r))
+                a = (x + (r if corner % 2 == 0 else -r)) / depth
+                b = (y + (r if corner % 2 == 0 else -r)) / depth
+                u0, u1 = min(u0, cx + fx * a), max(u1, cx + fx * a)
+                v0, v1 = min(v0, cy - fy * b), max(v1, cy - fy * b)
+        # pixel column j's centre ray lies at u = j + 0.5
+        j0, j1 = max(int(math.floor(u0 - 1.5)), 0), min(int(math.ceil(u1 + 0.5)), width - 1)
+        k0, k1 = max(int(math.floor(v0 - 1.5)), 0), min(int(math.ceil(v1 + 0.5)), height - 1)
+        for k in range(k0, k1 + 1):
+            for j in range(j0, j1 + 1):
+                mask[k, j] = True
+    if across.any():
+        mask[:] = True
+    return mask
+
+
+def primary_candidates(scene: MLSScene, view: np.ndarray, camera) -> np.ndarray:
+    """The indices (row-major) of `camera`'s pixels whose centre ray may meet the surface:
+    those in a sphere's footprint (module docstring). `view` maps the surface's local
+    coordinates to eye space."""
+    centres = scene.surface.points @ view[:3, :3].T + view[:3, 3]
+    intrinsics = np.array([camera.fx, camera.fy, camera.cx, camera.cy], np.float64)
+    ortho = camera.ortho_height / camera.height if camera.ortho_height is not None else 0.0
+    mask = sphere_footprints(centres, scene.radius, intrinsics, float(ortho), camera.height, camera.width)
+    return np.flatnonzero(mask.ravel())
+
+
 @dataclass
 class Hits:
     """Per-ray results of `trace`: t (< 0 missed), world normals, colours, fits used."""
@@ -322,17 +379,18 @@ def render_mls_cpu(cloud, camera, options, params: MlsParams, renderer) -> Rende
     origins = o_eye.reshape(-1, 3) @ to_local[:3, :3].T + to_local[:3, 3]
     dirs = d_eye.reshape(-1, 3) @ rot  # rows times R = R^T d
     t_max = 2.0 * (camera.far + np.linalg.norm(view[:3, 3]))
-    hits = trace(scene, origins, dirs, 0.0, t_max, tolerance, max_iter)
-    hit = hits.hit
-    idx = np.flatnonzero(hit)  # what follows is per hit: most rays of a frame miss
-    x_local = origins[idx] + hits.t[idx, None] * dirs[idx]
+    traced = primary_candidates(scene, view, cam)
+    hits = trace(scene, origins[traced], dirs[traced], 0.0, t_max, tolerance, max_iter)
+    found = np.flatnonzero(hits.hit)
+    idx = traced[found]  # what follows is per hit: most rays of a frame miss
+    x_local = origins[idx] + hits.t[found, None] * dirs[idx]
     depth = np.full(h * w, np.inf)
     depth[idx] = -(x_local @ view[2, :3] + view[2, 3])
-    n_hit = hits.normals[idx] @ rot.T
+    n_hit = hits.normals[found] @ rot.T
     n_hit *= np.where(np.sum(n_hit * d_eye.reshape(-1, 3)[idx], axis=1) > 0, -1.0, 1.0)[:, None]  # face the viewer
     n_eye = np.zeros((h * w, 3))
     n_eye[idx] = n_hit
-    albedo = hits.colors[idx]
+    albedo = hits.colors[found]
     indices = None
     coloring = options.coloring
     colors_of = renderer.surface_colors(cloud, cam, options)
@@ -342,9 +400,9 @@ def render_mls_cpu(cloud, camera, options, params: MlsParams, renderer) -> Rende
     elif coloring is not None:
         albedo = coloring.decode(albedo)
     shaded_hit = shade(options.surface_shading, albedo, n_hit, depth[idx], camera.near, camera.far)
-    stats = {"splats": len(cloud), "rays": int(h * w), "hits": int(idx.size),
-             "iterations_mean": round(float(hits.fits[idx].mean()), 3) if idx.size else 0.0,
-             "iterations_max": int(hits.fits[idx].max()) if idx.size else 0,
+    stats = {"splats": len(cloud), "rays": int(h * w), "traced": int(traced.size), "hits": int(idx.size),
+             "iterations_mean": round(float(hits.fits[found].mean()), 3) if idx.size else 0.0,
+             "iterations_max": int(hits.fits[found].max()) if idx.size else 0,
              "point_fit_failures": int((~scene.valid).sum()), "supersample": ss,
              "kernel_width": surface.scale}
     offset = 2.0 * tolerance * surface.scale + 0.25 * surface.scale
@@ -374,7 +432,8 @@ def render_mls_cpu(cloud, camera, options, params: MlsParams, renderer) -> Rende
         stats["reflected_hits"] = int(bounce.hit.sum())
     shaded = np.zeros((h * w, 3), np.float32)  # misses: no coverage, their colour never shows
     shaded[idx] = shaded_hit
-    coverage = hit.astype(np.float32)
+    coverage = np.zeros(h * w, np.float32)
+    coverage[idx] = 1.0
     return RenderResult.from_samples(shaded.reshape(h, w, 3), coverage.reshape(h, w),
                                      depth.reshape(h, w), n_eye.reshape(h, w, 3), supersample=ss,
                                      options=options, stats=stats, indices=indices)
