@@ -103,7 +103,11 @@ def test_turntable_on_a_local_cluster_equals_separate_renders(tmp_path):
         one = invoke("render", "--demo", "-o", tmp_path / f"one-{i}.png", "--size", SIZE, "--shading", "lambert",
                      "--azimuth", 90 * i, "--elevation", 15)
         assert one.exit_code == 0, one.output
-        assert np.array_equal(pixels(tmp_path / f"batch-{i}.png"), pixels(tmp_path / f"one-{i}.png"))
+        batched, alone = (pixels(tmp_path / f"{name}-{i}.png").astype(int) for name in ("batch", "one"))
+        # the same picture up to rounding: from an empty numba cache, on a 2-core AMD EPYC, one
+        # pixel of one frame came out one level apart (the workers compile the kernels themselves)
+        assert np.array_equal(batched[..., 3], alone[..., 3])
+        assert np.abs(batched - alone).max() <= 1 and (batched != alone).any(axis=-1).sum() <= 4
 
 
 @requires_gl
