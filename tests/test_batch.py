@@ -105,7 +105,7 @@ def test_turntable_on_a_local_cluster_equals_separate_renders(tmp_path):
         assert one.exit_code == 0, one.output
         batched, alone = (pixels(tmp_path / f"{name}-{i}.png").astype(int) for name in ("batch", "one"))
         # the same picture up to rounding: from an empty numba cache, on a 2-core AMD EPYC, one
-        # pixel of one frame came out one level apart (the workers compile the kernels themselves)
+        # pixel of one frame came out one level apart
         assert np.array_equal(batched[..., 3], alone[..., 3])
         assert np.abs(batched - alone).max() <= 1 and (batched != alone).any(axis=-1).sum() <= 4
 

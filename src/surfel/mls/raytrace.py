@@ -307,7 +307,7 @@ def sphere_footprints(centres, radius, intrinsics, ortho_scale, height, width): 
         # pixel column j's centre ray lies at u = j + 0.5
         j0, j1 = max(int(math.floor(u0 - 1.5)), 0), min(int(math.ceil(u1 + 0.5)), width - 1)
         k0, k1 = max(int(math.floor(v0 - 1.5)), 0), min(int(math.ceil(v1 + 0.5)), height - 1)
-        for k in range(k0, k1 + 1):
+        for k in range(k0, k1 + 1):  # threads marking the same pixel all write True
             for j in range(j0, j1 + 1):
                 mask[k, j] = True
     if across.any():
