@@ -33,7 +33,7 @@ void main() {
 // SUM_LIMIT of weight (a pile of hundreds of coincident splats), so that no sum overflows.
 // With UNIFORM_COLOR (every splat's albedo code that value: a cloud without colours, not
 // shaded per splat) the colour sums are the weight times it and are not accumulated: on
-// llvmpipe each sum's atomic costs the attribute pass about 7% (bench, 1M splats).
+// llvmpipe the three atomics cost the attribute pass about 15% (bench, 1M splats).
 #define SUM_CHANNELS 8
 #define SUM_SCALE 4194304.0  // 2^22: weights to 2.4e-7
 #define SUM_LIMIT 1073741824u  // 256 of weight, half the signed range of the depth and normal sums
