@@ -14,30 +14,6 @@ from .pinholes import fill_pinholes
 
 
 @numba.njit(parallel=True, cache=True)
-def _composite_over(shaded, coverage, depth, normals, background):  # pragma: no cover - compiled
-    """One-sample-per-pixel buffers: colour over the background, coverage clamped to [0, 1],
-    depth inf and normals 0 where nothing is covered, normals unit."""
-    h, w = coverage.shape
-    color = np.empty((h, w, 3), np.float32)
-    alpha = np.empty((h, w), np.float32)
-    depth_out = np.empty((h, w), np.float32)
-    normals_out = np.zeros((h, w, 3), np.float32)
-    for y in numba.prange(h):
-        for x in range(w):
-            a = min(max(coverage[y, x], np.float32(0.0)), np.float32(1.0))
-            alpha[y, x] = a
-            for c in range(3):
-                over = shaded[y, x, c] * a + (1 - a) * background[c]
-                color[y, x, c] = min(max(over, np.float32(0.0)), np.float32(1.0))
-            depth_out[y, x] = depth[y, x] if a > 0 else np.inf
-            length = np.sqrt(normals[y, x, 0] ** 2 + normals[y, x, 1] ** 2 + normals[y, x, 2] ** 2)
-            if a > 0 and length > 1e-12:
-                for c in range(3):
-                    normals_out[y, x, c] = normals[y, x, c] / length
-    return color, alpha, depth_out, normals_out
-
-
-@numba.njit(parallel=True, cache=True)
 def _box_filter_categories(shaded, coverage, indices, s):  # pragma: no cover - compiled
     """Premultiplied colour (H, W, 3) of s x s blocks that never mixes categories: each output
     pixel takes the category of most coverage among its samples (ties: the first), and the
@@ -78,42 +54,47 @@ def _box_filter_categories(shaded, coverage, indices, s):  # pragma: no cover - 
 
 @numba.njit(parallel=True, cache=True)
 def _box_filter(shaded, coverage, depth, normals, s, background, premult, given):  # pragma: no cover - compiled
-    """s x s blocks of samples to output pixels: coverage (clamped to [0, 1]) averaged; colour
-    averaged premultiplied by it (or `premult` where `given`) and composited over the
-    background; the nearest covered depth (inf for none); the coverage-weighted mean normal
-    made unit (0 for none)."""
+    """s x s blocks of samples (s = 1: each sample) to output pixels: coverage (clamped to
+    [0, 1]) averaged; colour averaged premultiplied by it (or `premult` where `given`) and
+    composited over the background; the nearest covered depth (inf for none); the
+    coverage-weighted mean normal made unit (0 for none)."""
     h, w = coverage.shape[0] // s, coverage.shape[1] // s
     color = np.empty((h, w, 3), np.float32)
     alpha = np.empty((h, w), np.float32)
     depth_out = np.empty((h, w), np.float32)
     normals_out = np.zeros((h, w, 3), np.float32)
     samples = np.float32(s * s)
+    zero, one = np.float32(0.0), np.float32(1.0)
     for y in numba.prange(h):
         for x in range(w):
-            a = np.float32(0.0)
+            a = r = g = b = nx = ny = nz = zero
             nearest = np.float32(np.inf)
-            rgb = np.zeros(3, np.float32)
-            normal = np.zeros(3, np.float32)
             for k in range(s * s):
                 ys, xs = y * s + k // s, x * s + k % s
-                c = min(max(coverage[ys, xs], np.float32(0.0)), np.float32(1.0))
+                c = min(max(coverage[ys, xs], zero), one)
                 if c <= 0:
                     continue
                 a += c
                 nearest = min(nearest, depth[ys, xs])
-                for i in range(3):
-                    rgb[i] += shaded[ys, xs, i] * c
-                    normal[i] += normals[ys, xs, i] * c
+                r += shaded[ys, xs, 0] * c
+                g += shaded[ys, xs, 1] * c
+                b += shaded[ys, xs, 2] * c
+                nx += normals[ys, xs, 0] * c
+                ny += normals[ys, xs, 1] * c
+                nz += normals[ys, xs, 2] * c
             a /= samples
             alpha[y, x] = a
             depth_out[y, x] = nearest
-            for i in range(3):
-                mean = premult[y, x, i] if given else rgb[i] / samples
-                color[y, x, i] = min(max(mean + (1 - a) * background[i], np.float32(0.0)), np.float32(1.0))
-            length = np.sqrt(normal[0] ** 2 + normal[1] ** 2 + normal[2] ** 2)
+            if given:
+                r, g, b = premult[y, x, 0], premult[y, x, 1], premult[y, x, 2]
+            else:
+                r, g, b = r / samples, g / samples, b / samples
+            color[y, x, 0] = min(max(r + (1 - a) * background[0], zero), one)
+            color[y, x, 1] = min(max(g + (1 - a) * background[1], zero), one)
+            color[y, x, 2] = min(max(b + (1 - a) * background[2], zero), one)
+            length = np.sqrt(nx * nx + ny * ny + nz * nz)
             if length > 1e-12:
-                for i in range(3):
-                    normals_out[y, x, i] = normal[i] / length
+                normals_out[y, x, 0], normals_out[y, x, 1], normals_out[y, x, 2] = nx / length, ny / length, nz / length
     return color, alpha, depth_out, normals_out
 
 
@@ -159,13 +140,12 @@ class RenderResult:
             stats = dict(stats, edl={"strength": options.edl_strength, "radius": options.edl_radius})
         buffers = [np.ascontiguousarray(a, np.float32) for a in (shaded, coverage, depth, normals)]
         background = np.asarray(background, np.float32)
-        if s == 1:  # nothing to filter: composite and mask in one pass
-            return cls(*_composite_over(*buffers, background), stats)
+        categories = indices is not None and s > 1  # a single sample has a single category
         premult = np.empty((0, 0, 3), np.float32)  # the box filter's own, unless categories pick it
-        if indices is not None:
+        if categories:
             premult = _box_filter_categories(buffers[0], np.clip(buffers[1], 0, 1),
                                              np.ascontiguousarray(indices, np.int32), s)
-        return cls(*_box_filter(*buffers, s, background, premult, indices is not None), stats)
+        return cls(*_box_filter(*buffers, s, background, premult, categories), stats)
 
     @property
     def width(self) -> int:

@@ -277,14 +277,12 @@ def trace_rays(origins, directions, t_min, t_max, samples, polys, radius, boxes,
 def sphere_footprints(centres, radius, intrinsics, ortho_scale, height, width):  # pragma: no cover
     """(height, width) mask of the pixels whose centre ray may meet a sphere (eye-space
     centres, radii; radius 0: no sphere): each sphere marks the pixel centres in the screen
-    box of its bounding cube's corners, grown by a pixel. A sphere across the eye's plane may
-    meet any ray: every pixel is marked. `intrinsics` fx, fy, cx, cy; `ortho_scale` world
-    units a pixel (0: perspective)."""
+    box of its bounding cube's corners, grown by a pixel. `intrinsics` fx, fy, cx, cy;
+    `ortho_scale` world units a pixel (0: perspective, where no sphere may cross the eye's
+    plane: `primary_candidates` marks every pixel then)."""
     fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
     mask = np.zeros((height, width), np.bool_)
-    n = centres.shape[0]
-    across = np.zeros(n, np.bool_)
-    for i in numba.prange(n):
+    for i in numba.prange(centres.shape[0]):
         r = radius[i]
         x, y, z = centres[i, 0], centres[i, 1], centres[i, 2]
         if r <= 0.0 or z - r > 0.0:  # no sphere, or wholly behind the rays' start
@@ -292,9 +290,6 @@ def sphere_footprints(centres, radius, intrinsics, ortho_scale, height, width): 
         if ortho_scale > 0.0:
             u0, u1 = cx + (x - r) / ortho_scale, cx + (x + r) / ortho_scale
             v0, v1 = cy - (y + r) / ortho_scale, cy - (y - r) / ortho_scale
-        elif z + r >= 0.0:
-            across[i] = True
-            continue
         else:
             u0 = v0 = np.inf
             u1 = v1 = -np.inf
@@ -310,18 +305,19 @@ def sphere_footprints(centres, radius, intrinsics, ortho_scale, height, width): 
         for k in range(k0, k1 + 1):  # threads marking the same pixel all write True
             for j in range(j0, j1 + 1):
                 mask[k, j] = True
-    if across.any():
-        mask[:] = True
     return mask
 
 
 def primary_candidates(scene: MLSScene, view: np.ndarray, camera) -> np.ndarray:
     """The indices (row-major) of `camera`'s pixels whose centre ray may meet the surface:
-    those in a sphere's footprint (module docstring). `view` maps the surface's local
-    coordinates to eye space."""
+    those in a sphere's footprint (module docstring), or all of them where a sphere crosses
+    the plane of a perspective camera's eye (any ray may meet it). `view` maps the surface's
+    local coordinates to eye space."""
     centres = scene.surface.points @ view[:3, :3].T + view[:3, 3]
-    intrinsics = np.array([camera.fx, camera.fy, camera.cx, camera.cy], np.float64)
     ortho = camera.ortho_height / camera.height if camera.ortho_height is not None else 0.0
+    if not ortho and (np.abs(centres[:, 2]) <= scene.radius)[scene.radius > 0].any():
+        return np.arange(camera.width * camera.height)
+    intrinsics = np.array([camera.fx, camera.fy, camera.cx, camera.cy], np.float64)
     mask = sphere_footprints(centres, scene.radius, intrinsics, float(ortho), camera.height, camera.width)
     return np.flatnonzero(mask.ravel())
 
@@ -371,23 +367,23 @@ def render_mls_cpu(cloud, camera, options, params: MlsParams, renderer) -> Rende
     scene = cached_scene(cloud, params, renderer)
     surface = scene.surface
     cam = supersampled(camera, ss)
-    o_eye, d_eye = cam.rays()
     h, w = cam.height, cam.width
     rot = camera.world_to_eye[:3, :3]
     view = camera.view_matrix(surface.origin)  # eye = view (local)
-    to_local = np.linalg.inv(view)
-    origins = o_eye.reshape(-1, 3) @ to_local[:3, :3].T + to_local[:3, 3]
-    dirs = d_eye.reshape(-1, 3) @ rot  # rows times R = R^T d
-    t_max = 2.0 * (camera.far + np.linalg.norm(view[:3, 3]))
     traced = primary_candidates(scene, view, cam)
-    hits = trace(scene, origins[traced], dirs[traced], 0.0, t_max, tolerance, max_iter)
+    o_eye, d_eye = (rays.reshape(-1, 3)[traced] for rays in cam.rays())
+    to_local = np.linalg.inv(view)
+    origins = o_eye @ to_local[:3, :3].T + to_local[:3, 3]
+    dirs = d_eye @ rot  # rows times R = R^T d
+    t_max = 2.0 * (camera.far + np.linalg.norm(view[:3, 3]))
+    hits = trace(scene, origins, dirs, 0.0, t_max, tolerance, max_iter)
     found = np.flatnonzero(hits.hit)
     idx = traced[found]  # what follows is per hit: most rays of a frame miss
-    x_local = origins[idx] + hits.t[found, None] * dirs[idx]
+    x_local = origins[found] + hits.t[found, None] * dirs[found]
     depth = np.full(h * w, np.inf)
     depth[idx] = -(x_local @ view[2, :3] + view[2, 3])
     n_hit = hits.normals[found] @ rot.T
-    n_hit *= np.where(np.sum(n_hit * d_eye.reshape(-1, 3)[idx], axis=1) > 0, -1.0, 1.0)[:, None]  # face the viewer
+    n_hit *= np.where(np.sum(n_hit * d_eye[found], axis=1) > 0, -1.0, 1.0)[:, None]  # face the viewer
     n_eye = np.zeros((h * w, 3))
     n_eye[idx] = n_hit
     albedo = hits.colors[found]
@@ -417,7 +413,7 @@ def render_mls_cpu(cloud, camera, options, params: MlsParams, renderer) -> Rende
         stats["shadowed"] = int(shadowed.sum())
     if params.reflect and idx.size:
         reflectivity = params.reflectivity
-        dv = dirs[idx]
+        dv = dirs[found]
         refl = dv - 2 * np.sum(dv * n_world, axis=1)[:, None] * n_world
         bounce = trace(scene, x_local + offset * n_world, refl, 0.0, t_max, tolerance, max_iter)
         seen = environment(refl @ rot.T)
