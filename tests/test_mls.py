@@ -99,14 +99,18 @@ def test_crease_test_cuts_a_sheet_at_its_outermost_samples():
     """Issue 17: the top face of a cube ends at its last row of samples (x = 0.95), where the
     side face turns away; the half-disc test alone let it run on to x = 1.0 (rims rounded,
     silhouettes spilling on CAD parts). A lone square, an open boundary as a LiDAR canopy's
-    edge is, still runs on to the half-disc test's bound."""
+    edge is, runs on past its last row by OPEN_REACH l, no further: the half-disc test alone
+    let it run on to x = 1.0 too (flat cut-outs' outlines spilled)."""
     xs = np.array([[x, 0.02, 1.0] for x in (0.9, 0.95, 0.96, 0.98, 1.0)])
     up = np.array([0.0, 0.0, 1.0])
     cube = S.build_surface(cube_faces())
     status = S.project(cube, xs - cube.origin, normals=up).status
     assert (status == [S.FIT_OK, S.FIT_OK, S.FIT_OUTSIDE, S.FIT_OUTSIDE, S.FIT_OUTSIDE]).all(), status
     square = S.build_surface(cube_faces(faces=[5]))
-    assert (S.project(square, xs - square.origin, normals=up).status == S.FIT_OK).all()
+    reach = S.OPEN_REACH * square.scale
+    xs = np.array([[x, 0.02, 1.0] for x in (0.9, 0.95, 0.95 + 0.5 * reach, 0.95 + 2 * reach, 1.0)])
+    status = S.project(square, xs - square.origin, normals=up).status
+    assert (status == [S.FIT_OK, S.FIT_OK, S.FIT_OK, S.FIT_OUTSIDE, S.FIT_OUTSIDE]).all(), status
 
 
 def coarse_tail(around: int, gap: float, rings: int = 6, radius: float = 0.1) -> PointCloud:

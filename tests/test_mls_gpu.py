@@ -8,7 +8,7 @@ from conftest import requires_gl
 from models import spot
 from surfel.camera import frame
 from surfel.cloud import PointCloud
-from surfel.metrics import compare_results
+from surfel.metrics import compare_images, compare_results
 from surfel.mls import gpu, raytrace
 from surfel.mls.gpu import MlsGpuParams, render_mls_gl
 from surfel.options import RenderOptions
@@ -114,9 +114,20 @@ def test_agrees_with_cpu_mls_on_a_coarse_thin_part():
     options = RenderOptions(shading="lambert")
     gpu = mls_gl(cloud, cam, options)
     cpu = mls_cpu(cloud, cam, options)
-    inner = ndimage.binary_erosion(cpu.alpha >= 0.5, iterations=1)
+    # the open ends are cut OPEN_REACH l past the last rings, within a pixel: the two rows at
+    # each end may fall either side of the cut (measured: the CPU's end rows 14 pixels wide,
+    # the GPU's 4 and 1), and are compared by extent only
+    rows = [np.flatnonzero((result.alpha >= 0.5).any(axis=1)) for result in (cpu, gpu)]
+    assert abs(rows[0][0] - rows[1][0]) <= 1 and abs(rows[0][-1] - rows[1][-1]) <= 1
+    ends = np.zeros(cpu.alpha.shape, bool)
+    ends[rows[0][:2]] = ends[rows[0][-2:]] = True
+    inner = ndimage.binary_erosion(cpu.alpha >= 0.5, iterations=1) & ~ends
     assert inner.sum() > 500 and not (inner & (gpu.alpha < 0.5)).any()
-    metrics = compare_results(cpu, gpu)
+
+    def without_ends(result):
+        return np.where(ends[..., None], 0, result.color), np.where(ends, 0, result.alpha)
+
+    metrics = compare_images(*without_ends(cpu), *without_ends(gpu))
     assert metrics["psnr"] >= 35 and metrics["spill"] <= 0.002
     both = np.isfinite(cpu.depth) & np.isfinite(gpu.depth)
     # both converge to 1e-3 of the local width (0.08 here): 3e-5 of the depth

@@ -34,6 +34,7 @@ uniform float u_boundary;       // half-disc test: largest offset of the weighte
 uniform float u_edge_cos;       // crease test: a sheet's samples have normals within this cosine of the fit's
 uniform float u_edge_reach;     // ... another sheet's samples count from this many l behind r
 uniform float u_edge_turn;      // ... and where their normals lie within this cosine of the way out
+uniform float u_open_reach;     // open boundary: r's sheet runs on at most this many l past its last sample
 uniform float u_ridge;          // regularisation of a singular quadratic fit, in units of sum w (surface.RIDGE)
 uniform float u_min_neighbours; // facing samples a fit needs in its support (surface.MIN_NEIGHBOURS)
 uniform bool u_last;            // the last iteration: apply the half-disc and crease tests to its fit
@@ -307,7 +308,8 @@ layout(location = 1) out vec4 out_m1;  // uv, vv, uuu, uuv
 layout(location = 2) out vec4 out_m2;  // uvv, vvv, u4, u3v
 layout(location = 3) out vec4 out_m3;  // u2v2, uv3, v4, f
 layout(location = 4) out vec4 out_m4;  // fu, fv, fuu, fuv
-layout(location = 5) out vec4 out_m5;  // fvv, samples of r's sheet beyond r, of other sheets near or beyond
+layout(location = 5) out vec4 out_m5;  // fvv, samples of r's sheet beyond r, of other sheets near or beyond,
+                                       // of r's sheet within the open-boundary reach behind r
 layout(location = 6) out vec4 out_m6;  // a w (p - r) / l, a w
 void main() {
     vec3 r;
@@ -336,7 +338,8 @@ void main() {
     bool beyond = norm <= 1e-6 * n.w || (same_sheet && out_along >= 0.0);
     bool other = !same_sheet && out_along >= -u_edge_reach * n.w * norm
                  && dot(points[3 * v_index + 2].xyz, away) > u_edge_turn * norm;
-    out_m5 = vec4(w * f * vv, beyond ? 1.0 : 0.0, other ? 1.0 : 0.0, 0.0);
+    bool near_edge = beyond || (same_sheet && out_along >= -u_open_reach * n.w * norm);
+    out_m5 = vec4(w * f * vv, beyond ? 1.0 : 0.0, other ? 1.0 : 0.0, near_edge ? 1.0 : 0.0);
     float h = points[3 * v_index].w, area = points[3 * v_index + 2].w;
     float wa = area * w * exp(d2 * (1.0 / (h * h) - 1.0 / (n.w * n.w)));
     out_m6 = wa * vec4((points[3 * v_index].xyz - r) / n.w, 1.0);
@@ -374,7 +377,8 @@ void main() {
     if (u_last) {  // the half-disc and crease tests where the projection converged: past the edge of its sheet?
         vec4 m6 = texelFetch(u_m6, pix, 0);
         vec3 mean = m6.xyz / m6.w;
-        if (length(mean - dot(mean, n.xyz) * n.xyz) > u_boundary || (m5.y == 0.0 && m5.z > 0.0)) return;
+        if (length(mean - dot(mean, n.xyz) * n.xyz) > u_boundary || (m5.y == 0.0 && (m5.z > 0.0 || m5.w == 0.0)))
+            return;
     }
     // moments by degree k and power of v j at index k (k + 1) / 2 + j
     double mom[15] = double[15](m0.x, m0.y, m0.z, m0.w, m1.x, m1.y, m1.z, m1.w, m2.x, m2.y, m2.z, m2.w,

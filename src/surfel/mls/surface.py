@@ -58,8 +58,12 @@ u = -(m - (m . n) n) the direction away from it along the plane, x lies past the
 sheet when no sample of the sheet (n_i . n > cos 60 degrees) lies beyond x, (p_i - x) . u >= 0,
 while a sample of another sheet turning away across the edge lies near the edge or past it,
 (p_i - x) . u >= -EDGE_REACH l |u| with n_i . u > cos 60 degrees |u|: the sheet ends there at
-a convex crease or a rim (Bendels et al.'s extent criterion). An open boundary (a LiDAR
-canopy's edge) is left to the half-disc test alone.
+a convex crease or a rim (Bendels et al.'s extent criterion). At an open boundary (a LiDAR
+canopy's edge, a flat cut-out's outline) the sheet may run on by OPEN_REACH l past its outermost
+sample, no further: x lies past the edge when no sample of the sheet lies beyond x or within
+that reach behind it, (p_i - x) . u >= -OPEN_REACH l |u|. The half-disc bound alone let a
+sparse sheet run on by 0.3 l and more where its outline is densely sampled (a gingerbread
+figure's outline spilled by 5 pixels at 512 x 512).
 Failures are statuses (FIT_*), never exceptions.
 
 Neighbour search: a bounding volume hierarchy over the supports. The samples are stored in
@@ -116,6 +120,7 @@ WIDTH_SLOPE = 0.5      # kernel widths fall by at most this per unit distance al
 WIDTH_SHEET_COS = 0.7  # ... a sheet: samples whose normals lie within 45 degrees
 WIDTH_PASSES = 2       # passes of that limit (each reaches one support further)
 EDGE_REACH = 0.25      # ... another sheet's samples count from this many l behind x
+OPEN_REACH = 0.1       # an open boundary: the sheet runs on at most this many l past its outermost sample
 EDGE_SHEET_COS = 0.5   # crease test: a sheet's samples have normals within 60 degrees of the fit's
 EDGE_TURN_COS = 0.5    # ... another sheet across a crease turns its normals within 60 degrees of u
 RIDGE = 1e-3           # weight of the quadratic's regularisation where its fit is singular (of sum w)
@@ -481,12 +486,13 @@ def past_edge(poly, samples, scratch):
 
 @numba.njit(cache=True, fastmath=True)
 def sample_beyond(poly, samples, scratch):
-    """The crease test of the last fit (module docstring): False where x lies past the
-    outermost sample of its sheet (normals within 60 degrees of the fit's) in the direction u
-    away from the weighted mean of the samples about x, while a sample of another sheet whose
-    normal turns towards u lies within EDGE_REACH l of x or beyond it along u: the sheet has
-    ended at a convex crease or a rim.
-    An open boundary (a canopy's edge in a LiDAR tile) is left to the half-disc test."""
+    """The crease and open-boundary tests of the last fit (module docstring): False where x
+    lies past the outermost sample of its sheet (normals within 60 degrees of the fit's) in the
+    direction u away from the weighted mean of the samples about x, while a sample of another
+    sheet whose normal turns towards u lies within EDGE_REACH l of x or beyond it along u (the
+    sheet has ended at a convex crease or a rim), or while no sample of the sheet lies within
+    OPEN_REACH l behind x (an open boundary: the sheet ends there, a little way past its last
+    samples)."""
     nb, normals = scratch.nb, samples.normals
     n0, n1, n2 = poly[P_N], poly[P_N + 1], poly[P_N + 2]
     sw = mx = my = mz = 0.0
@@ -502,16 +508,18 @@ def sample_beyond(poly, samples, scratch):
         return True  # the mean lies at x: samples all around
     norm = math.sqrt(ux * ux + uy * uy + uz * uz)
     reach = -EDGE_REACH * poly[P_SCALE] * norm
-    other = False
+    open_reach = -OPEN_REACH * poly[P_SCALE] * norm
+    other = near_edge = False
     for k in range(scratch.found[0]):
         i = int(nb[k, 5])
         out = nb[k, 0] * ux + nb[k, 1] * uy + nb[k, 2] * uz
         if normals[i, 0] * n0 + normals[i, 1] * n1 + normals[i, 2] * n2 > EDGE_SHEET_COS:
             if out >= 0.0:
                 return True
+            near_edge = near_edge or out >= open_reach
         elif out >= reach and normals[i, 0] * ux + normals[i, 1] * uy + normals[i, 2] * uz > EDGE_TURN_COS * norm:
             other = True
-    return not other
+    return near_edge and not other
 
 
 @numba.njit(cache=True)
