@@ -95,14 +95,14 @@ def _find(depth, coverage, found):  # pragma: no cover - compiled
 def _find_near(filled_ys, filled_xs, depth, coverage, found):  # pragma: no cover - compiled
     """(ys, xs): the pinholes among the samples within one of the samples just filled, the
     only ones whose neighbourhoods changed (every other sample was no pinhole before and is
-    none now); found (all False on entry) marks them, so that none is counted twice."""
-    h, w = depth.shape
+    none now); found (all False on entry) marks them, so that none is counted twice. A
+    pinhole never lies on the image's border, so the samples around one are all inside it."""
     hole = np.zeros((len(filled_ys), 9), np.bool_)
     for k in numba.prange(len(filled_ys)):
         for c in range(9):
-            y, x = filled_ys[k] + c // 3 - 1, filled_xs[k] + c % 3 - 1
-            hole[k, c] = 0 <= y < h and 0 <= x < w and _is_pinhole(depth, coverage, y, x)
-    ys, xs = np.empty(hole.sum(), np.int64), np.empty(hole.sum(), np.int64)
+            hole[k, c] = _is_pinhole(depth, coverage, filled_ys[k] + c // 3 - 1, filled_xs[k] + c % 3 - 1)
+    most = hole.sum()
+    ys, xs = np.empty(most, np.int64), np.empty(most, np.int64)
     count = 0
     for k in range(len(filled_ys)):
         for c in range(9):
