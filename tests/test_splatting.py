@@ -251,12 +251,31 @@ def test_ewa_filter_halves_minification_error():
     assert filtered < 0.5 * points
 
 
-def test_dump_passes_writes_the_three_passes(dense_spot, tmp_path):
+def test_dump_passes_writes_the_three_passes(dense_spot, tmp_path, monkeypatch):
+    """The same pictures whether the attribute pass blended into the accumulators or summed in
+    the compute pass's storage buffer (decoded by SplatPasses.accumulated_color); without
+    colours (the sums skip them) and with."""
+    from PIL import Image
+
+    from surfel.methods import splatting
+
     cam = frame(dense_spot.center, dense_spot.bounding_radius, size=(64, 64))
-    render(dense_spot.with_(faces=None), cam, "deferred", dump_passes=str(tmp_path))
-    names = sorted(p.name for p in tmp_path.iterdir())
-    assert names == ["1-visibility-depth.png", "2-accumulated-weight.png", "3-accumulated-color.png",
-                     "4-normalized.png"]
+    painted = (0.5 + 0.5 * dense_spot.normals).astype(np.float32)
+    for cloud in (dense_spot.with_(faces=None, colors=painted), dense_spot.with_(faces=None, colors=None)):
+        pictures = {}
+        for compute in (True, False):
+            folder = tmp_path / f"{compute}-{cloud.colors is None}"
+            with monkeypatch.context() as patch:
+                patch.setattr(splatting, "use_compute_passes", lambda sprites, buffers, pixels, on=compute: on)
+                result = render(cloud, cam, "deferred", dump_passes=str(folder))
+            assert result.stats["visibility"] == ("compute" if compute else "raster")
+            names = sorted(p.name for p in folder.iterdir())
+            assert names == ["1-visibility-depth.png", "2-accumulated-weight.png", "3-accumulated-color.png",
+                             "4-normalized.png"]
+            pictures[compute] = [np.asarray(Image.open(folder / name), np.float32) for name in names[1:3]]
+        for computed, rasterized in zip(pictures[True], pictures[False], strict=True):
+            assert rasterized.max() > 100
+            assert np.abs(computed - rasterized).max() <= 1
 
 
 @pytest.mark.parametrize("method", ["gaussian", "deferred", "phong"])
@@ -313,7 +332,7 @@ def test_compute_passes_read_the_splats_in_storage_ranges_of_any_size(monkeypatc
 def test_a_cloud_without_colours_sums_no_colours_and_draws_the_same(method):
     """Without colours every splat's albedo code is the same (gl/splats.py NO_COLOR), so the
     compute attribute pass leaves its colour sums out (passes.glsl UNIFORM_COLOR) and the
-    resolve writes them as the weight times that code: every buffer is exactly that of the
+    normalization reads them as the weight times that code: every buffer is exactly that of the
     cloud given that colour at every point, which sums them."""
     import models
     from surfel.gl import splats

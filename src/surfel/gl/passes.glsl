@@ -24,12 +24,12 @@ void main() {
 }
 #endif
 
-#ifdef COMPUTE_SHADER
+#ifdef ACCUMULATOR_SUMS
 // The compute attribute pass's sums (splatting.glsl): per pixel of the splat targets
 // SUM_CHANNELS uints in fixed point, SUM_SCALE units to 1, signed values in two's complement:
 // w r, w g, w b, w, w n (3), and w L, with L = log2(z / near) / log2(far / near) the eye depth
-// z on a log scale of the camera's depth range (precise to about 3e-6 of z; PASS_RESOLVE
-// turns the weighted mean of L back into the mean depth). A pixel stops accumulating past
+// z on a log scale of the camera's depth range (precise to about 3e-6 of z; the normalization
+// pass turns the weighted mean of L back into the mean depth). A pixel stops accumulating past
 // SUM_LIMIT of weight (a pile of hundreds of coincident splats), so that no sum overflows.
 // With UNIFORM_COLOR (every splat's albedo code that value: a cloud without colours, not
 // shaded per splat) the colour sums are the weight times it and are not accumulated: on
@@ -43,6 +43,11 @@ int sum_base(ivec2 texel) {
     return (texel.y * int(u_viewport.x + 2.0 * u_guard) + texel.x) * SUM_CHANNELS;
 }
 
+float summed(int at) {
+    return float(int(accumulator_sums[at])) / SUM_SCALE;
+}
+
+#ifdef COMPUTE_SHADER
 uint fixed_point(float value) {
     return uint(int(round(value * SUM_SCALE)));
 }
@@ -70,41 +75,19 @@ void accumulate(ivec2 texel, float w, vec3 color, vec3 n, float z) {
     atomicAdd(accumulator_sums[at + 7], fixed_point(w * log_depth(z)));
 }
 #endif
+#endif
 
 #if defined(PASS_RESOLVE) && defined(COMPUTE_SHADER)
-// The compute visibility pass's images (splatting.glsl) into the visibility target; with
-// ACCUMULATOR_SUMS the attribute pass's sums into the two accumulators, as blending leaves
-// them, and the sums zeroed for the next frame.
+// The compute visibility pass's images (splatting.glsl) into the visibility target.
 layout(local_size_x = 16, local_size_y = 16) in;
 layout(r32ui, binding = 0) uniform readonly uimage2D u_nearest;
 layout(r32ui, binding = 1) uniform readonly uimage2D u_uncovered;
 layout(rg32f, binding = 2) uniform writeonly image2D u_visibility_out;
-#ifdef ACCUMULATOR_SUMS
-layout(rgba32f, binding = 3) uniform writeonly image2D u_accum_color_out;
-layout(rgba32f, binding = 4) uniform writeonly image2D u_accum_normal_out;
-#endif
 void main() {
     ivec2 texel = ivec2(gl_GlobalInvocationID.xy);
-#ifdef ACCUMULATOR_SUMS
-    if (any(greaterThanEqual(texel, imageSize(u_accum_color_out)))) return;
-    int at = sum_base(texel);
-    float sums[SUM_CHANNELS];
-    for (int k = 0; k < SUM_CHANNELS; ++k) {
-        sums[k] = float(int(accumulator_sums[at + k])) / SUM_SCALE;
-        accumulator_sums[at + k] = 0u;
-    }
-    float weight = sums[3];
-#ifdef UNIFORM_COLOR
-    sums[0] = sums[1] = sums[2] = weight * UNIFORM_COLOR;
-#endif
-    float depth = weight > 0.0 ? u_depth_range.x * exp2(sums[7] / weight * log2(u_depth_range.y / u_depth_range.x)) : 0.0;
-    imageStore(u_accum_color_out, texel, vec4(sums[0], sums[1], sums[2], weight));
-    imageStore(u_accum_normal_out, texel, vec4(sums[4], sums[5], sums[6], weight * depth));
-#else
     if (any(greaterThanEqual(texel, imageSize(u_nearest)))) return;
     imageStore(u_visibility_out, texel, vec4(uintBitsToFloat(imageLoad(u_nearest, texel).x),
                                              uintBitsToFloat(imageLoad(u_uncovered, texel).x), 0.0, 0.0));
-#endif
 }
 #endif
 
@@ -122,12 +105,40 @@ struct Accumulated {
     int category;         // palette index of a categorical colour mode, else -1
 };
 
+// The attribute pass's (sum w rgb, sum w) and (sum w n, sum w z) at a texel of the splat
+// targets: the accumulators', or with ACCUMULATOR_SUMS the compute pass's fixed-point sums.
+void accumulated_sums(ivec2 texel, out vec4 color, out vec4 normal) {
+#ifdef ACCUMULATOR_SUMS
+    int at = sum_base(texel);
+    float weight = summed(at + 3);
+#ifdef UNIFORM_COLOR
+    color = vec4(vec3(weight * UNIFORM_COLOR), weight);
+#else
+    color = vec4(summed(at), summed(at + 1), summed(at + 2), weight);
+#endif
+    float depth = weight > 0.0 ? u_depth_range.x * exp2(summed(at + 7) / weight * log2(u_depth_range.y / u_depth_range.x))
+                               : 0.0;
+    normal = vec4(summed(at + 4), summed(at + 5), summed(at + 6), weight * depth);
+#else
+    color = texelFetch(u_accum_color, texel, 0);
+    normal = texelFetch(u_accum_normal, texel, 0);
+#endif
+}
+
+float accumulated_weight(ivec2 texel) {
+#ifdef ACCUMULATOR_SUMS
+    return summed(sum_base(texel) + 3);
+#else
+    return texelFetch(u_accum_color, texel, 0).a;
+#endif
+}
+
 // The sums at this fragment's pixel (`guard`: the splat targets' margin); false where no
 // splat contributed, after writing the empty G-buffer there.
 bool fetch_accumulated(int guard, out Accumulated a) {
     ivec2 texel = ivec2(gl_FragCoord.xy) + ivec2(guard);
-    vec4 color = texelFetch(u_accum_color, texel, 0);
-    vec4 normal = texelFetch(u_accum_normal, texel, 0);
+    vec4 color, normal;
+    accumulated_sums(texel, color, normal);
     a.weighted_color = color.rgb;
     a.weight = color.a;
     a.normal = length(normal.xyz) > 0.0 ? normalize(normal.xyz) : vec3(0.0, 0.0, 1.0);
@@ -148,7 +159,7 @@ bool surrounded(int guard) {
     ivec2 texel = ivec2(gl_FragCoord.xy) + ivec2(guard), last = textureSize(u_accum_color, 0) - 1;
     const ivec2 steps[4] = ivec2[4](ivec2(1, 0), ivec2(-1, 0), ivec2(0, 1), ivec2(0, -1));
     for (int i = 0; i < 4; ++i)
-        if (texelFetch(u_accum_color, clamp(texel + steps[i], ivec2(0), last), 0).a <= 0.0) return false;
+        if (accumulated_weight(clamp(texel + steps[i], ivec2(0), last)) <= 0.0) return false;
     return true;
 }
 

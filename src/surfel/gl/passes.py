@@ -12,9 +12,11 @@ splats with a visibility pass (Ren et al. 2002; Botsch & Kobbelt 2003; Botsch et
    which leaves every sum unchanged (the shaders still compare each fragment's exact depth);
 2. attribute: additive blending into two RGBA32F accumulators: (w rgb, w) and (w n, w z),
    of fragments no farther than the visibility depth; or (`attribute_compute`) the same sums
-   taken by a compute program's integer atomics in fixed point (passes.glsl
-   ACCUMULATOR_SUMS), then resolved into the accumulators;
-3. normalization: a full-screen triangle turns the sums into the G-buffer layout of
+   taken by a compute program's integer atomics in fixed point in a storage buffer
+   (passes.glsl ACCUMULATOR_SUMS);
+3. normalization: a full-screen triangle turns the sums (the accumulators', or with
+   ACCUMULATOR_SUMS the storage buffer's, read where they lie: resolving them into the
+   accumulators first cost llvmpipe a tenth of a bench frame) into the G-buffer layout of
    targets.gbuffer_result (shaded RGB + coverage, eye normal, eye depth).
 
 Categorical colour modes add, after the attribute pass,
@@ -30,8 +32,10 @@ visible surface over the one behind it at partly covered pixels):
    `accumulators()`.
 
 Texture units seen by the shaders: 1 visibility, 2 (w rgb, w), 3 (w n, w z), 4 back; unit 0
-is the method's kernel texture. `guard` pixels of margin on each side of the splat targets
-let point sprites centred outside the image reach into it; the output has the image's size.
+is the method's kernel texture; storage buffer 1 holds the compute pass's sums. `guard` pixels
+of margin on each side of the splat targets let rasterized point sprites centred outside the
+image reach into it (the compute passes clip each sprite to the targets themselves and draw
+on targets without one); the output has the image's size.
 """
 
 from __future__ import annotations
@@ -51,6 +55,7 @@ UNIFORM_UNITS = {"u_visibility": 1, "u_accum_color": 2, "u_accum_normal": 3, "u_
 BACK_LAYER_UNITS = {"u_visibility": 1, "u_back": 4}  # the back layer's programs (ewa_gl.glsl)
 FAR = 3.0e38
 SUM_CHANNELS = 8  # passes.glsl
+SUM_SCALE = 4194304.0  # passes.glsl
 
 
 @dataclass
@@ -72,8 +77,8 @@ class SplatTargets:
     depth: object = None      # the attribute pass's depth buffer (occlusion culling)
     occlusion_fbo: object = None
     minima: list = field(default_factory=list)  # the compute visibility pass's images and their clear values
-    sums: object = None       # the compute attribute pass's fixed-point sums, zero between frames
-    sums_dirty: bool = False  # a frame stopped before resolving (and so zeroing) them
+    sums: object = None       # the compute attribute pass's fixed-point sums
+    sums_dirty: bool = False  # summed into since they were last zeroed
 
     def compute_images(self) -> list:
         """[(nearest, its clear buffer), (uncovered, its clear buffer)]: R32UI images of the
@@ -90,7 +95,7 @@ class SplatTargets:
 
     def accumulator_sums(self):
         """The compute attribute pass's sums (passes.glsl ACCUMULATOR_SUMS: 8 uints a pixel),
-        zero, made on first use."""
+        zero (a memset, far cheaper than zeroing them in a shader), made on first use."""
         if self.sums is None:
             width, height = self.visibility.size
             with allocating(width, height):
@@ -142,6 +147,8 @@ class SplatPasses:
             t.visibility, t.visibility_fbo, t.accum, t.accum_fbo, t.out
         self.back, self.back_fbo, self.back_accum = t.back, t.back_fbo, t.back_accum
         self.category = t.category
+        self.summed = False  # this frame's attribute pass summed into the compute sums
+        self.uniform_color = None
         ctx.disable(ctx.DEPTH_TEST | ctx.CULL_FACE)
         ctx.enable(ctx.BLEND | ctx.PROGRAM_POINT_SIZE)
 
@@ -181,26 +188,19 @@ class SplatPasses:
         resolve_program.run(-(-width // 16), -(-height // 16))
         ctx.memory_barrier()
 
-    def attribute_compute(self, dispatch, resolve_program) -> None:
+    def attribute_compute(self, dispatch, uniform_color: float | None) -> None:
         """The attribute pass by a compute program (after the visibility pass): `dispatch()`
         runs it over the splats with the visibility target at texture unit 1 and the zeroed
-        sums at storage binding 1; `resolve_program` (passes.glsl PASS_RESOLVE with
-        ACCUMULATOR_SUMS) then writes them into the accumulators, as attribute_pass leaves
-        them, and zeroes them."""
-        ctx = self.ctx
+        sums at storage binding 1, where the normalization pass (with ACCUMULATOR_SUMS) then
+        reads them. `uniform_color`: every splat's albedo code where the sums skip the colour
+        (passes.glsl UNIFORM_COLOR), else None."""
         targets = self.targets
-        sums = targets.accumulator_sums()
-        sums.bind_to_storage_buffer(1)
+        targets.accumulator_sums().bind_to_storage_buffer(1)
         self.visibility.use(1)
         targets.sums_dirty = True
+        self.summed, self.uniform_color = True, uniform_color
         dispatch()
-        ctx.memory_barrier()
-        for unit, accumulator in zip((3, 4), self.accum, strict=True):
-            accumulator.bind_to_image(unit, read=False, write=True)
-        width, height = self.visibility.size
-        resolve_program.run(-(-width // 16), -(-height // 16))
-        ctx.memory_barrier()
-        targets.sums_dirty = False
+        self.ctx.memory_barrier()
 
     def back_pass(self, draw) -> None:
         """The back layer's depth (after visibility_pass)."""
@@ -259,6 +259,18 @@ class SplatPasses:
         """The attribute pass's sums as one (H, W, 4 x layers) array, front layer first."""
         return np.concatenate([read_texture(t) for t in (*self.accum, *self.back_accum)], axis=-1)
 
+    def accumulated_color(self) -> np.ndarray:
+        """The attribute pass's (w rgb, w) as an (H, W, 4) array, row 0 at the top: the
+        accumulator's, or decoded from the compute pass's sums (passes.glsl ACCUMULATOR_SUMS)."""
+        if not self.summed:
+            return read_texture(self.accum[0])
+        width, height = self.visibility.size
+        sums = np.frombuffer(self.targets.sums.read(), np.int32).reshape(height, width, SUM_CHANNELS)[::-1]
+        color = sums[..., :4] / np.float32(SUM_SCALE)
+        if self.uniform_color is not None:
+            color[..., :3] = color[..., 3:] * np.float32(self.uniform_color)
+        return color
+
     def normalize_pass(self, program) -> None:
         ctx = self.ctx
         ctx.disable(ctx.BLEND | ctx.DEPTH_TEST)
@@ -267,6 +279,8 @@ class SplatPasses:
         self.accum[0].use(2)
         self.accum[1].use(3)
         self.category.use(CATEGORY_UNIT)
+        if self.summed:
+            self.targets.sums.bind_to_storage_buffer(1)
         self._full_screen(program)
         ctx.finish()
 
@@ -293,7 +307,7 @@ class SplatPasses:
         if valid.any():
             lo, hi = depth[valid].min(), depth[valid].max()
             gray[valid] = 1 - 0.8 * (depth[valid] - lo) / max(hi - lo, 1e-12)
-        color = read_texture(self.accum[0])[inner]
+        color = self.accumulated_color()[inner]
         weight = color[..., 3] / max(float(color[..., 3].max()), 1e-12)
 
         def save(name, image):

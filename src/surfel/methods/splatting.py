@@ -59,7 +59,11 @@ invocation a splat visiting the pixels of its sprite with the fragment shader's 
 (Schütz, Kerbl & Wimmer 2021, "Rendering point clouds with compute shaders"). The
 visibility pass takes its two minima by atomic MIN on the bits of non-negative floats; the
 attribute pass sums in 32-bit fixed point by atomic ADD (gl/passes.glsl ACCUMULATOR_SUMS),
-which, unlike blended floats, gives the same sums in any order. A point sprite costs llvmpipe
+which, unlike blended floats, gives the same sums in any order, and which the normalization
+reads where they lie. They draw on targets without a guard band, which only rasterized
+sprites need: every per-pixel pass then covers the image alone (on llvmpipe, resolving the
+sums into textures and a guard band cost a sixth of bench's frame, 1M splats at 1024x1024).
+A point sprite costs llvmpipe
 about 250 ns to set up whatever its shader (bench's 1M splats: 250 ms a pass); GPUs too
 spend more on small primitives than on their pixels. The passes agree with the rasterized
 ones (tests/test_splatting.py); the rasterized passes stay for quads (splats that may cross
@@ -166,26 +170,30 @@ def _render(cloud, camera, options, params, renderer, *, per_splat_shading: bool
     lowpass = params.lowpass_radius * ss if ewa_filter else 0.0
     lod_k, prefix, drawn = splats.lod_frame(cloud, camera, options.lod_error)
     sprites = use_point_sprites(cloud, camera, params.radius_scale, ss, lowpass, drawn)
-    guard = GUARD if sprites else 0
+    categorical = options.coloring is not None and options.coloring.categorical
+    buffers = renderer.splat_buffers(cloud)
+    # the compute passes clamp a sprite to the target themselves: only rasterized sprites need the
+    # guard band (OpenGL drops a point whose centre is clipped), and the category pass rasterizes
+    guard = GUARD if sprites and (categorical or not use_compute_passes(sprites, buffers, width * height)) else 0
+    compute = use_compute_passes(sprites, buffers, (width + 2 * guard) * (height + 2 * guard))
     variant = {"PER_SPLAT_SHADING": per_splat_shading, "EWA_FILTER": ewa_filter, "CURVED_SPLATS": curved,
                "NORMAL_FIELD": normal_field,
                "POINT_SPRITES": sprites, "CLIP_LINES": "clip_lines" in cloud.attributes}
-    categorical = options.coloring is not None and options.coloring.categorical
-    buffers = renderer.splat_buffers(cloud)
-    compute = use_compute_passes(sprites, buffers, (width + 2 * guard) * (height + 2 * guard))
+    # one albedo code for every splat: the compute pass's sums skip it (gl/passes.glsl UNIFORM_COLOR)
+    uniform = {"UNIFORM_COLOR": splats.NO_COLOR if cloud.colors is None and not per_splat_shading else False}
     raster = {"PASS_NORMALIZE"}
     if not compute:
         raster |= {"PASS_VISIBILITY", "PASS_OCCLUSION", "PASS_ATTRIBUTE"}
     if categorical:
         raster |= {"PASS_OCCLUSION", "PASS_CATEGORY"}
-    programs = {p: renderer.program(SHADER, {p: True, **variant}) for p in sorted(raster)}
+    # after the compute attribute pass, the normalization reads its sums where they lie
+    sums = {"ACCUMULATOR_SUMS": True, **uniform} if compute else {}
+    programs = {p: renderer.program(SHADER, {p: True, **variant, **(sums if p == "PASS_NORMALIZE" else {})})
+                for p in sorted(raster)}
     if compute:
-        # one albedo code for every splat: the sums skip it (gl/passes.glsl UNIFORM_COLOR)
-        uniform = {"UNIFORM_COLOR": splats.NO_COLOR if cloud.colors is None and not per_splat_shading else False}
         for name, defines in (("visibility", {"PASS_VISIBILITY": True}),
-                              ("attribute", {"PASS_ATTRIBUTE": True, **uniform}),
-                              ("resolve visibility", {"PASS_RESOLVE": True}),
-                              ("resolve sums", {"PASS_RESOLVE": True, "ACCUMULATOR_SUMS": True, **uniform})):
+                              ("attribute", {"PASS_ATTRIBUTE": True, **sums}),
+                              ("resolve visibility", {"PASS_RESOLVE": True})):
             programs[name] = renderer.program(SHADER, {**defines, "SPLAT_FLOATS": splats.FLOATS, **variant},
                                               compute=True)
     for program in programs.values():
@@ -214,7 +222,7 @@ def _render(cloud, camera, options, params, renderer, *, per_splat_shading: bool
             kernel.use(0)
             if compute:
                 passes.visibility_compute(run("visibility"), programs["resolve visibility"])
-                passes.attribute_compute(run("attribute"), programs["resolve sums"])
+                passes.attribute_compute(run("attribute"), splats.NO_COLOR if uniform["UNIFORM_COLOR"] else None)
             else:
                 passes.visibility_pass(draw(programs["PASS_VISIBILITY"]))
             if "PASS_OCCLUSION" in programs:
