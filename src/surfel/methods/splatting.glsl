@@ -341,6 +341,8 @@ bool invocation_splat(ivec2 size, out ivec2 first, out ivec2 last) {
     last = ivec2(-1);
     int i = int(gl_GlobalInvocationID.x);
     if (i >= u_splat_count) return false;
+    load_splat_lod(i);
+    if (!lod_visible((u_view * vec4(in_center, 1.0)).xyz, in_lod.x, in_lod.y, in_lod.z)) return false;
     load_splat(i);
     vec2 lo, hi;  // image pixels, y down
     bool crosses_near;
