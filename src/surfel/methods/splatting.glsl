@@ -10,7 +10,8 @@
 //   PASS_NORMALIZE   full-screen: divide by the accumulated weight, then (deferred) shade
 // With COMPUTE_SHADER, PASS_VISIBILITY and PASS_ATTRIBUTE are compute programs computing the
 // same fragments, one invocation a splat (splat_setup, then its sprite's pixels), combined by
-// atomics (passes.glsl); PASS_RESOLVE (passes.glsl) turns their results into the targets.
+// atomics (passes.glsl); PASS_RESOLVE (passes.glsl) turns the visibility pass's minima into
+// its target, and PASS_NORMALIZE with ACCUMULATOR_SUMS reads the attribute pass's sums.
 // Variants: PER_SPLAT_SHADING (the 2003 Gouraud look: colours shaded per splat before
 // blending) or deferred shading from blended normals (2005); EWA_FILTER (2005 screen-space
 // filter approximation: the union of the object-space disk and a screen-space low-pass);
