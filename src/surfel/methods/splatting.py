@@ -180,14 +180,15 @@ def _render(cloud, camera, options, params, renderer, *, per_splat_shading: bool
                "NORMAL_FIELD": normal_field,
                "POINT_SPRITES": sprites, "CLIP_LINES": "clip_lines" in cloud.attributes}
     # one albedo code for every splat: the compute pass's sums skip it (gl/passes.glsl UNIFORM_COLOR)
-    uniform = {"UNIFORM_COLOR": splats.NO_COLOR if cloud.colors is None and not per_splat_shading else False}
+    uniform_color = splats.NO_COLOR if cloud.colors is None and not per_splat_shading else None
     raster = {"PASS_NORMALIZE"}
     if not compute:
         raster |= {"PASS_VISIBILITY", "PASS_OCCLUSION", "PASS_ATTRIBUTE"}
     if categorical:
         raster |= {"PASS_OCCLUSION", "PASS_CATEGORY"}
     # after the compute attribute pass, the normalization reads its sums where they lie
-    sums = {"ACCUMULATOR_SUMS": True, **uniform} if compute else {}
+    sums = {"ACCUMULATOR_SUMS": True, "UNIFORM_COLOR": False if uniform_color is None else uniform_color} \
+        if compute else {}
     programs = {p: renderer.program(SHADER, {p: True, **variant, **(sums if p == "PASS_NORMALIZE" else {})})
                 for p in sorted(raster)}
     if compute:
@@ -222,7 +223,7 @@ def _render(cloud, camera, options, params, renderer, *, per_splat_shading: bool
             kernel.use(0)
             if compute:
                 passes.visibility_compute(run("visibility"), programs["resolve visibility"])
-                passes.attribute_compute(run("attribute"), splats.NO_COLOR if uniform["UNIFORM_COLOR"] else None)
+                passes.attribute_compute(run("attribute"), uniform_color)
             else:
                 passes.visibility_pass(draw(programs["PASS_VISIBILITY"]))
             if "PASS_OCCLUSION" in programs:
