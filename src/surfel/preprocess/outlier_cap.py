@@ -54,6 +54,17 @@ def _median(values, n):  # pragma: no cover - compiled
     return (low + high) / 2
 
 
+@numba.njit(cache=True, inline="always")
+def _median_at_least(values, n, bound):  # pragma: no cover - compiled
+    """Whether the median of values[:n] is at least `bound`: true when no more than (n - 1) // 2
+    values lie below it (both middles are then at least it). One pass where `_median` takes n:
+    most points are no outliers, and their cap is 1 whatever the median's exact value."""
+    below = 0
+    for a in range(n):
+        below += values[a] < bound
+    return below <= (n - 1) // 2
+
+
 @numba.njit(parallel=True, cache=True)
 def _outlier_cap(raw, index, start, normals, same_cos):  # pragma: no cover - compiled
     """cap_p of each point p = start + i, p's surface being its neighbours with n_p . n_q >= same_cos."""
@@ -72,5 +83,6 @@ def _outlier_cap(raw, index, start, normals, same_cos):  # pragma: no cover - co
                 for j in range(1, k):
                     values[j - 1] = raw[index[i, j]]
                 count = k - 1
-            cap[i] = min(1.0, ISOLATED_FACTOR * _median(values, count) / raw[p])
+            cap[i] = 1.0 if _median_at_least(values, count, raw[p] / ISOLATED_FACTOR) else \
+                min(1.0, ISOLATED_FACTOR * _median(values, count) / raw[p])
     return cap
