@@ -452,7 +452,8 @@ def test_settled_candidates_keep_the_borders_of_the_full_confirmation():
     from surfel.preprocess.neighbourhood import Neighbourhood
     from surfel.preprocess.thickness import layer_thickness
 
-    assert 2 * borders.KEY_BIN < borders.INTERIOR_GAP / 2  # a full set of bins leaves no gap counted
+    # no EMPTY_RUN + 1 consecutive empty bins leave no gap counted
+    assert (borders.EMPTY_RUN + 2) * borders.KEY_BIN < borders.INTERIOR_GAP / 2
     p = sphere(20_000, seed=4)
     sheet = _open_sheet(0.02).positions
     lattice = np.stack(np.meshgrid(np.arange(40), np.arange(40), [0]), -1).reshape(-1, 3) / 40.0

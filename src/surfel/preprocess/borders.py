@@ -36,10 +36,13 @@ BORDER_GAP = math.radians(120.0)   # neighbours leaving a gap this wide: p is on
 INTERIOR_GAP = math.radians(100.0)  # ... unless another gap is this wide too (a scan line)
 BORDER_CONFIRM = 64                 # neighbours among which a border is confirmed
 KERNEL_BLOCK = 1024                 # points per parallel task of the kernel
-# pseudo-angle bins (of [-2, 2]) each holding a key leave no gap of 2 KEY_BIN in them, less than
-# INTERIOR_GAP / 2: the point is no border, found without sorting its neighbours
-KEY_BINS = 10
+# pseudo-angle bins (of [-2, 2], circular) of which no EMPTY_RUN + 1 consecutive ones are empty
+# leave no gap of (EMPTY_RUN + 2) KEY_BIN between keys, less than INTERIOR_GAP / 2: the point is
+# no border, found without sorting its neighbours
+KEY_BINS = 64
 KEY_BIN = 4.0 / KEY_BINS
+EMPTY_RUN = 11
+ALL_BINS = np.uint64(0xFFFFFFFFFFFFFFFF)
 
 
 @numba.njit(parallel=True, cache=True)
@@ -88,7 +91,18 @@ def _in_frame(points, normals, frames, i, p, q):  # pragma: no cover - compiled
 @numba.njit(cache=True, inline="always")
 def _key_bit(key):  # pragma: no cover - compiled
     """The bit of the one of KEY_BINS bins of [-2, 2] that holds the pseudo-angle `key`."""
-    return 1 << min(int((key + 2.0) * (1.0 / KEY_BIN)), KEY_BINS - 1)
+    return np.uint64(1) << np.uint64(min(int((key + 2.0) * (1.0 / KEY_BIN)), KEY_BINS - 1))
+
+
+@numba.njit(cache=True, inline="always")
+def _no_wide_gap(bins):  # pragma: no cover - compiled
+    """Whether every EMPTY_RUN + 1 circularly consecutive bins of `bins` hold a key: then any two
+    keys next to each other lie less than (EMPTY_RUN + 2) KEY_BIN apart (the bins between them,
+    at most EMPTY_RUN, and their own two)."""
+    covered = bins
+    for shift in range(1, EMPTY_RUN + 1):
+        covered |= (bins << np.uint64(shift)) | (bins >> np.uint64(KEY_BINS - shift))
+    return covered == ALL_BINS
 
 
 @numba.njit(cache=True, inline="always")
@@ -100,12 +114,13 @@ def _point_outwards(points, normals, index, rows, frames, sheet_cos, layers, i, 
     [-2, 2]: it orders directions as their angle does, without an arctangent, and
     da / dangle = 1 / (|cos| + |sin|)^2 lies in [1/2, 1], so a gap of less than INTERIOR_GAP / 2
     in a is less than INTERIOR_GAP in angle: only the other gaps, a few, take arctangents. When
-    each of the KEY_BINS bins of a holds a key, every gap is narrower than 2 KEY_BIN, below
-    INTERIOR_GAP / 2 (a test's assertion): the point is interior, known without the sort."""
+    no EMPTY_RUN + 1 consecutive ones of the KEY_BINS bins of a are empty, every gap is narrower
+    than (EMPTY_RUN + 2) KEY_BIN, below INTERIOR_GAP / 2 (a test's assertion): the point is
+    interior, known without the sort."""
     k = index.shape[1]
     p = rows[i]
     used = 0
-    bins = 0  # bit b set: some key lies in [-2 + b KEY_BIN, -2 + (b + 1) KEY_BIN)
+    bins = np.uint64(0)  # bit b set: some key lies in [-2 + b KEY_BIN, -2 + (b + 1) KEY_BIN)
     for j in range(k):
         q = index[i, j]
         facing, x, y, antisymmetric = _in_frame(points, normals, frames, i, p, q)
@@ -119,8 +134,8 @@ def _point_outwards(points, normals, index, rows, frames, sheet_cos, layers, i, 
         found[2, used] = y
         used += 1
         bins |= _key_bit(key)
-    if used < 3 or bins == (1 << KEY_BINS) - 1:
-        return  # every bin holds a key: no two consecutive keys lie 2 KEY_BIN apart, no gap counts
+    if used < 3 or _no_wide_gap(bins):
+        return  # no gap counts
     # sorted by key, equal keys in their order: each direction goes to its rank, the number of
     # keys below it and of equal ones before it (counts that compile to SIMD compares, where an
     # insertion sort mispredicted a branch per direction)
@@ -159,23 +174,24 @@ def _point_outwards(points, normals, index, rows, frames, sheet_cos, layers, i, 
 def _settled(points, normals, index, count, rows, frames, sheet_cos, layers):  # pragma: no cover - compiled
     """Per point rows[i], True when its neighbours index[i, :count[i]], all among its
     BORDER_CONFIRM nearest, already prove it no border there: one faces away (folded), or
-    their pseudo-angles fill every one of the KEY_BINS bins (then so do those of all its
-    BORDER_CONFIRM nearest: no gap counts). The neighbours are taken as `_point_outwards` takes them."""
+    their pseudo-angles leave no EMPTY_RUN + 1 consecutive bins empty (nor then do those of all
+    its BORDER_CONFIRM nearest: no gap counts). The neighbours are taken as `_point_outwards`
+    takes them."""
     m = len(rows)
     settled = np.zeros(m, np.bool_)
     for i in numba.prange(m):
         p = rows[i]
-        bins = 0
+        bins = np.uint64(0)
         for j in range(count[i]):
             q = index[i, j]
             facing, x, y, antisymmetric = _in_frame(points, normals, frames, i, p, q)
             if facing < sheet_cos:
-                bins = (1 << KEY_BINS) - 1
+                bins = ALL_BINS
                 break
             if q == p or (x == 0.0 and y == 0.0) or 0.5 * abs(antisymmetric) > layers[p]:
                 continue
             bins |= _key_bit(math.copysign(1.0 - x / (abs(x) + abs(y)), y))
-        settled[i] = bins == (1 << KEY_BINS) - 1
+        settled[i] = _no_wide_gap(bins)
     return settled
 
 
