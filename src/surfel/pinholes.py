@@ -66,15 +66,32 @@ def _is_pinhole(depth, coverage, y, x):  # pragma: no cover - compiled
     return z - far > (far - near) + RELATIVE_TOLERANCE * abs(far)
 
 
+@numba.njit(cache=True, inline="always")
+def _front_count(depth, coverage, y, x):  # pragma: no cover - compiled
+    """How many of the 8 neighbours of the inner sample (y, x) lie in front of it: the count
+    `_is_pinhole` tests first, without its branches, so that a row's loop compiles to SIMD."""
+    z = _depth(depth, coverage, y, x)
+    return ((_depth(depth, coverage, y - 1, x - 1) < z) + (_depth(depth, coverage, y - 1, x) < z)
+            + (_depth(depth, coverage, y - 1, x + 1) < z) + (_depth(depth, coverage, y, x - 1) < z)
+            + (_depth(depth, coverage, y, x + 1) < z) + (_depth(depth, coverage, y + 1, x - 1) < z)
+            + (_depth(depth, coverage, y + 1, x) < z) + (_depth(depth, coverage, y + 1, x + 1) < z))
+
+
 @numba.njit(parallel=True, cache=True)
 def _find(depth, coverage, found):  # pragma: no cover - compiled
-    """(ys, xs): the pinholes' positions, row by row; found[y, x] marks them."""
+    """(ys, xs): the pinholes' positions, row by row; found[y, x] marks them. A row's samples
+    are counted first (`_front_count`, no pinhole on the image's border); only those with
+    MIN_FRONT neighbours in front, a few, take the whole test."""
     h, w = depth.shape
     row_counts = np.zeros(h, np.int64)
     for y in numba.prange(h):
+        front = np.zeros(w, np.uint8)
+        if 0 < y < h - 1:
+            for x in range(1, w - 1):
+                front[x] = _front_count(depth, coverage, y, x)
         count = 0
         for x in range(w):
-            found[y, x] = _is_pinhole(depth, coverage, y, x)
+            found[y, x] = front[x] >= MIN_FRONT and _is_pinhole(depth, coverage, y, x)
             if found[y, x]:
                 count += 1
         row_counts[y] = count
