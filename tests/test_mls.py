@@ -140,6 +140,34 @@ def test_coarse_thin_part_is_whole(around, gap):
     assert np.abs(hits.t - 2.9).max() <= 0.008  # the cylinder's near side, z = 0.1
 
 
+def strip_on_plane(height: float) -> PointCloud:
+    """A body's surface, the plane z = 0 sampled every 0.1, with a strip three samples wide lying
+    `height` above it, sampled as finely and facing the same way (a coarse cow's tail on its rump)."""
+    g = np.arange(31) * 0.1
+    x, y = (v.ravel() for v in np.meshgrid(g, g))
+    sx, sy = (v.ravel() for v in np.meshgrid(1.4 + np.arange(3) * 0.1, g))
+    points = np.vstack([np.stack([x, y, np.zeros_like(x)], 1), np.stack([sx, sy, np.full_like(sx, height)], 1)])
+    return PointCloud(points, normals=np.broadcast_to([0.0, 0.0, 1.0], points.shape).copy())
+
+
+def test_a_strip_lying_on_a_surface_keeps_its_own_height():
+    """Issue 17 (the cow's tail lying on its rump): the residual weight leaves the samples of the
+    surface beneath out of the strip's fits, so rays down the strip meet it at its height. Without
+    it (sigma_r far wider than the kernel) the fit blends both layers: the strip sinks to 0.056,
+    halfway to the surface."""
+    cloud = strip_on_plane(0.1)
+    y = np.linspace(0.5, 2.5, 21)
+    heights = {}
+    for sigma in (S.RESIDUAL, 1e3):
+        scene = prepare_scene(cloud, S.MlsKernel(residual_sigma=sigma))
+        origins = np.stack([np.full_like(y, 1.5), y, np.full_like(y, 3.0)], 1) - scene.surface.origin
+        hits = trace(scene, origins, np.broadcast_to([0.0, 0.0, -1.0], origins.shape), 0.0, 10.0)
+        assert hits.hit.all(), hits.hit
+        heights[sigma] = 3.0 - hits.t
+    assert np.abs(heights[S.RESIDUAL] - 0.1).max() <= 1e-3
+    assert heights[1e3].max() <= 0.07
+
+
 def test_kernels_widen_only_across_gaps():
     """The tangent gap widens the kernels of rings far apart, and no others: an even grid keeps
     its local spacing, a square's border samples too (past a border lies no gap to close)."""

@@ -14,7 +14,16 @@ from surfel.mls.gpu import MlsGpuParams, render_mls_gl
 from surfel.options import RenderOptions
 from surfel.preprocess import complete
 from surfel.rendering import Renderer, render
-from test_mls import RENDERER, SPHERE, assert_depth_on_torus, coarse_face, coarse_tail, mls_cpu, sphere_points
+from test_mls import (
+    RENDERER,
+    SPHERE,
+    assert_depth_on_torus,
+    coarse_face,
+    coarse_tail,
+    mls_cpu,
+    sphere_points,
+    strip_on_plane,
+)
 
 pytestmark = requires_gl
 
@@ -150,6 +159,23 @@ def test_agrees_with_cpu_mls_where_kernels_span_a_gap():
     assert compare_results(cpu, gpu)["psnr"] >= 32
     both = np.isfinite(cpu.depth) & np.isfinite(gpu.depth)
     assert np.median(np.abs(cpu.depth[both] - gpu.depth[both]) / cpu.depth[both]) <= 3e-4
+
+
+def test_agrees_with_cpu_mls_on_a_strip_lying_on_a_surface():
+    """The residual weight on the GPU too: a strip lying one sampling step above a plane
+    (test_mls.strip_on_plane) is met at its own height, where the CPU tracer meets it."""
+    cloud = strip_on_plane(0.1)
+    cam = frame(cloud.center, cloud.bounding_radius, eye=[1.5, 1.5, 3.0], target=[1.5, 1.5, 0.0],
+                up=[0, 1.0, 0], size=(96, 96))
+    options = RenderOptions(shading="lambert")
+    gpu = mls_gl(cloud, cam, options)
+    cpu = mls_cpu(cloud, cam, options)
+    column = int(cam.project(np.array([[1.5, 1.5, 0.1]]))[0][0, 0])  # the strip's middle line, x = 1.5
+    strip = np.zeros(cpu.alpha.shape, bool)
+    strip[20:-20, column - 1:column + 2] = True
+    for result in (cpu, gpu):  # blending the layers put it 0.044 lower (test_mls)
+        assert np.abs(result.depth[strip] - 2.9).max() <= 5e-3
+    assert compare_results(cpu, gpu)["psnr"] >= 35
 
 
 def test_a_coarse_flat_face_between_its_corners_is_surface_on_the_gpu_too():

@@ -15,8 +15,8 @@
 //                    converged
 //   PASS_RETRY       full screen: the t of the candidate where its fits failed, for the next one
 //   PASS_SHADE       full screen: normal, colour and depth into the G-buffer layout
-// The weights are surface.py's: w = exp(-|p - r|^2 / h^2 - |n_i - n_r|^2 / sigma_n^2) within
-// SUPPORT h. Sums over a support are in units of u_scale (the median kernel width), a fit's
+// The weights are surface.py's: w = exp(-|p - r|^2 / h^2 - |n_i - n_r|^2 / sigma_n^2
+// - (n_i . (r - p))^2 / (sigma_r h)^2) within SUPPORT h. Sums over a support are in units of u_scale (the median kernel width), a fit's
 // frame in units of its local width l, like surface.py.
 #include "common.glsl"
 #include "shading.glsl"
@@ -30,6 +30,7 @@ uniform mat4 u_view_inv;        // eye to local world
 uniform float u_scale;          // median kernel width: the unit of the support sums
 uniform float u_domain;         // domain test / bounding sphere radius in units of the spacing s_i
 uniform float u_normal_weight;  // 1 / sigma_n^2
+uniform float u_residual_weight;  // 1 / sigma_r^2
 uniform float u_boundary;       // half-disc test: largest offset of the weighted mean, in units of l
 uniform float u_edge_cos;       // crease test: a sheet's samples have normals within this cosine of the fit's
 uniform float u_edge_reach;     // ... another sheet's samples count from this many l behind r
@@ -239,9 +240,11 @@ bool kernel(int i, vec3 r, out float w, out float d2, out bool facing) {
     vec3 delta = ph.xyz - r;
     d2 = dot(delta, delta);
     if (d2 >= SUPPORT * SUPPORT * ph.w * ph.w) return false;
-    float cosine = dot(points[3 * i + 2].xyz, texelFetch(u_reference, ivec2(gl_FragCoord.xy), 0).xyz);
+    vec3 normal = points[3 * i + 2].xyz;
+    float cosine = dot(normal, texelFetch(u_reference, ivec2(gl_FragCoord.xy), 0).xyz);
+    float residual = dot(normal, delta);  // r's distance from the sample's tangent plane
     facing = cosine > 0.0;
-    w = exp(-d2 / (ph.w * ph.w) - 2.0 * (1.0 - cosine) * u_normal_weight);
+    w = exp(-(d2 + residual * residual * u_residual_weight) / (ph.w * ph.w) - 2.0 * (1.0 - cosine) * u_normal_weight);
     return true;
 }
 #endif

@@ -1,9 +1,10 @@
 """`mls-gpu`: GPU ray casting of the MLS point set surface, Tejada et al. 2006 (survey 2.3.2).
 
 The same surface as the CPU `mls` (surface.py): adaptive kernel widths h_i, weights
-w_i = exp(-|p_i - r|^2 / h_i^2 - |n_i - n_r|^2 / sigma_n^2) within 2.5 h_i for the pixel's
-reference normal n_r, weighted plane fit, bivariate quadratic g over it in units of the local
-width l = sum w_i h_i / sum w_i, the domain test and the half-disc boundary test. It is found
+w_i = exp(-|p_i - r|^2 / h_i^2 - |n_i - n_r|^2 / sigma_n^2 - (n_i . (r - p_i))^2 / (sigma_r h_i)^2)
+within 2.5 h_i for the pixel's reference normal n_r, weighted plane fit, bivariate quadratic g
+over it in units of the local width l = sum w_i h_i / sum w_i, the domain test and the
+half-disc boundary test. It is found
 per pixel by multi-pass rendering into float targets (gpu.glsl), with no spatial data
 structure: a point's screen-space disc is the set of pixels whose ray or hit it can influence.
 
@@ -46,7 +47,7 @@ Then `iterations` times (default 3), at r = o + t d:
    box filtered (RenderResult.from_samples) for anti-aliased silhouettes.
 
 Parameters (`MlsGpuParams`): the surface's (surface.MlsKernel: h_scale, domain, normal_sigma,
-boundary), as in `mls`; iterations (3), candidates (8). Shadows and reflections are the CPU
+residual_sigma, boundary), as in `mls`; iterations (3), candidates (8). Shadows and reflections are the CPU
 tracer's only.
 """
 
@@ -196,7 +197,8 @@ def render_mls_gl(cloud: PointCloud, camera: Camera, options: RenderOptions, par
     targets = renderer.targets("mls caster", size, lambda: CasterTargets(size))
     view = camera.view_matrix(surface.origin)
     common = {"u_view_inv": np.linalg.inv(view), "u_scale": surface.scale, "u_domain": surface.domain,
-              "u_normal_weight": 1.0 / params.normal_sigma**2, "u_boundary": params.boundary,
+              "u_normal_weight": 1.0 / params.normal_sigma**2,
+              "u_residual_weight": 1.0 / params.residual_sigma**2, "u_boundary": params.boundary,
               "u_edge_cos": EDGE_SHEET_COS, "u_edge_reach": EDGE_REACH, "u_edge_turn": EDGE_TURN_COS,
               "u_open_reach": OPEN_REACH,
               "u_ridge": RIDGE, "u_min_neighbours": float(MIN_NEIGHBOURS), "u_guard": 0.0}

@@ -19,9 +19,10 @@ those that pass near the surface would descend the hierarchy for nothing. Per ra
 
 Colour is the fit's weighted mean of the neighbours' colours, the normal the gradient of
 the last polynomial (n - g_u e1 - g_v e2). Parameters (`MlsParams`):
-    h_scale (1.2)       kernel width h_i = h_scale * local spacing s_i (surface.MlsKernel)
+    h_scale (1.1)       kernel width h_i = h_scale * local spacing s_i (surface.MlsKernel)
     domain (2.0)        domain test / sphere radius in units of s_i (surface.MlsKernel)
     normal_sigma (0.6)  width of the normal-agreement weight (surface.MlsKernel)
+    residual_sigma (0.25) width of the residual weight, in units of h_i (surface.MlsKernel)
     boundary (0.7)      half-disc test bound, in units of the local width l (surface.MlsKernel)
     tolerance (1e-3)    eps, as a fraction of the local kernel width l
     max_iterations (8)  fits per candidate sphere before giving up on it

@@ -19,13 +19,15 @@ Why the gap. The mean distance measures the sampling where it is densest. A coar
 modelled as rings of vertices far apart (a cow's tail: 12 vertices 0.05 apart round each ring,
 rings 0.5 apart) has m_i of the ring, 0.12; the surface midway between two rings lies 0.25
 from every sample, outside every sample's domain (2 m_i = 0.24, surface.py), where every
-kernel's weight has fallen to exp(-(0.25 / 0.14)^2) = 0.04: the MLS surface breaks up between
+kernel's weight has fallen to exp(-(0.25 / 0.13)^2) = 0.03: the MLS surface breaks up between
 the rings. The flat triangles of a coarse CAD part, whose interiors only their corners reach,
 are the same case. A gap g puts its midpoint g / 2 from the samples around it; with s_i >=
 GAP_FRACTION g_i the domain 2 s_i >= g_i holds the midpoint, and the samples on both sides weigh
-there half their peak (exp(-(0.5 / 0.6)^2), h_scale 1.2). Where the sampling is even, g_i is
-1.1 to 1.35 m_i (medians over meshes of 2.9k to 62k vertices), so the gap term stays below m_i:
-it widens 1 to 6% of the samples of characters and figures, 15% of a CAD part's.
+there half their peak (exp(-(0.5 / 0.6)^2), h_scale x GAP_FRACTION = 1.1 x 0.55 = 0.6: at 0.5
+x 1.1 they weighed 0.44, and the GPU caster's fixed projection steps swung between two depths
+at such midpoints). Where the sampling is even, g_i is 1.1 to 1.35 m_i (medians over meshes of
+2.9k to 62k vertices), so the gap term stays below m_i: it widens 0.2 to 12% of the samples of
+the figures measured (a coarse cow's), 27% of a coarse CAD part's (a rocker arm's).
 
 A window without any neighbour on the sample's side is no gap: the sheet ends there (a rim,
 a border, a crease: the half-disc and crease tests of surface.py decide where), and widening
@@ -49,7 +51,7 @@ from .polynomial import tangent_frame
 
 SPACING_K = 8        # local spacing: mean distance to the 8 nearest neighbours, median-smoothed
 GAP_NEIGHBOURS = 24  # neighbours searched for the tangent gap: past a ring of 12 to the next
-GAP_FRACTION = 0.5   # s_i >= this x the gap: the domain (2 s_i) holds a gap's midpoint
+GAP_FRACTION = 0.55  # s_i >= this x the gap: the domain (2 s_i) holds a gap's midpoint
 GAP_DIRECTIONS = 16  # tangent directions whose 90-degree windows the gap must close
 QUERY_CHUNK = 65536  # points per neighbour query: bounds the (chunk, GAP_NEIGHBOURS) arrays
 
