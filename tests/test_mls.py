@@ -9,6 +9,7 @@ from models import dense_spot, spot
 from surfel.camera import frame
 from surfel.cloud import PointCloud
 from surfel.metrics import compare_results
+from surfel.mls import edges
 from surfel.mls import surface as S
 from surfel.mls.raytrace import MlsParams, prepare_scene, render_mls_cpu, trace
 from surfel.mls.widths import GAP_FRACTION, sample_spacing, tangent_gaps
@@ -107,7 +108,7 @@ def test_crease_test_cuts_a_sheet_at_its_outermost_samples():
     status = S.project(cube, xs - cube.origin, normals=up).status
     assert (status == [S.FIT_OK, S.FIT_OK, S.FIT_OUTSIDE, S.FIT_OUTSIDE, S.FIT_OUTSIDE]).all(), status
     square = S.build_surface(cube_faces(faces=[5]))
-    reach = S.OPEN_REACH * square.scale
+    reach = edges.OPEN_REACH * square.scale
     xs = np.array([[x, 0.02, 1.0] for x in (0.9, 0.95, 0.95 + 0.5 * reach, 0.95 + 2 * reach, 1.0)])
     status = S.project(square, xs - square.origin, normals=up).status
     assert (status == [S.FIT_OK, S.FIT_OK, S.FIT_OK, S.FIT_OUTSIDE, S.FIT_OUTSIDE]).all(), status

@@ -303,9 +303,9 @@ uniform sampler2D u_n;
 #ifdef PASS_SYSTEM
 // The normal equations of the weighted quadratic fit need only the 15 moments w u^i v^j
 // (i + j <= 4) and the 6 right-hand sides w f u^i v^j (i + j <= 2): 21 sums in 6 targets.
-// A seventh holds the half-disc test's sums (surface.past_edge): weights a_i w_i with h_i
+// A seventh holds the half-disc test's sums (edges.past_edge): weights a_i w_i with h_i
 // replaced by l, the samples' offsets from r in units of l; the sixth's spare channels count
-// the crease test's samples (surface.sample_beyond).
+// the crease test's samples (edges.sample_beyond).
 layout(location = 0) out vec4 out_m0;  // 1, u, v, uu
 layout(location = 1) out vec4 out_m1;  // uv, vv, uuu, uuv
 layout(location = 2) out vec4 out_m2;  // uvv, vvv, u4, u3v

@@ -32,7 +32,7 @@ Then `iterations` times (default 3), at r = o + t d:
    the normal equations of  min sum w (g(u, v) - f)^2  need only the 15 moments w u^a v^b
    (a + b <= 4) and the 6 sums w f u^a v^b (a + b <= 2): six RGBA32F targets, full system;
    a seventh sums the half-disc test's area-weighted offsets of the samples from r, and
-   spare channels count the crease and open-boundary tests' samples (surface.sample_beyond);
+   spare channels count the crease and open-boundary tests' samples (edges.sample_beyond);
 5. solve + re-intersect (full screen): Cholesky of the 6x6 (double precision; where it is
    singular, again with surface.fit's regularisation), then the ray meets the new quadratic
    within 2.5 l of r (the CPU tracer's window) -- the next t, whose window depth is rewritten
@@ -66,14 +66,11 @@ from ..gl.targets import GBuffer, check_target_size, gbuffer_result, read_textur
 from ..gl.uniforms import apply_common
 from ..options import RenderOptions, at_least, setting
 from ..result import RenderResult
+from .edges import EDGE_REACH, EDGE_SHEET_COS, EDGE_TURN_COS, OPEN_REACH
 from .polynomial import P_C, P_E1, P_E2, P_N, P_Q, P_SCALE
 from .raytrace import DEFAULT_SUPERSAMPLE, MLSScene, cached_scene, scene_kernel
 from .surface import (
-    EDGE_REACH,
-    EDGE_SHEET_COS,
-    EDGE_TURN_COS,
     MIN_NEIGHBOURS,
-    OPEN_REACH,
     REFERENCE_UPDATES,
     RIDGE,
     MlsKernel,

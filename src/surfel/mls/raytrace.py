@@ -44,6 +44,7 @@ import numpy as np
 from ..options import at_least, between, check_cpu_samples, positive, setting
 from ..result import RenderResult
 from ..shading import KEY_LIGHT, shade
+from .edges import past_edge
 from .polynomial import P_COLOR, P_SCALE, POLY_SIZE, poly_normal, poly_project, poly_ray
 from .surface import (
     BLOCK,
@@ -59,7 +60,6 @@ from .surface import (
     fit,
     leaf_tree,
     new_scratch,
-    past_edge,
     point_polynomials,
 )
 
