@@ -7,8 +7,8 @@ Schnabel & Klein ("Detecting holes in point set surfaces", 2006) applies too: th
 samples, weighted by a_i exp(-|p_i - r|^2 / l^2 - |n_i - n_r|^2 / sigma_n^2) (a_i the area a
 sample stands for: its local spacing m_i of widths.py, squared, relative), may lie at most
 `boundary * l` from r across the tangent plane (at the edge of a half-plane it lies
-l / sqrt(pi) = 0.56 l away). The areas and the one width l keep a jump in sampling density from reading as an
-edge. That bound leaves a sheet running on by a tenth of l or so past its last samples, which a
+l / sqrt(pi) = 0.56 l away). The areas and the one width l keep a jump in sampling density from
+reading as an edge. That bound leaves a sheet running on by a tenth of l or so past its last samples, which a
 LiDAR canopy's ragged edge needs and a crease does not; so at a crease a second test cuts the
 sheet at its outermost sample. With m the weighted mean of the samples about x (the fit's q - x)
 and u = -(m - (m . n) n) the direction away from it along the plane, x lies past the edge of its

@@ -16,8 +16,8 @@
 //   PASS_RETRY       full screen: the t of the candidate where its fits failed, for the next one
 //   PASS_SHADE       full screen: normal, colour and depth into the G-buffer layout
 // The weights are surface.py's: w = exp(-|p - r|^2 / h^2 - |n_i - n_r|^2 / sigma_n^2
-// - (n_i . (r - p))^2 / (sigma_r h)^2) within SUPPORT h. Sums over a support are in units of u_scale (the median kernel width), a fit's
-// frame in units of its local width l, like surface.py.
+// - (n_i . (r - p))^2 / (sigma_r h)^2) within SUPPORT h. Sums over a support are in units of
+// u_scale (the median kernel width), a fit's frame in units of its local width l, like surface.py.
 #include "common.glsl"
 #include "shading.glsl"
 

@@ -3,10 +3,10 @@
 The same surface as the CPU `mls` (surface.py): adaptive kernel widths h_i, weights
 w_i = exp(-|p_i - r|^2 / h_i^2 - |n_i - n_r|^2 / sigma_n^2 - (n_i . (r - p_i))^2 / (sigma_r h_i)^2)
 within 2.5 h_i for the pixel's reference normal n_r, weighted plane fit, bivariate quadratic g
-over it in units of the local width l = sum w_i h_i / sum w_i, the domain test and the
-half-disc boundary test. It is found
-per pixel by multi-pass rendering into float targets (gpu.glsl), with no spatial data
-structure: a point's screen-space disc is the set of pixels whose ray or hit it can influence.
+over it in units of the local width l = sum w_i h_i / sum w_i, the domain test and the edge
+tests (edges.py). It is found per pixel by multi-pass rendering into float targets (gpu.glsl),
+with no spatial data structure: a point's screen-space disc is the set of pixels whose ray or
+hit it can influence.
 
 0. pre-pass: the polynomial fitted at every sample p_i for its own normal. It is computed once
    per cloud on the CPU (surface.point_polynomials, numba, cached with the CPU tracer's scene)
@@ -47,8 +47,8 @@ Then `iterations` times (default 3), at r = o + t d:
    box filtered (RenderResult.from_samples) for anti-aliased silhouettes.
 
 Parameters (`MlsGpuParams`): the surface's (surface.MlsKernel: h_scale, domain, normal_sigma,
-residual_sigma, boundary), as in `mls`; iterations (3), candidates (8). Shadows and reflections are the CPU
-tracer's only.
+residual_sigma, boundary), as in `mls`; iterations (3), candidates (8). Shadows and reflections
+are the CPU tracer's only.
 """
 
 from __future__ import annotations

@@ -30,7 +30,7 @@ at such midpoints). Where the sampling is even, g_i is 1.1 to 1.35 m_i (medians 
 the figures measured (a coarse cow's), 27% of a coarse CAD part's (a rocker arm's).
 
 A window without any neighbour on the sample's side is no gap: the sheet ends there (a rim,
-a border, a crease: the half-disc and crease tests of surface.py decide where), and widening
+a border, a crease: the edge tests of edges.py decide where), and widening
 the kernel there would only round the edge off. Neighbours with n_i . n_j <= 0 are the other
 side of a thin part and do not close a gap of this side. Windows rather than the four
 quadrants of the tangent frame keep g_i (nearly) independent of how the frame is turned.
