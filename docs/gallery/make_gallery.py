@@ -19,6 +19,7 @@ from PIL import Image
 
 import surfel
 from surfel.camera import frame
+from surfel.mls.raytrace import MlsParams
 from surfel.preprocess import complete
 from surfel.rendering import render
 
@@ -110,7 +111,7 @@ def figure13(bunny):
 def figure16(bunny):
     cam = frame(bunny.center, bunny.bounding_radius, size=(384, 384))
     plain = render(bunny, cam, "mls", shading="phong")
-    shadowed = render(bunny, cam, "mls", shading="phong", params={"shadows": True})
+    shadowed = render(bunny, cam, "mls", shading="phong", params=MlsParams(shadows=True))
     save(HERE / "fig16-mls-ray-traced.png", [over_white(plain), over_white(shadowed)],
          ["MLS surface, ray traced", "with shadows"])
 
