@@ -193,9 +193,11 @@ def render_mls_gl(cloud: PointCloud, camera: Camera, options: RenderOptions, par
     check_target_size(*size)
     targets = renderer.targets("mls caster", size, lambda: CasterTargets(size))
     view = camera.view_matrix(surface.origin)
+    # the surface's weights and bounds as its scene holds them for the CPU tracer: one source
+    weights = surface.samples
     common = {"u_view_inv": np.linalg.inv(view), "u_scale": surface.scale, "u_domain": surface.domain,
-              "u_normal_weight": 1.0 / params.normal_sigma**2,
-              "u_residual_weight": 1.0 / params.residual_sigma**2, "u_boundary": params.boundary,
+              "u_normal_weight": weights.normal_weight, "u_residual_weight": weights.residual_weight,
+              "u_boundary": weights.boundary,
               "u_edge_cos": EDGE_SHEET_COS, "u_edge_reach": EDGE_REACH, "u_edge_turn": EDGE_TURN_COS,
               "u_open_reach": OPEN_REACH,
               "u_ridge": RIDGE, "u_min_neighbours": float(MIN_NEIGHBOURS), "u_guard": 0.0}
