@@ -127,7 +127,7 @@ COLOR_RGB, COLOR_CONTINUOUS, COLOR_CATEGORICAL = 0, 1, 2  # gl/colors.glsl's col
 BACK_SPLAT_WEIGHT = np.float32(1.0 / 256.0)  # splatting.glsl's: a back-facing splat's weight beside front ones
 
 
-@nb.njit(inline="always", fastmath=True, error_model="numpy")
+@nb.njit(forceinline=True, fastmath=True, error_model="numpy")
 def _setup(p, e, m, radius_scale, lowpass2, depth_offset, ewa_filter, curved, back_light):
     """The record of one splat from its staged inputs p (PACKED values) and extras e (EXTRAS
     values), without branches (the vertex stage of splatting.glsl): (record values MX..NZ, field
