@@ -10,7 +10,7 @@ import pytest
 from surfel.camera import frame
 from surfel.cloud import PointCloud
 from surfel.methods import ewa_kernels as k
-from surfel.methods.ewa import EwaParams, render_ewa_cpu, splat_axes, splat_clip_lines, splat_fields
+from surfel.methods.ewa import EwaParams, render_ewa_cpu, splat_inputs
 from surfel.options import RenderOptions, SettingError
 from surfel.rendering import Renderer
 
@@ -33,9 +33,8 @@ def ewa_cpu(cloud, camera, **options):
 def _setup(cloud, camera, sigma=0.5, lowpass=1.0):
     intr = np.array([camera.fx, camera.fy, camera.cx, camera.cy])
     ortho = 0.0 if camera.ortho_height is None else camera.height / camera.ortho_height
-    return k.setup_splats(cloud.positions, cloud.local_origin, camera.world_to_eye, cloud.normals,
-                          np.ones((1, 3), np.float32), splat_axes(cloud), splat_clip_lines(cloud), splat_fields(cloud),
-                          np.zeros(len(cloud), np.float32), intr, ortho, camera.near,
+    return k.setup_splats(cloud.positions, cloud.local_origin, camera.world_to_eye, *splat_inputs(cloud),
+                          intr, ortho, camera.near,
                           np.float32(1), np.float32(sigma ** 2), np.float32(lowpass ** 2), np.float32(0.04),
                           np.float32(9.21), np.float32(1), np.float32(4), False, camera.width, camera.height)
 

@@ -162,6 +162,15 @@ def splat_axes(cloud: PointCloud) -> np.ndarray:
     return np.stack([u * r, v * r], axis=1).astype(np.float32)
 
 
+def splat_inputs(cloud: PointCloud) -> tuple[np.ndarray, ...]:
+    """What `ewa_kernels.setup_splats` takes per splat: normals (`drawn_normals`), colours, axes,
+    clip lines, normal fields and layer thickness, all read-only as a cloud's own arrays are:
+    numba compiles writable and read-only arrays apart, and this kernel takes some 10 s."""
+    return tuple(read_only(array) for array in (drawn_normals(cloud), splat_colors(cloud), splat_axes(cloud),
+                                                splat_clip_lines(cloud), splat_fields(cloud),
+                                                splat_thickness(cloud)))
+
+
 def resolve_accumulators(acc: np.ndarray, camera: Camera, options: RenderOptions, params: EwaParams,
                          supersample: int, stats: dict, categories: np.ndarray | None = None) -> RenderResult:
     """Normalise the accumulated (H, W, 8 or 16) = w*rgb, w, w*normal, w*depth and shade (deferred).
@@ -225,10 +234,10 @@ def render_ewa_cpu(cloud: PointCloud, camera: Camera, options: RenderOptions, pa
     w, h = target.width, target.height
     check_cpu_samples(w, h)
     intr = np.array([target.fx, target.fy, target.cx, target.cy], np.float64)
-    clip_lines = splat_clip_lines(cloud)
+    normals, colors, axes, clip_lines, fields, thickness = splat_inputs(cloud)
     splats, extra, box = k.setup_splats(cloud.positions, np.asarray(cloud.local_origin, np.float64),
-                                 np.asarray(target.world_to_eye, np.float64), drawn_normals(cloud), splat_colors(cloud),
-                                 splat_axes(cloud), clip_lines, splat_fields(cloud), splat_thickness(cloud), intr,
+                                 np.asarray(target.world_to_eye, np.float64), normals, colors,
+                                 axes, clip_lines, fields, thickness, intr,
                                  ortho_scale(target), float(target.near),
                                  np.float32(params.radius_scale), np.float32(params.sigma ** 2),
                                  np.float32(params.lowpass ** 2), np.float32(params.visibility ** 2),

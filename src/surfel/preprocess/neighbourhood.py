@@ -95,8 +95,11 @@ class Neighbourhood:
         return np.empty((len(rows), k), np.int32), np.full(len(rows), -1, np.int64)
 
     def first(self, k: int) -> np.ndarray:
-        """The k nearest neighbours of each point (all of them if there are fewer)."""
-        return self.index[:, :min(k, self.index.shape[1])]
+        """The k nearest neighbours of each point (all of them if there are fewer), C-contiguous:
+        numba compiles a kernel apart for a strided slice of a wider index (the 24 neighbours of
+        `prepare --smooth`), so every estimation taking one would be compiled twice."""
+        index = self.index[:, :min(k, self.index.shape[1])]
+        return index if index.flags.c_contiguous else np.ascontiguousarray(index)
 
     def sort(self, values: np.ndarray) -> np.ndarray:
         """Per-point values in the input's order, taken into the sorted order."""
