@@ -132,7 +132,10 @@ def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np
         positions = cloud.positions + nbh.unsort(moved - nbh.points)
         report["smooth"] = (f"MLS projection (k={SMOOTH_NEIGHBOURS}), mean move "
                             f"{float(np.mean(np.linalg.norm(moved - nbh.points, axis=1))):.4g}")
-        nbh = replace(nbh, points=moved)  # the same neighbours, moved by about the noise
+        # the same neighbours, moved by about the noise; the estimations below take no more
+        # than k_rest of them (one contiguous copy, not one per estimation: Neighbourhood.first)
+        k_rest = max(k_normals, RADIUS_NEIGHBOURS, FIELD_NEIGHBOURS if need_field else 1)
+        nbh = replace(nbh, points=moved, index=nbh.first(k_rest))
     facing = None
     if normals is None and given["axes"] is not None:
         normals = estimated["normals"] = from_axes
