@@ -21,8 +21,8 @@ a tuple indexed by a loop variable (numba makes it a switch); tests/test_splatti
 checks that the compiled loops use packed instructions. The helpers are inlined: the small ones
 by numba (inline="always"), the per-fragment ones a loop calls several times (`both_outputs`,
 `visibility_fragment`, `attribute_fragment`, and splatting_kernels._setup) by LLVM
-(forceinline=True), which leaves the same SIMD code; numba's own inlining of them made each of
-`rasterize_tiles`' four signatures take 58 s to compile instead of 37.
+(forceinline=True), which leaves the same SIMD code; numba's own inlining of them made
+`rasterize_tiles` take 58 s to compile instead of 37 (`deferred`'s signature, of four).
 
 A categorical colour mode keeps per pixel the packed (weight level, palette index) of the
 heaviest fragment (colors.category_pack, MAX as the GPU's PASS_CATEGORY blending).
