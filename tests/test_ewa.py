@@ -12,6 +12,7 @@ from surfel.cloud import PointCloud
 from surfel.methods import ewa_kernels as k
 from surfel.methods.ewa import EwaParams, render_ewa_cpu, splat_inputs
 from surfel.options import RenderOptions, SettingError
+from surfel.preprocess import INACTIVE_CLIP
 from surfel.rendering import Renderer
 
 
@@ -37,6 +38,23 @@ def _setup(cloud, camera, sigma=0.5, lowpass=1.0):
                           intr, ortho, camera.near,
                           np.float32(1), np.float32(sigma ** 2), np.float32(lowpass ** 2), np.float32(0.04),
                           np.float32(9.21), np.float32(1), np.float32(4), False, camera.width, camera.height)
+
+
+def test_kernel_inputs_are_read_only_whatever_the_cloud_holds():
+    """numba compiles setup_splats apart for writable and read-only arrays (some 10 s each):
+    splat_inputs hands it read-only, contiguous ones for a plain cloud and for one with
+    colours, clip lines, a normal field, layer thickness and screen-facing splats alike."""
+    plain = _plane(8)
+    n = len(plain)
+    zeros = np.zeros(n, np.float32)
+    rich = plain.with_(colors=np.full((n, 3), 0.5, np.float32), attributes={
+        "clip_lines": np.tile(np.float32(INACTIVE_CLIP), (n, 2, 1)), "phong_alpha": zeros, "phong_beta": zeros,
+        "thickness": np.full(n, 0.01, np.float32), "screen_facing": (np.arange(n) % 2).astype(np.float32)})
+    for cloud in (plain, rich):
+        arrays = splat_inputs(cloud)
+        assert len(arrays) == 6
+        assert all(not a.flags.writeable and a.flags.c_contiguous for a in arrays)
+    assert (splat_inputs(rich)[0][1::2] == 0).all()  # the screen-facing splats' normals: zero
 
 
 @pytest.mark.parametrize("ortho", [None, 1.5])

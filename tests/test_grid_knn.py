@@ -65,6 +65,17 @@ def test_neighbourhood_sorts_and_unsorts():
     assert np.allclose(np.sort(found, axis=1), nbh.sort(expected), atol=1e-12)
 
 
+def test_first_neighbours_are_contiguous():
+    """Neighbourhood.first of a wider neighbourhood (prepare --smooth's 24) is a C-contiguous
+    copy of its first columns, and the index itself when all of them are asked for: numba would
+    compile every estimation taking a strided slice a second time."""
+    nbh = Neighbourhood.build(rng.random((2_000, 3)), 24)
+    first = nbh.first(16)
+    assert first.flags.c_contiguous and np.array_equal(first, nbh.index[:, :16])
+    for k in (24, 40):  # all of them: the index itself, not a copy
+        assert np.shares_memory(nbh.first(k), nbh.index) and nbh.first(k).shape == (2_000, 24)
+
+
 @pytest.mark.parametrize("name, points, k, wide", [
     ("plane", np.c_[rng.random((20_000, 2)), np.zeros(20_000)], 16, 64),
     ("cube", rng.random((20_000, 3)), 8, 40),
