@@ -62,8 +62,8 @@ more of lidR's MixedConifer tile shows through (pinholes 3.3% -> 6.0% of its cov
 
 Domain. A fit needs MIN_NEIGHBOURS = 3 samples facing n_r (n_i . n_r > 0) in its support (a plane:
 inside a coarse part's large flat triangles only the corners' supports reach; below six the ridge
-makes the quadratic lean to H), and one within `domain * s_i` of r (Adamson & Alexa's domain test).  Where
-a projection converges, the edge tests of edges.py cut a sheet where it ends.
+makes the quadratic lean to H), and one within `domain * s_i` of r (Adamson & Alexa's domain
+test). Where a projection converges, the edge tests of edges.py cut a sheet where it ends.
 Failures are statuses (FIT_*), never exceptions.
 
 Neighbour search: a bounding volume hierarchy over the supports. The samples are stored in

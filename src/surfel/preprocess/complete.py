@@ -105,7 +105,8 @@ def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np
     complete = cloud.normals is not None and cloud.radii is not None and cloud.axes is not None
     if complete and not need_field and not smooth:
         return cloud, report
-    k = max(k_normals, RADIUS_NEIGHBOURS, FIELD_NEIGHBOURS if need_field else 1, SMOOTH_NEIGHBOURS if smooth else 1)
+    k_estimations = max(k_normals, RADIUS_NEIGHBOURS, FIELD_NEIGHBOURS if need_field else 1)
+    k = max(k_estimations, SMOOTH_NEIGHBOURS if smooth else 1)
     nbh = Neighbourhood.build(cloud.positions, k, -1, progress)
     given = {name: None if getattr(cloud, name) is None else nbh.sort(getattr(cloud, name))
              for name in ("normals", "radii", "axes")}
@@ -133,9 +134,8 @@ def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np
         report["smooth"] = (f"MLS projection (k={SMOOTH_NEIGHBOURS}), mean move "
                             f"{float(np.mean(np.linalg.norm(moved - nbh.points, axis=1))):.4g}")
         # the same neighbours, moved by about the noise; the estimations below take no more
-        # than k_rest of them (one contiguous copy, not one per estimation: Neighbourhood.first)
-        k_rest = max(k_normals, RADIUS_NEIGHBOURS, FIELD_NEIGHBOURS if need_field else 1)
-        nbh = replace(nbh, points=moved, index=nbh.first(k_rest))
+        # than k_estimations of them (one contiguous copy, not one per estimation: Neighbourhood.first)
+        nbh = replace(nbh, points=moved, index=nbh.first(k_estimations))
     facing = None
     if normals is None and given["axes"] is not None:
         normals = estimated["normals"] = from_axes
