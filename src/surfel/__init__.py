@@ -2,7 +2,7 @@
 
     import surfel
     cloud = surfel.load("bunny.obj")
-    image = surfel.render(cloud, method="deferred", size=(512, 512))   # shows itself in notebooks
+    image = surfel.render(cloud, method="phong", size=(512, 512))   # shows itself in notebooks
     image.color, image.alpha, image.depth, image.normals              # numpy arrays
     tile = surfel.render(surfel.load("tile.laz"), color="classification", classes=(2, 6))
 """
@@ -10,6 +10,7 @@
 from .cloud import PointCloud
 from .errors import InputError, SurfelError
 from .io import load, write_ply
+from .methods import DEFAULT_METHOD
 from .rendering import Renderer, default_camera, render
 
 __all__ = ["PointCloud", "InputError", "SurfelError", "Renderer", "load", "write_ply", "render", "default_camera",
@@ -17,7 +18,7 @@ __all__ = ["PointCloud", "InputError", "SurfelError", "Renderer", "load", "write
 __version__ = "0.1.0"
 
 
-def show(cloud, method: str = "deferred", size=(512, 512), *, interactive: bool | None = None, **options):
+def show(cloud, method: str = DEFAULT_METHOD, size=(512, 512), *, interactive: bool | None = None, **options):
     """Show `cloud` (a PointCloud, or a .lod hierarchy / COPC source from surfel.lod.open_source).
 
     In a Jupyter kernel with the notebook extra (pip install 'surfel[notebook]'), or with

@@ -12,6 +12,7 @@ import sys
 import click
 
 from .errors import SurfelError
+from .methods import DEFAULT_METHOD
 from .request import (
     CAMERA,
     OPTIONS,
@@ -24,6 +25,7 @@ from .request import (
     TURNTABLE_SIZE,
     VIEW_SIZE,
 )
+from .web.export import PAGE_METHOD
 
 CONTEXT = {"help_option_names": ["-h", "--help"], "max_content_width": 100}
 
@@ -118,7 +120,7 @@ def render(**values):
 
 
 @main.command("export-html", context_settings=CONTEXT)
-@table_options(*PAGE_COMMAND, required=("output",), defaults={"point_budget": "300000"},
+@table_options(*PAGE_COMMAND, required=("output",), defaults={"point_budget": "300000", "method": PAGE_METHOD},
                helps={"output": "HTML page to write.", "method": "deferred or gaussian.",
                       "point_budget": "Above N points the page draws a sequential point tree.",
                       "supersample": "Samples per pixel side, 1 to 4 (default 1)."})
@@ -149,7 +151,7 @@ def export_html(**values):
 
 @main.command(context_settings=CONTEXT)
 def methods():
-    """List the rendering methods and their backends.
+    """List the rendering methods and their backends; the default is marked.
 
     \b
     Example:
@@ -158,7 +160,8 @@ def methods():
     from .methods import METHODS
 
     for m in METHODS.values():
-        click.echo(f"{m.name:14s} {','.join(m.backends):8s} {m.summary}")
+        mark = " (the default)" if m.name == DEFAULT_METHOD else ""
+        click.echo(f"{m.name:14s} {','.join(m.backends):8s} {m.summary}{mark}")
 
 
 @main.command(context_settings=CONTEXT)
@@ -436,7 +439,8 @@ def bench(input_path, points, methods, frames, as_json, **values):
 @click.option("-o", "--output", default=None,
               help="With --turntable: a folder (frames FOLDER/000.png, ...), or a PNG name, {frame} numbered "
                    "(e.g. f-{frame:03d}.png) or numbered before its extension.")
-@click.option("--method", "-m", default=None, help="Rendering method of every job that names none (default deferred).")
+@click.option("--method", "-m", default=None,
+              help=f"Rendering method of every job that names none (default {DEFAULT_METHOD}).")
 @click.option("--demo", is_flag=True, help="With --turntable: the bundled demo model.")
 @click.option("--depth", default=None, help="With --turntable: depth .npy name, {frame} numbered.")
 @click.option("--normals", default=None, help="With --turntable: normals .npy name, {frame} numbered.")

@@ -37,7 +37,7 @@ from . import colors
 from .camera import Camera, frame
 from .cloud import PointCloud, render_unit
 from .errors import SurfelError
-from .methods import get_method
+from .methods import DEFAULT_METHOD, get_method
 from .options import RenderOptions
 from .result import RenderResult
 from .shading import default_for
@@ -278,7 +278,7 @@ class Renderer:
             self._released_clouds.pop().release()
 
     # ---- rendering --------------------------------------------------------------------
-    def render(self, cloud, camera: Camera | None = None, method: str = "deferred", *,
+    def render(self, cloud, camera: Camera | None = None, method: str = DEFAULT_METHOD, *,
                backend: str | None = None, size=(1024, 1024), options: RenderOptions | None = None,
                **values) -> RenderResult:
         """Render `cloud` (a PointCloud, or a lazy LodSource whose cut for the camera is selected
@@ -405,7 +405,7 @@ class Renderer:
 default_renderer = Renderer()
 
 
-def render(cloud, camera: Camera | None = None, method: str = "deferred", **kwargs) -> RenderResult:
+def render(cloud, camera: Camera | None = None, method: str = DEFAULT_METHOD, **kwargs) -> RenderResult:
     """`Renderer.render` on the module's default Renderer (its caches live as long as the process)."""
     return default_renderer.render(cloud, camera, method, **kwargs)
 

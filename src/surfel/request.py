@@ -30,7 +30,7 @@ from .camera import VIEWS, Camera, OpenCvCamera, frame
 from .colors import NAMED
 from .errors import SurfelError
 from .files import check_folder, check_output
-from .methods import METHODS, get_method
+from .methods import DEFAULT_METHOD, METHODS, get_method
 from .methods.params import SplatParams
 from .options import RenderOptions, SettingError
 from .parsers import (
@@ -125,7 +125,7 @@ OPTIONS: dict[str, Option] = {o.name: o for o in [
     Option("depth", text, "Write eye depth (H x W float32 .npy).", "output", metavar="FILE"),
     Option("normals", text, "Write eye normals (H x W x 3 float32 .npy).", "output", metavar="FILE"),
     Option("stats", text, "Write render statistics (.json).", "output", metavar="FILE"),
-    Option("method", text, "Rendering method (see `surfel methods`).", "method", default="deferred", short="-m",
+    Option("method", text, "Rendering method (see `surfel methods`).", "method", default=DEFAULT_METHOD, short="-m",
            metavar="NAME"),
     Option("backend", choice("auto", "gl", "cpu"),
            "Default auto: cpu where OpenGL is a software rasterizer (llvmpipe) and the method's CPU path is "

@@ -13,6 +13,7 @@ from tqdm import tqdm
 from .camera import frame
 from .errors import SurfelError
 from .files import check_output, replaced_atomically, write_atomically
+from .methods import DEFAULT_METHOD
 from .options import RenderOptions
 from .rendering import Renderer
 from .request import (
@@ -72,7 +73,7 @@ def write_animation(images: list[np.ndarray], path, fps: float = TURNTABLE_FPS) 
         raise SurfelError(f"{path}: turntable output must be .gif or .mp4")
 
 
-def turntable(cloud, path, *, frames: int = TURNTABLE_FRAMES, method: str = "deferred", size=TURNTABLE_SIZE,
+def turntable(cloud, path, *, frames: int = TURNTABLE_FRAMES, method: str = DEFAULT_METHOD, size=TURNTABLE_SIZE,
               elevation: float = TURNTABLE_ELEVATION, fps: float = TURNTABLE_FPS, progress: bool | None = None,
               backend: str | None = None, renderer: Renderer | None = None, **options) -> None:
     """Render `frames` orbit frames of `cloud` with `method` (options as `Renderer.render`

@@ -36,7 +36,7 @@ from . import colors
 from .camera import default_up, frame, view_direction
 from .cloud import PointCloud
 from .errors import SurfelError
-from .methods import METHODS, get_method
+from .methods import DEFAULT_METHOD, METHODS, get_method
 from .rendering import Renderer
 from .request import VIEW_SIZE, default, parse_values, render_options
 from .shading import DEFAULT as DEFAULT_SHADING
@@ -230,7 +230,7 @@ def view_command(values: dict, screenshot=None) -> None:
          screenshot=screenshot)
 
 
-def view(cloud, *, method: str = "deferred", shading: str | None = None, color: str | None = None,
+def view(cloud, *, method: str = DEFAULT_METHOD, shading: str | None = None, color: str | None = None,
          colormap: str = colors.DEFAULT_COLORMAP, size=VIEW_SIZE, screenshot=None) -> None:
     """Open the window; with `screenshot`, draw one frame, save what the window shows, close."""
     try:

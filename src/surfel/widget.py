@@ -22,7 +22,7 @@ import threading
 from . import colors
 from .cloud import PointCloud
 from .errors import SurfelError
-from .methods import METHODS
+from .methods import DEFAULT_METHOD, METHODS
 from .shading import MODELS
 from .viewer import ViewState, color_status
 
@@ -39,7 +39,7 @@ def _require():
     return ipywidgets, jupyter_rfb
 
 
-def make_view(cloud, *, method: str = "deferred", shading: str | None = None, size=(512, 512),
+def make_view(cloud, *, method: str = DEFAULT_METHOD, shading: str | None = None, size=(512, 512),
               color: str | None = None, colormap: str = colors.DEFAULT_COLORMAP, lod_error: float | None = None):
     """The widget: controls above a SurfelFrames view (`widget.frames`) and a status line.
     shading and color None: the data's defaults (as `surfel render`)."""

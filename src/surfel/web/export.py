@@ -54,6 +54,7 @@ HERE = Path(__file__).parent
 SPLATTING = HERE.parent / "methods" / "splatting.glsl"
 GL = HERE.parent / "gl"
 METHODS = ("deferred", "gaussian")   # the methods of splatting.glsl the page offers
+PAGE_METHOD = METHODS[0]  # where none is named: the page has no normal fields to light with (phong)
 PAGE_COLORMAPS = ("viridis", "turbo", "inferno", "cividis", "terrain", "gray")  # its menu
 DEFAULT_POINT_BUDGET = 300_000       # above it the page draws a sequential point tree
 DEFAULT_LOD_ERROR = 1.0              # pixels, for a page with a point tree and no --lod-error
@@ -148,7 +149,7 @@ def color_modes(cloud: PointCloud, options: RenderOptions) -> tuple[list, dict]:
     return modes, values
 
 
-def export_html(cloud, camera: Camera, output, *, method: str = "deferred", options: RenderOptions | None = None,
+def export_html(cloud, camera: Camera, output, *, method: str = PAGE_METHOD, options: RenderOptions | None = None,
                 renderer=None, title: str | None = None) -> dict:
     """Write the page of `cloud` (a PointCloud or a LodSource) seen by `camera` to `output`.
 
@@ -217,7 +218,7 @@ def page_request(values: Mapping[str, object]) -> RenderRequest:
     parsed = parse_values(values, PAGE_COMMAND)
     if parsed.get("demo", False) == ("input" in parsed):
         raise SurfelError("give an input file or --demo (not both)")
-    method, _ = method_and_backend(parsed)
+    method, _ = method_and_backend({"method": PAGE_METHOD, **parsed})
     if method not in METHODS:
         raise SurfelError(f"--method: the page draws {' or '.join(METHODS)}, not {method!r}")
     options = options_from(parsed, method)
