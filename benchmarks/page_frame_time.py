@@ -3,7 +3,7 @@
     python benchmarks/page_frame_time.py [--points 1000000] [--size 1024] [--frames 5] [--json]
 
 The cloud is `surfel bench`'s (the demo model replicated and jittered to --points); the page
-is exported with the default camera and opens with its point tree at 1 pixel of LOD error,
+is exported with the default camera and `deferred` and opens with its point tree at 1 pixel of LOD error,
 so the GL row is `surfel bench --methods deferred@gl --points N --size SxS --lod-error 1`. The
 page's time is what it reports itself (window.surfelStats: draw calls to a one-pixel
 readback); Chromium runs WebGL2 on SwiftShader here, the GL path on Mesa's llvmpipe.
@@ -42,7 +42,7 @@ def main():
     with tempfile.TemporaryDirectory() as folder:
         page_path = Path(folder) / "page.html"
         start = time.perf_counter()
-        report = export_html(cloud, default_camera(cloud, size), page_path)
+        report = export_html(cloud, default_camera(cloud, size), page_path, method="deferred")
         export_s = time.perf_counter() - start
         with sync_playwright() as p:
             browser = p.chromium.launch(executable_path="/usr/bin/chromium", args=FLAGS, headless=True)

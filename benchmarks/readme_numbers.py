@@ -306,7 +306,7 @@ def section_page_match(ctx: Context) -> str:
     ctx.record("chromium page.html#capture", "headless, through Playwright: its screenshot at 800x600, PSNR "
                "against render.png")
     rgb = [np.asarray(Image.open(f).convert("RGB"), np.float64) for f in (reference, shot)]
-    return f"The page against `surfel render --demo --method deferred --size 800x600`: {psnr(*rgb):.0f} dB PSNR."
+    return f"The page against `surfel render --demo --size 800x600`: {psnr(*rgb):.0f} dB PSNR."
 
 
 # ---------------------------------------------------------------------------------------------

@@ -189,15 +189,14 @@ def test_a_job_that_cannot_write_fails_alone_and_frames_go_into_a_folder(tmp_pat
     assert sorted(p.name for p in (tmp_path / "frames").iterdir()) == ["000.png", "001.png", "002.png"]
 
 
-# Issue 17.6: one default method for every interface that names none; the page, which has no
-# normal fields to light with, opens with deferred.
+# Issue 17.6: one default method for every interface that names none, the exported page's too.
 def test_the_default_method_where_none_is_named(tmp_path):
     from surfel.methods import DEFAULT_METHOD
     from surfel.request import parse_render
-    from surfel.web.export import PAGE_METHOD, page_request
+    from surfel.web.export import page_request
 
-    assert DEFAULT_METHOD == "phong" and PAGE_METHOD == "deferred"
+    assert DEFAULT_METHOD == "phong"
     assert parse_render({"demo": True, "output": str(tmp_path / "x.png")}).method == DEFAULT_METHOD
-    assert page_request({"demo": True, "output": str(tmp_path / "x.html")}).method == PAGE_METHOD
+    assert page_request({"demo": True, "output": str(tmp_path / "x.html")}).method == DEFAULT_METHOD
     listed = invoke("methods").output.splitlines()
     assert [line.split()[0] for line in listed if line.endswith("(the default)")] == [DEFAULT_METHOD]

@@ -11,6 +11,7 @@ from conftest import requires_gl
 from surfel import PointCloud
 from surfel.camera import Camera
 from surfel.colors import ASPRS_COLORS, colormap_table
+from surfel.methods import DEFAULT_METHOD
 from surfel.options import RenderOptions
 from surfel.web import export_html
 from surfel.web.pack import oct_decode, pack_cloud, tangent_frame
@@ -46,6 +47,8 @@ def canvas(page):
 CAMERAS = {
     "perspective": ["--eye", "1.6,1.2,3.6", "--target", "0.05,0.05,-0.1", "--up", "0,1,0", "--fov", "32",
                     "--size", "480x360", "--shading", "lambert"],
+    "perspective deferred": ["--eye", "1.6,1.2,3.6", "--target", "0.05,0.05,-0.1", "--up", "0,1,0", "--fov", "32",
+                             "--size", "480x360", "--shading", "phong", "--method", "deferred"],
     "close-up, quads": ["--eye", "0.5,0.4,1.1", "--target", "0.1,0.2,0.2", "--up", "0.1,1,0", "--fov", "45",
                         "--size", "320x320"],
     "orthographic gaussian": ["--view", "right", "--ortho", "2.2", "--size", "400x300", "--method", "gaussian",
@@ -58,7 +61,7 @@ CAMERAS = {
 def test_page_matches_surfel_render(browser, tmp_path, name):
     """The #capture screenshot against surfel render with the same flags (judged at 30 dB)."""
     flags = CAMERAS[name]
-    method = flags[flags.index("--method") + 1] if "--method" in flags else "deferred"
+    method = flags[flags.index("--method") + 1] if "--method" in flags else DEFAULT_METHOD
     size = tuple(int(v) for v in flags[flags.index("--size") + 1].split("x"))
     ref = run("render", "--demo", "-o", tmp_path / "ref.png", "--method", method, *flags)
     assert ref.returncode == 0, ref.stderr
@@ -70,6 +73,10 @@ def test_page_matches_surfel_render(browser, tmp_path, name):
     assert shot.shape == reference.shape
     assert (reference.max(axis=2) > 0).mean() > 0.05  # the model is in view
     assert psnr(shot, reference) >= 40.0
+    if method == "phong":  # lit by its normal fields: nearer phong's render than deferred's
+        other = run("render", "--demo", "-o", tmp_path / "other.png", *flags, "--method", "deferred")
+        assert other.returncode == 0, other.stderr
+        assert psnr(shot, reference) > psnr(shot, png_rgb((tmp_path / "other.png").read_bytes())) + 3
     if name == "close-up, quads":
         assert page.evaluate("surfelStats.primitive") == "quads"
     page.close()
@@ -306,7 +313,7 @@ def test_the_page_s_colour_modes_match_surfel_render(browser, tmp_path, mode, sh
     tile = tile.take((tile.positions[:, 0] < lo[0] + 300) & (tile.positions[:, 1] > lo[1] + 150))
     camera = CameraSpec(size=(320, 240), view="iso").camera(tile)
     options = RenderOptions(color=mode, shading=shading)
-    report = export_html(tile, camera, tmp_path / "m.html", options=options)
+    report = export_html(tile, camera, tmp_path / "m.html", method="deferred", options=options)
     assert report["color"] == mode.replace("-", "_") and report["shading"] == shading
     shot = png_rgb(open_page(browser, tmp_path / "m.html", (320, 240)).screenshot())
     reference = surfel.render(tile, camera, "deferred", options=options).rgba8()[..., :3]

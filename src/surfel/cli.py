@@ -25,7 +25,6 @@ from .request import (
     TURNTABLE_SIZE,
     VIEW_SIZE,
 )
-from .web.export import PAGE_METHOD
 
 CONTEXT = {"help_option_names": ["-h", "--help"], "max_content_width": 100}
 
@@ -120,8 +119,8 @@ def render(**values):
 
 
 @main.command("export-html", context_settings=CONTEXT)
-@table_options(*PAGE_COMMAND, required=("output",), defaults={"point_budget": "300000", "method": PAGE_METHOD},
-               helps={"output": "HTML page to write.", "method": "deferred or gaussian.",
+@table_options(*PAGE_COMMAND, required=("output",), defaults={"point_budget": "300000"},
+               helps={"output": "HTML page to write.", "method": "phong, deferred or gaussian.",
                       "point_budget": "Above N points the page draws a sequential point tree.",
                       "supersample": "Samples per pixel side, 1 to 4 (default 1)."})
 def export_html(**values):

@@ -3,8 +3,8 @@
 The page (page.html, viewer.js) runs methods/splatting.glsl itself in WebGL2 (GLSL ES 3.00):
 the exporter resolves its includes with the page's splat_attributes.glsl first, which
 decodes the quantized columns of pack.py under the attribute names the desktop shaders use.
-So the page's `deferred` is Botsch et al. 2005 exactly as `surfel render --method deferred`
-draws it: visibility, attribute accumulation, the category pass of categorical colour modes
+So the page's `phong` and `deferred` are Botsch et al. 2004 and 2005 exactly as `surfel render`
+draws them: visibility, attribute accumulation, the category pass of categorical colour modes
 and normalization, the EWA screen-space filter approximation, splats curved by their normal
 fields, coverage from edge_distance() and surrounded(), point sprites on a guard band or
 quads. The cloud is completed for the method the page opens with. Colour modes are surfel.colors'
@@ -36,7 +36,7 @@ from ..cloud import PointCloud
 from ..errors import SurfelError
 from ..files import write_atomically
 from ..gl.program import expand_includes
-from ..methods import get_method
+from ..methods import DEFAULT_METHOD, get_method
 from ..options import RenderOptions
 from ..request import (
     PAGE_COMMAND,
@@ -53,8 +53,7 @@ from .pack import pack_cloud
 HERE = Path(__file__).parent
 SPLATTING = HERE.parent / "methods" / "splatting.glsl"
 GL = HERE.parent / "gl"
-METHODS = ("deferred", "gaussian")   # the methods of splatting.glsl the page offers
-PAGE_METHOD = METHODS[0]  # where none is named: the page has no normal fields to light with (phong)
+METHODS = ("phong", "deferred", "gaussian")   # the methods of splatting.glsl the page offers
 PAGE_COLORMAPS = ("viridis", "turbo", "inferno", "cividis", "terrain", "gray")  # its menu
 DEFAULT_POINT_BUDGET = 300_000       # above it the page draws a sequential point tree
 DEFAULT_LOD_ERROR = 1.0              # pixels, for a page with a point tree and no --lod-error
@@ -83,9 +82,10 @@ def source_cut(source, size) -> tuple[PointCloud, dict]:
 def cloud_for_page(cloud: PointCloud, method: str, point_budget: int, lod_error: float | None, renderer,
                    cut: bool = False) -> tuple[PointCloud, dict]:
     """What the page draws: the cloud completed for `method` as surfel render would complete
-    it (normals, radii, axes; the normal fields that curve deferred's splats, except on a
-    source's `cut`, whose splats surfel render draws flat), as a sequential point tree when it
-    holds more than `point_budget` points or a LOD error is asked for. Returns (cloud, report)."""
+    it (normals, radii, axes; the normal fields that light phong's splats and curve phong's and
+    deferred's, except deferred's on a source's `cut`, whose splats surfel render draws flat), as a
+    sequential point tree when it holds more than `point_budget` points or a LOD error is asked
+    for. Returns (cloud, report)."""
     from ..lod import as_sequential, is_sequential
 
     report: dict = {}
@@ -149,11 +149,11 @@ def color_modes(cloud: PointCloud, options: RenderOptions) -> tuple[list, dict]:
     return modes, values
 
 
-def export_html(cloud, camera: Camera, output, *, method: str = PAGE_METHOD, options: RenderOptions | None = None,
+def export_html(cloud, camera: Camera, output, *, method: str = DEFAULT_METHOD, options: RenderOptions | None = None,
                 renderer=None, title: str | None = None) -> dict:
     """Write the page of `cloud` (a PointCloud or a LodSource) seen by `camera` to `output`.
 
-    `method`: deferred or gaussian; `options`: surfel render's, with the method's parameters
+    `method`: phong, deferred or gaussian; `options`: surfel render's, with the method's parameters
     (colour mode, colour map and range, --classes/--returns, shading (edl included),
     supersampling, LOD error; point_budget: above it the page draws a sequential point
     tree); `renderer`: the rendering.Renderer that estimates what the cloud lacks. Returns a
@@ -218,7 +218,7 @@ def page_request(values: Mapping[str, object]) -> RenderRequest:
     parsed = parse_values(values, PAGE_COMMAND)
     if parsed.get("demo", False) == ("input" in parsed):
         raise SurfelError("give an input file or --demo (not both)")
-    method, _ = method_and_backend({"method": PAGE_METHOD, **parsed})
+    method, _ = method_and_backend(parsed)
     if method not in METHODS:
         raise SurfelError(f"--method: the page draws {' or '.join(METHODS)}, not {method!r}")
     options = options_from(parsed, method)

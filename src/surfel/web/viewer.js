@@ -1,4 +1,4 @@
-// surfel's self-contained page: the `deferred` and `gaussian` methods of surfel in WebGL2.
+// surfel's self-contained page: the `phong`, `deferred` and `gaussian` methods of surfel in WebGL2.
 // The shaders are methods/splatting.glsl itself (with web/splat_attributes.glsl decoding the
 // quantized columns), so the passes are surfel's: visibility (MIN blending into RG32F),
 // attribute accumulation (additive blending into two RGBA32F targets), normalization with
@@ -345,7 +345,8 @@
     const guard = sprites ? GUARD : 0;
     const t = allocate(w, h, guard);
     const variant = { PER_SPLAT_SHADING: method === "gaussian", EWA_FILTER: ewa, POINT_SPRITES: sprites,
-                      CURVED_SPLATS: method === "deferred" && !!columns.field, CLIP_LINES: !!columns.clip };
+                      CURVED_SPLATS: method !== "gaussian" && !!columns.field,
+                      NORMAL_FIELD: method === "phong" && !!columns.field, CLIP_LINES: !!columns.clip };
     let pageMode = PAGE_MODE.rgb, range = [0, 1];
     if (mode.kind === "continuous") {
       pageMode = mode.name === "elevation" ? PAGE_MODE.elevation : PAGE_MODE.value;
@@ -502,9 +503,9 @@
     el.addEventListener("change", () => { onChange(el.type === "checkbox" ? el.checked : el.value); requestRender(); });
     return el;
   }
-  const defaultEwa = { deferred: true, gaussian: false };
+  const defaultEwa = { phong: false, deferred: true, gaussian: false };
   const ewaBox = control("ewa", null, S.ewa_filter, (v) => { S.ewa_filter = v; });
-  control("method", ["deferred", "gaussian"], S.method, (v) => {
+  control("method", ["phong", "deferred", "gaussian"], S.method, (v) => {
     S.method = v;
     if (!META.settings.ewa_given) { S.ewa_filter = defaultEwa[v]; ewaBox.checked = S.ewa_filter; }
   });
