@@ -222,8 +222,8 @@ def test_render_smooth_brings_a_scan_closer_to_its_mesh(scanned_spot, tmp_path):
     cloud, camera, renderer, reference = (scanned_spot.cloud, scanned_spot.camera, scanned_spot.renderer,
                                           scanned_spot.reference)
     raw = compare_results(reference, renderer.render(cloud, camera, "deferred", options=scanned_spot.options))
-    request = parse_render({"input": "scan.ply", "output": "x.png", "smooth": True, "shading": "lambert",
-                            "background": "0,0,0"})
+    request = parse_render({"input": "scan.ply", "output": "x.png", "method": "deferred", "smooth": True,
+                            "shading": "lambert", "background": "0,0,0"})
     assert request.options.smooth
     smoothed = renderer.render(cloud, camera, "deferred", options=request.options)
     assert "smooth" in smoothed.stats["estimated"]
