@@ -280,7 +280,7 @@ def section_page(ctx: Context) -> str:
 
 
 def section_page_match(ctx: Context) -> str:
-    """The page's picture against `surfel render --method deferred`'s, demo model, same flags."""
+    """The page's picture against `surfel render`'s, demo model, same flags (the default method both)."""
     import numpy as np
     from page_frame_time import FLAGS
     from PIL import Image
@@ -290,7 +290,7 @@ def section_page_match(ctx: Context) -> str:
 
     flags = ["--size", "800x600"]
     reference, page_path = ctx.scratch / "render.png", ctx.scratch / "page.html"
-    ctx.surfel("render", "--demo", "-o", reference, "--method", "deferred", *flags)
+    ctx.surfel("render", "--demo", "-o", reference, *flags)
     ctx.surfel("export-html", "--demo", "-o", page_path, *flags)
     shot = ctx.scratch / "page.png"
     with sync_playwright() as p:
