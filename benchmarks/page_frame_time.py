@@ -3,8 +3,8 @@
     python benchmarks/page_frame_time.py [--points 1000000] [--size 1024] [--frames 5] [--json]
 
 The cloud is `surfel bench`'s (the demo model replicated and jittered to --points); the page
-is exported with the default camera and `deferred` and opens with its point tree at 1 pixel of LOD error,
-so the GL row is `surfel bench --methods deferred@gl --points N --size SxS --lod-error 1`. The
+is exported with the default camera and `deferred`, and opens with its point tree at 1 pixel
+of LOD error, so the GL row is `surfel bench --methods deferred@gl --points N --size SxS --lod-error 1`. The
 page's time is what it reports itself (window.surfelStats: draw calls to a one-pixel
 readback); Chromium runs WebGL2 on SwiftShader here, the GL path on Mesa's llvmpipe.
 """

@@ -17,8 +17,8 @@ the decoded normal (Duff et al. 2017, "Building an orthonormal basis, revisited"
 way, the clip lines' v coefficients change sign instead, so that splats still end where they
 did. A splat that faces the camera (surfel.preprocess.structure) has its first radius negated:
 the page gives it the zero normal the desktop's splat buffers give it. Normal-field slopes
-(alpha, beta; `phong` and `deferred` curve their splats by them) are half floats, and so are the layers'
-thicknesses (z_t's cap, surfel.preprocess.thickness) in the length unit, rounded down.
+(alpha, beta; `phong` and `deferred` curve their splats by them) are half floats, and so are
+the layers' thicknesses (z_t's cap, surfel.preprocess.thickness) in the length unit, rounded down.
 Sequential point tree errors (e_g, the parent's e_g, the distance to the parent) are half
 floats in the same unit, rounded outwards (e_g down, the others up), so the page's vertex test
 passes a superset of surfel.lod's selection: overlaps, never holes. Attributes: 16-bit codes
