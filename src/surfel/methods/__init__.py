@@ -119,7 +119,7 @@ METHODS: dict[str, Method] = {
 }
 
 # The method of every interface that names none: the closest to the mesh in the README's
-# quality tables (of vertices and of range scans, close and far views), smooth where splats
+# quality tables (of vertices and of raw range scans, close and far views), smooth where splats
 # are magnified (flat splat normals blended, `deferred`'s, band there), and as fast as
 # `deferred` (the same passes; without the EWA filter, fewer fragments on minified splats).
 DEFAULT_METHOD = "phong"
