@@ -275,7 +275,7 @@ def test_bad_options_end_in_one_line_and_write_nothing(tmp_path):
     out = tmp_path / "view.html"
     bad = [(["--color", "nosuch"], "--color"), (["--colormap", "nosuch"], "--colormap"),
            (["--color-range", "1"], "--color-range"), (["--color-range", "3,1"], "--color-range"),
-           (["--method", "phong"], "--method")]
+           (["--method", "mls"], "--method")]
     for args, word in bad:
         proc = run("export-html", "--demo", "-o", out, *args)
         assert proc.returncode == 2, (args, proc.stderr)

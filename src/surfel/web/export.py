@@ -79,6 +79,12 @@ def source_cut(source, size) -> tuple[PointCloud, dict]:
     return source.select(view, SOURCE_CUT_ERROR, SOURCE_MAX_POINTS)
 
 
+def check_page_method(method: str) -> None:
+    if method not in METHODS:
+        offered = f"{', '.join(METHODS[:-1])} or {METHODS[-1]}"
+        raise SurfelError(f"--method: the page draws {offered}, not {method!r}")
+
+
 def cloud_for_page(cloud: PointCloud, method: str, point_budget: int, lod_error: float | None, renderer,
                    cut: bool = False) -> tuple[PointCloud, dict]:
     """What the page draws: the cloud completed for `method` as surfel render would complete
@@ -164,8 +170,7 @@ def export_html(cloud, camera: Camera, output, *, method: str = DEFAULT_METHOD, 
     options = options or RenderOptions()
     renderer = renderer or Renderer()
     title = title or f"surfel: {getattr(cloud, 'source', None) or getattr(cloud, 'path', None) or 'point cloud'}"
-    if method not in METHODS:
-        raise SurfelError(f"--method: the page draws {' or '.join(METHODS)}, not {method!r}")
+    check_page_method(method)
     if (options.supersample or 1) > PAGE_MAX_SUPERSAMPLE:
         raise SurfelError(f"--supersample: the page takes at most {PAGE_MAX_SUPERSAMPLE}, got {options.supersample}")
     m = get_method(method)
@@ -219,8 +224,7 @@ def page_request(values: Mapping[str, object]) -> RenderRequest:
     if parsed.get("demo", False) == ("input" in parsed):
         raise SurfelError("give an input file or --demo (not both)")
     method, _ = method_and_backend(parsed)
-    if method not in METHODS:
-        raise SurfelError(f"--method: the page draws {' or '.join(METHODS)}, not {method!r}")
+    check_page_method(method)
     options = options_from(parsed, method)
     if (options.supersample or 1) > PAGE_MAX_SUPERSAMPLE:
         raise SurfelError(f"--supersample: the page takes at most {PAGE_MAX_SUPERSAMPLE}, got {options.supersample}")
