@@ -79,7 +79,7 @@ def test_the_default_method_is_the_closest_to_the_mesh_on_the_demo_model(view):
 
 @pytest.mark.parametrize("model", ["turned_part", "spot"])
 def test_deferred_is_at_least_as_close_to_the_mesh_as_gaussian_in_an_oblique_view(model):
-    """Issue 17: the default method at least as close as gaussian, on a CAD part's creases and
+    """Issue 17: deferred at least as close as gaussian, on a CAD part's creases and
     a coarse figure seen from azimuth 60, elevation 20 (flat splats overshooting the outline
     and the EWA low-pass spilling across occluding contours kept deferred 0.3 to 0.9 dB below
     gaussian on such models)."""
