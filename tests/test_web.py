@@ -131,6 +131,7 @@ def test_dragging_zooming_and_switching_change_the_view(browser, tmp_path):
     next_frame(page, frames)
     assert (canvas(page).max(axis=2) > 0).mean() > covered + 0.05  # nearer: the cow fills more of the view
 
+    assert not page.is_checked("#ewa")  # phong's own default: off
     changes = [("#method", "gaussian"), ("#color", "elevation"), ("#shading", "edl")]
     for selector, value in changes:
         frames = page.evaluate("surfelStats.frames")
@@ -140,6 +141,8 @@ def test_dragging_zooming_and_switching_change_the_view(browser, tmp_path):
         assert (np.abs(canvas(page).astype(int) - shown).max(axis=2) > 2).mean() > 0.02, selector
     assert page.evaluate("[surfelStats.method, surfelStats.color, surfelStats.shading]") == \
         ["gaussian", "elevation", "edl"]
+    page.select_option("#method", "deferred")  # the EWA box follows the method's own default
+    assert page.is_checked("#ewa")
     page.close()
 
 

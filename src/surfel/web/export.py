@@ -192,6 +192,8 @@ def export_html(cloud, camera: Camera, output, *, method: str = DEFAULT_METHOD, 
     initial = next(m for m in modes if colors.attribute_name(m["name"], page_cloud) == page_options.coloring.name)
     settings = {"method": method, "ewa_filter": bool(params.ewa_filter),
                 "ewa_given": options.params is not None and params.ewa_filter != m.make_params().ewa_filter,
+                # each method's own default, which the page takes on switching (unless given)
+                "ewa_defaults": {name: get_method(name).make_params().ewa_filter for name in METHODS},
                 "shading": options.shading, "background": list(options.background),
                 "supersample": options.supersample or 1, "radius_scale": params.radius_scale,
                 "depth_offset": params.depth_offset, "lowpass_radius": params.lowpass_radius,

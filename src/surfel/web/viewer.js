@@ -503,11 +503,10 @@
     el.addEventListener("change", () => { onChange(el.type === "checkbox" ? el.checked : el.value); requestRender(); });
     return el;
   }
-  const defaultEwa = { phong: false, deferred: true, gaussian: false };
   const ewaBox = control("ewa", null, S.ewa_filter, (v) => { S.ewa_filter = v; });
   control("method", ["phong", "deferred", "gaussian"], S.method, (v) => {
     S.method = v;
-    if (!META.settings.ewa_given) { S.ewa_filter = defaultEwa[v]; ewaBox.checked = S.ewa_filter; }
+    if (!META.settings.ewa_given) { S.ewa_filter = META.settings.ewa_defaults[v]; ewaBox.checked = S.ewa_filter; }
   });
   control("color", META.modes.map((m) => m.name), S.color, (v) => {
     S.color = v;
