@@ -61,6 +61,16 @@ def corners(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.array([column.min() for column in columns]), np.array([column.max() for column in columns])
 
 
+def take_rows(values: np.ndarray, index) -> np.ndarray:
+    """values[index] along the first axis (index: integers, a mask or a slice). Integer
+    indices go through np.take, which gathers the rows of an (N, 3) array about three times
+    faster than numpy's fancy indexing."""
+    index = index if isinstance(index, slice) else np.asarray(index)
+    if isinstance(index, slice) or index.dtype == bool:
+        return values[index]
+    return np.take(values, index, axis=0)
+
+
 def _contiguous(value, dtype) -> np.ndarray:
     """`value` as a C-contiguous array of `dtype`: the caller's array itself when it is one."""
     array = np.asarray(value, dtype=dtype)
@@ -308,11 +318,11 @@ class PointCloud:
         """The points at `index` (indices or a mask) with all their attributes;
         the faces are dropped, since they refer to the old numbering."""
         def pick(value):
-            return None if value is None else value[index]
+            return None if value is None else take_rows(value, index)
 
-        picked = {"positions": self.positions[index], "normals": pick(self.normals), "colors": pick(self.colors),
-                  "radii": pick(self.radii), "axes": pick(self.axes)}
-        attributes = {name: value[index] for name, value in self.attributes.items()}
+        picked = {"positions": take_rows(self.positions, index), "normals": pick(self.normals),
+                  "colors": pick(self.colors), "radii": pick(self.radii), "axes": pick(self.axes)}
+        attributes = {name: take_rows(value, index) for name, value in self.attributes.items()}
         # values picked from this cloud's are valid: only the shapes and the scale are checked
         with _checked([*picked.values(), *attributes.values()]):
             return PointCloud(**picked, attributes=attributes, kinds=self.schema.kinds, geospatial=self.geospatial,

@@ -69,7 +69,7 @@ from tqdm import tqdm
 
 from ..attributes import CATEGORICAL
 from ..cloud import PointCloud, corners, read_only
-from ..preprocess import INACTIVE_CLIP, clipped_away
+from ..preprocess import CLIP_LINES, INACTIVE_CLIP, clipped_away
 
 MORTON_BITS = 21  # bits per axis: 63-bit codes
 # r_max of the root is infinite; it is stored as the largest float32 because point-cloud
@@ -178,11 +178,12 @@ def _absent(shape: tuple[int, ...]) -> np.ndarray:
 
 
 @numba.njit(parallel=True, cache=True)
-def _init_leaves(order, in_pos, in_col, in_axes, in_normals, in_radii,
-                 pos, col, nrm, rad, axes, weight):  # pragma: no cover - compiled
+def _init_leaves(order, in_pos, in_col, in_axes, in_normals, in_radii, in_clip,
+                 pos, col, nrm, rad, axes, weight, clip):  # pragma: no cover - compiled
     """Leaf j = input point order[j] (Morton order, so that siblings are neighbours in memory):
     axes as given (or circular from the normal), enclosing radius max(|u|, |v|), area weight
-    |u| |v| (the ellipse area / pi)."""
+    |u| |v| (the ellipse area / pi), its clip lines (if in_clip is not empty); the rows of clip
+    past the leaves, the inner nodes', get INACTIVE_CLIP."""
     n = len(order)
     for j in numba.prange(n):
         i = order[j]
@@ -192,6 +193,9 @@ def _init_leaves(order, in_pos, in_col, in_axes, in_normals, in_radii,
             nrm[j, c] = in_normals[i, c]
             if len(in_col):
                 col[j, c] = in_col[i, c]
+            if len(in_clip):
+                for line in range(in_clip.shape[1]):
+                    clip[j, line, c] = in_clip[i, line, c]
         if len(in_axes):
             for c in range(3):
                 axes[j, 0, c] = in_axes[i, 0, c]
@@ -206,6 +210,9 @@ def _init_leaves(order, in_pos, in_col, in_axes, in_normals, in_radii,
             lu = lv = r
         rad[j] = max(lu, lv)
         weight[j] = lu * lv
+    for j in numba.prange(n, len(clip)):
+        for line in range(clip.shape[1]):
+            clip[j, line, 0], clip[j, line, 1], clip[j, line, 2] = INACTIVE_CLIP
 
 
 @numba.njit(inline="always")
@@ -402,11 +409,13 @@ def build_lod(cloud: PointCloud, *, progress: bool | None = None) -> LodTree:
     weight = np.empty(capacity, np.float64)
     representative = np.empty(capacity, np.int64)
     representative[:n] = np.arange(n)
+    in_clip = cloud.attributes.get("clip_lines", _absent((0, CLIP_LINES, 3)))
+    clip_lines = np.empty((capacity if len(in_clip) else 0, *in_clip.shape[1:]), np.float32)
     _init_leaves(point_index, cloud.positions,
                  cloud.colors if with_color else _absent((0, 3)),
                  cloud.axes if cloud.axes is not None else _absent((0, 2, 3)),
-                 cloud.normals, cloud.radii if cloud.radii is not None else _absent((0,)),
-                 pos, col, nrm, rad, axes, weight)
+                 cloud.normals, cloud.radii if cloud.radii is not None else _absent((0,)), in_clip,
+                 pos, col, nrm, rad, axes, weight, clip_lines)
     # slab bounds are build-time state only; float64 keeps the induction exact
     lo = np.zeros(capacity, np.float64)
     hi = np.zeros(capacity, np.float64)
@@ -448,16 +457,13 @@ def build_lod(cloud: PointCloud, *, progress: bool | None = None) -> LodTree:
                                       {spec.name: spec.kind for spec in scanner}, child_start, children,
                                       weight[:m], representative[:m])
     del weight, representative
-    arrays = [pos, nrm, rad, axes, e_p, e_t, e_g, parent, d_parent] + ([col] if with_color else [])
+    arrays = [pos, nrm, rad, axes, e_p, e_t, e_g, parent, d_parent] + ([col] if with_color else []) + \
+        ([clip_lines] if len(clip_lines) else [])
     for array in arrays:
         array.resize((m, *array.shape[1:]), refcheck=False)  # shrink in place, no copy
-    clip_lines = None
-    if "clip_lines" in cloud.attributes:
-        clip_lines = np.empty((m, *cloud.attributes["clip_lines"].shape[1:]), np.float32)
-        clip_lines[:n] = cloud.attributes["clip_lines"][point_index]
-        clip_lines[n:] = INACTIVE_CLIP
     return LodTree(pos, nrm, col if with_color else None, rad, axes, e_p, e_t, e_g, parent,
-                   d_parent, child_start, children, point_index, cloud.geospatial, clip_lines,
+                   d_parent, child_start, children, point_index, cloud.geospatial,
+                   clip_lines if len(clip_lines) else None,
                    facing[:m].copy() if len(facing) else None, attributes,
                    {spec.name: spec.kind for spec in scanner})
 

@@ -51,7 +51,8 @@ import numba
 import numpy as np
 
 from ..camera import Camera
-from ..cloud import PointCloud
+from ..cloud import PointCloud, take_rows
+from ..preprocess import CLIP_LINES
 from .build import ROOT_PARENT_ERROR, LodTree, build_lod
 
 EXTRAS = ("lod_emin", "lod_emax", "lod_dparent", "lod_dsuffix")
@@ -85,14 +86,17 @@ def sequential_order(tree: LodTree) -> np.ndarray:
 
 
 @numba.njit(parallel=True, cache=True)
-def _gather(order, pos, nrm, col, rad, axes, e_g, parent, d_parent, root_error):  # pragma: no cover
-    """The node attributes and LOD extras permuted into sequential order, in one pass."""
+def _gather(order, pos, nrm, col, rad, axes, e_g, parent, d_parent, root_error, clip, facing):  # pragma: no cover
+    """The node attributes, clip lines and screen-facing flags (col, clip, facing empty where
+    the tree has none) and the LOD extras, permuted into sequential order in one pass."""
     m = len(order)
     out_pos = np.empty((m, 3), np.float64)
     out_nrm = np.empty((m, 3), np.float32)
     out_col = np.empty((m if len(col) else 0, 3), np.float32)
     out_rad = np.empty(m, np.float32)
     out_axes = np.empty((m, 2, 3), np.float32)
+    out_clip = np.empty((m if len(clip) else 0, clip.shape[1], 3), np.float32)
+    out_facing = np.empty(m if len(facing) else 0, np.float32)
     emin = np.empty(m, np.float32)
     emax = np.empty(m, np.float32)
     dpar = np.empty(m, np.float32)
@@ -105,28 +109,35 @@ def _gather(order, pos, nrm, col, rad, axes, e_g, parent, d_parent, root_error):
             out_axes[j, 1, c] = axes[i, 1, c]
             if len(col):
                 out_col[j, c] = col[i, c]
+            if len(clip):
+                for line in range(clip.shape[1]):
+                    out_clip[j, line, c] = clip[i, line, c]
+        if len(facing):
+            out_facing[j] = facing[i]
         out_rad[j] = rad[i]
         emin[j] = e_g[i]
         emax[j] = e_g[parent[i]] if parent[i] >= 0 else root_error
         dpar[j] = d_parent[i]
-    return out_pos, out_nrm, out_col, out_rad, out_axes, emin, emax, dpar
+    return out_pos, out_nrm, out_col, out_rad, out_axes, out_clip, out_facing, emin, emax, dpar
 
 
 def to_sequential_cloud(tree: LodTree) -> PointCloud:
     """All nodes of `tree` as one cloud in sequential order, with its attributes and the LOD
     extras."""
     order = sequential_order(tree)
-    colors = tree.colors if tree.colors is not None else np.empty((0, 3), np.float32)
-    pos, nrm, col, rad, axes, emin, emax, dparent = _gather(
-        order, tree.positions, tree.normals, colors, tree.radii, tree.axes, tree.e_g,
-        tree.parent, tree.d_parent, ROOT_PARENT_ERROR)
+    absent = np.empty((0, 3), np.float32)
+    clip = tree.clip_lines if tree.clip_lines is not None else np.empty((0, CLIP_LINES, 3), np.float32)
+    facing = tree.screen_facing if tree.screen_facing is not None else np.empty(0, np.float32)
+    pos, nrm, col, rad, axes, clip, facing, emin, emax, dparent = _gather(
+        order, tree.positions, tree.normals, tree.colors if tree.colors is not None else absent, tree.radii,
+        tree.axes, tree.e_g, tree.parent, tree.d_parent, ROOT_PARENT_ERROR, clip, facing)
     dsuffix = np.maximum.accumulate(dparent[::-1])[::-1]
-    attributes = {name: values[order] for name, values in tree.attributes.items()}
+    attributes = {name: take_rows(values, order) for name, values in tree.attributes.items()}
     attributes.update(lod_emin=emin, lod_emax=emax, lod_dparent=dparent, lod_dsuffix=dsuffix)
     if tree.clip_lines is not None:
-        attributes["clip_lines"] = tree.clip_lines[order]
+        attributes["clip_lines"] = clip
     if tree.screen_facing is not None:
-        attributes["screen_facing"] = tree.screen_facing[order]
+        attributes["screen_facing"] = facing
     return PointCloud(pos, normals=nrm, colors=col if tree.colors is not None else None, radii=rad, axes=axes,
                       attributes=attributes, kinds=tree.kinds, geospatial=tree.geospatial)
 

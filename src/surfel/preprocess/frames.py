@@ -1,4 +1,4 @@
-"""Tangent frames: the circular splat axes of a normal and a radius.
+"""Tangent frames: the circular splat axes of a normal and a radius, and elliptical ones.
 
 The branch-free orthonormal basis of Duff, Burgess, Christensen, Hery, Kensler, Liani &
 Villemin 2017, "Building an orthonormal basis, revisited" (JCGT 6(1), listing 3): for a unit
@@ -102,3 +102,18 @@ def tangent_frames(normals: np.ndarray, radii: np.ndarray) -> np.ndarray:
     """Circular splat axes (N, 2, 3) float32: orthonormal tangents of the (unit) normals, scaled
     by the radii; (u, v, n) is right-handed."""
     return _axes(np.ascontiguousarray(normals, np.float64), np.ascontiguousarray(radii, np.float64))
+
+
+def ellipse_axes(frames: np.ndarray, semi: np.ndarray, direction: np.ndarray) -> np.ndarray:
+    """Axes (m, 2, 3) of ellipses with semi-axes `semi` (m, 2) along `direction` (m, 2: cos,
+    sin) in the tangent frames (t, s) = frames (m, 2, 3): u the major axis, (u, v, n)
+    right-handed."""
+    t, s = frames[:, 0], frames[:, 1]
+    co, si = direction[:, 0:1], direction[:, 1:2]
+    major = semi[:, 0] >= semi[:, 1]
+    e1 = co * t + si * s
+    e2 = -si * t + co * s
+    # u is the major axis; (e2, -e1) keeps (u, v, n) right-handed
+    u = np.where(major[:, None], e1 * semi[:, 0:1], e2 * semi[:, 1:2])
+    v = np.where(major[:, None], e2 * semi[:, 1:2], -e1 * semi[:, 0:1])
+    return np.stack([u, v], axis=1)

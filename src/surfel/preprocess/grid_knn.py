@@ -51,7 +51,7 @@ import numba
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..cloud import corners
+from ..cloud import corners, take_rows
 
 MORTON_BITS = 21       # bits of a cell coordinate per axis (3 x 21 in an int64 key)
 CELL_SHARE = 2.0       # points per occupied cell: k / this (measured fastest on scanned surfaces)
@@ -575,7 +575,7 @@ def sorted_k_nearest(points: np.ndarray, k: int, workers: int = -1) -> tuple[np.
     keys = cell_keys(points, lo, 1.0 / h)
     order = stable_order(keys)
     keys = keys[order]
-    sorted_points = np.ascontiguousarray(points[order])
+    sorted_points = take_rows(points, order)
     starts = _runs(keys)
     run_keys = keys[starts[:-1]]
     largest = int(np.diff(starts).max())

@@ -23,6 +23,7 @@ import numba
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ..cloud import take_rows
 from .chunked import map_chunks, progress_bar
 from .grid_knn import Grid, sorted_k_nearest
 
@@ -103,7 +104,7 @@ class Neighbourhood:
 
     def sort(self, values: np.ndarray) -> np.ndarray:
         """Per-point values in the input's order, taken into the sorted order."""
-        return np.asarray(values)[self.order]
+        return take_rows(np.asarray(values), self.order)
 
     def unsort(self, values: np.ndarray) -> np.ndarray:
         """Per-point values in the sorted order, put back into the input's order."""

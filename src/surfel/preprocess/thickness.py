@@ -118,6 +118,7 @@ def _layer_thickness(points, normals, index, start):  # pragma: no cover - compi
                 + (points[f, 2] - points[p, 2]) ** 2
             floor = GAP_FLOOR * math.sqrt(spacing2)
             count = 0
+            widest = 0.0
             for j in range(1, k):
                 q = index[i, j]
                 cos = normals[p, 0] * normals[q, 0] + normals[p, 1] * normals[q, 1] + normals[p, 2] * normals[q, 2]
@@ -133,8 +134,11 @@ def _layer_thickness(points, normals, index, start):  # pragma: no cover - compi
                 bend = 0.5 * (abs(d_pq) + abs(d_qp)) * min(1.0, spacing2 / max(tangential2, 1e-300))
                 found_h[count], found_e[count] = h, max(antisymmetric, bend)
                 count += 1
-            _sort_by_rank(found_h, found_e, count, separation, extent)
+                widest = max(widest, h)
             out[i] = np.inf
+            if widest <= floor:
+                continue  # no separation reaches past the floor of a gap: one layer, no sort needed
+            _sort_by_rank(found_h, found_e, count, separation, extent)
             layer = 0.0
             for j in range(count):
                 if j >= MIN_LAYER and count - j >= MIN_OTHER and separation[j] > GAP_FACTOR * layer + floor:
