@@ -144,10 +144,12 @@ def halo_pairs(positions, lo, scale, res, lookup, lone, own, halo):  # pragma: n
     block = 4096
     blocks = (n + block - 1) // block
     per_block = np.zeros(blocks + 1, np.int64)
+    counts = np.empty(n, np.int32)  # the second pass revisits only the few points in a halo
     for b in numba.prange(blocks):
         found = np.empty((2 * reach + 1) ** 3, np.int32)
         for i in range(b * block, min(n, (b + 1) * block)):
-            per_block[b + 1] += _halo_of(positions[i], lo, scale, res, lookup, lone, own[i], halo, reach, found)
+            counts[i] = _halo_of(positions[i], lo, scale, res, lookup, lone, own[i], halo, reach, found)
+            per_block[b + 1] += counts[i]
     for b in range(blocks):
         per_block[b + 1] += per_block[b]
     points = np.empty(per_block[blocks], np.int64)
@@ -156,6 +158,8 @@ def halo_pairs(positions, lo, scale, res, lookup, lone, own, halo):  # pragma: n
         found = np.empty((2 * reach + 1) ** 3, np.int32)
         out = per_block[b]
         for i in range(b * block, min(n, (b + 1) * block)):
+            if counts[i] == 0:
+                continue
             count = _halo_of(positions[i], lo, scale, res, lookup, lone, own[i], halo, reach, found)
             for j in range(count):
                 points[out] = i
@@ -407,9 +411,9 @@ def _records(chunk, dtype: np.dtype, has_normals: bool, has_colors: bool, schema
 
 
 def _gather(records: np.ndarray, rows: np.ndarray) -> np.ndarray:
-    """records[rows], copied as opaque bytes: numpy gathers those several times faster than
-    the fields of a structured array."""
-    return records.view(np.dtype((np.void, records.dtype.itemsize)))[rows]
+    """records[rows], copied as opaque bytes by np.take: numpy gathers those several times
+    faster than the fields of a structured array."""
+    return np.take(records.view(np.dtype((np.void, records.dtype.itemsize))), rows)
 
 
 def _append_runs(bins: Path, suffix: str, records: np.ndarray, starts: np.ndarray) -> None:
