@@ -26,15 +26,13 @@ def render_points(cloud, camera, options, params: RadiusParams, renderer):
     lod_k, prefix, drawn = splats.lod_frame(cloud, camera, options.lod_error)
     apply_common(program, camera, cloud.local_origin, ss, options, u_radius_scale=params.radius_scale, u_lod_k=lod_k)
     renderer.use_color_table(options)
-    gbuffer = GBuffer(camera.width * ss, camera.height * ss)
-    try:
-        gbuffer.fbo.use()
-        gbuffer.clear()
-        ctx.disable(ctx.BLEND | ctx.CULL_FACE)
-        ctx.enable(ctx.DEPTH_TEST | ctx.PROGRAM_POINT_SIZE)
-        splats.draw(ctx, renderer.splat_buffers(cloud), program, ctx.POINTS, instanced=False, count=prefix)
-        ctx.finish()
-        return gbuffer_result(gbuffer, camera, options, ss,
-                              {"splats": len(cloud) if drawn is None else int(drawn.sum())})
-    finally:
-        gbuffer.release()
+    size = (camera.width * ss, camera.height * ss)
+    # kept from frame to frame, as the splat methods' targets are: allocating them took 7% of a frame
+    gbuffer = renderer.targets("points", size, lambda: GBuffer(*size))
+    gbuffer.fbo.use()
+    gbuffer.clear()
+    ctx.disable(ctx.BLEND | ctx.CULL_FACE)
+    ctx.enable(ctx.DEPTH_TEST | ctx.PROGRAM_POINT_SIZE)
+    splats.draw(ctx, renderer.splat_buffers(cloud), program, ctx.POINTS, instanced=False, count=prefix)
+    ctx.finish()
+    return gbuffer_result(gbuffer, camera, options, ss, {"splats": len(cloud) if drawn is None else int(drawn.sum())})
