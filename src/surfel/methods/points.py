@@ -27,7 +27,8 @@ def render_points(cloud, camera, options, params: RadiusParams, renderer):
     apply_common(program, camera, cloud.local_origin, ss, options, u_radius_scale=params.radius_scale, u_lod_k=lod_k)
     renderer.use_color_table(options)
     size = (camera.width * ss, camera.height * ss)
-    # kept from frame to frame, as the splat methods' targets are: allocating them took 7% of a frame
+    # kept from frame to frame, as the splat methods' targets are: creating the textures took
+    # about 27 ms of a 1M-point, 1024x1024 frame on llvmpipe
     gbuffer = renderer.targets("points", size, lambda: GBuffer(*size))
     gbuffer.fbo.use()
     gbuffer.clear()
