@@ -64,11 +64,11 @@ def corners(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def take_rows(values: np.ndarray, index) -> np.ndarray:
     """values[index] along the first axis (index: integers, a mask or a slice). Integer
     indices go through np.take, which gathers the rows of an (N, 3) array about three times
-    faster than numpy's fancy indexing."""
-    index = index if isinstance(index, slice) else np.asarray(index)
-    if isinstance(index, slice) or index.dtype == bool:
+    faster than numpy's fancy indexing; anything else (a mask, an empty list) is indexed."""
+    integers = None if isinstance(index, slice) else np.asarray(index)
+    if integers is None or integers.dtype.kind not in "iu":
         return values[index]
-    return np.take(values, index, axis=0)
+    return np.take(values, integers, axis=0)
 
 
 def _contiguous(value, dtype) -> np.ndarray:
