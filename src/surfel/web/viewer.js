@@ -504,7 +504,8 @@
     return el;
   }
   const ewaBox = control("ewa", null, S.ewa_filter, (v) => { S.ewa_filter = v; });
-  control("method", ["phong", "deferred", "gaussian"], S.method, (v) => {
+  // the exporter's methods, in its order: those it gives an EWA default
+  control("method", Object.keys(META.settings.ewa_defaults), S.method, (v) => {
     S.method = v;
     if (!META.settings.ewa_given) { S.ewa_filter = META.settings.ewa_defaults[v]; ewaBox.checked = S.ewa_filter; }
   });
