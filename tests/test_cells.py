@@ -441,6 +441,32 @@ def test_a_sheet_lying_close_on_a_body_ends_at_its_last_samples():
     assert (lines[~sheet & (y > 2) & (y < 18) & (np.abs(x) < 18), 0, 2] >= 1).all()  # the body alone: none
 
 
+def test_a_border_beside_an_inner_corner_points_straight_out():
+    """The outward direction of a border point is that of its nearest neighbours' gap, also
+    where the wider neighbourhood confirms it: along a straight edge running into an inner
+    corner (an L-shaped flat part, a shoulder turning into a neck), the samples of the other
+    edge among the wider neighbours would tilt the gap's middle by up to 26 degrees, and the
+    clip lines with it, cutting the outline into a sawtooth."""
+    from surfel.preprocess import borders, cells
+    from surfel.preprocess.neighbourhood import Neighbourhood
+
+    grid = np.stack(np.meshgrid(np.arange(60.0), np.arange(60.0)), -1).reshape(-1, 2)
+    grid[:, 0] += 0.5 * (grid[:, 1] % 2)  # staggered rows
+    shape = grid[(grid[:, 1] < 12) | (grid[:, 0] < 12)]  # an L, its inner corner at (12, 12)
+    jitter = np.random.default_rng(1).normal(0, 0.05, shape.shape)
+    points = np.c_[shape + jitter, np.zeros(len(shape))]
+    nbh = Neighbourhood.build(points, 16, progress=False)
+    normals = np.tile([0.0, 0, 1], (len(points), 1))
+    outwards = borders.border_outwards(nbh, normals, nbh.first(cells.RADIUS_NEIGHBOURS), False)
+    p = nbh.sort(points)
+    on_border = outwards.any(axis=1)
+    for edge, normal in [((p[:, 1] > 10.5) & (p[:, 0] > 14) & (p[:, 0] < 55), [0.0, 1.0]),  # top of the foot
+                         ((p[:, 0] > 10.5) & (p[:, 1] > 14) & (p[:, 1] < 55), [1.0, 0.0])]:  # right of the leg
+        found = edge & on_border
+        assert found.sum() > 30
+        assert np.degrees(np.arccos(np.clip(outwards[found, :2] @ normal, -1, 1))).max() < 10
+
+
 def test_settled_candidates_keep_the_borders_of_the_full_confirmation():
     """Candidates settled by the neighbours certainly among their BORDER_CONFIRM nearest
     (Grid.within, borders._settled) are no borders, as the query of all those nearest finds:
@@ -471,8 +497,9 @@ def test_settled_candidates_keep_the_borders_of_the_full_confirmation():
                                          layers)
         candidates = np.flatnonzero(first.any(axis=1))
         expected = first.copy()
-        expected[candidates] = borders._border_outwards(nbh.points, normals, nbh.nearest(candidates, 64), candidates,
-                                                        orthonormal_basis(normals[candidates]), cells.SHEET_COS, layers)
+        wide = borders._border_outwards(nbh.points, normals, nbh.nearest(candidates, 64), candidates,
+                                        orthonormal_basis(normals[candidates]), cells.SHEET_COS, layers)
+        expected[candidates[~wide.any(axis=1)]] = 0.0  # confirmed ones keep their nearest neighbours' direction
         assert np.array_equal(got, expected)
         sure, count = nbh.within(candidates, borders.BORDER_CONFIRM)
         settled = borders._settled(nbh.points, normals, sure, count, candidates, orthonormal_basis(normals[candidates]),

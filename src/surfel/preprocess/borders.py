@@ -12,7 +12,8 @@ confirmed among its BORDER_CONFIRM nearest neighbours, because a sampling far de
 (a CAD mesh's vertices crowd at its curves) leaves a gap towards the sparse side among the
 nearest ones. Not where a neighbour faces away (n_p . n_q < SHEET_COS: the surface folds back
 there, a thin closed part). Neighbours on another layer lying close (a body under a sheet,
-`thickness.py`) do not close a gap. Its outward direction w_p is the middle of the gap.
+`thickness.py`) do not close a gap. Its outward direction w_p is the middle of the gap among
+its nearest neighbours, also where the wider ones confirmed it.
 
 Aerial scan lines (geospatial clouds) get no borders (`complete.py`): a line with the next line
 on one side only looks like one.
@@ -220,5 +221,9 @@ def border_outwards(nbh: Neighbourhood, normals: np.ndarray, index: np.ndarray, 
         outwards[candidates[settled]] = 0.0
         rest = candidates[~settled]
         wide = nbh.nearest(rest, BORDER_CONFIRM)
-        outwards[rest] = _border_outwards(nbh.points, normals, wide, rest, frames[~settled], SHEET_COS, layers)
+        # the wider neighbourhood confirms a border; its direction stays the nearest neighbours':
+        # farther samples of a curving outline (a shoulder turning into a neck) would tilt the gap's
+        # middle, and every splat's clip line with it, into a sawtooth along the outline
+        confirmed = _border_outwards(nbh.points, normals, wide, rest, frames[~settled], SHEET_COS, layers).any(axis=1)
+        outwards[rest[~confirmed]] = 0.0
     return outwards
