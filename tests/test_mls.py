@@ -9,7 +9,6 @@ from models import dense_spot, spot
 from surfel.camera import frame
 from surfel.cloud import PointCloud
 from surfel.metrics import compare_results
-from surfel.mls import edges
 from surfel.mls import surface as S
 from surfel.mls.raytrace import MlsParams, prepare_scene, render_mls_cpu, trace
 from surfel.mls.widths import GAP_FRACTION, sample_spacing, tangent_gaps
@@ -96,22 +95,36 @@ def cube_faces(faces=range(6), rows: int = 20) -> PointCloud:
     return PointCloud(np.concatenate(points), normals=np.concatenate(normals))
 
 
-def test_crease_test_cuts_a_sheet_at_its_outermost_samples():
+def test_extent_test_cuts_a_sheet_at_its_outermost_samples():
     """Issue 17: the top face of a cube ends at its last row of samples (x = 0.95), where the
     side face turns away; the half-disc test alone let it run on to x = 1.0 (rims rounded,
-    silhouettes spilling on CAD parts). A lone square, an open boundary as a LiDAR canopy's
-    edge is, runs on past its last row by OPEN_REACH l, no further: the half-disc test alone
-    let it run on to x = 1.0 too (flat cut-outs' outlines spilled)."""
+    silhouettes spilling on CAD parts)."""
     xs = np.array([[x, 0.02, 1.0] for x in (0.9, 0.95, 0.96, 0.98, 1.0)])
-    up = np.array([0.0, 0.0, 1.0])
     cube = S.build_surface(cube_faces())
-    status = S.project(cube, xs - cube.origin, normals=up).status
+    status = S.project(cube, xs - cube.origin, normals=np.array([0.0, 0.0, 1.0])).status
     assert (status == [S.FIT_OK, S.FIT_OK, S.FIT_OUTSIDE, S.FIT_OUTSIDE, S.FIT_OUTSIDE]).all(), status
-    square = S.build_surface(cube_faces(faces=[5]))
-    reach = edges.OPEN_REACH * square.scale
-    xs = np.array([[x, 0.02, 1.0] for x in (0.9, 0.95, 0.95 + 0.5 * reach, 0.95 + 2 * reach, 1.0)])
-    status = S.project(square, xs - square.origin, normals=up).status
-    assert (status == [S.FIT_OK, S.FIT_OK, S.FIT_OK, S.FIT_OUTSIDE, S.FIT_OUTSIDE]).all(), status
+
+
+def test_an_open_boundary_ends_near_its_outermost_samples():
+    """Issue 17: a flat disc, an open boundary as a flat cut-out's outline or a LiDAR canopy's
+    edge is, ends where its samples end, as a mesh through them does. Rays down across its rim
+    in 32 directions: the sheet runs on past the outermost sample near each ray by 0.03 on
+    average (0.22 kernel widths, the spacing 0.1). Letting it run on 0.1 l further wherever a
+    sample lay that close behind gave 0.044 (flat cut-outs 0.8 dB lower, woody at 512x512)."""
+    grid = (np.arange(20) + 0.5) * 0.1 - 1.0
+    a, b = (v.ravel() for v in np.meshgrid(grid, grid))
+    inside = a * a + b * b <= 0.8 ** 2
+    disc = np.stack([a[inside], b[inside], np.zeros(inside.sum())], 1)
+    scene = prepare_scene(PointCloud(disc, normals=np.tile([0.0, 0.0, 1.0], (len(disc), 1))))
+    run_on = []
+    for angle in np.linspace(0, 2 * np.pi, 32, endpoint=False):
+        way, across = np.array([np.cos(angle), np.sin(angle)]), np.array([-np.sin(angle), np.cos(angle)])
+        reach = np.arange(0.6, 1.0, 0.0025)
+        origins = np.stack([reach * way[0], reach * way[1], np.full_like(reach, 3.0)], 1) - scene.surface.origin
+        hits = trace(scene, origins, np.broadcast_to([0.0, 0.0, -1.0], origins.shape), 0.0, 10.0)
+        outermost = (disc[:, :2] @ way)[np.abs(disc[:, :2] @ across) < 0.05].max()
+        run_on.append(reach[hits.hit].max() - outermost)
+    assert 0.0 <= np.mean(run_on) <= 0.035, np.mean(run_on)
 
 
 def coarse_tail(around: int, gap: float, rings: int = 6, radius: float = 0.1) -> PointCloud:

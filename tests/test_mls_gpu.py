@@ -123,7 +123,7 @@ def test_agrees_with_cpu_mls_on_a_coarse_thin_part():
     options = RenderOptions(shading="lambert")
     gpu = mls_gl(cloud, cam, options)
     cpu = mls_cpu(cloud, cam, options)
-    # the open ends are cut OPEN_REACH l past the last rings, within a pixel: the two rows at
+    # the open ends are cut at the last rings, within a pixel: the two rows at
     # each end may fall either side of the cut (measured: the CPU's end rows 14 pixels wide,
     # the GPU's 4 and 1), and are compared by extent only
     rows = [np.flatnonzero((result.alpha >= 0.5).any(axis=1)) for result in (cpu, gpu)]

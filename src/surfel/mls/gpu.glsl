@@ -32,13 +32,10 @@ uniform float u_domain;         // domain test / bounding sphere radius in units
 uniform float u_normal_weight;  // 1 / sigma_n^2
 uniform float u_residual_weight;  // 1 / sigma_r^2
 uniform float u_boundary;       // half-disc test: largest offset of the weighted mean, in units of l
-uniform float u_edge_cos;       // crease test: a sheet's samples have normals within this cosine of the fit's
-uniform float u_edge_reach;     // ... another sheet's samples count from this many l behind r
-uniform float u_edge_turn;      // ... and where their normals lie within this cosine of the way out
-uniform float u_open_reach;     // open boundary: r's sheet runs on at most this many l past its last sample
+uniform float u_edge_cos;       // extent test: a sheet's samples have normals within this cosine of the fit's
 uniform float u_ridge;          // regularisation of a singular quadratic fit, in units of sum w (surface.RIDGE)
 uniform float u_min_neighbours; // facing samples a fit needs in its support (surface.MIN_NEIGHBOURS)
-uniform bool u_last;            // the last iteration: apply the half-disc and crease tests to its fit
+uniform bool u_last;            // the last iteration: apply the half-disc and extent tests to its fit
 uniform bool u_update_reference;  // the fit's normal becomes the next reference normal
 uniform bool u_retry;           // a later candidate: the nearest beyond the one that failed
 
@@ -304,15 +301,14 @@ uniform sampler2D u_n;
 // The normal equations of the weighted quadratic fit need only the 15 moments w u^i v^j
 // (i + j <= 4) and the 6 right-hand sides w f u^i v^j (i + j <= 2): 21 sums in 6 targets.
 // A seventh holds the half-disc test's sums (edges.past_edge): weights a_i w_i with h_i
-// replaced by l, the samples' offsets from r in units of l; the sixth's spare channels count
-// the crease test's samples (edges.sample_beyond).
+// replaced by l, the samples' offsets from r in units of l; a spare channel of the sixth
+// counts the extent test's samples (edges.sample_beyond).
 layout(location = 0) out vec4 out_m0;  // 1, u, v, uu
 layout(location = 1) out vec4 out_m1;  // uv, vv, uuu, uuv
 layout(location = 2) out vec4 out_m2;  // uvv, vvv, u4, u3v
 layout(location = 3) out vec4 out_m3;  // u2v2, uv3, v4, f
 layout(location = 4) out vec4 out_m4;  // fu, fv, fuu, fuv
-layout(location = 5) out vec4 out_m5;  // fvv, samples of r's sheet beyond r, of other sheets near or beyond,
-                                       // of r's sheet within the open-boundary reach behind r
+layout(location = 5) out vec4 out_m5;  // fvv, samples of r's sheet beyond r
 layout(location = 6) out vec4 out_m6;  // a w (p - r) / l, a w
 void main() {
     vec3 r;
@@ -332,17 +328,13 @@ void main() {
     out_m2 = w * vec4(u * vv, v * vv, uu * uu, uu * uv);
     out_m3 = w * vec4(uu * vv, uv * vv, vv * vv, f);
     out_m4 = w * f * vec4(u, v, uu, uv);
-    // crease test: how far out the sample lies along `away`, the direction from the weighted
+    // extent test: whether the sample lies out along `away`, the direction from the weighted
     // mean q to r within the plane; a mean at r counts as a sample of r's sheet beyond r
     vec3 mean = texelFetch(u_q, pix, 0).xyz - r;
     vec3 away = dot(mean, n.xyz) * n.xyz - mean;
-    float norm = length(away), out_along = dot(points[3 * v_index].xyz - r, away);
     bool same_sheet = dot(points[3 * v_index + 2].xyz, n.xyz) > u_edge_cos;
-    bool beyond = norm <= 1e-6 * n.w || (same_sheet && out_along >= 0.0);
-    bool other = !same_sheet && out_along >= -u_edge_reach * n.w * norm
-                 && dot(points[3 * v_index + 2].xyz, away) > u_edge_turn * norm;
-    bool near_edge = beyond || (same_sheet && out_along >= -u_open_reach * n.w * norm);
-    out_m5 = vec4(w * f * vv, beyond ? 1.0 : 0.0, other ? 1.0 : 0.0, near_edge ? 1.0 : 0.0);
+    bool beyond = length(away) <= 1e-6 * n.w || (same_sheet && dot(points[3 * v_index].xyz - r, away) >= 0.0);
+    out_m5 = vec4(w * f * vv, beyond ? 1.0 : 0.0, 0.0, 0.0);
     float h = points[3 * v_index].w, area = points[3 * v_index + 2].w;
     float wa = area * w * exp(d2 * (1.0 / (h * h) - 1.0 / (n.w * n.w)));
     out_m6 = wa * vec4((points[3 * v_index].xyz - r) / n.w, 1.0);
@@ -377,10 +369,10 @@ void main() {
     if (!current_hit(r, t) || n.w == 0.0) return;
     vec4 m0 = texelFetch(u_m0, pix, 0), m1 = texelFetch(u_m1, pix, 0), m2 = texelFetch(u_m2, pix, 0);
     vec4 m3 = texelFetch(u_m3, pix, 0), m4 = texelFetch(u_m4, pix, 0), m5 = texelFetch(u_m5, pix, 0);
-    if (u_last) {  // the half-disc and crease tests where the projection converged: past the edge of its sheet?
+    if (u_last) {  // the half-disc and extent tests where the projection converged: past the edge of its sheet?
         vec4 m6 = texelFetch(u_m6, pix, 0);
         vec3 mean = m6.xyz / m6.w;
-        if (length(mean - dot(mean, n.xyz) * n.xyz) > u_boundary || (m5.y == 0.0 && (m5.z > 0.0 || m5.w == 0.0)))
+        if (length(mean - dot(mean, n.xyz) * n.xyz) > u_boundary || m5.y == 0.0)
             return;
     }
     // moments by degree k and power of v j at index k (k + 1) / 2 + j

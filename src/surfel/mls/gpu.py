@@ -32,13 +32,13 @@ Then `iterations` times (default 3), at r = o + t d:
    the normal equations of  min sum w (g(u, v) - f)^2  need only the 15 moments w u^a v^b
    (a + b <= 4) and the 6 sums w f u^a v^b (a + b <= 2): six RGBA32F targets, full system;
    a seventh sums the half-disc test's area-weighted offsets of the samples from r, and
-   spare channels count the crease and open-boundary tests' samples (edges.sample_beyond);
+   a spare channel counts the extent test's samples (edges.sample_beyond);
 5. solve + re-intersect (full screen): Cholesky of the 6x6 (double precision; where it is
    singular, again with surface.fit's regularisation), then the ray meets the new quadratic
    within 2.5 l of r (the CPU tracer's window) -- the next t, whose window depth is rewritten
    for the next culling test. The fit's normal at the new point is the next n_r for the first
-   REFERENCE_UPDATES steps, as on the CPU. At the last step the half-disc, crease and
-   open-boundary tests reject a hit past the edge of its sheet.
+   REFERENCE_UPDATES steps, as on the CPU. At the last step the half-disc and extent tests
+   reject a hit past the edge of its sheet.
 6. keep / retry: converged pixels keep their hit; where the fits failed, the next candidate
    (`candidates`, default 8) is the nearest intersection beyond the failed one -- the CPU
    tracer's walk on to the next bounding sphere, bounded here to a few candidates.
@@ -66,7 +66,7 @@ from ..gl.targets import GBuffer, check_target_size, gbuffer_result, read_textur
 from ..gl.uniforms import apply_common
 from ..options import RenderOptions, at_least, setting
 from ..result import RenderResult
-from .edges import EDGE_REACH, EDGE_SHEET_COS, EDGE_TURN_COS, OPEN_REACH
+from .edges import EDGE_SHEET_COS
 from .polynomial import P_C, P_E1, P_E2, P_N, P_Q, P_SCALE
 from .raytrace import DEFAULT_SUPERSAMPLE, MLSScene, cached_scene, scene_kernel
 from .surface import (
@@ -198,8 +198,7 @@ def render_mls_gl(cloud: PointCloud, camera: Camera, options: RenderOptions, par
     common = {"u_view_inv": np.linalg.inv(view), "u_scale": surface.scale, "u_domain": surface.domain,
               "u_normal_weight": weights.normal_weight, "u_residual_weight": weights.residual_weight,
               "u_boundary": weights.boundary,
-              "u_edge_cos": EDGE_SHEET_COS, "u_edge_reach": EDGE_REACH, "u_edge_turn": EDGE_TURN_COS,
-              "u_open_reach": OPEN_REACH,
+              "u_edge_cos": EDGE_SHEET_COS,
               "u_ridge": RIDGE, "u_min_neighbours": float(MIN_NEIGHBOURS), "u_guard": 0.0}
     programs = {name: renderer.program(SHADER, {f"PASS_{name.upper()}": True})
                 for name in ("intersect", "cull", "means", "frame", "system", "solve", "keep", "retry", "shade")}

@@ -13,7 +13,7 @@ those that pass near the surface would descend the hierarchy for nothing. Per ra
 1. collect the spheres the ray passes through and visit them nearest entry first;
 2. intersect the ray with the sphere centre's polynomial inside the sphere (poly_ray);
 3. project that point r_k: fit the MLS polynomial at r_k; if |P(r_k) - r_k| < eps the
-   intersection is found (unless the half-disc or crease test of edges.py puts r_k past
+   intersection is found (unless the half-disc or extent test of edges.py puts r_k past
    the edge of its sheet), else r_{k+1} = ray meets the new polynomial near r_k; repeat
    (typically 2 to 3 fits). A failed fit or a diverging ray moves on to the next sphere.
 
