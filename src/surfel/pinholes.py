@@ -183,11 +183,11 @@ def _fill(ys, xs, shaded, coverage, depth, normals, indices, categorical):  # pr
 def fill_pinholes(shaded: np.ndarray, coverage: np.ndarray, depth: np.ndarray, normals: np.ndarray,
                   indices: np.ndarray | None = None):
     """(shaded, coverage, depth, normals, indices, filled) with the pinholes of the module
-    docstring filled, in place where the buffers are already contiguous float32 (int32 for
+    docstring filled, in place where the buffers are already float32, of any strides (int32 for
     `indices`): shaded (H, W, 3), coverage (H, W), depth (H, W) (any value where coverage is
     0), normals (H, W, 3), indices (H, W) or None; `filled` counts the samples filled."""
-    shaded, coverage = np.ascontiguousarray(shaded, np.float32), np.ascontiguousarray(coverage, np.float32)
-    depth, normals = np.ascontiguousarray(depth, np.float32), np.ascontiguousarray(normals, np.float32)
+    shaded, coverage = np.asarray(shaded, np.float32), np.asarray(coverage, np.float32)
+    depth, normals = np.asarray(depth, np.float32), np.asarray(normals, np.float32)
     categorical = indices is not None
     labels = np.ascontiguousarray(indices, np.int32) if categorical else np.zeros((1, 1), np.int32)
     found = np.empty(depth.shape, np.bool_)

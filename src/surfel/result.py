@@ -62,26 +62,27 @@ def _box_filter(shaded, coverage, depth, normals, s, background, premult, given)
     color = np.empty((h, w, 3), np.float32)
     alpha = np.empty((h, w), np.float32)
     depth_out = np.empty((h, w), np.float32)
-    normals_out = np.zeros((h, w, 3), np.float32)
+    normals_out = np.empty((h, w, 3), np.float32)
     samples = np.float32(s * s)
     zero, one = np.float32(0.0), np.float32(1.0)
     for y in numba.prange(h):
         for x in range(w):
             a = r = g = b = nx = ny = nz = zero
             nearest = np.float32(np.inf)
-            for k in range(s * s):
-                ys, xs = y * s + k // s, x * s + k % s
-                c = min(max(coverage[ys, xs], zero), one)
-                if c <= 0:
-                    continue
-                a += c
-                nearest = min(nearest, depth[ys, xs])
-                r += shaded[ys, xs, 0] * c
-                g += shaded[ys, xs, 1] * c
-                b += shaded[ys, xs, 2] * c
-                nx += normals[ys, xs, 0] * c
-                ny += normals[ys, xs, 1] * c
-                nz += normals[ys, xs, 2] * c
+            # two loops, not one over s * s: its k // s and k % s were a third of a 1024 x 1024 frame's filter
+            for ys in range(y * s, y * s + s):
+                for xs in range(x * s, x * s + s):
+                    c = min(max(coverage[ys, xs], zero), one)
+                    if c <= 0:
+                        continue
+                    a += c
+                    nearest = min(nearest, depth[ys, xs])
+                    r += shaded[ys, xs, 0] * c
+                    g += shaded[ys, xs, 1] * c
+                    b += shaded[ys, xs, 2] * c
+                    nx += normals[ys, xs, 0] * c
+                    ny += normals[ys, xs, 1] * c
+                    nz += normals[ys, xs, 2] * c
             a /= samples
             alpha[y, x] = a
             depth_out[y, x] = nearest
@@ -93,8 +94,8 @@ def _box_filter(shaded, coverage, depth, normals, s, background, premult, given)
             color[y, x, 1] = min(max(g + (1 - a) * background[1], zero), one)
             color[y, x, 2] = min(max(b + (1 - a) * background[2], zero), one)
             length = np.sqrt(nx * nx + ny * ny + nz * nz)
-            if length > 1e-12:
-                normals_out[y, x, 0], normals_out[y, x, 1], normals_out[y, x, 2] = nx / length, ny / length, nz / length
+            inv = one / length if length > 1e-12 else zero
+            normals_out[y, x, 0], normals_out[y, x, 1], normals_out[y, x, 2] = nx * inv, ny * inv, nz * inv
     return color, alpha, depth_out, normals_out
 
 
@@ -118,14 +119,14 @@ class RenderResult:
         stats["pinholes"] counts them), then eye-dome lighting, then a box filter down to the
         output size, then compositing over the background.
 
-        shaded (sH, sW, 3), coverage (sH, sW) in [0, 1], depth (sH, sW) (inf empty),
-        normals (sH, sW, 3); `options` (RenderOptions): the background, and the `edl`
-        shading, whose term (surfel.edl, radius edl_radius output pixels) multiplies every
-        sample's (unlit) colour. Colour is averaged premultiplied by coverage and then
-        composited over the background; depth keeps the nearest sample, normals the
-        coverage-weighted mean. `indices` (sH, sW): the palette index of each sample in a
-        categorical colour mode (-1 where empty): categories are never mixed, a pixel takes
-        the colour of the one covering most of it.
+        shaded (sH, sW, 3), coverage (sH, sW) in [0, 1], depth (sH, sW) (any value where
+        coverage is 0), normals (sH, sW, 3), float32 of any strides (views are not copied);
+        `options` (RenderOptions): the background, and the `edl` shading, whose term
+        (surfel.edl, radius edl_radius output pixels) multiplies every sample's (unlit) colour.
+        Colour is averaged premultiplied by coverage and then composited over the background;
+        depth keeps the nearest sample, normals the coverage-weighted mean. `indices` (sH, sW):
+        the palette index of each sample in a categorical colour mode (-1 where empty):
+        categories are never mixed, a pixel takes the colour of the one covering most of it.
         """
         s = int(supersample)
         background = options.background
@@ -138,7 +139,7 @@ class RenderResult:
                                      options.edl_strength)
             shaded = shaded * term[..., None]
             stats = dict(stats, edl={"strength": options.edl_strength, "radius": options.edl_radius})
-        buffers = [np.ascontiguousarray(a, np.float32) for a in (shaded, coverage, depth, normals)]
+        buffers = [np.asarray(a, np.float32) for a in (shaded, coverage, depth, normals)]
         background = np.asarray(background, np.float32)
         categories = indices is not None and s > 1  # a single sample has a single category
         premult = np.empty((0, 0, 3), np.float32)  # the box filter's own, unless categories pick it

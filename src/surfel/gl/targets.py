@@ -51,6 +51,14 @@ def allocating(width: int, height: int):
                           "choose a smaller --size or --supersample") from None
 
 
+def read_rows(tex) -> np.ndarray:
+    """A float32 texture as a writable (H, W, C) array with row 0 at the top: a flipped view of
+    the rows OpenGL returns, not a copy (the G-buffer's readers take strided arrays)."""
+    data = np.empty((tex.height, tex.width, tex.components), np.float32)
+    tex.read_into(data)
+    return data[::-1]
+
+
 def read_texture(tex, components: int | None = None) -> np.ndarray:
     """A float32 texture as an (H, W, C) array with row 0 at the top."""
     c = components or tex.components
@@ -60,20 +68,19 @@ def read_texture(tex, components: int | None = None) -> np.ndarray:
 
 @dataclass
 class GBuffer:
-    """Colour attachments of RGBA32F and a 32-bit float depth buffer, all the same size.
-
-    Methods write attributes (weighted colour, normal, eye depth, weight) to the colour
-    targets with additive blending; the depth buffer carries the visibility pass.
-    """
+    """A method's output samples, laid out as `gbuffer_result` reads them: colour targets of
+    RGBA32F (shaded RGB and coverage; eye normal and palette index) and R32F (eye depth: one
+    channel, a quarter of what every pass writes and the read-back copies), and a depth
+    buffer for the methods that depth-test, all the same size."""
 
     width: int
     height: int
-    count: int = 3
 
     def __post_init__(self):
         ctx = get_context()
         with allocating(self.width, self.height):
-            self.textures = [ctx.texture((self.width, self.height), 4, dtype="f4") for _ in range(self.count)]
+            self.textures = [ctx.texture((self.width, self.height), components, dtype="f4")
+                             for components in (4, 4, 1)]
             for t in self.textures:
                 t.filter = (0x2600, 0x2600)  # GL_NEAREST: the passes read texels, never interpolate
             self.depth = ctx.depth_texture((self.width, self.height))
@@ -82,9 +89,6 @@ class GBuffer:
 
     def clear(self, depth: float = 1.0):
         self.fbo.clear(0.0, 0.0, 0.0, 0.0, depth=depth)
-
-    def read(self, index: int, components: int = 4) -> np.ndarray:
-        return read_texture(self.textures[index], components)
 
     def release(self):
         for obj in (*self.textures, self.depth, self.fbo, self.depth_only):
@@ -102,19 +106,18 @@ def gbuffer_result(gbuffer: GBuffer, camera, options, supersample: int, stats: d
     from ..colors import shade_samples
     from ..result import RenderResult
 
-    shaded = gbuffer.read(0)
-    normals = gbuffer.read(1)
-    depth = gbuffer.read(2, 1)[..., 0]
-    coverage = np.clip(shaded[..., 3], 0, 1)
-    depth = np.where(coverage > 0, depth, np.inf)
+    # views of the read-back targets, not copies: from_samples and the pinholes take strided arrays
+    shaded, normals, depth = (read_rows(texture) for texture in gbuffer.textures)
+    coverage, depth = np.clip(shaded[..., 3], 0, 1), depth[..., 0]
     indices, rgb = None, shaded[..., :3]
     albedo = None
-    if surface is not None:
+    if surface is not None:  # these read the empty samples' depths as inf
+        depth = np.where(coverage > 0, depth, np.inf)
         albedo, indices = surface(depth)
     if albedo is not None:
         rgb = shade_samples(rgb, normals[..., :3], depth, albedo, options.surface_shading, camera.near, camera.far)
     elif options.coloring is not None and options.coloring.categorical:
         indices = np.where(coverage > 0, np.round(normals[..., 3]), -1).astype(np.int32)
-    return RenderResult.from_samples(rgb, coverage, depth, np.ascontiguousarray(normals[..., :3]),
+    return RenderResult.from_samples(rgb, coverage, depth, normals[..., :3],
                                      supersample=supersample, options=options, stats=stats, indices=indices,
                                      pinholes=pinholes)
