@@ -69,8 +69,8 @@ def read_texture(tex, components: int | None = None) -> np.ndarray:
 @dataclass
 class GBuffer:
     """A method's output samples, laid out as `gbuffer_result` reads them: colour targets of
-    RGBA32F (shaded RGB and coverage; eye normal and palette index) and R32F (eye depth: one
-    channel, a quarter of what every pass writes and the read-back copies), and a depth
+    RGBA32F (shaded RGB and coverage; eye normal and palette index) and R32F (eye depth, one
+    channel rather than four for every pass to write and the read-back to copy), and a depth
     buffer for the methods that depth-test, all the same size."""
 
     width: int

@@ -76,7 +76,7 @@ def sample_beyond(poly, samples, scratch):
     along = (mx * n0 + my * n1 + mz * n2)
     ux, uy, uz = along * n0 - mx, along * n1 - my, along * n2 - mz  # -(tangential part of the mean) * sw
     if ux * ux + uy * uy + uz * uz <= (1e-6 * sw * poly[P_SCALE]) ** 2:
-        return True
+        return True  # the mean lies at x: samples all around
     for k in range(scratch.found[0]):
         i = int(nb[k, 5])
         if (normals[i, 0] * n0 + normals[i, 1] * n1 + normals[i, 2] * n2 > EDGE_SHEET_COS
