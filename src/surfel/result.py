@@ -94,8 +94,9 @@ def _box_filter(shaded, coverage, depth, normals, s, background, premult, given)
             color[y, x, 1] = min(max(g + (1 - a) * background[1], zero), one)
             color[y, x, 2] = min(max(b + (1 - a) * background[2], zero), one)
             length = np.sqrt(nx * nx + ny * ny + nz * nz)
-            inv = one / length if length > 1e-12 else zero
-            normals_out[y, x, 0], normals_out[y, x, 1], normals_out[y, x, 2] = nx * inv, ny * inv, nz * inv
+            if length <= 1e-12:  # no sample covered: the zero normal
+                length, nx, ny, nz = one, zero, zero, zero
+            normals_out[y, x, 0], normals_out[y, x, 1], normals_out[y, x, 2] = nx / length, ny / length, nz / length
     return color, alpha, depth_out, normals_out
 
 

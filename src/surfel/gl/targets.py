@@ -60,10 +60,9 @@ def read_rows(tex) -> np.ndarray:
 
 
 def read_texture(tex, components: int | None = None) -> np.ndarray:
-    """A float32 texture as an (H, W, C) array with row 0 at the top."""
-    c = components or tex.components
-    data = np.frombuffer(tex.read(), dtype=np.float32).reshape(tex.height, tex.width, tex.components)
-    return np.ascontiguousarray(data[::-1, :, :c])
+    """A float32 texture as a contiguous (H, W, C) array with row 0 at the top (its first
+    `components` channels)."""
+    return np.ascontiguousarray(read_rows(tex)[..., :components or tex.components])
 
 
 @dataclass
