@@ -60,9 +60,15 @@ void accumulate(ivec2 texel, float w, vec3 color, vec3 n, float z) {
     int at = sum_base(texel);
     uint weight = fixed_point(w);
     if (weight == 0u) return;
-    if (atomicAdd(accumulator_sums[at + 3], weight) > SUM_LIMIT) {
-        atomicAdd(accumulator_sums[at + 3], -weight);
-        return;
+    // Admit the splat only while the weight sum stays under SUM_LIMIT, by compare-and-swap:
+    // adding first and taking back past the limit lets thousands of threads of a GPU add at
+    // once on a pile, and the sum wraps through 2^32 before they take back.
+    uint seen = accumulator_sums[at + 3];
+    while (true) {
+        if (seen > SUM_LIMIT) return;
+        uint before = atomicCompSwap(accumulator_sums[at + 3], seen, seen + weight);
+        if (before == seen) break;
+        seen = before;
     }
 #ifndef UNIFORM_COLOR
     atomicAdd(accumulator_sums[at], fixed_point(w * color.r));
