@@ -52,6 +52,9 @@ def test_sphere_depth_accuracy():
     assert np.median(np.abs(res.depth[both] - exact[both]) / exact[both]) <= 1e-3
     assert not (inner & (res.alpha < 0.5)).any()
     assert res.stats["hits"] > 0 and res.stats["last_step_median"] < 1e-3
+    # a closed, evenly sampled sphere: every ray converges at its first candidate, and the
+    # occlusion query ends the walk there instead of drawing the seven more
+    assert res.stats["candidates_tried"] == 1
     # one ray per pixel centre: the converged hit is on the sphere to float32 precision
     single = mls_gl(SPHERE, cam, RenderOptions(shading="lambert", supersample=1))
     both = np.isfinite(exact) & np.isfinite(single.depth)
@@ -123,6 +126,9 @@ def test_agrees_with_cpu_mls_on_a_coarse_thin_part():
     options = RenderOptions(shading="lambert")
     gpu = mls_gl(cloud, cam, options)
     cpu = mls_cpu(cloud, cam, options)
+    # rays past the rim retry up to the last candidate: the retries' culled passes (gpu.glsl
+    # nothing_to_retry) are part of what is compared
+    assert gpu.stats["candidates_tried"] == MlsGpuParams().candidates
     # the open ends are cut at the last rings, within a pixel: the two rows at
     # each end may fall either side of the cut (measured: the CPU's end rows 14 pixels wide,
     # the GPU's 4 and 1), and are compared by extent only

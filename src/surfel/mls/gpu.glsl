@@ -38,6 +38,9 @@ uniform float u_min_neighbours; // facing samples a fit needs in its support (su
 uniform bool u_last;            // the last iteration: apply the half-disc and extent tests to its fit
 uniform bool u_update_reference;  // the fit's normal becomes the next reference normal
 uniform bool u_retry;           // a later candidate: the nearest beyond the one that failed
+// r: t of the candidate the pixel's fits failed from (>= MISS: none); g: 1 there, else 0, on
+// every mip level of a power-of-two texture: the mean over each texel's pixels
+uniform sampler2D u_failed;
 
 // Three vec4 per point: (p_i, h_i), (colour, s_i), (n_i, a_i) (a_i: its area, surface.Samples).
 layout(std430, binding = 0) readonly buffer Points { vec4 points[]; };
@@ -102,6 +105,21 @@ void tangent_frame(vec3 n, out vec3 e1, out vec3 e2) {
 #ifdef VERTEX_SHADER
 #ifdef DISC
 flat out int v_index;
+// Whether no pixel of the image-space box [lo, hi] (y down) has a failed candidate: at the
+// mip level where the box spans at most 2 x 2 texels, their means are all zero. On a retry
+// this drops the quads of all but the few points near such pixels before rasterization.
+bool nothing_to_retry(vec2 lo, vec2 hi) {
+    ivec2 last = ivec2(u_viewport) - 1;
+    ivec2 a = clamp(ivec2(floor(vec2(lo.x - 0.5, u_viewport.y - hi.y - 0.5))), ivec2(0), last);
+    ivec2 b = clamp(ivec2(floor(vec2(hi.x + 0.5, u_viewport.y - lo.y + 0.5))), ivec2(0), last);
+    int level = 0;
+    while (any(greaterThan((b >> level) - (a >> level), ivec2(1)))) level++;
+    a >>= level;
+    b >>= level;
+    return texelFetch(u_failed, a, level).g + texelFetch(u_failed, ivec2(b.x, a.y), level).g
+         + texelFetch(u_failed, ivec2(a.x, b.y), level).g + texelFetch(u_failed, b, level).g == 0.0;
+}
+
 // One instanced quad per point covering the exact screen bounding box of the sphere of
 // radius R about p_i (the bounding sphere in PASS_INTERSECT, the kernel support otherwise):
 // for an eye-space centre (a, z) the tangent lines give a/z ratios (a z -+ R sqrt(a^2 + z^2 - R^2)) / (z^2 - R^2).
@@ -135,6 +153,7 @@ void main() {
             hi = vec2(u_intrinsics.z + u_intrinsics.x * rhi.x, u_intrinsics.w - u_intrinsics.y * rlo.y);
         }
     }
+    if (u_retry && nothing_to_retry(lo, hi)) { gl_Position = vec4(2.0, 2.0, 2.0, 1.0); return; }
     // half a pixel of margin: rasterisation samples pixel centres
     gl_Position = image_to_clip(mix(lo - 0.5, hi + 0.5, corner));
 #ifndef PASS_INTERSECT
@@ -196,7 +215,6 @@ bool current_hit(out vec3 r, out float t) {
 }
 
 #ifdef PASS_INTERSECT
-uniform sampler2D u_failed;  // r: t of the candidate the pixel's fits failed from (>= MISS: none)
 layout(location = 0) out vec4 out_t;
 layout(location = 1) out vec4 out_reference;
 layout(location = 2) out vec4 out_first;  // t, kept for PASS_RETRY
@@ -204,6 +222,8 @@ void main() {
     vec3 o, d;
     local_ray(o, d);
     int i = v_index;
+    float failed = u_retry ? texelFetch(u_failed, ivec2(gl_FragCoord.xy), 0).r : -FAR;
+    if (failed >= MISS) discard;  // a later candidate: only where the earlier one failed
     vec3 oc = o - points[3 * i].xyz;
     float radius = u_domain * points[3 * i + 1].w;
     float a = dot(d, d), b = dot(oc, d), c = dot(oc, oc) - radius * radius;
@@ -215,13 +235,10 @@ void main() {
     // solved from the sphere entry so the quadratic's coefficients stay small
     if (!ray_quadratic(point_quadratic(i), o + t_in * d, d, 0.0, t_out - t_in, dt)) discard;
     float t = t_in + dt;
-    if (u_retry) {
-        float failed = texelFetch(u_failed, ivec2(gl_FragCoord.xy), 0).r;
-        // beyond the failed candidate's sheet: its other samples meet the ray at nearly its t.
-        // In units of the width the sample's density gives, sqrt(a_i) u_scale: a kernel widened
-        // across a gap (widths.py) spans more than a thin part's thickness
-        if (failed >= MISS || t <= failed + RETRY_GAP * sqrt(points[3 * i + 2].w) * u_scale) discard;
-    }
+    // beyond the failed candidate's sheet: its other samples meet the ray at nearly its t.
+    // In units of the width the sample's density gives, sqrt(a_i) u_scale: a kernel widened
+    // across a gap (widths.py) spans more than a thin part's thickness
+    if (u_retry && t <= failed + RETRY_GAP * sqrt(points[3 * i + 2].w) * u_scale) discard;
     out_t = vec4(t, 0.0, 0.0, 0.0);
     out_first = out_t;
     out_reference = vec4(points[3 * i + 2].xyz, 0.0);
@@ -473,7 +490,9 @@ layout(location = 0) out vec4 out_failed;
 void main() {
     ivec2 pix = ivec2(gl_FragCoord.xy);
     float first = texelFetch(u_first, pix, 0).r;
-    out_failed = vec4(first < MISS && texelFetch(u_state, pix, 0).r >= MISS ? first : FAR, 0.0, 0.0, 0.0);
+    // the target is cleared to (FAR, 0) (no retry); the fragments written are counted (gpu.py)
+    if (first >= MISS || texelFetch(u_state, pix, 0).r < MISS) discard;
+    out_failed = vec4(first, 1.0, 0.0, 0.0);
 }
 #endif
 

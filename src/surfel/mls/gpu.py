@@ -41,7 +41,9 @@ Then `iterations` times (default 3), at r = o + t d:
    reject a hit past the edge of its sheet.
 6. keep / retry: converged pixels keep their hit; where the fits failed, the next candidate
    (`candidates`, default 8) is the nearest intersection beyond the failed one -- the CPU
-   tracer's walk on to the next bounding sphere, bounded here to a few candidates.
+   tracer's walk on to the next bounding sphere, bounded here to a few candidates. An
+   occlusion query counts the pixels that failed, and the walk stops when none did: the
+   later candidates' passes would draw every support for nothing.
 7. shading (full screen): normal n - g_u e1 - g_v e2 of the last quadratic, the fit's weighted
    neighbour colour, eye depth t, into the G-buffer layout; supersampled 2x2 by default and
    box filtered (RenderResult.from_samples) for anti-aliased silhouettes.
@@ -145,7 +147,10 @@ class CasterTargets:
         self.frame = [texture(), texture()]
         self.system = [texture() for _ in range(7)]
         self.normal, self.albedo = texture(), texture()
-        self.first, self.failed = texture(), texture()  # t of a candidate; of one whose fits failed
+        self.first = texture()  # t of a candidate
+        # t of a candidate whose fits failed, and 1 there: a power-of-two size for mipmaps
+        # whose texels cover whole blocks of pixels (gpu.glsl nothing_to_retry)
+        self.failed = ctx.texture(tuple(1 << (side - 1).bit_length() for side in size), 2, dtype="f4")
         self.kept = [texture() for _ in range(3)]  # state, normal and albedo of converged candidates
         self.depth = ctx.depth_texture(size)  # window depth of the current hits
         self.solve = [ctx.framebuffer(color_attachments=[self.state[k], self.reference[k], self.normal, self.albedo],
@@ -161,6 +166,8 @@ class CasterTargets:
         for fbo in (self.means, self.system_fbo):
             fbo.depth_mask = False  # their depth test reads the hits' depths, never writes
         self.gbuffer = GBuffer(*size)
+        # pixels whose candidate failed, counted (moderngl frees queries with the context)
+        self.retries = ctx.query(samples=True)
 
     def release(self) -> None:
         for obj in (*self.state, *self.reference, *self.sums, *self.frame, *self.system, self.normal, self.albedo,
@@ -216,7 +223,8 @@ def render_mls_gl(cloud: PointCloud, camera: Camera, options: RenderOptions, par
         ctx.blend_func = ctx.ONE, ctx.ONE
         targets.means.use()
         targets.means.clear(0.0, 0.0, 0.0, 0.0)
-        _bind(programs["means"], {"u_state": targets.state[current], "u_reference": targets.reference[current]})
+        _bind(programs["means"], {"u_state": targets.state[current], "u_reference": targets.reference[current],
+                                  "u_failed": targets.failed})
         discs("means")
         # 3. reference plane
         ctx.disable(ctx.BLEND | ctx.DEPTH_TEST)
@@ -230,7 +238,7 @@ def render_mls_gl(cloud: PointCloud, camera: Camera, options: RenderOptions, par
         targets.system_fbo.use()
         targets.system_fbo.clear(0.0, 0.0, 0.0, 0.0)
         _bind(programs["system"], {"u_state": targets.state[current], "u_reference": targets.reference[current],
-                                   "u_q": targets.frame[0], "u_n": targets.frame[1]})
+                                   "u_q": targets.frame[0], "u_n": targets.frame[1], "u_failed": targets.failed})
         discs("system")
         # 5. solve and move along the ray onto the quadratic, rewriting the hit depths
         ctx.disable(ctx.BLEND)
@@ -256,14 +264,17 @@ def render_mls_gl(cloud: PointCloud, camera: Camera, options: RenderOptions, par
     try:
         ctx.disable(ctx.CULL_FACE | ctx.BLEND)
         targets.keep.clear(FAR, 0.0, 0.0, 0.0)
+        tried = 0
         for candidate in range(params.candidates):
+            tried += 1
             # 1. nearest intersection with the points' own polynomials (the depth test keeps the
             # nearest t and its sample's normal); later candidates lie beyond a failed one
             ctx.enable(ctx.DEPTH_TEST)
             targets.intersect.use()
             targets.intersect.clear(FAR, 0.0, 0.0, 0.0, depth=1.0)
             ctx.depth_func = "<"
-            set_uniforms(programs["intersect"], u_retry=candidate > 0)
+            for name in ("intersect", "means", "system"):
+                set_uniforms(programs[name], u_retry=candidate > 0)
             _bind(programs["intersect"], {"u_failed": targets.failed})
             discs("intersect")
             targets.cull.use()
@@ -281,8 +292,14 @@ def render_mls_gl(cloud: PointCloud, camera: Camera, options: RenderOptions, par
             full_screen("keep")
             if candidate + 1 < params.candidates:
                 targets.retry.use()
+                targets.retry.clear(FAR, 0.0, 0.0, 0.0)
+                ctx.viewport = (0, 0, *size)  # the pixels of the image in the larger texture
                 _bind(programs["retry"], {"u_state": targets.state[current], "u_first": targets.first})
-                full_screen("retry")
+                with targets.retries:
+                    full_screen("retry")
+                if targets.retries.samples == 0:  # every pixel hit or missed for good: no later candidate
+                    break
+                targets.failed.build_mipmaps()
         # 7. shading into the G-buffer
         targets.gbuffer.fbo.use()
         targets.gbuffer.clear()
@@ -294,6 +311,7 @@ def render_mls_gl(cloud: PointCloud, camera: Camera, options: RenderOptions, par
         hit = final[..., 0] < FAR / 10
         steps = final[..., 1][hit]
         stats = {"splats": n, "rays": int(size[0] * size[1]), "hits": int(hit.sum()), "iterations": iterations,
+                 "candidates_tried": tried,
                  "last_step_median": float(np.median(steps)) if steps.size else 0.0,
                  "point_fit_failures": int((~scene.valid).sum()), "supersample": ss,
                  "kernel_width": surface.scale, "polynomial_prepass": "cpu"}
