@@ -264,9 +264,7 @@ def render_mls_gl(cloud: PointCloud, camera: Camera, options: RenderOptions, par
     try:
         ctx.disable(ctx.CULL_FACE | ctx.BLEND)
         targets.keep.clear(FAR, 0.0, 0.0, 0.0)
-        tried = 0
         for candidate in range(params.candidates):
-            tried += 1
             # 1. nearest intersection with the points' own polynomials (the depth test keeps the
             # nearest t and its sample's normal); later candidates lie beyond a failed one
             ctx.enable(ctx.DEPTH_TEST)
@@ -311,7 +309,7 @@ def render_mls_gl(cloud: PointCloud, camera: Camera, options: RenderOptions, par
         hit = final[..., 0] < FAR / 10
         steps = final[..., 1][hit]
         stats = {"splats": n, "rays": int(size[0] * size[1]), "hits": int(hit.sum()), "iterations": iterations,
-                 "candidates_tried": tried,
+                 "candidates_tried": candidate + 1,
                  "last_step_median": float(np.median(steps)) if steps.size else 0.0,
                  "point_fit_failures": int((~scene.valid).sum()), "supersample": ss,
                  "kernel_width": surface.scale, "polynomial_prepass": "cpu"}
