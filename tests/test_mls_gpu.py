@@ -20,6 +20,7 @@ from test_mls import (
     assert_depth_on_torus,
     coarse_face,
     coarse_tail,
+    l_shaped_sheet,
     mls_cpu,
     sphere_points,
     strip_on_plane,
@@ -195,6 +196,22 @@ def test_a_coarse_flat_face_between_its_corners_is_surface_on_the_gpu_too():
     inner = ndimage.binary_erosion(cpu.alpha >= 0.5, iterations=2)
     assert inner.sum() > 100 and (gpu.alpha[inner] >= 0.5).all()
     assert np.abs(gpu.depth[inner] - 3.0).max() <= 1e-3
+
+
+def test_a_concave_corner_stays_open_on_the_gpu_too():
+    """The extent test's line (edges.sample_beyond) in the GPU caster: seen from above, the
+    missing quadrant of an L-shaped sheet is empty from a tenth of the way out along its
+    diagonal, and the two casters agree on the sheet's pixels."""
+    cloud = l_shaped_sheet()
+    cam = frame(cloud.center, cloud.bounding_radius, eye=[0, 0, 3.0], target=[0, 0, 0], up=[0, 1.0, 0],
+                size=(64, 64), ortho_height=2.4)
+    options = RenderOptions(shading="lambert")
+    gpu, cpu = mls_gl(cloud, cam, options), mls_cpu(cloud, cam, options)
+    rows, columns = np.indices(gpu.alpha.shape)
+    x, y = (columns + 0.5 - 32) * 2.4 / 64, (32 - rows - 0.5) * 2.4 / 64
+    corner = (x > 0.1) & (y > 0.1) & (x < 0.9) & (y < 0.9)
+    assert (cpu.alpha[corner] < 0.5).all() and (gpu.alpha[corner] < 0.5).all()
+    assert np.mean((gpu.alpha >= 0.5) != (cpu.alpha >= 0.5)) <= 0.002
 
 
 def test_gpu_torus_depth_lies_on_the_torus():

@@ -33,6 +33,7 @@ uniform float u_normal_weight;  // 1 / sigma_n^2
 uniform float u_residual_weight;  // 1 / sigma_r^2
 uniform float u_boundary;       // half-disc test: largest offset of the weighted mean, in units of l
 uniform float u_edge_cos;       // extent test: a sheet's samples have normals within this cosine of the fit's
+uniform float u_edge_lateral;   // ... and lie within this many local widths of the line from r along `away`
 uniform float u_ridge;          // regularisation of a singular quadratic fit, in units of sum w (surface.RIDGE)
 uniform float u_min_neighbours; // facing samples a fit needs in its support (surface.MIN_NEIGHBOURS)
 uniform bool u_last;            // the last iteration: apply the half-disc and extent tests to its fit
@@ -346,11 +347,17 @@ void main() {
     out_m3 = w * vec4(uu * vv, uv * vv, vv * vv, f);
     out_m4 = w * f * vec4(u, v, uu, uv);
     // extent test: whether the sample lies out along `away`, the direction from the weighted
-    // mean q to r within the plane; a mean at r counts as a sample of r's sheet beyond r
+    // mean q to r within the plane, near the line from r that way (edges.sample_beyond); a
+    // mean at r counts as a sample of r's sheet beyond r
     vec3 mean = texelFetch(u_q, pix, 0).xyz - r;
     vec3 away = dot(mean, n.xyz) * n.xyz - mean;
+    float reach = length(away);
+    vec3 offset = points[3 * v_index].xyz - r;
+    float forward = dot(offset, away) / max(reach, 1e-30), across = dot(offset, n.xyz);
     bool same_sheet = dot(points[3 * v_index + 2].xyz, n.xyz) > u_edge_cos;
-    bool beyond = length(away) <= 1e-6 * n.w || (same_sheet && dot(points[3 * v_index].xyz - r, away) >= 0.0);
+    float sideways2 = dot(offset, offset) - forward * forward - across * across;
+    bool alongside = sideways2 <= u_edge_lateral * u_edge_lateral * n.w * n.w;
+    bool beyond = reach <= 1e-6 * n.w || (same_sheet && forward >= 0.0 && alongside);
     out_m5 = vec4(w * f * vv, beyond ? 1.0 : 0.0, 0.0, 0.0);
     float h = points[3 * v_index].w, area = points[3 * v_index + 2].w;
     float wa = area * w * exp(d2 * (1.0 / (h * h) - 1.0 / (n.w * n.w)));

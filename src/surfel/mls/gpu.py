@@ -68,7 +68,7 @@ from ..gl.targets import GBuffer, check_target_size, gbuffer_result, read_textur
 from ..gl.uniforms import apply_common
 from ..options import RenderOptions, at_least, setting
 from ..result import RenderResult
-from .edges import EDGE_SHEET_COS
+from .edges import EDGE_LATERAL, EDGE_SHEET_COS
 from .polynomial import P_C, P_E1, P_E2, P_N, P_Q, P_SCALE
 from .raytrace import DEFAULT_SUPERSAMPLE, MLSScene, cached_scene, scene_kernel
 from .surface import (
@@ -205,7 +205,7 @@ def render_mls_gl(cloud: PointCloud, camera: Camera, options: RenderOptions, par
     common = {"u_view_inv": np.linalg.inv(view), "u_scale": surface.scale, "u_domain": surface.domain,
               "u_normal_weight": weights.normal_weight, "u_residual_weight": weights.residual_weight,
               "u_boundary": weights.boundary,
-              "u_edge_cos": EDGE_SHEET_COS,
+              "u_edge_cos": EDGE_SHEET_COS, "u_edge_lateral": EDGE_LATERAL,
               "u_ridge": RIDGE, "u_min_neighbours": float(MIN_NEIGHBOURS), "u_guard": 0.0}
     programs = {name: renderer.program(SHADER, {f"PASS_{name.upper()}": True})
                 for name in ("intersect", "cull", "means", "frame", "system", "solve", "keep", "retry", "shade")}
