@@ -105,17 +105,25 @@ def test_extent_test_cuts_a_sheet_at_its_outermost_samples():
     assert (status == [S.FIT_OK, S.FIT_OK, S.FIT_OUTSIDE, S.FIT_OUTSIDE, S.FIT_OUTSIDE]).all(), status
 
 
+def grid_sheet(kept) -> PointCloud:
+    """A flat sheet in z = 0, facing +z: the points of a 0.1 grid over [-1, 1]^2 at whose
+    coordinates (a, b) the mask kept(a, b) holds."""
+    grid = (np.arange(20) + 0.5) * 0.1 - 1.0
+    a, b = (v.ravel() for v in np.meshgrid(grid, grid))
+    inside = kept(a, b)
+    sheet = np.stack([a[inside], b[inside], np.zeros(inside.sum())], 1)
+    return PointCloud(sheet, normals=np.tile([0.0, 0.0, 1.0], (len(sheet), 1)))
+
+
 def test_an_open_boundary_ends_near_its_outermost_samples():
     """Issue 17: a flat disc, an open boundary as a flat cut-out's outline or a LiDAR canopy's
     edge is, ends where its samples end, as a mesh through them does. Rays down across its rim
-    in 32 directions: the sheet runs on past the outermost sample near each ray by 0.03 on
-    average (0.22 kernel widths, the spacing 0.1). Letting it run on 0.1 l further wherever a
+    in 32 directions: the sheet runs on past the outermost sample near each ray by 0.026 on
+    average (0.19 kernel widths, the spacing 0.1). Letting it run on 0.1 l further wherever a
     sample lay that close behind gave 0.044 (flat cut-outs 0.8 dB lower, woody at 512x512)."""
-    grid = (np.arange(20) + 0.5) * 0.1 - 1.0
-    a, b = (v.ravel() for v in np.meshgrid(grid, grid))
-    inside = a * a + b * b <= 0.8 ** 2
-    disc = np.stack([a[inside], b[inside], np.zeros(inside.sum())], 1)
-    scene = prepare_scene(PointCloud(disc, normals=np.tile([0.0, 0.0, 1.0], (len(disc), 1))))
+    cloud = grid_sheet(lambda a, b: a * a + b * b <= 0.8 ** 2)
+    disc = cloud.positions
+    scene = prepare_scene(cloud)
     run_on = []
     for angle in np.linspace(0, 2 * np.pi, 32, endpoint=False):
         way, across = np.array([np.cos(angle), np.sin(angle)]), np.array([-np.sin(angle), np.cos(angle)])
@@ -128,13 +136,9 @@ def test_an_open_boundary_ends_near_its_outermost_samples():
 
 
 def l_shaped_sheet() -> PointCloud:
-    """A flat sheet on a 0.1 grid over [-1, 1]^2 without its quadrant x > 0, y > 0: an outline
-    with a concave corner, as a gingerbread figure's neck and armpits are."""
-    grid = (np.arange(20) + 0.5) * 0.1 - 1.0
-    a, b = (v.ravel() for v in np.meshgrid(grid, grid))
-    kept = ~((a > 0.0) & (b > 0.0))
-    sheet = np.stack([a[kept], b[kept], np.zeros(kept.sum())], 1)
-    return PointCloud(sheet, normals=np.tile([0.0, 0.0, 1.0], (len(sheet), 1)))
+    """The grid sheet without its quadrant x > 0, y > 0: an outline with a concave corner, as a
+    gingerbread figure's neck and armpits are."""
+    return grid_sheet(lambda a, b: ~((a > 0.0) & (b > 0.0)))
 
 
 def test_a_concave_corner_of_an_outline_stays_open():
