@@ -383,6 +383,31 @@ def test_bound_semi_axes_is_numpys_formula():
         assert got.dtype == expected.dtype and np.array_equal(got, expected)
 
 
+def test_rows_far_apart_stay_covered_and_a_wire_stays_thin():
+    """A sheet sampled in rows ten times farther apart than the points along a row (a CAD
+    tessellation's long thin triangles): the sampling bound lets each splat reach across to the
+    next row (spacing.anisotropic_spacing), where the median distance to the 4 nearest, all on
+    the row, left holes between the rows. A lone row (a wire) keeps its bound."""
+    from surfel.preprocess.spacing import ROW_REACH
+
+    rng = np.random.default_rng(21)
+    along, across = 0.01, 0.1
+    x, y = (g.ravel() for g in np.meshgrid(np.arange(0, 1 + 1e-9, along), np.arange(0, 1 + 1e-9, across)))
+    x = x + rng.uniform(-0.1, 0.1, x.size) * along
+    points = np.stack([x, y, np.zeros(x.size)], 1)
+    prepared, report = prepare(PointCloud(points, normals=np.tile([0.0, 0, 1], (len(points), 1))))
+    assert report["splat_bound"]["anisotropic"] > 0.5 * len(points)
+    inside = np.stack([rng.uniform(0.1, 0.9, 20_000), rng.uniform(0.1, 0.9, 20_000), np.zeros(20_000)], 1)
+    assert covered_by(prepared, np.arange(len(prepared)), inside).all()
+    # no farther than that share of the way across (the ends of the rows, on the sheet's border, see farther rows)
+    inner = (prepared.positions[:, 0] > 0.05) & (prepared.positions[:, 0] < 0.95)
+    assert prepared.radii[inner].max() <= ROW_REACH * across * 1.01
+    wire = points[np.abs(points[:, 1] - 0.5) < 1e-9]
+    thin, report = prepare(PointCloud(wire, normals=np.tile([0.0, 0, 1], (len(wire), 1))))
+    assert report["splat_bound"].get("anisotropic", 0) == 0
+    assert np.median(thin.radii) < 0.75 * ROW_REACH * across  # 2.5 x 1.5 along: the median distance to 4 nearest
+
+
 def test_layer_thickness_separates_close_layers_and_nothing_else():
     """Two surfaces 0.3 apart, closer than a splat radius: each point's layer thickness is half
     the gap; where the body lies alone, and on single surfaces (noisy, curved, creased), none."""
