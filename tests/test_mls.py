@@ -223,6 +223,22 @@ def test_kernels_widen_only_across_gaps():
     assert np.allclose(spacing, GAP_FRACTION * 0.5) and (local < 0.5 * spacing).all()
 
 
+def test_kernels_widen_across_rows_beyond_the_nearest():
+    """A sheet sampled in rows twenty times farther apart than the points along them (a CAD
+    tessellation's long thin triangles): the GAP_NEIGHBOURS nearest all lie on the row, so the
+    gap across is found among WIDE_NEIGHBOURS, and the kernels reach the next row (the sheet
+    fell apart into its rows before); a lone row, a wire, keeps its local spacing."""
+    x, y = (v.ravel() for v in np.meshgrid(np.arange(0, 1 + 1e-9, 0.005), np.arange(0, 1 + 1e-9, 0.1)))
+    sheet = np.stack([x, y, np.zeros(x.size)], 1)
+    up = np.broadcast_to([0.0, 0.0, 1.0], sheet.shape)
+    spacing, local = sample_spacing(sheet, up)
+    inner = (x > 0.2) & (x < 0.8) & (y > 0.05) & (y < 0.95)
+    assert (spacing[inner] >= GAP_FRACTION * 0.1 * 0.999).all() and (local < 0.02).all()
+    wire = sheet[np.abs(y - 0.5) < 1e-9]
+    spacing, local = sample_spacing(wire, up[:len(wire)])
+    assert np.array_equal(spacing, local)
+
+
 @pytest.mark.parametrize("seed", range(2))
 def test_tangent_gap_is_the_widest_window_without_a_near_neighbour(seed):
     """widths.tangent_gaps: neighbours at distance 1 every 90 degrees but one, which lies 3 away:
@@ -244,7 +260,7 @@ def test_tangent_gap_is_the_widest_window_without_a_near_neighbour(seed):
             order = np.argsort(distance, kind="stable")
             dist = np.concatenate([[0.0], distance[order]])[None]
             idx = np.concatenate([[0], 1 + order])[None]
-            assert tangent_gaps(points, normals, dist, idx, 0)[0] == far, turn
+            assert tangent_gaps(points, normals, dist, idx, np.zeros(1, np.int64), 0.0, 1.0)[0][0] == far, turn
 
 
 def coarse_face() -> PointCloud:
