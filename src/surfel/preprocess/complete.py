@@ -46,7 +46,7 @@ from .normal_field import FIELD_NEIGHBOURS, field_slopes
 from .normals import NORMAL_NEIGHBOURS, SCALES, oriented_normals
 from .sharp_features import SHARP_ANGLE, find_sharp_features
 from .smoothing import SMOOTH_NEIGHBOURS, smoothed_points
-from .spacing import BOUND_FACTOR, anisotropic_spacing, bound_semi_axes, sampling_spacing
+from .spacing import BOUND_FACTOR, anisotropic_spacing, bound_semi_axes, reach_next_row, sampling_spacing
 from .structure import round_radii, scans_surroundings, screen_facing
 from .thickness import layer_thickness
 
@@ -191,8 +191,8 @@ def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np
         bounded_axes, bounded_radii, capped = bound_semi_axes(axes, radii, spacing)  # float32 axes taken as they are
         if not cloud.geospatial and capped.any():  # rows far apart: the splats the bound cut may reach the next row
             spacing, lifted = anisotropic_spacing(nbh, unit_normals, spacing, np.flatnonzero(capped))
-            bounded_axes[lifted], bounded_radii[lifted], capped[lifted] = bound_semi_axes(axes[lifted], radii[lifted],
-                                                                                         spacing[lifted])
+            bounded_axes[lifted], bounded_radii[lifted], capped[lifted] = reach_next_row(
+                axes[lifted], radii[lifted], spacing[lifted])
             spacing_report["anisotropic"] = len(lifted)
         if bound_axes:
             axes = bounded_axes

@@ -57,9 +57,11 @@ next row, past the middle to the corners of the cell between two rows (at ANISOT
 the surface. `surfel compare MODEL --method deferred --size 512x512 --shading lambert`, front
 and --azimuth 60 --elevation 20: beetle-alt 33.01 / 31.88 dB with 0.136% holes became 33.01 /
 33.41 dB with none; the teapot lost 0.55 dB in both views (its lowest rows reach over the curve
-into its base); ten other models, the shared ones and their range scans are unchanged. Rows
-more than about 19 times farther apart than their points stay open: the cells of cells.py end
-at the farthest of their k nearest (a sheet at 20 to one: 95% covered).
+into its base); ten other models, the shared ones and their range scans are unchanged. Beyond
+about 19 to one the cells of cells.py, ending at the farthest of their k nearest, stop short of
+the middle between two rows; a lifted splat whose cell stopped short of its bound grows to it
+(`reach_next_row`). Beyond WIDE_NEIGHBOURS / 2 to one (32) the next row lies past the wider
+search too, and the rows stay apart.
 
 On a regular surface (ground, roofs, facades) the covering radius is 0.6 to 1.2 spacings,
 inside the bound: it stays hole-free. Where the sampling warrants no surface, splats stay dots
@@ -297,3 +299,14 @@ def bound_semi_axes(axes: np.ndarray, radii: np.ndarray, spacing: np.ndarray) ->
     float64, and the (N,) mask of the splats that were capped."""
     bound = BOUND_FACTOR * np.asarray(spacing, np.float64)
     return _bound_semi_axes(np.ascontiguousarray(axes), np.ascontiguousarray(radii), bound)
+
+
+def reach_next_row(axes: np.ndarray, radii: np.ndarray, spacing: np.ndarray) -> tuple[np.ndarray, np.ndarray,
+                                                                                    np.ndarray]:
+    """`bound_semi_axes` of the splats whose spacing `anisotropic_spacing` lifted, each grown
+    to its bound where its cell stopped short of it: rows so far apart that the cell's
+    neighbours all lie on the row end it at the farthest of them (cells.py)."""
+    bounded_axes, bounded_radii, capped = bound_semi_axes(axes, radii, spacing)
+    longest = np.linalg.norm(bounded_axes, axis=2).max(axis=1)
+    grow = np.maximum(BOUND_FACTOR * np.asarray(spacing, np.float64) / np.maximum(longest, 1e-300), 1.0)
+    return bounded_axes * grow[:, None, None], np.maximum(bounded_radii * grow, bounded_radii), capped
