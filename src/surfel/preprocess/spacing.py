@@ -45,7 +45,7 @@ Anisotropic sampling: a CAD tessellation's long thin triangles sample a surface 
 apart, dense along each row (a car body's sill, 9 to 20 times denser along its rows than
 across). There the 4 nearest all lie on the row, s_local is the spacing along it, and the bound
 cut every splat short of the next row: a dotted line of holes between two rows (beetle-alt, seen
-obliquely: 0.14% of the picture). So, where the normals are known (not in geospatial tiles,
+obliquely: 0.14% of the picture). So, for the splats the bound cut (outside geospatial tiles,
 whose survey spacing bounds them), each point's nearest neighbour in each quadrant of its
 tangent plane is found among its k nearest, or among its WIDE_NEIGHBOURS nearest where those
 fill only two quadrants (one row). Where three quadrants at least hold one (a surface, not a
@@ -56,7 +56,7 @@ next row, past the middle to the corners of the cell between two rows (at ANISOT
 0.504 of the way). Across a tight curve (a teapot's rolled rim) the lift would stand splats off
 the surface. `surfel compare MODEL --method deferred --size 512x512 --shading lambert`, front
 and --azimuth 60 --elevation 20: beetle-alt 33.01 / 31.88 dB with 0.136% holes became 33.01 /
-33.41 dB with none; the teapot lost 0.55 dB in both views (its lowest rows reach over the curve
+33.41 dB with none; the teapot lost 0.6 dB in both views (its lowest rows reach over the curve
 into its base); ten other models, the shared ones and their range scans are unchanged. Beyond
 about 19 to one the cells of cells.py, ending at the farthest of their k nearest, stop short of
 the middle between two rows; a lifted splat whose cell stopped short of its bound grows to it
@@ -98,9 +98,9 @@ SURFACE_MAJORITY = 0.5      # share of points with a tangent plane above which t
 LONE_POINT_FRACTION = 0.2   # spacing of a cloud without two distinct points / its framing radius
 ANISOTROPY = 8.0            # farthest / nearest of the quadrants' nearest neighbours: sampled
                             # anisotropically (rows far apart, dense within a row)
-WIDE_NEIGHBOURS = 64        # neighbours searched where the nearest lie along one line
-FLAT_ACROSS_COS = 0.985     # ... and where the next row's normal turns by less than this (10 degrees)
-ROW_REACH = 0.55            # ... where a splat may reach at least this share of the way to the next row
+FLAT_ACROSS_COS = 0.985     # ... and flat across the rows: the next row's normal within 10 degrees
+ROW_REACH = 0.55            # there a splat may reach this share of the way to the next row
+WIDE_NEIGHBOURS = 64        # neighbours searched where the k nearest lie along one row
 
 
 @numba.njit(parallel=True, cache=True)
@@ -309,4 +309,4 @@ def reach_next_row(axes: np.ndarray, radii: np.ndarray, spacing: np.ndarray) -> 
     bounded_axes, bounded_radii, capped = bound_semi_axes(axes, radii, spacing)
     longest = np.linalg.norm(bounded_axes, axis=2).max(axis=1)
     grow = np.maximum(BOUND_FACTOR * np.asarray(spacing, np.float64) / np.maximum(longest, 1e-300), 1.0)
-    return bounded_axes * grow[:, None, None], np.maximum(bounded_radii * grow, bounded_radii), capped
+    return bounded_axes * grow[:, None, None], bounded_radii * grow, capped
