@@ -186,7 +186,14 @@ class Camera:
         Rays go through pixel centres; `origin` is unused in eye space but kept symmetric
         with `view_matrix` for callers that transform rays to world space themselves.
         """
-        j, i = np.meshgrid(np.arange(self.width) + 0.5, np.arange(self.height) + 0.5)
+        rows, cols = np.divmod(np.arange(self.width * self.height), self.width)
+        o, d = self.rays_at(rows, cols)
+        return o.reshape(self.height, self.width, 3), d.reshape(self.height, self.width, 3)
+
+    def rays_at(self, rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Eye-space ray origins and unit directions, each (N, 3) float64, through the centres
+        of the pixels (rows[k], cols[k])."""
+        j, i = np.asarray(cols) + 0.5, np.asarray(rows) + 0.5
         if self.ortho_height is not None:
             s = self.ortho_height / self.height
             o = np.stack([(j - self.cx) * s, (self.cy - i) * s, np.zeros_like(j)], axis=-1)

@@ -380,8 +380,7 @@ def surface_albedo(cloud, camera, depth: np.ndarray, coloring: Coloring, tree=No
     indices = np.full((h, w), -1, np.int32) if coloring.categorical else None
     if not hit.any():
         return albedo, indices
-    origins, directions = camera.rays()
-    o, d = origins[hit], directions[hit]
+    o, d = camera.rays_at(*np.nonzero(hit))
     eye = o + d * (depth[hit] / -d[:, 2])[:, None]
     view = camera.view_matrix(cloud.local_origin)
     local = (eye - view[:3, 3]) @ view[:3, :3]  # R^T (eye - t)

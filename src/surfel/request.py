@@ -191,6 +191,8 @@ OPTIONS: dict[str, Option] = {o.name: o for o in [
            value=_normalization),
     Option("shadows", None, "Ray-traced shadows (mls).", "params", flag="--shadows"),
     Option("reflect", None, "One mirror bounce (mls).", "params", flag="--reflect"),
+    Option("adaptive", None, "Adaptive supersampling: trace each pixel's corner, interpolate the samples of pixels "
+           "whose corners see one smooth surface (mls) [default: on].", "params", flag="--adaptive/--no-adaptive"),
     # the input's acquisition
     Option("sensor", numbers(3), "Position of the scanner that measured the input, in file coordinates: "
            "estimated normals face it and splat sizes follow the range from it (terrestrial scans).", "input",

@@ -30,13 +30,15 @@ the last polynomial (n - g_u e1 - g_v e2). Parameters (`MlsParams`):
                         (-0.4, 0.6, 0.8)); shadowed pixels keep only the ambient 0.2 albedo
     reflect (False)     one mirror bounce traced against the surface, or else a sky/ground
                         gradient environment, mixed in with `reflectivity` (0.3)
-Supersampling defaults to 2x2 rays per pixel (box filtered like every method).
+Supersampling defaults to 2x2 rays per pixel (box filtered like every method), traced
+adaptively (adaptive.py): each pixel's corner first, then every sample of the pixels whose
+corners do not see one smooth surface; the others are interpolated.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numba
 import numpy as np
@@ -44,6 +46,7 @@ import numpy as np
 from ..options import at_least, between, check_cpu_samples, positive, setting
 from ..result import RenderResult
 from ..shading import KEY_LIGHT, shade
+from .adaptive import interpolate, smooth_pixels
 from .edges import past_edge
 from .polynomial import P_COLOR, P_SCALE, POLY_SIZE, poly_normal, poly_project, poly_ray
 from .surface import (
@@ -76,6 +79,7 @@ class MlsParams(MlsKernel):
     shadows: bool = False  # a shadow ray to the key light
     reflect: bool = False  # one mirror bounce
     reflectivity: float = setting(0.3, between(0, 1))  # weight of the mirror bounce
+    adaptive: bool = True  # interpolate the samples of smooth pixels between their corners (adaptive.py)
 
 
 @dataclass(frozen=True, eq=False)
@@ -361,6 +365,80 @@ def environment(directions_eye: np.ndarray) -> np.ndarray:
     return GROUND * (1 - k) + SKY * k
 
 
+@dataclass
+class SampleHits:
+    """The samples of a frame that meet the surface: flat indices into the supersampled image,
+    local-space points, eye depths, eye-space normals (facing the viewer), albedos, and the fits
+    each traced sample took (interpolated samples take none)."""
+
+    idx: np.ndarray
+    points: np.ndarray
+    depth: np.ndarray
+    normals: np.ndarray
+    albedo: np.ndarray
+    fits: np.ndarray
+
+    @staticmethod
+    def concatenate(parts: list[SampleHits]) -> SampleHits:
+        return SampleHits(*(np.concatenate([getattr(p, f.name) for p in parts]) for f in fields(SampleHits)))
+
+
+class FrameTracer:
+    """Traces camera samples of one frame: `cam` the supersampled camera, `view` the surface's
+    local coordinates to eye space."""
+
+    def __init__(self, scene: MLSScene, cam, view: np.ndarray, params: MlsParams, t_max: float):
+        self.scene, self.cam, self.view, self.params, self.t_max = scene, cam, view, params, t_max
+        self.to_local = np.linalg.inv(view)
+        self.traced = 0
+
+    def rays(self, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Local-space origins and directions, and eye-space directions, of samples `idx`."""
+        o_eye, d_eye = self.cam.rays_at(*np.divmod(idx, self.cam.width))
+        return o_eye @ self.to_local[:3, :3].T + self.to_local[:3, 3], d_eye @ self.view[:3, :3], d_eye
+
+    def trace(self, idx: np.ndarray) -> SampleHits:
+        """Trace samples `idx`; those that hit."""
+        origins, dirs, d_eye = self.rays(idx)
+        hits = trace(self.scene, origins, dirs, 0.0, self.t_max, self.params.tolerance, self.params.max_iterations)
+        self.traced += len(idx)
+        found = np.flatnonzero(hits.hit)
+        points = origins[found] + hits.t[found, None] * dirs[found]
+        normals = hits.normals[found] @ self.view[:3, :3].T
+        normals *= np.where(np.sum(normals * d_eye[found], axis=1) > 0, -1.0, 1.0)[:, None]  # face the viewer
+        return SampleHits(idx[found], points, -(points @ self.view[2, :3] + self.view[2, 3]), normals,
+                          hits.colors[found], hits.fits[found])
+
+    def adaptive(self, candidates: np.ndarray, ss: int) -> tuple[SampleHits, int]:
+        """The hits of the candidate samples, adaptively (adaptive.py): the pixels' corners
+        traced, then the samples of the pixels that are not smooth; the smooth pixels' samples
+        interpolated. Returns the hits and the number interpolated."""
+        w = self.cam.width
+        height, width = self.cam.height // ss, w // ss
+        rows, cols = np.divmod(candidates, w)
+        corner = (rows % ss == 0) & (cols % ss == 0)
+        first = self.trace(candidates[corner])
+        # the corners' eye-space points, normals and albedos
+        corners = np.zeros((height * width, 9))
+        at = (first.idx // w // ss) * width + first.idx % w // ss
+        corners[at] = np.column_stack([first.points @ self.view[:3, :3].T + self.view[:3, 3], first.normals,
+                                       first.albedo])
+        hit = np.zeros(height * width, bool)
+        hit[at] = True
+        corners = corners.reshape(height, width, 9)
+        eye_points, normals, albedo = corners[..., :3], corners[..., 3:6], corners[..., 6:]
+        smooth = smooth_pixels(hit.reshape(height, width), eye_points, normals, albedo, self.scene.surface.scale)
+        second = self.trace(candidates[~corner & ~smooth.ravel()[(rows // ss) * width + cols // ss]])
+        # every sample of a smooth pixel but its corner, whether its ray lies in a footprint or not
+        pi, pj = np.nonzero(smooth)
+        a, b = np.divmod(np.arange(1, ss * ss), ss)
+        points, normals, albedo = interpolate(eye_points, normals, albedo, pi, pj, ss)
+        filled = SampleHits(((pi[:, None] * ss + a) * w + pj[:, None] * ss + b).ravel(),
+                            points @ self.to_local[:3, :3].T + self.to_local[:3, 3], -points[:, 2], normals, albedo,
+                            np.zeros(len(points), np.int64))
+        return SampleHits.concatenate([first, second, filled]), len(points)
+
+
 def render_mls_cpu(cloud, camera, options, params: MlsParams, renderer) -> RenderResult:
     ss = options.supersample or DEFAULT_SUPERSAMPLE
     check_cpu_samples(camera.width * ss, camera.height * ss)
@@ -371,23 +449,19 @@ def render_mls_cpu(cloud, camera, options, params: MlsParams, renderer) -> Rende
     h, w = cam.height, cam.width
     rot = camera.world_to_eye[:3, :3]
     view = camera.view_matrix(surface.origin)  # eye = view (local)
-    traced = primary_candidates(scene, view, cam)
-    o_eye, d_eye = (rays.reshape(-1, 3)[traced] for rays in cam.rays())
-    to_local = np.linalg.inv(view)
-    origins = o_eye @ to_local[:3, :3].T + to_local[:3, 3]
-    dirs = d_eye @ rot  # rows times R = R^T d
-    t_max = 2.0 * (camera.far + np.linalg.norm(view[:3, 3]))
-    hits = trace(scene, origins, dirs, 0.0, t_max, tolerance, max_iter)
-    found = np.flatnonzero(hits.hit)
-    idx = traced[found]  # what follows is per hit: most rays of a frame miss
-    x_local = origins[found] + hits.t[found, None] * dirs[found]
+    candidates = primary_candidates(scene, view, cam)
+    tracer = FrameTracer(scene, cam, view, params, 2.0 * (camera.far + np.linalg.norm(view[:3, 3])))
+    if params.adaptive and ss > 1:
+        samples, interpolated = tracer.adaptive(candidates, ss)
+    else:
+        samples, interpolated = tracer.trace(candidates), 0
+    idx, x_local, n_hit, albedo = samples.idx, samples.points, samples.normals, samples.albedo
     depth = np.full(h * w, np.inf)
-    depth[idx] = -(x_local @ view[2, :3] + view[2, 3])
-    n_hit = hits.normals[found] @ rot.T
-    n_hit *= np.where(np.sum(n_hit * d_eye[found], axis=1) > 0, -1.0, 1.0)[:, None]  # face the viewer
+    depth[idx] = samples.depth
     n_eye = np.zeros((h * w, 3))
     n_eye[idx] = n_hit
-    albedo = hits.colors[found]
+    t_max = tracer.t_max
+    traced_fits = samples.fits[samples.fits > 0]
     indices = None
     coloring = options.coloring
     colors_of = renderer.surface_colors(cloud, cam, options)
@@ -397,9 +471,10 @@ def render_mls_cpu(cloud, camera, options, params: MlsParams, renderer) -> Rende
     elif coloring is not None:
         albedo = coloring.decode(albedo)
     shaded_hit = shade(options.surface_shading, albedo, n_hit, depth[idx], camera.near, camera.far)
-    stats = {"splats": len(cloud), "rays": int(h * w), "traced": int(traced.size), "hits": int(idx.size),
-             "iterations_mean": round(float(hits.fits[found].mean()), 3) if idx.size else 0.0,
-             "iterations_max": int(hits.fits[found].max()) if idx.size else 0,
+    stats = {"splats": len(cloud), "rays": int(h * w), "candidates": int(candidates.size),
+             "traced": tracer.traced, "interpolated": interpolated, "hits": int(idx.size),
+             "iterations_mean": round(float(traced_fits.mean()), 3) if traced_fits.size else 0.0,
+             "iterations_max": int(traced_fits.max()) if traced_fits.size else 0,
              "point_fit_failures": int((~scene.valid).sum()), "supersample": ss,
              "kernel_width": surface.scale}
     offset = 2.0 * tolerance * surface.scale + 0.25 * surface.scale
@@ -414,7 +489,7 @@ def render_mls_cpu(cloud, camera, options, params: MlsParams, renderer) -> Rende
         stats["shadowed"] = int(shadowed.sum())
     if params.reflect and idx.size:
         reflectivity = params.reflectivity
-        dv = dirs[found]
+        dv = tracer.rays(idx)[1]
         refl = dv - 2 * np.sum(dv * n_world, axis=1)[:, None] * n_world
         bounce = trace(scene, x_local + offset * n_world, refl, 0.0, t_max, tolerance, max_iter)
         seen = environment(refl @ rot.T)

@@ -1,0 +1,125 @@
+"""Adaptive supersampling of the CPU ray tracer: Whitted, "An improved illumination model for
+shaded display" (CACM 1980), section 5: rays at the corners of the pixels first, more rays only
+where the corners disagree.
+
+With s x s samples a pixel (s > 1), the sample in the top-left of pixel (i, j), at row s i and
+column s j of the supersampled image, is its corner. The corners of pixels (i, j), (i, j + 1),
+(i + 1, j) and (i + 1, j + 1) enclose the samples of pixel (i, j). The pixel is smooth when
+all four of them hit one piece of surface:
+    their normals lie within SMOOTH_ANGLE (10 degrees) of their mean normal m;
+    each lies within PLANE_TOL (0.05) l of the plane through their mean point normal to m,
+        l the surface's kernel width (no step, no silhouette of a layer in front);
+    their albedos differ by at most ALBEDO_TOL (1/32) in each channel.
+A smooth pixel's samples are interpolated between its corners, with the bilinear weights
+w_c = (1 - a)(1 - b), (1 - a) b, a (1 - b) and a b for the sample at row s i + s a, column
+s j + s b: normals (made unit again) and albedos bilinearly; points by Phong tessellation
+(Boubekeur & Alexa, "Phong tessellation", SIGGRAPH Asia 2008), which bends the bilinear point
+p towards the corners' tangent planes, p* = (1 - alpha) p + alpha sum w_c pi_c(p), pi_c(p) the
+projection of p onto corner c's tangent plane, alpha = 3/4, so that a depth between corners on
+a curved surface lies on it, not on the chord. Every other pixel's samples are traced. Over a smooth piece of
+surface linear interpolation across a pixel errs by about its curvature times the pixel's
+size squared: shading that varies by 10 degrees of normal across a pixel is off by about
+1/255. Silhouettes, creases, occlusion edges and colour edges are traced sample by sample,
+so the anti-aliasing stays that of the full s x s samples.
+
+On the shared bunny at 512 x 512 with 2 x 2 samples, 102,710 of the 246,731 samples whose rays
+may meet the surface are traced (42%) and the frame takes 1.0 s instead of 2.2 s on 2 cores;
+the picture lies 61.7 dB PSNR from tracing every sample (at most 8/255 in a channel), and
+surfel compare's PSNR against the mesh of ten models, front and oblique, moved by -0.07
+to +0.17 dB. `MlsParams.adaptive` False (`--no-adaptive`) traces every sample.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+SMOOTH_ANGLE = 10.0  # degrees: the corners' normals within this of their mean
+PLANE_TOL = 0.05     # the corners within this many kernel widths of their mean plane
+ALBEDO_TOL = 1 / 32  # the corners' albedos within this of each other, per channel
+PHONG_SHAPE = 0.75   # Phong tessellation's shape factor alpha (Boubekeur & Alexa's choice)
+
+
+@numba.njit(cache=True, parallel=True)
+def _smooth_pixels(hit, points, normals, albedo, plane_bound, cos_limit, albedo_tol):  # pragma: no cover
+    h, w = hit.shape
+    smooth = np.zeros((h, w), np.bool_)
+    for i in numba.prange(h - 1):
+        for j in range(w - 1):
+            if not (hit[i, j] and hit[i, j + 1] and hit[i + 1, j] and hit[i + 1, j + 1]):
+                continue
+            ok = True
+            m = np.zeros(3)
+            c = np.zeros(3)
+            for a in range(2):
+                for b in range(2):
+                    for k in range(3):
+                        m[k] += normals[i + a, j + b, k]
+                        c[k] += 0.25 * points[i + a, j + b, k]
+                        spread = abs(albedo[i + a, j + b, k] - albedo[i, j, k])
+                        ok = ok and spread <= albedo_tol
+            length = math.sqrt(m[0] * m[0] + m[1] * m[1] + m[2] * m[2])
+            if not ok or length <= 0.0:
+                continue
+            for a in range(2):
+                for b in range(2):
+                    along = offset = 0.0
+                    for k in range(3):
+                        along += normals[i + a, j + b, k] * m[k]
+                        offset += (points[i + a, j + b, k] - c[k]) * m[k]
+                    ok = ok and along >= cos_limit * length and abs(offset) <= plane_bound * length
+            smooth[i, j] = ok
+    return smooth
+
+
+def smooth_pixels(hit: np.ndarray, points: np.ndarray, normals: np.ndarray, albedo: np.ndarray,
+                  width: float) -> np.ndarray:
+    """(H, W) bool: the pixels whose samples may be interpolated, from their corners' (H, W)
+    hits and (H, W, 3) eye-space points, unit normals and albedos; `width` the kernel width l.
+    The last row and column have no corners below or right of them: never smooth."""
+    return _smooth_pixels(hit, points, normals, albedo, PLANE_TOL * width, math.cos(math.radians(SMOOTH_ANGLE)),
+                          ALBEDO_TOL)
+
+
+@numba.njit(cache=True, parallel=True)
+def interpolate(points, normals, albedo, pixel_rows, pixel_cols, s):  # pragma: no cover - compiled
+    """The samples of the pixels (pixel_rows[n], pixel_cols[n]), each with corners on all four
+    sides, but their corners, in row-major order within each pixel: (N (s^2 - 1), 3) points,
+    unit normals and albedos interpolated between the (H, W, 3) corner values (module
+    docstring: points by Phong tessellation, the others bilinearly)."""
+    per_pixel = s * s - 1
+    count = len(pixel_rows) * per_pixel
+    out_points, out_normals, out_albedo = np.empty((count, 3)), np.empty((count, 3)), np.empty((count, 3))
+    weights = np.empty(4)
+    for n in numba.prange(len(pixel_rows)):
+        i, j = pixel_rows[n], pixel_cols[n]
+        for q in range(per_pixel):
+            a = ((q + 1) // s) / s
+            b = ((q + 1) % s) / s
+            weights[0], weights[1], weights[2], weights[3] = (1 - a) * (1 - b), (1 - a) * b, a * (1 - b), a * b
+            out = n * per_pixel + q
+            linear = np.zeros(3)
+            length = 0.0
+            for k in range(3):
+                nk = albedo_k = 0.0
+                for c in range(4):
+                    ci, cj = i + c // 2, j + c % 2
+                    linear[k] += weights[c] * points[ci, cj, k]
+                    nk += weights[c] * normals[ci, cj, k]
+                    albedo_k += weights[c] * albedo[ci, cj, k]
+                out_normals[out, k] = nk
+                out_albedo[out, k] = albedo_k
+                length += nk * nk
+            for k in range(3):
+                out_normals[out, k] /= math.sqrt(length)
+                out_points[out, k] = (1 - PHONG_SHAPE) * linear[k]
+            for c in range(4):  # the linear point projected onto each corner's tangent plane
+                ci, cj = i + c // 2, j + c % 2
+                height = 0.0
+                for k in range(3):
+                    height += (linear[k] - points[ci, cj, k]) * normals[ci, cj, k]
+                for k in range(3):
+                    out_points[out, k] += PHONG_SHAPE * weights[c] * (linear[k] - height * normals[ci, cj, k])
+    return out_points, out_normals, out_albedo
