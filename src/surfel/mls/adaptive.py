@@ -12,15 +12,17 @@ all four of them hit one piece of surface:
     their albedos differ by at most ALBEDO_TOL (1/32) in each channel.
 A smooth pixel's samples are interpolated between its corners, with the bilinear weights
 w_c = (1 - a)(1 - b), (1 - a) b, a (1 - b) and a b for the sample at row s i + s a, column
-s j + s b: normals (made unit again) and albedos bilinearly; points by Phong tessellation
-(Boubekeur & Alexa, "Phong tessellation", SIGGRAPH Asia 2008), which bends the bilinear point
-p towards the corners' tangent planes, p* = (1 - alpha) p + alpha sum w_c pi_c(p), pi_c(p) the
-projection of p onto corner c's tangent plane, alpha = 3/4, so that a depth between corners on
-a curved surface lies on it, not on the chord. Every other pixel's samples are traced. Over a smooth piece of
-surface linear interpolation across a pixel errs by about its curvature times the pixel's
-size squared: shading that varies by 10 degrees of normal across a pixel is off by about
-1/255. Silhouettes, creases, occlusion edges and colour edges are traced sample by sample,
-so the anti-aliasing stays that of the full s x s samples.
+s j + s b: normals (made unit again) and albedos bilinearly, which over a smooth piece errs by
+about 1/255 in shading where the normal turns by 10 degrees across the pixel; points by Phong
+tessellation (Boubekeur & Alexa, "Phong tessellation", SIGGRAPH Asia 2008), which bends the
+bilinear point p towards the corners' tangent planes,
+
+    p* = (1 - alpha) p + alpha sum_c w_c pi_c(p),   alpha = 3/4,
+
+pi_c(p) the projection of p onto corner c's tangent plane, so that a depth between corners on
+a curved surface lies on it, not on their chord (a sphere's depths: 5e-6 of the depth from
+tracing, 3e-5 on the chords). Every other pixel's samples are traced: silhouettes, creases,
+occlusion edges and colour edges keep the anti-aliasing of the full s x s samples.
 
 On the shared bunny at 512 x 512 with 2 x 2 samples, 102,710 of the 246,731 samples whose rays
 may meet the surface are traced (42%) and the frame takes 1.0 s instead of 2.2 s on 2 cores;
@@ -51,25 +53,25 @@ def _smooth_pixels(hit, points, normals, albedo, plane_bound, cos_limit, albedo_
             if not (hit[i, j] and hit[i, j + 1] and hit[i + 1, j] and hit[i + 1, j + 1]):
                 continue
             ok = True
-            m = np.zeros(3)
-            c = np.zeros(3)
-            for a in range(2):
-                for b in range(2):
-                    for k in range(3):
-                        m[k] += normals[i + a, j + b, k]
-                        c[k] += 0.25 * points[i + a, j + b, k]
-                        spread = abs(albedo[i + a, j + b, k] - albedo[i, j, k])
-                        ok = ok and spread <= albedo_tol
-            length = math.sqrt(m[0] * m[0] + m[1] * m[1] + m[2] * m[2])
+            for k in range(3):  # albedo spread, channel by channel
+                lo = min(albedo[i, j, k], albedo[i, j + 1, k], albedo[i + 1, j, k], albedo[i + 1, j + 1, k])
+                hi = max(albedo[i, j, k], albedo[i, j + 1, k], albedo[i + 1, j, k], albedo[i + 1, j + 1, k])
+                ok = ok and hi - lo <= albedo_tol
+            mx = normals[i, j, 0] + normals[i, j + 1, 0] + normals[i + 1, j, 0] + normals[i + 1, j + 1, 0]
+            my = normals[i, j, 1] + normals[i, j + 1, 1] + normals[i + 1, j, 1] + normals[i + 1, j + 1, 1]
+            mz = normals[i, j, 2] + normals[i, j + 1, 2] + normals[i + 1, j, 2] + normals[i + 1, j + 1, 2]
+            length = math.sqrt(mx * mx + my * my + mz * mz)
             if not ok or length <= 0.0:
                 continue
-            for a in range(2):
-                for b in range(2):
-                    along = offset = 0.0
-                    for k in range(3):
-                        along += normals[i + a, j + b, k] * m[k]
-                        offset += (points[i + a, j + b, k] - c[k]) * m[k]
-                    ok = ok and along >= cos_limit * length and abs(offset) <= plane_bound * length
+            mx, my, mz = mx / length, my / length, mz / length
+            cx = 0.25 * (points[i, j, 0] + points[i, j + 1, 0] + points[i + 1, j, 0] + points[i + 1, j + 1, 0])
+            cy = 0.25 * (points[i, j, 1] + points[i, j + 1, 1] + points[i + 1, j, 1] + points[i + 1, j + 1, 1])
+            cz = 0.25 * (points[i, j, 2] + points[i, j + 1, 2] + points[i + 1, j, 2] + points[i + 1, j + 1, 2])
+            for a in range(i, i + 2):
+                for b in range(j, j + 2):
+                    along = normals[a, b, 0] * mx + normals[a, b, 1] * my + normals[a, b, 2] * mz
+                    offset = (points[a, b, 0] - cx) * mx + (points[a, b, 1] - cy) * my + (points[a, b, 2] - cz) * mz
+                    ok = ok and along >= cos_limit and abs(offset) <= plane_bound
             smooth[i, j] = ok
     return smooth
 
