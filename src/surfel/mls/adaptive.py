@@ -94,34 +94,34 @@ def interpolate(points, normals, albedo, pixel_rows, pixel_cols, s):  # pragma: 
     per_pixel = s * s - 1
     count = len(pixel_rows) * per_pixel
     out_points, out_normals, out_albedo = np.empty((count, 3)), np.empty((count, 3)), np.empty((count, 3))
-    weights = np.empty(4)
     for n in numba.prange(len(pixel_rows)):
         i, j = pixel_rows[n], pixel_cols[n]
         for q in range(per_pixel):
             a = ((q + 1) // s) / s
             b = ((q + 1) % s) / s
-            weights[0], weights[1], weights[2], weights[3] = (1 - a) * (1 - b), (1 - a) * b, a * (1 - b), a * b
             out = n * per_pixel + q
-            linear = np.zeros(3)
-            length = 0.0
+            for k in range(3):  # bilinear: corners (i, j), (i, j + 1), (i + 1, j), (i + 1, j + 1)
+                out_points[out, k] = _bilinear(points, i, j, k, a, b)
+                out_normals[out, k] = _bilinear(normals, i, j, k, a, b)
+                out_albedo[out, k] = _bilinear(albedo, i, j, k, a, b)
+            length = math.sqrt(out_normals[out, 0] ** 2 + out_normals[out, 1] ** 2 + out_normals[out, 2] ** 2)
+            px, py, pz = out_points[out, 0], out_points[out, 1], out_points[out, 2]
             for k in range(3):
-                nk = albedo_k = 0.0
-                for c in range(4):
-                    ci, cj = i + c // 2, j + c % 2
-                    linear[k] += weights[c] * points[ci, cj, k]
-                    nk += weights[c] * normals[ci, cj, k]
-                    albedo_k += weights[c] * albedo[ci, cj, k]
-                out_normals[out, k] = nk
-                out_albedo[out, k] = albedo_k
-                length += nk * nk
-            for k in range(3):
-                out_normals[out, k] /= math.sqrt(length)
-                out_points[out, k] = (1 - PHONG_SHAPE) * linear[k]
-            for c in range(4):  # the linear point projected onto each corner's tangent plane
+                out_normals[out, k] /= length
+                out_points[out, k] *= 1 - PHONG_SHAPE
+            for c in range(4):  # the bilinear point projected onto each corner's tangent plane
                 ci, cj = i + c // 2, j + c % 2
-                height = 0.0
-                for k in range(3):
-                    height += (linear[k] - points[ci, cj, k]) * normals[ci, cj, k]
-                for k in range(3):
-                    out_points[out, k] += PHONG_SHAPE * weights[c] * (linear[k] - height * normals[ci, cj, k])
+                weight = PHONG_SHAPE * (a if c // 2 else 1 - a) * (b if c % 2 else 1 - b)
+                height = ((px - points[ci, cj, 0]) * normals[ci, cj, 0] + (py - points[ci, cj, 1]) * normals[ci, cj, 1]
+                          + (pz - points[ci, cj, 2]) * normals[ci, cj, 2])
+                out_points[out, 0] += weight * (px - height * normals[ci, cj, 0])
+                out_points[out, 1] += weight * (py - height * normals[ci, cj, 1])
+                out_points[out, 2] += weight * (pz - height * normals[ci, cj, 2])
     return out_points, out_normals, out_albedo
+
+
+@numba.njit(cache=True, inline="always")
+def _bilinear(values, i, j, k, a, b):  # pragma: no cover - compiled
+    """Channel k of the (H, W, C) values at the fraction (a, b) of the way from (i, j) to (i + 1, j + 1)."""
+    return ((1 - a) * ((1 - b) * values[i, j, k] + b * values[i, j + 1, k])
+            + a * ((1 - b) * values[i + 1, j, k] + b * values[i + 1, j + 1, k]))
