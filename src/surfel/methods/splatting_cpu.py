@@ -208,7 +208,8 @@ def _render_cpu(cloud, camera, options, params, renderer, *, per_splat_shading: 
     per_splat = per_splat_shading and not categorical
     lowpass = np.float32(params.lowpass_radius * ss if params.ewa_filter else 0.0)
     m = _camera(target, cloud.local_origin)
-    bins.bound_splats(buffers.packed, buffers.extras, m, np.float32(params.radius_scale), lowpass,
+    clip = buffers.extras if "clip_lines" in cloud.attributes else None  # the kernels' CLIP_LINES
+    bins.bound_splats(buffers.packed, clip, m, np.float32(params.radius_scale), lowpass,
                       params.backface_culling, width, height, buffers.box, buffers.tiles_x, buffers.counts,
                       buffers.bounds)
     buffers.bin()
@@ -223,7 +224,7 @@ def _render_cpu(cloud, camera, options, params, renderer, *, per_splat_shading: 
     k.rasterize_tiles(buffers.packed, buffers.extras, buffers.box, buffers.index, buffers.tile_start,
                       buffers.tile_count, buffers.order, buffers.tiles_x, width, height, m,
                       np.float32(params.radius_scale), lowpass, np.float32(params.depth_offset),
-                      np.float32(DEPTH_CLAMP), buffers.extras, buffers.extras if curved else None,
+                      np.float32(DEPTH_CLAMP), clip, buffers.extras if curved else None,
                       buffers.extras if normal_field else None,
                       model if per_splat else -1,
                       -1 if per_splat else model, color_mode, palette, levels, background, composite,

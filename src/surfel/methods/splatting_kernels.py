@@ -58,7 +58,6 @@ from .splatting_tiles import (
     EC0,
     EC1,
     EX,
-    EXTRAS,
     EY,
     EZ,
     FLAT_FIELD,
@@ -238,10 +237,11 @@ def _staged(table, j):
 
 @nb.njit(fastmath=True, error_model="numpy")
 def _setup_tile(table, ibox, count, ox, oy, m, radius_scale, lowpass2, depth_offset, ewa_filter, clip_src,
-                field_src, back_light):
+                field_src, normal_src, back_light):
     """The records of a tile's `count` staged splats, block by block (SIMD), with each box made
-    tile-local and clipped to the tile. `clip_src`, `field_src`: the extras, or None where the
-    cloud has no clip lines or no normal field is drawn (then their rows are left alone)."""
+    tile-local and clipped to the tile. `clip_src`, `field_src`, `normal_src`: the extras, or
+    None where the cloud has no clip lines, no normal field curves the splats, or none shades
+    them (`rasterize_tiles`; then their rows are left alone)."""
     curved = field_src is not None
     scale = np.float32(1.0) / radius_scale
     cam = camera_scalars(m)
@@ -261,12 +261,14 @@ def _setup_tile(table, ibox, count, ox, oy, m, radius_scale, lowpass2, depth_off
                 (table[j + ROW[C0A]], table[j + ROW[C0B]], table[j + ROW[C0C]], table[j + ROW[C1A]],
                  table[j + ROW[C1B]], table[j + ROW[C1C]]) = (e[EA0], e[EB0], e[EC0] * scale, e[EA1], e[EB1],
                                                               e[EC1] * scale)
-            if field_src is not None:
+            if field_src is not None:  # the curved splat
                 (table[j + ROW[KU]], table[j + ROW[KV]], table[j + ROW[LU]], table[j + ROW[LV]],
                  table[j + ROW[A10]], table[j + ROW[A1X]], table[j + ROW[A1Y]], table[j + ROW[B10]],
-                 table[j + ROW[B1X]], table[j + ROW[B1Y]], table[j + ROW[FUX]], table[j + ROW[FUY]],
-                 table[j + ROW[FUZ]], table[j + ROW[FVX]], table[j + ROW[FVY]], table[j + ROW[FVZ]],
-                 table[j + ROW[EX]], table[j + ROW[EY]], table[j + ROW[EZ]]) = field
+                 table[j + ROW[B1X]], table[j + ROW[B1Y]]) = field[:10]
+            if field_src is not None and normal_src is not None:  # and its normals (`phong`)
+                (table[j + ROW[FUX]], table[j + ROW[FUY]], table[j + ROW[FUZ]], table[j + ROW[FVX]],
+                 table[j + ROW[FVY]], table[j + ROW[FVZ]], table[j + ROW[EX]], table[j + ROW[EY]],
+                 table[j + ROW[EZ]]) = field[10:]
             # the box in tile-local pixels, clipped to the tile
             ibox[jb + TEMP[0]] = max(ibox[jb + TEMP[0]] - ox, 0)
             ibox[jb + TEMP[1]] = min(ibox[jb + TEMP[1]] - ox, TILE - 1)
@@ -341,10 +343,11 @@ def rasterize_tiles(packed, extras, box, index, tile_start, tile_count, order, t
     (threads, STRIDE²), accum (threads, LAYER, STRIDE²).
     clip_src, field_src, normal_src: the extras where splats are clipped, where they are curved
     by their normal fields, where they are shaded with them too (`phong`); else None, which
-    compiles a kernel without that arithmetic. The renderer clips wherever it has the extras
-    (inactive lines where the cloud has none): a curved cloud without clip lines then shares the
-    kernel of one with them (a signature costs about 30 s to compile), while a plain cloud keeps
-    the kernel without extras.
+    compiles a kernel without that arithmetic, and stages only the extras it reads. The renderer
+    clips where the cloud has clip lines, as the GPU's CLIP_LINES variant: clipping by inactive
+    lines (which cut nothing) and staging the rows nothing reads made `deferred` and `phong`
+    frames of a curved cloud without clip lines a tenth longer (1M splats, `surfel bench`), more
+    than the 30 s its signature takes to compile once is worth saving.
     per_splat_model / deferred_model: the shading.MODEL_IDS value applied per splat
     (`gaussian`) or per pixel (`deferred`, `phong`, and every method in a categorical colour
     mode), -1 for the other. color_mode: COLOR_RGB, COLOR_CONTINUOUS (`palette` the colour map's
@@ -378,13 +381,16 @@ def rasterize_tiles(packed, extras, box, index, tile_start, tile_count, order, t
             j, jb = table_slot(slot, TABLE_ROWS), table_slot(slot, 4)
             for col in range(PACKED):
                 table[j + np.uint64(col * BLOCK)] = packed[col, i]
-            if extras is not None:
-                for col in range(EXTRAS):
+            if clip_src is not None:  # only the extras this kernel reads
+                for col in range(EA0, EC1 + 1):
+                    table[j + np.uint64((PACKED + col) * BLOCK)] = extras[col, i]
+            if field_src is not None:
+                for col in range(EALPHA, EBETA + 1):
                     table[j + np.uint64((PACKED + col) * BLOCK)] = extras[col, i]
             for col in range(4):
                 ibox[jb + np.uint64(col * BLOCK)] = box[col, i]
         _setup_tile(table, ibox, count, ox, oy, m, radius_scale, lowpass2, depth_offset, ewa_filter, clip_src,
-                    field_src, per_splat_model < 0)
+                    field_src, normal_src, per_splat_model < 0)
         if per_splat_model >= 0:  # Botsch & Kobbelt 2003: each splat's colour shaded, then blended
             for slot in range(count):
                 j = table_slot(slot, TABLE_ROWS)
