@@ -48,6 +48,7 @@ from .splatting_tiles import (
     C1A,
     C1B,
     C1C,
+    CURVE_VALUES,
     CZ,
     EA0,
     EA1,
@@ -264,11 +265,11 @@ def _setup_tile(table, ibox, count, ox, oy, m, radius_scale, lowpass2, depth_off
             if field_src is not None:  # the curved splat
                 (table[j + ROW[KU]], table[j + ROW[KV]], table[j + ROW[LU]], table[j + ROW[LV]],
                  table[j + ROW[A10]], table[j + ROW[A1X]], table[j + ROW[A1Y]], table[j + ROW[B10]],
-                 table[j + ROW[B1X]], table[j + ROW[B1Y]]) = field[:10]
+                 table[j + ROW[B1X]], table[j + ROW[B1Y]]) = field[:CURVE_VALUES]
             if field_src is not None and normal_src is not None:  # and its normals (`phong`)
                 (table[j + ROW[FUX]], table[j + ROW[FUY]], table[j + ROW[FUZ]], table[j + ROW[FVX]],
                  table[j + ROW[FVY]], table[j + ROW[FVZ]], table[j + ROW[EX]], table[j + ROW[EY]],
-                 table[j + ROW[EZ]]) = field[10:]
+                 table[j + ROW[EZ]]) = field[CURVE_VALUES:]
             # the box in tile-local pixels, clipped to the tile
             ibox[jb + TEMP[0]] = max(ibox[jb + TEMP[0]] - ox, 0)
             ibox[jb + TEMP[1]] = min(ibox[jb + TEMP[1]] - ox, TILE - 1)
@@ -345,9 +346,9 @@ def rasterize_tiles(packed, extras, box, index, tile_start, tile_count, order, t
     by their normal fields, where they are shaded with them too (`phong`); else None, which
     compiles a kernel without that arithmetic, and stages only the extras it reads. The renderer
     clips where the cloud has clip lines, as the GPU's CLIP_LINES variant: clipping by inactive
-    lines (which cut nothing) and staging the rows nothing reads made `deferred` and `phong`
-    frames of a curved cloud without clip lines a tenth longer (1M splats, `surfel bench`), more
-    than the 30 s its signature takes to compile once is worth saving.
+    lines (which cut nothing) and staging rows that nothing reads made the `deferred` and `phong`
+    frames of a curved cloud without clip lines a tenth longer (1M splats, `surfel bench`), which
+    outweighs the 30 s that their own signature takes to compile, once.
     per_splat_model / deferred_model: the shading.MODEL_IDS value applied per splat
     (`gaussian`) or per pixel (`deferred`, `phong`, and every method in a categorical colour
     mode), -1 for the other. color_mode: COLOR_RGB, COLOR_CONTINUOUS (`palette` the colour map's

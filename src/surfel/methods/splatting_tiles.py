@@ -63,6 +63,7 @@ STAGED = PACKED + EXTRAS
 # slopes alpha e_u (FU*) and beta e_v (FV*); the unit direction to the eye (E*).
 (KU, KV, LU, LV, A10, A1X, A1Y, B10, B1X, B1Y, FUX, FUY, FUZ, FVX, FVY, FVZ, EX, EY, EZ) = range(C1C + 1,
                                                                                                  C1C + 20)
+CURVE_VALUES = B1Y - KU + 1  # KU..B1Y: what curves the splat; the rest shade it (`phong`)
 TABLE_ROWS = EZ + 1
 BLOCK_BITS = 6
 BLOCK = 1 << BLOCK_BITS
