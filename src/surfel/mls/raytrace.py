@@ -447,8 +447,8 @@ def render_mls_cpu(cloud, camera, options, params: MlsParams, renderer) -> Rende
     surface = scene.surface
     cam = supersampled(camera, ss)
     h, w = cam.height, cam.width
-    rot = camera.world_to_eye[:3, :3]
     view = camera.view_matrix(surface.origin)  # eye = view (local)
+    rot = view[:3, :3]  # local (and world) directions to eye space, as FrameTracer turns them
     candidates = primary_candidates(scene, view, cam)
     tracer = FrameTracer(scene, cam, view, params, 2.0 * (camera.far + np.linalg.norm(view[:3, 3])))
     if params.adaptive and ss > 1:
