@@ -288,6 +288,33 @@ def test_open_sheets_end_at_their_border():
     assert covered_by(whole, everything, beyond).mean() > 0.5
 
 
+def test_thin_closed_parts_end_at_their_rim():
+    """A thin closed part (a cut-out figure, a tail: two sides 0.4 spacings apart, facing away
+    from each other) ends at its rim as an open sheet does: the far side's samples close no
+    border gap, so neither side spills past the rim, and the border line moves out as far as
+    the far side reaches, so the narrower side still covers up to the wider one's rim."""
+    h = 0.05
+    top = _open_sheet(h)
+    wider = 1 + 0.5 * h  # the bottom side reaches half a spacing further in x
+    bottom = top.positions * [wider, 1.0, 1.0] - [0.0, 0.0, 0.4 * h]
+    cloud = PointCloud(np.concatenate([top.positions, bottom]),
+                       normals=np.concatenate([top.normals, -top.normals]))
+    prepared, _ = prepare(cloud)
+    rng = np.random.default_rng(15)
+    everything = np.arange(len(prepared))
+    beyond = np.stack([rng.uniform(wider + 0.05 * h, 1 + 2 * h, 4000), rng.uniform(0.1, 0.9, 4000), np.zeros(4000)], 1)
+    assert covered_by(prepared, everything, beyond).mean() < 0.01
+    inside = np.stack([rng.uniform(0, 1, 20000), rng.uniform(0, 1, 20000), np.zeros(20000)], 1)
+    top_side = np.arange(len(top.positions))
+    assert covered_by(prepared, top_side, inside).all()
+    between_rims = np.stack([rng.uniform(1 + 0.05 * h, wider - 0.05 * h, 2000), rng.uniform(0.1, 0.9, 2000),
+                             np.zeros(2000)], 1)
+    assert covered_by(prepared, top_side, between_rims).mean() > 0.95
+    inactive = np.broadcast_to(np.float32(INACTIVE_CLIP), prepared.attributes["clip_lines"].shape)
+    whole = prepared.with_(attributes={**prepared.attributes, "clip_lines": inactive})
+    assert covered_by(whole, everything, beyond).mean() > 0.5
+
+
 def test_closed_surfaces_and_aerial_scans_have_no_borders():
     """Neither a sphere, nor a sampling much denser on one side than the other, nor aerial
     LiDAR scan lines 30 times farther apart than the points on a line has border lines; the
@@ -329,8 +356,9 @@ def test_compiled_border_and_cap_kernels_match_numpy():
         normals = np.tile([0.0, 0.0, 1.0], (len(nbh.points), 1))
         frames = orthonormal_basis(normals)
         rows = np.arange(len(nbh.points))
-        got = borders._border_outwards(nbh.points, normals, nbh.index, rows, frames, cells.SHEET_COS,
-                                       np.full(len(nbh.points), np.inf))
+        got, reach = borders._border_outwards(nbh.points, normals, nbh.index, rows, frames, cells.SHEET_COS,
+                                              borders.FLAT_SIN2, np.full(len(nbh.points), np.inf))
+        assert not reach.any()  # no fold: every normal faces one way
         d = nbh.points[nbh.index] - nbh.points[:, None]
         angles = np.sort(np.arctan2(np.einsum("nkj,nj->nk", d, frames[:, 1]),
                                     np.einsum("nkj,nj->nk", d, frames[:, 0]))[:, 1:], axis=1)
@@ -484,7 +512,7 @@ def test_a_border_beside_an_inner_corner_points_straight_out():
     points = np.c_[shape + jitter, np.zeros(len(shape))]
     nbh = Neighbourhood.build(points, 16, progress=False)
     normals = np.tile([0.0, 0, 1], (len(points), 1))
-    outwards = borders.border_outwards(nbh, normals, nbh.first(cells.RADIUS_NEIGHBOURS), False)
+    outwards, _ = borders.border_outwards(nbh, normals, nbh.first(cells.RADIUS_NEIGHBOURS), False)
     p = nbh.sort(points)
     on_border = outwards.any(axis=1)
     for edge, normal in [((p[:, 1] > 10.5) & (p[:, 0] > 14) & (p[:, 0] < 55), [0.0, 1.0]),  # top of the foot
@@ -518,19 +546,20 @@ def test_settled_candidates_keep_the_borders_of_the_full_confirmation():
         normals = unit(nbh.points) if normals is None else normals
         index = nbh.first(cells.RADIUS_NEIGHBOURS)
         layers = layer_thickness(nbh.points, normals, index)
-        got = borders.border_outwards(nbh, normals, index, False, layers)
+        got, _ = borders.border_outwards(nbh, normals, index, False, layers)
         rows = np.arange(len(nbh.points))
-        first = borders._border_outwards(nbh.points, normals, index, rows, orthonormal_basis(normals), cells.SHEET_COS,
-                                         layers)
+        first, _ = borders._border_outwards(nbh.points, normals, index, rows, orthonormal_basis(normals),
+                                            cells.SHEET_COS, borders.FLAT_SIN2, layers)
         candidates = np.flatnonzero(first.any(axis=1))
         expected = first.copy()
-        wide = borders._border_outwards(nbh.points, normals, nbh.nearest(candidates, 64), candidates,
-                                        orthonormal_basis(normals[candidates]), cells.SHEET_COS, layers)
+        wide, _ = borders._border_outwards(nbh.points, normals, nbh.nearest(candidates, 64), candidates,
+                                           orthonormal_basis(normals[candidates]), cells.SHEET_COS, borders.FLAT_SIN2,
+                                           layers)
         expected[candidates[~wide.any(axis=1)]] = 0.0  # confirmed ones keep their nearest neighbours' direction
         assert np.array_equal(got, expected)
         sure, count = nbh.within(candidates, borders.BORDER_CONFIRM)
         settled = borders._settled(nbh.points, normals, sure, count, candidates, orthonormal_basis(normals[candidates]),
-                                   cells.SHEET_COS, layers)
+                                   cells.SHEET_COS, borders.FLAT_SIN2, layers)
         assert not expected[candidates[settled]].any()
         confirmed = expected[candidates].any(axis=1)
         tally += [settled.sum(), confirmed.sum(), (~settled & ~confirmed).sum()]

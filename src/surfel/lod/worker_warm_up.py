@@ -57,7 +57,7 @@ def neighbours() -> None:
     nbh, normals = _neighbourhood()
     features = find_sharp_features(nbh, normals, RADIUS_NEIGHBOURS)
     axes = tangent_frames(np.array(normals), np.ones(len(normals)))  # writable, as complete's normals are
-    clip_lines(nbh, normals, axes, features, np.zeros((len(normals), 3)), False)
+    clip_lines(nbh, normals, axes, features, np.zeros((len(normals), 3)), np.zeros(len(normals)), False)
 
 
 def borders() -> None:

@@ -51,8 +51,9 @@ creases: `sharp_features.py`):
     module: numba's on-disk cache does not see a change to a function in another file.
 
 Borders of open surfaces (`borders.py`, as the boundary clipping of Pauly et al. 2003):
-    the border line (X - q) . w_q <= 0 through each border point q, across its outward
-    direction w_q, is a clip-line candidate of every splat near it, beside the creases.
+    the border line (X - q) . w_q <= f_q across each border point q's outward direction w_q,
+    through q moved out by its fold's reach f_q (0 on an open sheet), is a clip-line candidate
+    of every splat near it, beside the creases.
 """
 
 from __future__ import annotations
@@ -419,16 +420,16 @@ def _crease_candidates(points, normals, index, axes, i, p, features, candidates)
 
 
 @numba.njit(cache=True, inline="always")
-def _border_candidates(points, index, axes, i, p, outwards, candidates, count):  # pragma: no cover - compiled
+def _border_candidates(points, index, axes, i, p, outwards, reach, candidates, count):  # pragma: no cover - compiled
     """Append the border half-planes that cut splat p as unit (a, b, c) rows of candidates in its
     axes (u, v) = axes[i]: for each neighbour q on a border (its own included), the side of the
-    line through q across its outward direction w_q that holds the surface,
-    (p + u u_axis + v v_axis - q) . w_q <= 0. Returns the new count."""
+    line across its outward direction w_q, reach[q] beyond q, that holds the surface,
+    (p + u u_axis + v v_axis - q) . w_q <= reach[q]. Returns the new count."""
     for j in range(index.shape[1]):
         q = index[i, j]
         wa = 0.0
         wb = 0.0
-        inside = 0.0
+        inside = reach[q]
         for a in range(3):
             wa += axes[i, 0, a] * outwards[q, a]
             wb += axes[i, 1, a] * outwards[q, a]
@@ -463,7 +464,7 @@ def _nearest_creases(candidates, count, lines, i):  # pragma: no cover - compile
 
 
 @numba.njit(parallel=True, cache=True)
-def _clip_lines(points, normals, index, start, axes, features, outwards):  # pragma: no cover - compiled
+def _clip_lines(points, normals, index, start, axes, features, outwards, reach):  # pragma: no cover - compiled
     """CLIP_LINES clip lines (a, b, c) per splat, in its local coordinates (u, v) (1 on the rim):
     the crease half-planes that end its cell and the border lines of its neighbours (`outwards`).
     A dropped splat keeps nothing (u <= -2, -u <= -2)."""
@@ -480,7 +481,7 @@ def _clip_lines(points, normals, index, start, axes, features, outwards):  # pra
                 lines[i, line, 2] = -2.0 if dropped else INACTIVE_CLIP[2]
             if not dropped:
                 count = _crease_candidates(points, normals, index, axes, i, p, features, candidates)
-                count = _border_candidates(points, index, axes, i, p, outwards, candidates, count)
+                count = _border_candidates(points, index, axes, i, p, outwards, reach, candidates, count)
                 _nearest_creases(candidates, count, lines, i)
     return lines
 
@@ -544,16 +545,18 @@ def covering_ellipses(nbh: Neighbourhood, normals: np.ndarray, progress: bool | 
 
 
 def clip_lines(nbh: Neighbourhood, normals: np.ndarray, axes: np.ndarray, features: SharpFeatures,
-               outwards: np.ndarray, progress: bool | None, k: int = RADIUS_NEIGHBOURS) -> np.ndarray:
+               outwards: np.ndarray, reach: np.ndarray, progress: bool | None,
+               k: int = RADIUS_NEIGHBOURS) -> np.ndarray:
     """Clip lines (N, CLIP_LINES, 3) float32 of the splats (normals, axes), in the
     neighbourhood's order: at creases, and at the borders of open surfaces given by `outwards`
-    (N, 3), the border points' outward directions (`borders.border_outwards`), zero elsewhere."""
+    (N, 3), the border points' outward directions, zero elsewhere, and `reach` (N,), their
+    folds' reach (`borders.border_outwards`)."""
     index = nbh.first(k)
     normals = unit(normals)
 
     def chunk(start: int, stop: int) -> np.ndarray:
         return _clip_lines(nbh.points, normals, index[start:stop], start, np.asarray(axes[start:stop], np.float64),
-                           features, outwards)
+                           features, outwards, reach)
 
     return map_chunks(chunk, len(nbh.points), progress, "sharp features")
 

@@ -211,9 +211,9 @@ def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np
     changes = {name: nbh.unsort(np.asarray(value, np.float32)) for name, value in estimated.items()}
     if features is not None:
         # aerial scan lines look like borders (borders.py)
-        outwards = (np.zeros((len(nbh.points), 3)) if cloud.geospatial
-                    else border_outwards(nbh, unit_normals, nbh.first(RADIUS_NEIGHBOURS), progress, thickness))
-        lines = clip_lines(nbh, unit_normals, axes, features, outwards, progress)
+        outwards, reach = ((np.zeros((len(nbh.points), 3)), np.zeros(len(nbh.points))) if cloud.geospatial
+                           else border_outwards(nbh, unit_normals, nbh.first(RADIUS_NEIGHBOURS), progress, thickness))
+        lines = clip_lines(nbh, unit_normals, axes, features, outwards, reach, progress)
         if facing is not None:
             lines[facing] = INACTIVE_CLIP  # a disk facing the camera has no crease to end at
         attributes["clip_lines"] = nbh.unsort(lines)
