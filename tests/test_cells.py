@@ -315,6 +315,28 @@ def test_thin_closed_parts_end_at_their_rim():
     assert covered_by(whole, everything, beyond).mean() > 0.5
 
 
+def test_a_noisy_scan_moves_its_border_lines_out():
+    """A raw scan's last samples lie short of its edge: where the normals were estimated on a
+    noisy cloud, its border lines lie NOISY_MARGIN further out than those of the same cloud
+    given the normals it estimated, and it covers more of the strip past its last samples."""
+    from surfel.preprocess import borders
+
+    h = 0.05
+    sheet = _open_sheet(h)
+    rng = np.random.default_rng(16)
+    noisy = sheet.positions + np.c_[np.zeros((len(sheet), 2)), rng.normal(0, 0.15 * h, len(sheet))]
+    estimated, report = prepare(PointCloud(noisy))
+    assert "noisy" in report["normals"]
+    given, _ = prepare(PointCloud(noisy, normals=estimated.normals))
+    out, kept = estimated.attributes["clip_lines"][:, 0], given.attributes["clip_lines"][:, 0]
+    border = (out[:, 2] < 1) & (kept[:, 2] < 1)
+    assert border.sum() > 40
+    assert np.allclose(out[border, 2] - kept[border, 2], borders.NOISY_MARGIN, atol=1e-5)
+    everything = np.arange(len(noisy))
+    strip = np.stack([rng.uniform(1, 1 + 0.1 * h, 2000), rng.uniform(0.1, 0.9, 2000), np.zeros(2000)], 1)
+    assert covered_by(estimated, everything, strip).mean() > covered_by(given, everything, strip).mean() + 0.2
+
+
 def test_closed_surfaces_and_aerial_scans_have_no_borders():
     """Neither a sphere, nor a sampling much denser on one side than the other, nor aerial
     LiDAR scan lines 30 times farther apart than the points on a line has border lines; the

@@ -26,6 +26,13 @@ Neighbours facing away (n_p . n_q < SHEET_COS) are of two kinds:
     +2.3 dB for `deferred` and +2.7 dB for `phong`, up to +9 dB on flat cut-out figures, where
     the spill along the rims had been the largest error.)
 
+A mesh's vertices lie on its edges, but a raw scan's last samples lie short of its edges:
+range noise scatters them, and the samples nearest an edge are the ones lost at grazing angles.
+So the border lines of a noisy cloud (normals estimated, and noisy by the test of their
+neighbourhood scale selection, normals.py) move out by NOISY_MARGIN of the splat's extent
+across them. (On the raw scans of 13 models: worst holes 0.197% -> 0.091% for `phong`, median
+PSNR 31.3 -> 30.9 dB; 0.1 left 0.144% of holes.)
+
 Aerial scan lines (geospatial clouds) get no borders (`complete.py`): a line with the next line
 on one side only looks like one.
 
@@ -48,6 +55,7 @@ BORDER_GAP = math.radians(120.0)   # neighbours leaving a gap this wide: p is on
 INTERIOR_GAP = math.radians(100.0)  # ... unless another gap is this wide too (a scan line)
 BORDER_CONFIRM = 64                 # neighbours among which a border is confirmed
 KERNEL_BLOCK = 1024                 # points per parallel task of the kernel
+NOISY_MARGIN = 0.2                  # a noisy cloud's border lines move out by this much of the splat
 # pseudo-angle bins (of [-2, 2], circular) of which no EMPTY_RUN + 1 consecutive ones are empty
 # leave no gap of (EMPTY_RUN + 2) KEY_BIN between keys, less than INTERIOR_GAP / 2: the point is
 # no border, found without sorting its neighbours

@@ -53,7 +53,8 @@ creases: `sharp_features.py`):
 Borders of open surfaces (`borders.py`, as the boundary clipping of Pauly et al. 2003):
     the border line (X - q) . w_q <= f_q across each border point q's outward direction w_q,
     through q moved out by its fold's reach f_q (0 on an open sheet), is a clip-line candidate
-    of every splat near it, beside the creases.
+    of every splat near it, beside the creases; a noisy cloud's lines move out further, by a
+    margin m of the splat's extent across them (its local u, v: the line a u + b v <= c + m).
 """
 
 from __future__ import annotations
@@ -420,11 +421,13 @@ def _crease_candidates(points, normals, index, axes, i, p, features, candidates)
 
 
 @numba.njit(cache=True, inline="always")
-def _border_candidates(points, index, axes, i, p, outwards, reach, candidates, count):  # pragma: no cover - compiled
+def _border_candidates(points, index, axes, i, p, outwards, reach, margin, candidates,
+                       count):  # pragma: no cover - compiled
     """Append the border half-planes that cut splat p as unit (a, b, c) rows of candidates in its
     axes (u, v) = axes[i]: for each neighbour q on a border (its own included), the side of the
     line across its outward direction w_q, reach[q] beyond q, that holds the surface,
-    (p + u u_axis + v v_axis - q) . w_q <= reach[q]. Returns the new count."""
+    (p + u u_axis + v v_axis - q) . w_q <= reach[q], moved out by `margin` in (u, v). Returns
+    the new count."""
     for j in range(index.shape[1]):
         q = index[i, j]
         wa = 0.0
@@ -436,9 +439,9 @@ def _border_candidates(points, index, axes, i, p, outwards, reach, candidates, c
             inside += (points[q, a] - points[p, a]) * outwards[q, a]
         length = math.sqrt(wa * wa + wb * wb)
         # no border, a border seen edge-on, p beyond it (a concave border), or a line missing the splat
-        if length < 1e-6 or inside < 0.0 or inside >= length:
+        if length < 1e-6 or inside < 0.0 or inside + margin * length >= length:
             continue
-        count = _append_unit_line(candidates, count, wa, wb, inside, length)
+        count = _append_unit_line(candidates, count, wa, wb, inside + margin * length, length)
     return count
 
 
@@ -464,7 +467,7 @@ def _nearest_creases(candidates, count, lines, i):  # pragma: no cover - compile
 
 
 @numba.njit(parallel=True, cache=True)
-def _clip_lines(points, normals, index, start, axes, features, outwards, reach):  # pragma: no cover - compiled
+def _clip_lines(points, normals, index, start, axes, features, outwards, reach, margin):  # pragma: no cover - compiled
     """CLIP_LINES clip lines (a, b, c) per splat, in its local coordinates (u, v) (1 on the rim):
     the crease half-planes that end its cell and the border lines of its neighbours (`outwards`).
     A dropped splat keeps nothing (u <= -2, -u <= -2)."""
@@ -481,7 +484,7 @@ def _clip_lines(points, normals, index, start, axes, features, outwards, reach):
                 lines[i, line, 2] = -2.0 if dropped else INACTIVE_CLIP[2]
             if not dropped:
                 count = _crease_candidates(points, normals, index, axes, i, p, features, candidates)
-                count = _border_candidates(points, index, axes, i, p, outwards, reach, candidates, count)
+                count = _border_candidates(points, index, axes, i, p, outwards, reach, margin, candidates, count)
                 _nearest_creases(candidates, count, lines, i)
     return lines
 
@@ -546,17 +549,18 @@ def covering_ellipses(nbh: Neighbourhood, normals: np.ndarray, progress: bool | 
 
 def clip_lines(nbh: Neighbourhood, normals: np.ndarray, axes: np.ndarray, features: SharpFeatures,
                outwards: np.ndarray, reach: np.ndarray, progress: bool | None,
-               k: int = RADIUS_NEIGHBOURS) -> np.ndarray:
+               k: int = RADIUS_NEIGHBOURS, margin: float = 0.0) -> np.ndarray:
     """Clip lines (N, CLIP_LINES, 3) float32 of the splats (normals, axes), in the
     neighbourhood's order: at creases, and at the borders of open surfaces given by `outwards`
     (N, 3), the border points' outward directions, zero elsewhere, and `reach` (N,), their
-    folds' reach (`borders.border_outwards`)."""
+    folds' reach (`borders.border_outwards`); the border lines moved out by `margin` of each
+    splat (a noisy cloud's, borders.NOISY_MARGIN)."""
     index = nbh.first(k)
     normals = unit(normals)
 
     def chunk(start: int, stop: int) -> np.ndarray:
         return _clip_lines(nbh.points, normals, index[start:stop], start, np.asarray(axes[start:stop], np.float64),
-                           features, outwards, reach)
+                           features, outwards, reach, margin)
 
     return map_chunks(chunk, len(nbh.points), progress, "sharp features")
 

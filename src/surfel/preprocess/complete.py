@@ -20,7 +20,8 @@ FIELD_NEIGHBOURS), serves every estimation, in this order, each using the ones b
   7. the sampling bound on both (`spacing.py`), and the radii of the screen-facing splats
      (`structure.py`);
   8. clip lines at the sharp features and at the borders of open surfaces (`borders.py`,
-     `cells.py`), none on screen-facing splats;
+     `cells.py`; a margin out where the normals were estimated on a noisy cloud), none on
+     screen-facing splats;
   9. Phong splatting's normal fields (`normal_field.py`), flat on screen-facing splats;
 
 Given attributes are kept as they are.
@@ -38,7 +39,7 @@ import numpy as np
 
 from ..attributes import INFINITE_LENGTH
 from ..cloud import PointCloud
-from .borders import border_outwards
+from .borders import NOISY_MARGIN, border_outwards
 from .cells import INACTIVE_CLIP, RADIUS_MARGIN, RADIUS_NEIGHBOURS, clip_lines, covering_ellipses, covering_radii
 from .frames import tangent_frames, unit
 from .neighbourhood import Neighbourhood
@@ -137,13 +138,14 @@ def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np
         # than k_estimations of them (one contiguous copy, not one per estimation: Neighbourhood.first)
         nbh = replace(nbh, points=moved, index=nbh.first(k_estimations))
     facing = None
+    noisy = False  # normals estimated on a noisy cloud (a raw scan): its borders get a margin (borders.py)
     if normals is None and given["axes"] is not None:
         normals = estimated["normals"] = from_axes
         report["normals"] = "from the splat axes (u x v)"
     elif normals is None:
-        normals, ambiguous, eigenvalues, selected = oriented_normals(nbh, k_normals, towards, progress, select, up)
+        normals, ambiguous, eigenvalues, noisy = oriented_normals(nbh, k_normals, towards, progress, select, up)
         estimated["normals"] = normals
-        scale = f"k per point in {SCALES[0]}..{SCALES[-1]} (noisy)" if selected else f"k={k_normals}"
+        scale = f"k per point in {SCALES[0]}..{SCALES[-1]} (noisy)" if noisy else f"k={k_normals}"
         report["normals"] = f"estimated (PCA, {scale}, {how})"
         report["ambiguous_normals"] = int(ambiguous.sum())
         located = cloud if sensor is None else cloud.with_(sensors=np.asarray(sensor, np.float64).reshape(1, 3))
@@ -213,7 +215,8 @@ def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np
         # aerial scan lines look like borders (borders.py)
         outwards, reach = ((np.zeros((len(nbh.points), 3)), np.zeros(len(nbh.points))) if cloud.geospatial
                            else border_outwards(nbh, unit_normals, nbh.first(RADIUS_NEIGHBOURS), progress, thickness))
-        lines = clip_lines(nbh, unit_normals, axes, features, outwards, reach, progress)
+        lines = clip_lines(nbh, unit_normals, axes, features, outwards, reach, progress,
+                           margin=NOISY_MARGIN if noisy else 0.0)
         if facing is not None:
             lines[facing] = INACTIVE_CLIP  # a disk facing the camera has no crease to end at
         attributes["clip_lines"] = nbh.unsort(lines)
