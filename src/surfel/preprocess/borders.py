@@ -212,8 +212,7 @@ def _settled(points, normals, index, count, rows, frames, sheet_cos, flat_sin2, 
     """Per point rows[i], True when its neighbours index[i, :count[i]], all among its
     BORDER_CONFIRM nearest, already prove it no border there: their pseudo-angles leave no
     EMPTY_RUN + 1 consecutive bins empty (nor then do those of all its BORDER_CONFIRM nearest:
-    no gap counts). The neighbours are taken as `_point_outwards`
-    takes them."""
+    no gap counts). The neighbours are taken as `_point_outwards` takes them."""
     m = len(rows)
     settled = np.zeros(m, np.bool_)
     for i in numba.prange(m):
