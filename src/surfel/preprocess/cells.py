@@ -438,10 +438,11 @@ def _border_candidates(points, index, axes, i, p, outwards, reach, margin, candi
             wb += axes[i, 1, a] * outwards[q, a]
             inside += (points[q, a] - points[p, a]) * outwards[q, a]
         length = math.sqrt(wa * wa + wb * wb)
+        moved = inside + margin * length
         # no border, a border seen edge-on, p beyond it (a concave border), or a line missing the splat
-        if length < 1e-6 or inside < 0.0 or inside + margin * length >= length:
+        if length < 1e-6 or inside < 0.0 or moved >= length:
             continue
-        count = _append_unit_line(candidates, count, wa, wb, inside + margin * length, length)
+        count = _append_unit_line(candidates, count, wa, wb, moved, length)
     return count
 
 
