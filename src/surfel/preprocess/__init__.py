@@ -7,7 +7,7 @@ One module per estimation, each citing its source, with its tuning constants at 
   frames.py          circular splat axes: tangent frames (Duff et al. 2017)
   cells.py           tangent-plane Voronoi cells: covering radii and ellipses (Botsch et al.
                      2004), cut at creases, and the splats' clip lines there and at the
-                     borders of open surfaces
+                     borders of open surfaces (its kernels: cell_kernels.py)
   outlier_cap.py     radii no larger than twice the median of the neighbours' on the same surface
   sharp_features.py  flat points and crease points (Zwicker et al. 2002, Pauly et al. 2003)
   borders.py         border points of open surfaces and their outward directions (Pauly et al.
@@ -30,7 +30,8 @@ only O(N k) arrays; all per-neighbour work runs in numba kernels (parallel over 
 chunks. Every public function takes and returns arrays in the input's order.
 """
 
-from .cells import CLIP_LINES, INACTIVE_CLIP, clipped_away, estimate_radii, fit_ellipses
+from .cell_kernels import CLIP_LINES, INACTIVE_CLIP
+from .cells import clipped_away, estimate_radii, fit_ellipses
 from .complete import complete, prepare
 from .frames import tangent_frames
 from .normal_field import fit_normal_field

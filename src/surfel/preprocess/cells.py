@@ -1,4 +1,5 @@
 """Tangent-plane Voronoi cells: splat radii and ellipses that cover the surface, cut at creases.
+(The compiled kernels, and the constants they read, are `cell_kernels.py`'s.)
 
 Radii (`estimate_radii`): each splat covers its own Voronoi cell.
     The union of disks covers a surface exactly when every sample's disk contains the part of
@@ -47,8 +48,7 @@ creases: `sharp_features.py`):
     acos(PARALLEL_COS) apart); crease points get lines that keep nothing (c < -1,
     `clipped_away`), smooth surfaces INACTIVE_CLIP. Every splat method evaluates the lines per
     fragment (the GPU methods in the splat's plane, EWA as pixel half-planes through its
-    Jacobian). The cell kernels and the clip lines share the crease geometry, so they share this
-    module: numba's on-disk cache does not see a change to a function in another file.
+    Jacobian).
 
 Borders of open surfaces (`borders.py`, as the boundary clipping of Pauly et al. 2003):
     the border line (X - q) . w_q <= f_q across each border point q's outward direction w_q,
@@ -59,12 +59,10 @@ Borders of open surfaces (`borders.py`, as the boundary clipping of Pauly et al.
 
 from __future__ import annotations
 
-import math
-
-import numba
 import numpy as np
 
 from ..cloud import PointCloud
+from .cell_kernels import cell_clip_lines, cell_ellipses, cell_radii
 from .chunked import map_chunks
 from .frames import ellipse_axes, orthonormal_basis, unit
 from .neighbourhood import Neighbourhood
@@ -77,421 +75,6 @@ RADIUS_NEIGHBOURS = 16         # neighbours bounding a Voronoi cell: enough to r
                                # line when lines are up to ~8 x farther apart than points on a line
 RADIUS_MARGIN = 1.2            # covering radius x this: curvature, normal noise, and overlap for
                                # the Gaussian blending (coverage 99.98% at 1.0, 99.998% at 1.2)
-ELLIPSE_MAX_ASPECT = 4.0       # no needles: major / minor semi-axis at most this
-CURVATURE_ANISOTROPY = 0.05    # radians by which the normals turn more one way than the other
-                               # across a cell, above which an ellipse follows the curvature
-CAP_SIDES = 8                  # a cell starts as a regular octagon inscribed in the circle through
-                               # the farthest neighbour: open cells (borders) stop there
-CLIP_LINES = 2                 # clip lines per splat: an edge, or an edge and a corner
-INACTIVE_CLIP = (0.0, 0.0, 1.0)  # 0 u + 0 v <= 1: cuts nothing
-PARALLEL_COS = math.cos(math.radians(30.0))  # clip lines closer in direction are one edge
-CELL_BLOCK = 1024              # points per parallel task of the cell kernels
-
-
-# ---------------------------------------------------------------------------------------------
-# the cell of one point: helpers of the kernels below, inlined into them (a call per point would
-# cost as much as the work; inline="always" keeps these small functions as fast as one loop body)
-
-
-@numba.njit(cache=True, inline="always")
-def _crease_half_plane(points, p, q, normal_q, frame, on_plane_sin2):  # pragma: no cover - compiled
-    """Where splat p meets the tangent plane of its neighbour q across a crease: the half-plane
-    a x + b y <= c of p's plane points p + x e1 + y e2, (e1, e2) = frame, that p keeps."""
-    side = 0.0
-    ga = 0.0
-    gb = 0.0
-    distance2 = 0.0
-    for a in range(3):
-        offset = points[p, a] - points[q, a]
-        side += offset * normal_q[a]
-        ga += frame[0, a] * normal_q[a]
-        gb += frame[1, a] * normal_q[a]
-        distance2 += offset * offset
-    # a plane point lies at g(x, y) = side + x ga + y gb from q's plane; keep sign * g >= 0
-    if side * side > on_plane_sin2 * distance2:
-        sign = 1.0 if side > 0.0 else -1.0
-    else:  # p on the crease line cannot tell its sides apart: the side away from q
-        qx = 0.0
-        qy = 0.0
-        for a in range(3):
-            qx += (points[q, a] - points[p, a]) * frame[0, a]
-            qy += (points[q, a] - points[p, a]) * frame[1, a]
-        at_q = side + qx * ga + qy * gb  # g where q projects into p's plane: that side goes
-        sign = -1.0 if at_q > 0.0 else 1.0
-    return -sign * ga, -sign * gb, sign * side
-
-
-@numba.njit(cache=True, inline="always")
-def _cell_bounds(points, normals, index, frames, i, p, features, sheet_cos, layers, lines, creases,
-                 bounding):  # pragma: no cover - compiled
-    """The sheet and crease rules: the half-planes a x + b y <= c of p's tangent frame
-    (t, s) = frames[i] that bound its cell among its neighbours index[i], in the order they cut
-    it; neighbours on another layer than p's (separation beyond layers[p], thickness.py) cut
-    nothing. (Rows, not row views: a view per point costs as much as a tenth of the kernel.)
-
-    Fills the scratch lines (k, 3), creases (k, 3) and bounding (k,) and returns (bisectors,
-    count, reach): lines[:bisectors] are the bisectors of the bounding neighbours
-    `bounding[:bisectors]` ((a, b) = their offset), lines[bisectors:count] the creases; reach is
-    the farthest neighbour's distance."""
-    k = index.shape[1]
-    bisectors = 0
-    crease_count = 0
-    reach = 0.0
-    for j in range(k):
-        q = index[i, j]
-        d0 = points[q, 0] - points[p, 0]
-        d1 = points[q, 1] - points[p, 1]
-        d2 = points[q, 2] - points[p, 2]
-        x = d0 * frames[i, 0, 0] + d1 * frames[i, 0, 1] + d2 * frames[i, 0, 2]
-        y = d0 * frames[i, 1, 0] + d1 * frames[i, 1, 1] + d2 * frames[i, 1, 2]
-        z = d0 * normals[p, 0] + d1 * normals[p, 1] + d2 * normals[p, 2]
-        planar = x * x + y * y
-        reach = max(reach, math.sqrt(planar + z * z))
-        facing = 0.0
-        for a in range(3):
-            facing += normals[q, a] * normals[p, a]
-        # q's separation from p's layer (thickness.py's |d_pq - d_qp| / 2), against its thickness
-        separation = 0.5 * abs(z + d0 * normals[q, 0] + d1 * normals[q, 1] + d2 * normals[q, 2])
-        if features.crease[q] or facing < sheet_cos or separation > layers[p]:
-            continue
-        if facing < features.sharp_cos and features.flat[q]:
-            ca, cb, cc = _crease_half_plane(points, p, q, normals[q], frames[i], features.on_plane_sin2)
-            if ca * ca + cb * cb > 1e-12:  # not parallel planes (the far side of a sheet)
-                creases[crease_count, 0] = ca
-                creases[crease_count, 1] = cb
-                creases[crease_count, 2] = cc
-                crease_count += 1
-            continue
-        if planar > 0 and z * z <= planar:  # skip duplicates and the far side of thin sheets
-            lines[bisectors, 0] = x
-            lines[bisectors, 1] = y
-            lines[bisectors, 2] = 0.5 * planar  # nearer to p than to q: (x, y) . X <= |d|^2 / 2
-            bounding[bisectors] = q
-            bisectors += 1
-    for c in range(crease_count):  # the creases cut after every bisector
-        for a in range(3):
-            lines[bisectors + c, a] = creases[c, a]
-    return bisectors, bisectors + crease_count, reach
-
-
-@numba.njit(cache=True, inline="always")
-def _clip(polygon, count, a, b, c, out):  # pragma: no cover - compiled
-    """Clip the convex polygon[:count] to the half-plane a x + b y <= c into out (room for
-    count + 2 rows: one written past the last kept); returns its number of vertices. Each
-    vertex and each edge's crossing is written, and kept by counting it (no branch: which
-    vertices a line cuts off is unpredictable), each vertex's side computed once."""
-    kept = 0
-    first = a * polygon[0, 0] + b * polygon[0, 1] - c
-    si = first
-    for i in range(count):
-        j = i + 1 if i + 1 < count else 0
-        sj = a * polygon[j, 0] + b * polygon[j, 1] - c if j else first
-        out[kept, 0] = polygon[i, 0]
-        out[kept, 1] = polygon[i, 1]
-        kept += si <= 0
-        t = si / (si - sj) if si != sj else 0.0  # kept only where the signs differ
-        out[kept, 0] = polygon[i, 0] + t * (polygon[j, 0] - polygon[i, 0])
-        out[kept, 1] = polygon[i, 1] + t * (polygon[j, 1] - polygon[i, 1])
-        kept += (si <= 0) != (sj <= 0)
-        si = sj
-    return kept
-
-
-@numba.njit(cache=True, inline="always")
-def _cell_polygon(lines, count, reach, polygon, spare):  # pragma: no cover - compiled
-    """The cell: the regular CAP_SIDES-gon inscribed in the circle of radius `reach`, clipped to
-    lines[:count] in order, built in the scratch polygon and spare (CAP_SIDES + k + 1, 2) (each
-    clip of a convex polygon adds at most one vertex). Returns (the one of them holding it, its
-    number of vertices). A line that no vertex lies beyond cuts nothing: it is skipped before
-    the clip, whose division per vertex costs several times the test (most bisectors of the
-    farther neighbours miss the cell)."""
-    for c in range(CAP_SIDES):
-        angle = 2.0 * math.pi * c / CAP_SIDES
-        polygon[c, 0] = reach * math.cos(angle)
-        polygon[c, 1] = reach * math.sin(angle)
-    vertices = CAP_SIDES
-    for j in range(count):
-        a, b, c = lines[j, 0], lines[j, 1], lines[j, 2]
-        beyond = -np.inf
-        for v in range(vertices):
-            beyond = max(beyond, a * polygon[v, 0] + b * polygon[v, 1] - c)
-        if beyond <= 0.0:
-            continue
-        vertices = _clip(polygon, vertices, a, b, c, spare)
-        polygon, spare = spare, polygon
-    return polygon, vertices
-
-
-@numba.njit(cache=True, inline="always")
-def _covering_radius(polygon, vertices):  # pragma: no cover - compiled
-    """Distance from the centre to the polygon's farthest vertex."""
-    far = 0.0
-    for c in range(vertices):
-        far = max(far, polygon[c, 0] * polygon[c, 0] + polygon[c, 1] * polygon[c, 1])
-    return math.sqrt(far)
-
-
-@numba.njit(cache=True, inline="always")
-def _spread_direction(lines, bisectors):  # pragma: no cover - compiled
-    """The angle in the tangent frame of the principal direction of the bounding neighbours'
-    offsets lines[:bisectors, :2]."""
-    mx = 0.0
-    my = 0.0
-    for j in range(bisectors):
-        mx += lines[j, 0]
-        my += lines[j, 1]
-    mx /= max(bisectors, 1)
-    my /= max(bisectors, 1)
-    sxx = 0.0
-    syy = 0.0
-    sxy = 0.0
-    for j in range(bisectors):
-        sxx += (lines[j, 0] - mx) ** 2
-        syy += (lines[j, 1] - my) ** 2
-        sxy += (lines[j, 0] - mx) * (lines[j, 1] - my)
-    return 0.5 * math.atan2(2.0 * sxy, sxx - syy)
-
-
-@numba.njit(cache=True, inline="always")
-def _curvature_direction(lines, bisectors, bounding, normals, frames, i, p):  # pragma: no cover - compiled
-    """The angle in p's tangent frame (t, s) = frames[i] of the principal curvature direction of
-    largest curvature, and the difference of the principal curvatures (per unit length): from
-    the shape operator S, tilt = S offset, fitted by least squares to the bounding neighbours'
-    normals (tilt: the tangential part of n_q / (n_q . n_p), as in normal_field.py) at their
-    offsets lines[:bisectors, :2]."""
-    dxx = dxy = dyy = 0.0
-    txx = txy = tyx = tyy = 0.0
-    for j in range(bisectors):
-        q = bounding[j]
-        along = tx = ty = 0.0
-        for a in range(3):
-            along += normals[q, a] * normals[p, a]
-            tx += normals[q, a] * frames[i, 0, a]
-            ty += normals[q, a] * frames[i, 1, a]
-        if abs(along) < 0.5:  # across a crease, as normal_field.ACROSS_COS
-            continue
-        tx /= along
-        ty /= along
-        x = lines[j, 0]
-        y = lines[j, 1]
-        dxx += x * x
-        dxy += x * y
-        dyy += y * y
-        txx += tx * x
-        txy += tx * y
-        tyx += ty * x
-        tyy += ty * y
-    det = dxx * dyy - dxy * dxy
-    if det <= 1e-30:
-        return 0.0, 0.0
-    s00 = (txx * dyy - txy * dxy) / det
-    s01 = (txy * dxx - txx * dxy) / det
-    s10 = (tyx * dyy - tyy * dxy) / det
-    s11 = (tyy * dxx - tyx * dxy) / det
-    shear = 0.5 * (s01 + s10)  # S is symmetric in theory: its symmetric part
-    return 0.5 * math.atan2(2.0 * shear, s00 - s11), math.sqrt((s00 - s11) ** 2 + 4.0 * shear * shear)
-
-
-@numba.njit(cache=True, inline="always")
-def _ellipse_scale2(polygon, vertices, tau):  # pragma: no cover - compiled
-    """Squared scale by which the ellipse with semi-axes (e^(tau/2), e^(-tau/2)) must grow to
-    contain the polygon."""
-    wx = math.exp(-tau)
-    wy = math.exp(tau)
-    scale2 = 0.0
-    for c in range(vertices):
-        scale2 = max(scale2, polygon[c, 0] * polygon[c, 0] * wx + polygon[c, 1] * polygon[c, 1] * wy)
-    return scale2
-
-
-@numba.njit(cache=True, inline="always")
-def _covering_ellipse(polygon, vertices, co, si):  # pragma: no cover - compiled
-    """Semi-axes (a, b) along (co, si) and its perpendicular of the smallest ellipse with aspect
-    at most ELLIPSE_MAX_ASPECT that contains the polygon (rotated into those axes in place)."""
-    for c in range(vertices):
-        x0 = polygon[c, 0] * co + polygon[c, 1] * si
-        polygon[c, 1] = -polygon[c, 0] * si + polygon[c, 1] * co
-        polygon[c, 0] = x0
-    lo = -math.log(ELLIPSE_MAX_ASPECT)
-    hi = math.log(ELLIPSE_MAX_ASPECT)
-    for _ in range(24):  # brackets the optimum to 1e-5 of the log-aspect range
-        t1 = hi - 0.618033988749895 * (hi - lo)
-        t2 = lo + 0.618033988749895 * (hi - lo)
-        if _ellipse_scale2(polygon, vertices, t1) <= _ellipse_scale2(polygon, vertices, t2):
-            hi = t2
-        else:
-            lo = t1
-    tau = 0.5 * (lo + hi)
-    scale = math.sqrt(_ellipse_scale2(polygon, vertices, tau))
-    return math.exp(0.5 * tau) * scale, math.exp(-0.5 * tau) * scale
-
-
-# ---------------------------------------------------------------------------------------------
-# every point: the kernels of one chunk, points start + i
-
-
-@numba.njit(parallel=True, cache=True)
-def _covering_radii(points, normals, index, start, frames, features, sheet_cos, layers):  # pragma: no cover
-    """The covering radius of each point's cell (0 where all its neighbours coincide with it)."""
-    m, k = index.shape
-    radius = np.zeros(m)
-    for block in numba.prange((m + CELL_BLOCK - 1) // CELL_BLOCK):
-        # one set of scratch buffers per block: five allocations per point cost half the kernel
-        lines, creases, bounding = np.empty((k, 3)), np.empty((k, 3)), np.empty(k, np.int64)
-        polygon, spare = np.empty((CAP_SIDES + k + 1, 2)), np.empty((CAP_SIDES + k + 1, 2))
-        for i in range(block * CELL_BLOCK, min(m, (block + 1) * CELL_BLOCK)):
-            _, count, reach = _cell_bounds(points, normals, index, frames, i, start + i, features, sheet_cos,
-                                           layers, lines, creases, bounding)
-            if reach == 0.0:
-                continue
-            cell, vertices = _cell_polygon(lines, count, reach, polygon, spare)
-            radius[i] = _covering_radius(cell, vertices)
-    return radius
-
-
-@numba.njit(parallel=True, cache=True)
-def _covering_ellipses(points, normals, index, start, frames, features, sheet_cos, layers):  # pragma: no cover
-    """The covering radius of each point's cell, and the semi-axes (m, 2) and direction
-    (m, 2: cos, sin in the frame) of its covering ellipse (zero semi-axes for degenerate cells)."""
-    m, k = index.shape
-    radius = np.zeros(m)
-    semi = np.zeros((m, 2))
-    direction = np.zeros((m, 2))
-    direction[:, 0] = 1.0
-    for block in numba.prange((m + CELL_BLOCK - 1) // CELL_BLOCK):
-        lines, creases, bounding = np.empty((k, 3)), np.empty((k, 3)), np.empty(k, np.int64)
-        polygon, spare = np.empty((CAP_SIDES + k + 1, 2)), np.empty((CAP_SIDES + k + 1, 2))
-        for i in range(block * CELL_BLOCK, min(m, (block + 1) * CELL_BLOCK)):
-            p = start + i
-            bisectors, count, reach = _cell_bounds(points, normals, index, frames, i, p, features, sheet_cos,
-                                                   layers, lines, creases, bounding)
-            if reach == 0.0:
-                continue
-            cell, vertices = _cell_polygon(lines, count, reach, polygon, spare)
-            radius[i] = _covering_radius(cell, vertices)
-            if vertices < 3:
-                continue
-            # Splats "aligned along the curvature" (survey 2.1.4), so that the normal field's two
-            # slopes (eq. 8) describe the surface: the principal curvature directions, wherever the
-            # normals turn more one way than the other across the cell.
-            theta = _spread_direction(lines, bisectors)
-            curvature_theta, anisotropy = _curvature_direction(lines, bisectors, bounding, normals, frames, i, p)
-            if anisotropy * reach > CURVATURE_ANISOTROPY:
-                theta = curvature_theta
-            co = math.cos(theta)
-            si = math.sin(theta)
-            semi[i, 0], semi[i, 1] = _covering_ellipse(cell, vertices, co, si)
-            direction[i, 0] = co
-            direction[i, 1] = si
-    return radius, semi, direction
-
-
-@numba.njit(cache=True, inline="always")
-def _append_unit_line(candidates, count, a, b, c, length):  # pragma: no cover - compiled
-    """Append the line a u + b v <= c, divided by length = |(a, b)|, as row `count` of
-    candidates; returns the new count."""
-    candidates[count, 0] = a / length
-    candidates[count, 1] = b / length
-    candidates[count, 2] = c / length
-    return count + 1
-
-
-@numba.njit(cache=True, inline="always")
-def _crease_candidates(points, normals, index, axes, i, p, features, candidates):  # pragma: no cover - compiled
-    """The crease half-planes of splat p that cut it, among its neighbours index[i], in its axes
-    (u, v) = axes[i], as unit (a, b, c) rows of candidates; returns their number."""
-    count = 0
-    for j in range(index.shape[1]):
-        q = index[i, j]
-        facing = 0.0
-        for a in range(3):
-            facing += normals[q, a] * normals[p, a]
-        if facing >= features.sharp_cos or features.crease[q] or not features.flat[q]:
-            continue
-        if facing < features.sheet_cos:  # rare, so allocating below costs nothing on the usual path
-            offset = points[q] - points[p]
-            if np.dot(offset, normals[p]) ** 2 <= features.flat_sin2 * np.dot(offset, offset):
-                continue  # in p's face: the same surface seen from behind
-        la, lb, lc = _crease_half_plane(points, p, q, normals[q], axes[i], features.on_plane_sin2)
-        length = math.sqrt(la * la + lb * lb)
-        if length < 1e-6 or lc >= length:  # parallel planes, or the line misses the splat
-            continue
-        count = _append_unit_line(candidates, count, la, lb, lc, length)
-    return count
-
-
-@numba.njit(cache=True, inline="always")
-def _border_candidates(points, index, axes, i, p, outwards, reach, margin, candidates,
-                       count):  # pragma: no cover - compiled
-    """Append the border half-planes that cut splat p as unit (a, b, c) rows of candidates in its
-    axes (u, v) = axes[i]: for each neighbour q on a border (its own included), the side of the
-    line across its outward direction w_q, reach[q] beyond q, that holds the surface,
-    (p + u u_axis + v v_axis - q) . w_q <= reach[q], moved out by `margin` in (u, v). Returns
-    the new count."""
-    for j in range(index.shape[1]):
-        q = index[i, j]
-        wa = 0.0
-        wb = 0.0
-        inside = reach[q]
-        for a in range(3):
-            wa += axes[i, 0, a] * outwards[q, a]
-            wb += axes[i, 1, a] * outwards[q, a]
-            inside += (points[q, a] - points[p, a]) * outwards[q, a]
-        length = math.sqrt(wa * wa + wb * wb)
-        moved = inside + margin * length
-        # no border, a border seen edge-on, p beyond it (a concave border), or a line missing the splat
-        if length < 1e-6 or inside < 0.0 or moved >= length:
-            continue
-        count = _append_unit_line(candidates, count, wa, wb, moved, length)
-    return count
-
-
-@numba.njit(cache=True, inline="always")
-def _nearest_creases(candidates, count, lines, i):  # pragma: no cover - compiled
-    """Fill lines[i] (CLIP_LINES, 3) with the most restrictive candidates (smallest c), each
-    more than acos(PARALLEL_COS) in direction from those chosen before."""
-    used = 0
-    while used < CLIP_LINES:
-        best = -1
-        for c in range(count):
-            parallel = False
-            for other in range(used):
-                if candidates[c, 0] * lines[i, other, 0] + candidates[c, 1] * lines[i, other, 1] > PARALLEL_COS:
-                    parallel = True
-            if not parallel and (best < 0 or candidates[c, 2] < candidates[best, 2]):
-                best = c
-        if best < 0:
-            return
-        for a in range(3):
-            lines[i, used, a] = candidates[best, a]
-        used += 1
-
-
-@numba.njit(parallel=True, cache=True)
-def _clip_lines(points, normals, index, start, axes, features, outwards, reach, margin):  # pragma: no cover - compiled
-    """CLIP_LINES clip lines (a, b, c) per splat, in its local coordinates (u, v) (1 on the rim):
-    the crease half-planes that end its cell and the border lines of its neighbours (`outwards`).
-    A dropped splat keeps nothing (u <= -2, -u <= -2)."""
-    m = index.shape[0]
-    lines = np.empty((m, CLIP_LINES, 3), np.float32)
-    for block in numba.prange((m + CELL_BLOCK - 1) // CELL_BLOCK):
-        candidates = np.empty((2 * index.shape[1], 3))  # one per block: an allocation per point costs as much
-        for i in range(block * CELL_BLOCK, min(m, (block + 1) * CELL_BLOCK)):
-            p = start + i
-            dropped = features.crease[p]
-            for line in range(CLIP_LINES):
-                lines[i, line, 0] = 1.0 - 2.0 * line if dropped else INACTIVE_CLIP[0]
-                lines[i, line, 1] = 0.0 if dropped else INACTIVE_CLIP[1]
-                lines[i, line, 2] = -2.0 if dropped else INACTIVE_CLIP[2]
-            if not dropped:
-                count = _crease_candidates(points, normals, index, axes, i, p, features, candidates)
-                count = _border_candidates(points, index, axes, i, p, outwards, reach, margin, candidates, count)
-                _nearest_creases(candidates, count, lines, i)
-    return lines
-
-
-# ---------------------------------------------------------------------------------------------
-# every point, chunk by chunk
 
 
 def _cells(nbh: Neighbourhood, normals: np.ndarray, k: int, ellipse: bool, progress: bool | None,
@@ -510,12 +93,12 @@ def _cells(nbh: Neighbourhood, normals: np.ndarray, k: int, ellipse: bool, progr
 
     def radii(start: int, stop: int) -> np.ndarray:
         frames = orthonormal_basis(normals[start:stop])
-        return _covering_radii(nbh.points, normals, index[start:stop], start, frames, features, sheet_cos, layers)
+        return cell_radii(nbh.points, normals, index[start:stop], start, frames, features, sheet_cos, layers)
 
     def ellipses(start: int, stop: int) -> tuple[np.ndarray, np.ndarray]:
         frames = orthonormal_basis(normals[start:stop])
-        radius, semi, direction = _covering_ellipses(nbh.points, normals, index[start:stop], start, frames,
-                                                     features, sheet_cos, layers)
+        radius, semi, direction = cell_ellipses(nbh.points, normals, index[start:stop], start, frames,
+                                                features, sheet_cos, layers)
         return radius, ellipse_axes(frames, semi, direction)
 
     if ellipse:
@@ -560,8 +143,8 @@ def clip_lines(nbh: Neighbourhood, normals: np.ndarray, axes: np.ndarray, featur
     normals = unit(normals)
 
     def chunk(start: int, stop: int) -> np.ndarray:
-        return _clip_lines(nbh.points, normals, index[start:stop], start, np.asarray(axes[start:stop], np.float64),
-                           features, outwards, reach, margin)
+        return cell_clip_lines(nbh.points, normals, index[start:stop], start,
+                               np.asarray(axes[start:stop], np.float64), features, outwards, reach, margin)
 
     return map_chunks(chunk, len(nbh.points), progress, "sharp features")
 

@@ -40,7 +40,8 @@ import numpy as np
 from ..attributes import INFINITE_LENGTH
 from ..cloud import PointCloud
 from .borders import NOISY_MARGIN, border_outwards
-from .cells import INACTIVE_CLIP, RADIUS_MARGIN, RADIUS_NEIGHBOURS, clip_lines, covering_ellipses, covering_radii
+from .cell_kernels import INACTIVE_CLIP
+from .cells import RADIUS_MARGIN, RADIUS_NEIGHBOURS, clip_lines, covering_ellipses, covering_radii
 from .frames import tangent_frames, unit
 from .neighbourhood import Neighbourhood
 from .normal_field import FIELD_NEIGHBOURS, field_slopes
