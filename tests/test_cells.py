@@ -229,6 +229,31 @@ def test_a_face_cuts_the_splats_of_a_coarse_curved_surface_meeting_it():
     assert height[kept].max() < 1e-4 * step
 
 
+def test_a_tip_gets_a_small_splat_and_stays_covered():
+    """The apex of a cone of half-angle 20 degrees (a horn, a hoof), sampled in rings as a mesh's
+    vertices are: all its neighbours lie more than 45 degrees below its tangent plane. Its cell
+    ends where their tangent planes meet its own, so its disk, which stands out sideways past
+    the tip seen from the side, is narrower than the first ring lies from the axis (it was as
+    wide as the whole neighbourhood, four times that), and the cone stays covered."""
+    half, step = np.radians(20.0), 0.1
+    points, normals = [np.zeros((1, 3))], [np.array([[0.0, 0, 1]])]
+    for ring in range(1, 16):
+        count = max(6, round(2 * np.pi * ring * np.sin(half)))
+        around = 2 * np.pi * (np.arange(count) + 0.5 * ring) / count
+        radius, height = ring * step * np.sin(half), -ring * step * np.cos(half)
+        points.append(np.stack([radius * np.cos(around), radius * np.sin(around), np.full(count, height)], 1))
+        normals.append(np.stack([np.cos(half) * np.cos(around), np.cos(half) * np.sin(around),
+                                 np.full(count, np.sin(half))], 1))
+    points, normals = np.concatenate(points), np.concatenate(normals)
+    radii = estimate_radii(points, normals=normals)
+    assert radii[0] < step * np.sin(half)
+    rng = np.random.default_rng(0)
+    slant, around = np.sqrt(rng.uniform(0, (10 * step) ** 2, 100_000)), rng.uniform(0, 2 * np.pi, 100_000)
+    surface = np.stack([slant * np.sin(half) * np.cos(around), slant * np.sin(half) * np.sin(around),
+                        -slant * np.cos(half)], 1)
+    assert coverage(surface, points, normals, tangent_frames(normals, radii)) >= 0.998
+
+
 def test_smooth_surfaces_get_no_clip_lines():
     """A coarsely sampled sphere has neighbours with very different normals, but no faces:
     its splats stay whole disks."""

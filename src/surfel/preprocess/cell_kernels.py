@@ -69,8 +69,8 @@ def _cell_bounds(points, normals, index, frames, i, p, features, sheet_cos, laye
 
     Fills the scratch lines (k, 3), creases (k, 3) and bounding (k,) and returns (bisectors,
     count, reach): lines[:bisectors] are the bisectors of the bounding neighbours
-    `bounding[:bisectors]` ((a, b) = their offset), lines[bisectors:count] the creases; reach is
-    the farthest neighbour's distance."""
+    `bounding[:bisectors]` ((a, b) = their offset), lines[bisectors:count] the creases and the
+    turns of steep neighbours; reach is the farthest neighbour's distance."""
     k = index.shape[1]
     bisectors = 0
     crease_count = 0
@@ -98,6 +98,13 @@ def _cell_bounds(points, normals, index, frames, i, p, features, sheet_cos, laye
                 creases[crease_count, 0] = ca
                 creases[crease_count, 1] = cb
                 creases[crease_count, 2] = cc
+                crease_count += 1
+            continue
+        if sheet_cos > -2.0 and z < 0 and z * z > planar:  # turning sharply away: at q's plane, or half-way
+            ca, cb, cc = _crease_half_plane(points, p, q, normals[q], frames[i], features.on_plane_sin2)
+            if ca * ca + cb * cb > 1e-12:
+                creases[crease_count, 0], creases[crease_count, 1] = ca, cb
+                creases[crease_count, 2] = max(cc, 0.5 * (x * ca + y * cb))
                 crease_count += 1
             continue
         if planar > 0 and z * z <= planar:  # skip duplicates and the far side of thin sheets
