@@ -171,8 +171,8 @@ def estimate_radii(positions: np.ndarray, k: int = RADIUS_NEIGHBOURS, normals: n
     """Splat radii (N,) float32 that cover the surface without holes: each point's covering
     radius of its tangent-plane Voronoi cell among its k nearest neighbours, times
     RADIUS_MARGIN, outliers capped (see the module docstring). Normals only define the tangent
-    planes (and, oriented, the layers: thickness.py); without them unoriented PCA normals over
-    the same neighbours are used."""
+    planes (and, oriented, which way the surface turns and the layers: thickness.py); without
+    them unoriented PCA normals over the same neighbours are used."""
     nbh = Neighbourhood.build(positions, k, workers, progress)
     oriented = normals is not None
     normals = pca_normals(nbh, k, progress)[0] if normals is None else nbh.sort(normals)
