@@ -100,7 +100,9 @@ def _cell_bounds(points, normals, index, frames, i, p, features, sheet_cos, laye
                 creases[crease_count, 2] = cc
                 crease_count += 1
             continue
-        if sheet_cos > -2.0 and z < 0 and z * z > planar:  # turning sharply away: at q's plane, or half-way
+        # the surface turning sharply away, which only oriented normals can tell (unoriented,
+        # sheet_cos is -2): the cell ends at q's plane, or half-way to q
+        if sheet_cos > -2.0 and z < 0 and z * z > planar:
             ca, cb, cc = _crease_half_plane(points, p, q, normals[q], frames[i], features.on_plane_sin2)
             if ca * ca + cb * cb > 1e-12:
                 creases[crease_count, 0], creases[crease_count, 1] = ca, cb
