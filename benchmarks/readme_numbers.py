@@ -216,8 +216,10 @@ def section_speed(ctx: Context) -> str:
                  "ewa@gl,ewa@cpu", "--points", "1000000",
                  "--size", "1024x1024", "--frames", "3")[0]
     command = ctx.commands[-1].strip("`")
-    lines = ["```", command.removesuffix(" --json"), "```", "", "| method | ms / frame | Msplats/s |", "|---|---|---|"]
-    lines += [f"| {r['method']}@{r['backend']} | {r['ms']:.0f} | {r['msplats_per_s']:.2f} |" for r in rows]
+    lines = ["```", command.removesuffix(" --json"), "```", "",
+             "| method | samples a pixel | ms / frame | Msplats/s |", "|---|---|---|---|"]
+    lines += [f"| {r['method']}@{r['backend']} | {r['supersample'] ** 2} | {r['ms']:.0f} | {r['msplats_per_s']:.2f} |"
+              for r in rows]
     return "\n".join(lines)
 
 

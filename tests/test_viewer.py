@@ -91,3 +91,15 @@ def test_a_moving_camera_draws_coarser_until_it_stops():
     assert again.stats["splats"] == still.stats["splats"]
     covered = still.alpha[::2, ::2] > 0.5
     assert (first.alpha[covered] > 0.5).mean() > 0.9  # coarser, not full of holes
+
+
+def test_phong_supersamples_still_frames_only():
+    """phong's still frames take its 2x2 samples a pixel; a moving camera's take one, so that
+    a dragged frame costs what it did before."""
+    from models import dense_spot
+
+    state = ViewState(dense_spot(), "phong", "lambert")
+    still, _ = state.render((160, 120))
+    state.moving = True
+    moving, _ = state.render((160, 120))
+    assert (still.stats["supersample"], moving.stats["supersample"]) == (2, 1)

@@ -101,7 +101,8 @@ def _row(data, name, options, result, times, size, zoom) -> dict:
     row = {"method": name, "backend": result.stats["backend"], "backend_choice": result.stats["backend_choice"],
            "renderer": result.stats["renderer"], "machine": machine(),
            "points": len(data), "splats": result.stats["splats"], "width": size[0], "height": size[1],
-           "ms": round(ms, 2), "msplats_per_s": round(len(data) / ms / 1000, 3), "frames": len(times)}
+           "ms": round(ms, 2), "msplats_per_s": round(len(data) / ms / 1000, 3), "frames": len(times),
+           "supersample": result.stats.get("supersample", 1)}
     if options.lod_error is not None:
         row["lod"] = options.lod_error
     if zoom != 1.0:
@@ -134,7 +135,8 @@ def bench_command(input_path, points, methods: str, frames: int, values: dict, *
              f"{gl[0] if gl else 'not used'}"]
     for row in rows:
         lod = f" lod {row['lod']}px" if "lod" in row else ""
+        samples = f", {row['supersample']}x{row['supersample']} samples a pixel" if row["supersample"] > 1 else ""
         chosen = f"  [{row['backend_choice']}]" if row["backend_choice"] != "asked" else ""
         lines.append(f"{row['method'] + '@' + row['backend'] + lod:24s} {row['ms']:9.1f} ms  "
-                     f"{row['msplats_per_s']:7.2f} Msplats/s  ({row['splats']} splats){chosen}")
+                     f"{row['msplats_per_s']:7.2f} Msplats/s  ({row['splats']} splats{samples}){chosen}")
     return "\n".join(lines)

@@ -152,12 +152,13 @@ class ViewState:
         return max(self.lod_error * MOVING_LOD_FACTOR, self.motion_error)
 
     def render(self, size):
-        """The next frame for a window of `size`: at half its resolution while moving."""
+        """The next frame for a window of `size`: while moving, at half its resolution and one
+        sample a pixel (a still frame takes the method's supersampling)."""
         if self.moving:
             size = (max(1, size[0] // 2), max(1, size[1] // 2))
         values = {"shading": self.shading, "color": self.color, "colormap": self.colormap,
                   "backface_culling": self.backface_culling, "ewa_filter": self.ewa_filter,
-                  "lod_error": self.frame_lod_error() or None}
+                  "lod_error": self.frame_lod_error() or None, "supersample": 1 if self.moving else None}
         options = render_options(self.method, values, strict=False)
         start = time.perf_counter()
         result = self.renderer.render(self.cloud, self.camera(size), self.method, options=options)

@@ -120,8 +120,9 @@ METHODS: dict[str, Method] = {
 
 # The method of every interface that names none: the closest to the mesh in the README's
 # quality tables (of vertices and of raw range scans, close and far views), smooth where splats
-# are magnified (flat splat normals blended, `deferred`'s, band there), and as fast as
-# `deferred` (the same passes; without the EWA filter, fewer fragments on minified splats).
+# are magnified (flat splat normals blended, `deferred`'s, band there), and the passes of
+# `deferred`: interactive at one sample a pixel, at which the viewer and the page draw a moving
+# camera; a still image takes 2x2 (methods/splatting.py, "Samples").
 DEFAULT_METHOD = "phong"
 
 

@@ -76,7 +76,7 @@ from .ewa import (
     tile_order,
 )
 from .ewa_kernels import TILE
-from .splatting import DEFAULT_SUPERSAMPLE, DeferredParams, GaussianParams, PhongParams
+from .splatting import DEFAULT_SUPERSAMPLES, DeferredParams, GaussianParams, PhongParams
 
 DEPTH_CLAMP = 32.0  # splatting.glsl's: splat radii a plane's depth may stray from its centre's
 BIN_CHUNKS_PER_THREAD = 4
@@ -157,16 +157,18 @@ class CpuSplatBuffers:
 
 
 def render_gaussian_cpu(cloud, camera, options, params: GaussianParams, renderer):
-    return _render_cpu(cloud, camera, options, params, renderer, per_splat_shading=True)
+    return _render_cpu(cloud, camera, options, params, renderer, per_splat_shading=True,
+                       supersample=DEFAULT_SUPERSAMPLES["gaussian"])
 
 
 def render_deferred_cpu(cloud, camera, options, params: DeferredParams, renderer):
-    return _render_cpu(cloud, camera, options, params, renderer, per_splat_shading=False, curved=True)
+    return _render_cpu(cloud, camera, options, params, renderer, per_splat_shading=False, curved=True,
+                       supersample=DEFAULT_SUPERSAMPLES["deferred"])
 
 
 def render_phong_cpu(cloud, camera, options, params: PhongParams, renderer):
     return _render_cpu(cloud, camera, options, params, renderer, per_splat_shading=False, curved=True,
-                       normal_field=True)
+                       normal_field=True, supersample=DEFAULT_SUPERSAMPLES["phong"])
 
 
 def _camera(camera, origin) -> np.ndarray:
@@ -191,9 +193,9 @@ def _color_mode(options) -> tuple[int, np.ndarray, int]:
 
 
 def _render_cpu(cloud, camera, options, params, renderer, *, per_splat_shading: bool, curved: bool = False,
-                normal_field: bool = False):
+                normal_field: bool = False, supersample: int):
     cloud = renderer.cached(cloud, "morton order", lambda: spatially_ordered(cloud))
-    ss = options.supersample or DEFAULT_SUPERSAMPLE
+    ss = options.supersample or supersample
     target = target_camera(camera, ss)
     width, height = target.width, target.height
     check_cpu_samples(width, height)

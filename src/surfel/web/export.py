@@ -37,6 +37,7 @@ from ..errors import SurfelError
 from ..files import write_atomically
 from ..gl.program import expand_includes
 from ..methods import DEFAULT_METHOD, get_method
+from ..methods.splatting import DEFAULT_SUPERSAMPLES
 from ..options import RenderOptions
 from ..request import (
     PAGE_COMMAND,
@@ -195,7 +196,11 @@ def export_html(cloud, camera: Camera, output, *, method: str = DEFAULT_METHOD, 
                 # each method's own default, which the page takes on switching (unless given)
                 "ewa_defaults": {name: get_method(name).make_params().ewa_filter for name in METHODS},
                 "shading": options.shading, "background": list(options.background),
-                "supersample": options.supersample or 1, "radius_scale": params.radius_scale,
+                "supersample": options.supersample or DEFAULT_SUPERSAMPLES[method],
+                "supersample_given": options.supersample is not None,
+                # each method's own still-frame sampling, which the page takes on switching (unless given)
+                "supersample_defaults": {name: DEFAULT_SUPERSAMPLES[name] for name in METHODS},
+                "radius_scale": params.radius_scale,
                 "depth_offset": params.depth_offset, "lowpass_radius": params.lowpass_radius,
                 "backface_culling": bool(params.backface_culling),
                 "lod_error": options.lod_error if options.lod_error is not None else

@@ -508,6 +508,7 @@
   control("method", Object.keys(META.settings.ewa_defaults), S.method, (v) => {
     S.method = v;
     if (!META.settings.ewa_given) { S.ewa_filter = META.settings.ewa_defaults[v]; ewaBox.checked = S.ewa_filter; }
+    if (!META.settings.supersample_given) S.supersample = META.settings.supersample_defaults[v];
   });
   control("color", META.modes.map((m) => m.name), S.color, (v) => {
     S.color = v;
