@@ -102,6 +102,30 @@ def test_each_side_is_checked_against_the_context():
             check_target_size(*size)
 
 
+def test_a_default_supersampling_yields_to_the_sample_bounds():
+    from surfel.options import fitting_supersample
+
+    assert fitting_supersample(2, 4096, 4096) == 2 and fitting_supersample(2, 4097, 4096) == 1  # CPU bound
+    assert fitting_supersample(2, 100, 100, side_limit=199) == 1 and fitting_supersample(3, 100, 100, 250) == 2
+
+
+@requires_gl
+def test_the_default_method_takes_fewer_samples_rather_than_fail(tmp_path):
+    """phong's 2x2 samples are a default, not a request: an image whose 2x2 samples would
+    outgrow the context's render targets is rendered at one sample; asked for, the same
+    samples are refused."""
+    from surfel.gl.targets import max_target_side
+
+    size = f"{max_target_side() - 300}x64"
+    out, stats = tmp_path / "x.png", tmp_path / "s.json"
+    result = invoke("render", "--demo", "-o", out, "--size", size, "--backend", "gl", "--stats", stats)
+    assert result.exit_code == 0, result.output
+    assert json.loads(stats.read_text())["supersample"] == 1
+    asked = invoke("render", "--demo", "-o", tmp_path / "y.png", "--size", size, "--backend", "gl",
+                   "--supersample", "2")
+    assert_refused(asked, "--size/--supersample")
+
+
 def test_cpu_renders_have_their_own_bound(tmp_path):
     out = tmp_path / "x.png"
     assert_refused(invoke("render", "--demo", "-o", out, "--method", "ewa", "--backend", "cpu",

@@ -251,6 +251,18 @@ class RenderOptions(Settings):
 MAX_CPU_SAMPLES = 8192 * 8192
 
 
+def fitting_supersample(default: int, width: int, height: int, side_limit: int | None = None) -> int:
+    """A method's default samples per pixel side for a width x height image, fewer where they
+    would outgrow MAX_CPU_SAMPLES or `side_limit` samples a side (a GL context's targets): a
+    very large still image takes one sample rather than fail. A count the options give is
+    checked instead (`check_cpu_samples`, gl.targets.check_target_size)."""
+    side_limit = side_limit or math.inf
+    s = default
+    while s > 1 and (width * height * s * s > MAX_CPU_SAMPLES or max(width, height) * s > side_limit):
+        s -= 1
+    return s
+
+
 def check_cpu_samples(width: int, height: int) -> None:
     """Refuse a supersampled CPU render target of width x height samples beyond
     MAX_CPU_SAMPLES, naming the options that set it."""

@@ -72,7 +72,8 @@ streamed in chunks and targets whose sums outgrow a storage buffer.
 
 Samples (beyond the papers): `phong`, the default method, renders a still image at 2x2
 samples a pixel, box filtered (`--supersample` sets another count; the viewer and the page
-draw a moving camera's frames at one). A pixel's edge coverage (splatting_cpu.py, pass 1)
+draw a moving camera's frames at one; an image too large for its targets at 2x2 takes one,
+`options.fitting_supersample`). A pixel's edge coverage (splatting_cpu.py, pass 1)
 anti-aliases an outline against the background, but not where a nearer surface ends over a
 farther one, nor the shading of creases and fine folds; the ground truth, 4x4 samples a
 pixel, resolves both (13 mesh-vertex models, two views each: median 33.1 -> 33.6 dB, +2 to +3
@@ -95,7 +96,9 @@ import numpy as np
 from ..gl import splats
 from ..gl.context import get_context
 from ..gl.passes import SUM_CHANNELS, UNIFORM_UNITS, SplatPasses
+from ..gl.targets import max_target_side
 from ..gl.uniforms import apply_common
+from ..options import fitting_supersample
 from .params import SplatParams
 
 SHADER = Path(__file__).with_suffix(".glsl")
@@ -179,7 +182,9 @@ def render_phong(cloud, camera, options, params: PhongParams, renderer):
 def _render(cloud, camera, options, params, renderer, *, per_splat_shading: bool, curved: bool = False,
             normal_field: bool = False, supersample: int):
     ctx = get_context()
-    ss = options.supersample or supersample
+    # the default yields to the targets' side limit with the guard band a sprite pass may add
+    ss = options.supersample or fitting_supersample(supersample, camera.width, camera.height,
+                                                    max_target_side() - 2 * GUARD)
     width, height = camera.width * ss, camera.height * ss
     ewa_filter = params.ewa_filter
     lowpass = params.lowpass_radius * ss if ewa_filter else 0.0

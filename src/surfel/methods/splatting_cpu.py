@@ -57,7 +57,7 @@ import numba
 import numpy as np
 
 from ..cloud import PointCloud
-from ..options import check_cpu_samples
+from ..options import check_cpu_samples, fitting_supersample
 from ..pinholes import fill_pinholes
 from ..preprocess import drawn_normals, splat_thickness
 from ..result import RenderResult
@@ -195,7 +195,7 @@ def _color_mode(options) -> tuple[int, np.ndarray, int]:
 def _render_cpu(cloud, camera, options, params, renderer, *, per_splat_shading: bool, curved: bool = False,
                 normal_field: bool = False, supersample: int):
     cloud = renderer.cached(cloud, "morton order", lambda: spatially_ordered(cloud))
-    ss = options.supersample or supersample
+    ss = options.supersample or fitting_supersample(supersample, camera.width, camera.height)
     target = target_camera(camera, ss)
     width, height = target.width, target.height
     check_cpu_samples(width, height)
