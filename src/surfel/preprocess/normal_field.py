@@ -4,11 +4,19 @@
 
 where û_j, v̂_j are the UNIT axis directions and (u, v) = (u_j . (q - c_j) / |u_j|^2,
 v_j . (q - c_j) / |v_j|^2) are local coordinates that reach 1 on the ellipse's rim, so alpha and
-beta are dimensionless (the tangent of the normal's tilt at the rim). Fitted by least squares
-over the FIELD_NEIGHBOURS - 1 nearest neighbours' normals, each slope a 1-D problem with a
-closed form: with u_q the neighbour's coordinate and tilt_q = n_q . û_j / (n_q . n_j) the
-tangential part of its normal scaled to component 1 along n_j (the model's normal has that
-component), alpha_j = sum_q u_q tilt_q / sum_q u_q^2, and beta_j alike along v.
+beta are dimensionless (the tangent of the normal's tilt at the rim). Fitted by weighted least
+squares over the FIELD_NEIGHBOURS - 1 nearest neighbours' normals, each slope a 1-D problem
+with a closed form: with (u_q, v_q) the neighbour's coordinates, tilt_q = n_q . û_j / (n_q . n_j)
+the tangential part of its normal scaled to component 1 along n_j (the model's normal has that
+component) and w_q = exp(-(u_q^2 + v_q^2)),
+
+    alpha_j = sum_q w_q u_q tilt_q / sum_q w_q u_q^2,   beta_j alike along v.
+
+The field is only read inside the rim, so the weights, a Gaussian of the splat's own
+coordinates (0.37 on the rim), fit it to the normals there, as an MLS fit weights its
+neighbours (Alexa et al. 2003): unweighted, the neighbours beyond the rim, which weigh u_q^2,
+decided the slope (13 models' mesh vertices, two views each: `phong` median 33.6 -> 34.1 dB,
+`deferred`, whose splats the fields curve, 32.6 -> 33.1 dB, the CAD part +0.7 to +1.4 dB).
 """
 
 from __future__ import annotations
@@ -28,13 +36,17 @@ ACROSS_COS = 0.5       # neighbours' normals more than 60 degrees off lie across
 
 @numba.njit(parallel=True, cache=True)
 def _slopes(points, index, start, normals, axes):  # pragma: no cover - compiled
-    """Least-squares slopes (alpha, beta) (m, 2) of each splat start + i over its neighbours."""
+    """Weighted least-squares slopes (alpha, beta) (m, 2) of each splat start + i over its
+    neighbours (module docstring)."""
     m, k = index.shape
     slopes = np.zeros((m, 2))
     for i in numba.prange(m):
         p = start + i
         num = np.zeros(2)
         den = np.zeros(2)
+        coordinates = np.empty(2)
+        tilts = np.empty(2)
+        weights = 0.0
         for j in range(k):
             q = index[i, j]
             if q == p:
@@ -45,6 +57,7 @@ def _slopes(points, index, start, normals, axes):  # pragma: no cover - compiled
             # Neighbours across a crease would only bend the fit; their sign does not matter.
             if abs(along) < ACROSS_COS:
                 continue
+            distance2 = 0.0
             for t in range(2):
                 length2 = 0.0
                 offset = 0.0
@@ -54,14 +67,16 @@ def _slopes(points, index, start, normals, axes):  # pragma: no cover - compiled
                     length2 += axis * axis
                     offset += (points[q, a] - points[p, a]) * axis
                     tilt += normals[q, a] * axis
-                if length2 == 0.0:
-                    continue
-                coordinate = offset / length2                      # 1 on the ellipse's rim
-                tilt /= math.sqrt(length2) * along
-                num[t] += coordinate * tilt
-                den[t] += coordinate * coordinate
-        for t in range(2):
-            if den[t] > 1e-12:
+                coordinates[t] = offset / length2 if length2 > 0.0 else 0.0  # 1 on the ellipse's rim
+                tilts[t] = tilt / (math.sqrt(length2) * along) if length2 > 0.0 else 0.0
+                distance2 += coordinates[t] * coordinates[t]
+            weight = math.exp(-distance2)
+            weights += weight
+            for t in range(2):
+                num[t] += weight * coordinates[t] * tilts[t]
+                den[t] += weight * coordinates[t] * coordinates[t]
+        for t in range(2):  # no slope where the neighbours barely spread along the axis (their mean u^2)
+            if den[t] > 1e-12 * weights:
                 slopes[i, t] = num[t] / den[t]
     return slopes
 
@@ -85,7 +100,8 @@ def fit_normal_field(positions: np.ndarray, normals: np.ndarray, axes: np.ndarra
                      workers: int = -1, progress: bool | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Phong splatting's linear normal field (alpha, beta), each (N,) float32:
     N_j(u, v) = n_j + u alpha_j û_j + v beta_j v̂_j with unit axis directions û_j, v̂_j and
-    (u, v) in semi-axis units, least squares over the k - 1 nearest neighbours' normals."""
+    (u, v) in semi-axis units, weighted least squares over the k - 1 nearest neighbours' normals
+    (module docstring)."""
     nbh = Neighbourhood.build(positions, k, workers, progress)
     alpha, beta = field_slopes(nbh, nbh.sort(normals), nbh.sort(axes), progress, k)
     return nbh.unsort(alpha), nbh.unsort(beta)
