@@ -229,7 +229,7 @@ def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np
         if drawn_facing is not None:
             alpha[drawn_facing] = beta[drawn_facing] = 0.0  # facing the camera: flat, lit head-on
         attributes.update(phong_alpha=nbh.unsort(alpha), phong_beta=nbh.unsort(beta))
-        report["normal_field"] = f"fitted (least squares, k={FIELD_NEIGHBOURS})"
+        report["normal_field"] = f"fitted (weighted least squares, k={FIELD_NEIGHBOURS})"
     if attributes.keys() != cloud.attributes.keys():
         changes["attributes"] = attributes
     if positions is not None:
