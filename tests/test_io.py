@@ -691,6 +691,21 @@ def test_mesh_with_an_infinite_vertex_is_refused_naming_the_file(tmp_path):
         load(path)
 
 
+def test_mesh_with_coordinates_whose_squares_overflow_loads_or_is_refused(tmp_path):
+    # a vertex without a face normal takes its nearest neighbour's: at 1e154 the distances
+    # overflow and the search finds none (found by the fuzz test below)
+    vertex = [("x", "char"), ("y", "char"), ("z", "double")]
+    rows = [(0, 0, 1.532320906279154e154), (0, 7, 0.0), (0, 0, 0.0), (0, 0, 1.9154011328489423e153), (0, 0, 0.0)]
+    faces = ("face", [("vertex_indices", "list", "uchar", "int")], [([2, 0, 3, 1],)])
+    path = ply_file(tmp_path / "huge.ply", "ascii", [("vertex", vertex, rows), faces])
+    try:
+        cloud = load(path)
+    except InputError as error:
+        assert path.name in str(error)
+    else:
+        assert len(cloud) == 5
+
+
 @settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(spec=_ply_files(), damage=st.sampled_from(["none", "flip", "cut", "lie"]),
        where=st.lists(st.integers(0, 10**6), min_size=1, max_size=3), value=st.integers(0, 2**40))

@@ -88,8 +88,10 @@ def area_weighted_vertex_normals(positions: np.ndarray, faces: np.ndarray) -> np
         normals[fixed] = neighbours[fixed] / length[fixed, None]
         undefined &= ~fixed
     if undefined.any() and defined.any():
-        _, nearest = cKDTree(positions[defined]).query(positions[undefined])
-        normals[undefined] = normals[defined][nearest]
+        distances, nearest = cKDTree(positions[defined]).query(positions[undefined])
+        # coordinates whose squares overflow (beyond 1e154) find no neighbour: left as zeros
+        found = np.isfinite(distances)
+        normals[np.flatnonzero(undefined)[found]] = normals[defined][nearest[found]]
     return normals
 
 
