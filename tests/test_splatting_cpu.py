@@ -228,8 +228,9 @@ def test_a_sheet_on_a_body_leaves_no_holes_beside_its_rim(method):
     camera = Camera.look_at([0, -8, 30], [0, -1, 0], fov=30, size=SIZE).fit_clip_planes([0, 0, 0], 17)
     cpu, gl = both(cloud, camera, method, shading="lambert")
     assert_agree(cpu, gl)
-    # from y = 0.6: nearer the rim, where its last ring faces down, the body has a crack, whose
-    # anti-aliased edge reaches y = 0.5 (at 2x2 samples, phong's default, 0.45 there)
+    # from y = 0.6: nearer the rim the body has a crack (the dense rim's points, turned from the
+    # body and lying on it, end the body's cells half-way to them), whose anti-aliased edge
+    # reaches y = 0.5 (alpha 0.45 there at 2x2 samples, phong's default)
     beside = np.c_[rng.uniform(-6, 6, 20_000), rng.uniform(0.6, 3.0, 20_000), np.zeros(20_000)]
     column, row = np.floor(camera.project(beside)[0]).astype(int).T
     for result in (cpu, gl):
