@@ -92,21 +92,16 @@ def _cell_bounds(points, normals, index, frames, i, p, features, sheet_cos, laye
         separation = 0.5 * abs(z + d0 * normals[q, 0] + d1 * normals[q, 1] + d2 * normals[q, 2])
         if features.crease[q] or facing < sheet_cos or separation > layers[p]:
             continue
-        if facing < features.sharp_cos and features.flat[q]:
+        crease = facing < features.sharp_cos and features.flat[q]
+        # or the surface turning sharply away, which only oriented normals can tell (unoriented,
+        # sheet_cos is -2): the cell ends at q's plane, or half-way to q
+        turn = not crease and sheet_cos > -2.0 and z < 0 and z * z > planar
+        if crease or turn:
             ca, cb, cc = _crease_half_plane(points, p, q, normals[q], frames[i], features.on_plane_sin2)
             if ca * ca + cb * cb > 1e-12:  # not parallel planes (the far side of a sheet)
                 creases[crease_count, 0] = ca
                 creases[crease_count, 1] = cb
-                creases[crease_count, 2] = cc
-                crease_count += 1
-            continue
-        # the surface turning sharply away, which only oriented normals can tell (unoriented,
-        # sheet_cos is -2): the cell ends at q's plane, or half-way to q
-        if sheet_cos > -2.0 and z < 0 and z * z > planar:
-            ca, cb, cc = _crease_half_plane(points, p, q, normals[q], frames[i], features.on_plane_sin2)
-            if ca * ca + cb * cb > 1e-12:
-                creases[crease_count, 0], creases[crease_count, 1] = ca, cb
-                creases[crease_count, 2] = max(cc, 0.5 * (x * ca + y * cb))
+                creases[crease_count, 2] = max(cc, 0.5 * (x * ca + y * cb)) if turn else cc
                 crease_count += 1
             continue
         if planar > 0 and z * z <= planar:  # skip duplicates and the far side of thin sheets
