@@ -34,6 +34,24 @@ FIELD_NEIGHBOURS = 16  # neighbours whose normals fit a splat's normal field
 ACROSS_COS = 0.5       # neighbours' normals more than 60 degrees off lie across a crease: not fitted
 
 
+@numba.njit(cache=True, inline="always")
+def _along_axis(points, normals, axes, i, p, q, t, along):  # pragma: no cover - compiled
+    """Neighbour q's coordinate along splat p's axis t (1 on the ellipse's rim) and the tilt of
+    its normal along that axis's unit direction, scaled to component 1 along n_p; (0, 0) for a
+    zero axis."""
+    length2 = 0.0
+    offset = 0.0
+    tilt = 0.0
+    for a in range(3):
+        axis = axes[i, t, a]
+        length2 += axis * axis
+        offset += (points[q, a] - points[p, a]) * axis
+        tilt += normals[q, a] * axis
+    if length2 == 0.0:
+        return 0.0, 0.0
+    return offset / length2, tilt / (math.sqrt(length2) * along)
+
+
 @numba.njit(parallel=True, cache=True)
 def _slopes(points, index, start, normals, axes):  # pragma: no cover - compiled
     """Weighted least-squares slopes (alpha, beta) (m, 2) of each splat start + i over its
@@ -42,11 +60,7 @@ def _slopes(points, index, start, normals, axes):  # pragma: no cover - compiled
     slopes = np.zeros((m, 2))
     for i in numba.prange(m):
         p = start + i
-        num = np.zeros(2)
-        den = np.zeros(2)
-        coordinates = np.empty(2)
-        tilts = np.empty(2)
-        weights = 0.0
+        num_u = den_u = num_v = den_v = weights = 0.0
         for j in range(k):
             q = index[i, j]
             if q == p:
@@ -57,27 +71,19 @@ def _slopes(points, index, start, normals, axes):  # pragma: no cover - compiled
             # Neighbours across a crease would only bend the fit; their sign does not matter.
             if abs(along) < ACROSS_COS:
                 continue
-            distance2 = 0.0
-            for t in range(2):
-                length2 = 0.0
-                offset = 0.0
-                tilt = 0.0
-                for a in range(3):
-                    axis = axes[i, t, a]
-                    length2 += axis * axis
-                    offset += (points[q, a] - points[p, a]) * axis
-                    tilt += normals[q, a] * axis
-                coordinates[t] = offset / length2 if length2 > 0.0 else 0.0  # 1 on the ellipse's rim
-                tilts[t] = tilt / (math.sqrt(length2) * along) if length2 > 0.0 else 0.0
-                distance2 += coordinates[t] * coordinates[t]
-            weight = math.exp(-distance2)
+            u, tilt_u = _along_axis(points, normals, axes, i, p, q, 0, along)
+            v, tilt_v = _along_axis(points, normals, axes, i, p, q, 1, along)
+            weight = math.exp(-(u * u + v * v))
             weights += weight
-            for t in range(2):
-                num[t] += weight * coordinates[t] * tilts[t]
-                den[t] += weight * coordinates[t] * coordinates[t]
-        for t in range(2):  # no slope where the neighbours barely spread along the axis (their mean u^2)
-            if den[t] > 1e-12 * weights:
-                slopes[i, t] = num[t] / den[t]
+            num_u += weight * u * tilt_u
+            den_u += weight * u * u
+            num_v += weight * v * tilt_v
+            den_v += weight * v * v
+        # no slope where the neighbours barely spread along the axis (their weighted mean u^2)
+        if den_u > 1e-12 * weights:
+            slopes[i, 0] = num_u / den_u
+        if den_v > 1e-12 * weights:
+            slopes[i, 1] = num_v / den_v
     return slopes
 
 
