@@ -122,7 +122,7 @@ def render(**values):
 @table_options(*PAGE_COMMAND, required=("output",), defaults={"point_budget": "300000"},
                helps={"output": "HTML page to write.", "method": "phong, deferred or gaussian.",
                       "point_budget": "Above N points the page draws a sequential point tree.",
-                      "supersample": "Samples per pixel side, 1 to 4 (default 1)."})
+                      "supersample": "Samples per pixel side, 1 to 4 (default: the method's, 2 for phong)."})
 def export_html(**values):
     """Write one self-contained HTML page that splats INPUT in the browser (WebGL2, offline).
 
