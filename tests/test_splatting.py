@@ -418,3 +418,29 @@ def test_curved_splats_cover_pixels_only_to_their_contour(backend):
     for method, least in (("deferred", 35.5), ("phong", 37.4)):
         result = render(mesh.with_(faces=None), camera, method, backend=backend, shading="lambert")
         assert compare_results(reference, result)["psnr"] >= least, method
+
+
+@pytest.mark.parametrize("backend", ["cpu", "gl"])
+def test_a_curved_splat_ends_where_its_field_has_turned_by_45_degrees(backend):
+    """A curved splat reaches no farther along an axis than where its normal field has turned by
+    45 degrees (splatting.py): seen head-on, a unit disk whose field turns by 76 degrees at the
+    rim along u (alpha = 4) covers a quarter of its width along u and all of it along v; its clip
+    lines stay where they cut it (u <= 0.5 with alpha = 1.5: from -1/1.5 to 0.5)."""
+    from surfel.camera import Camera
+    from surfel.preprocess.cell_kernels import INACTIVE_CLIP
+
+    camera = Camera.look_at([0, 0, 5], [0, 0, 0], size=(241, 241), ortho_height=3.0)
+    pixels_per_unit = 241 / 3.0
+    for alpha, clip, (left, right) in ((4.0, INACTIVE_CLIP, (-0.25, 0.25)), (1.5, (1.0, 0.0, 0.5), (-1 / 1.5, 0.5))):
+        lines = np.array([[clip, INACTIVE_CLIP]], np.float32)
+        splat = PointCloud(np.zeros((1, 3)), normals=[[0.0, 0.0, 1.0]], radii=[1.0], axes=[[[1.0, 0, 0], [0, 1.0, 0]]],
+                           attributes={"phong_alpha": np.array([alpha]), "phong_beta": np.zeros(1),
+                                       "clip_lines": lines})
+        for method in ("phong", "deferred"):
+            covered = render(splat, camera, method, backend=backend, shading="lambert", supersample=1).alpha >= 0.5
+            columns = np.flatnonzero(covered[120])
+            rows = np.flatnonzero(covered[:, 120])
+            extent_u = (np.array([columns[0], columns[-1] + 1]) - 120.5) / pixels_per_unit
+            extent_v = (rows[-1] + 1 - rows[0]) / pixels_per_unit
+            np.testing.assert_allclose(extent_u, [left, right], atol=0.03, err_msg=f"{method} alpha {alpha}")
+            assert extent_v > 1.9, (method, alpha, extent_v)

@@ -16,7 +16,8 @@
 // blending) or deferred shading from blended normals (2005); EWA_FILTER (2005 screen-space
 // filter approximation: the union of the object-space disk and a screen-space low-pass);
 // CURVED_SPLATS (each splat is the curved surface its linear normal field describes: the
-// ray meets that, so the splat ends at the surface's true contour); NORMAL_FIELD (with
+// ray meets that, so the splat ends at the surface's true contour, and reaches no farther
+// than where its field has turned by MAX_RIM_TILT); NORMAL_FIELD (with
 // CURVED_SPLATS: Botsch, Spernat & Kobbelt 2004, Phong splatting: the blended normal is the
 // splat's linear normal field N(u, v) = n + u alpha u_j + v beta v_j, eq. 8, per fragment);
 // CLIP_LINES (splats cut at sharp features by the clip lines of surfel.preprocess).
@@ -30,6 +31,7 @@
 
 #define DEPTH_CLAMP 32.0  // splat radii: how far the plane's depth may stray from the centre's
 #define BACK_SPLAT_WEIGHT (1.0 / 256.0)  // a back-facing splat's weight beside front-facing ones
+#define MAX_RIM_TILT 1.0  // a curved splat's field turns by at most this (tan 45 degrees) at its rim
 #define FAR_DEPTH 3.0e38  // the visibility target's clear value (gl/passes.py FAR): no surface
 
 uniform float u_radius_scale;
@@ -101,6 +103,16 @@ float nearest_depth(vec3 c, vec3 n, vec2 lo, vec2 hi, float extent) {
 }
 #endif
 
+#if defined(CURVED_SPLATS) && defined(CLIP_LINES)
+// The clip line a u + b v <= c (unit (a, b)) of a splat in the coordinates of its axes divided
+// by `reach`: the same line, unit again.
+vec3 line_within_reach(vec3 line, vec2 reach) {
+    vec2 ab = line.xy / reach;
+    float norm = length(ab);
+    return norm > 0.0 ? vec3(ab, line.z) / norm : line;
+}
+#endif
+
 // What the vertex stage computes once per splat: the v_ values its fragments read, and its
 // screen box [lo, hi] (image pixels, y down): with POINT_SPRITES the square sprite around it.
 // False for a splat that draws nothing (level of detail, back-face culling, behind the near
@@ -113,12 +125,21 @@ bool splat_setup(out vec2 lo, out vec2 hi, out bool crosses_near) {
     vec3 n = mat3(u_view) * in_normal;
     vec3 au = mat3(u_view) * in_axis_u * u_radius_scale;
     vec3 av = mat3(u_view) * in_axis_v * u_radius_scale;
+    vec2 field = in_field;
+#ifdef CURVED_SPLATS
+    // A curved splat reaches no farther along each axis than where its field has turned by
+    // MAX_RIM_TILT, its slope there then at most that (splatting.py)
+    vec2 reach = max(abs(field) / MAX_RIM_TILT, 1.0);
+    au /= reach.x;
+    av /= reach.y;
+    field /= reach;
+#endif
     if (!face_camera(c, n, au, av)) n = normalize(n);
     bool back = faces_away(c, n);
     if (back) n = -n;
     // the normal field turns with the normal when the splat is seen from its back
-    v_field_u = (back ? -1.0 : 1.0) * in_field.x * normalize(au + 1e-30);
-    v_field_v = (back ? -1.0 : 1.0) * in_field.y * normalize(av + 1e-30);
+    v_field_u = (back ? -1.0 : 1.0) * field.x * normalize(au + 1e-30);
+    v_field_v = (back ? -1.0 : 1.0) * field.y * normalize(av + 1e-30);
     float near = u_depth_range.x;
     bool before_near = u_ortho == 0.0 && -c.z + length(au) + length(av) < near;  // wholly behind the camera's near plane
     bool culled = (back && u_backface_culling != 0) || before_near;
@@ -184,7 +205,10 @@ bool splat_setup(out vec2 lo, out vec2 hi, out bool crosses_near) {
 #endif
     v_category = category_index(in_color);
     v_center_px = center_px;
-#ifdef CLIP_LINES
+#if defined(CLIP_LINES) && defined(CURVED_SPLATS)
+    v_clip0 = line_within_reach(in_clip0, reach);
+    v_clip1 = line_within_reach(in_clip1, reach);
+#elif defined(CLIP_LINES)
     v_clip0 = in_clip0;
     v_clip1 = in_clip1;
 #endif

@@ -51,7 +51,16 @@ which puts the depth on the surface and ends the splat at the surface's true con
 splats stick out past the outline of a coarsely sampled curved surface, dark (their field
 normals turn edge-on there) over the bright surface behind: the largest error of sparse
 sampling (bunny thinned to every 4th point: +0.7 to +2.5 dB interior PSNR over five views;
-spot, coarsely sampled: +6 dB).
+spot, coarsely sampled: +6 dB). A curved splat also ends where its field has turned by 45
+degrees, |α u| <= MAX_RIM_TILT = 1 (splatting.glsl): drawn, its axes are divided by
+max(1, |α|) and max(1, |β|), its slopes with them (its curvature α / |u_j| is kept), and its
+clip lines are moved into those coordinates. Past that tilt the paraboloid parts from the
+surface it stands for (a fillet, a rim, a spout) and spills past the outline with grazing
+normals, while the neighbours' splats there describe the surface; the stored axes, the
+cells' covering ellipses, stay as they are for the flat splats of the other methods. (Mesh
+vertices of 13 models, two views each: `phong` median 34.1 -> 34.5 dB, `deferred` 33.1 ->
+33.5 dB, the CAD part's oblique view +1.1 and +1.3 dB; raw scans of them within 0.05 dB.
+A limit of 0.5 gained 1 dB but opened holes of 0.1-0.7% on coarse figures.)
 
 Passes without the rasterizer (beyond the papers; splatting.glsl's COMPUTE_SHADER variants):
 with point sprites, the visibility and attribute passes run as compute programs, one

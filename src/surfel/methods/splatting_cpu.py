@@ -5,8 +5,9 @@ programs (splatting.py, splatting.glsl) on machines whose OpenGL is itself a sof
 rasterizer, which the dedicated one beats.
 
 Per splat (the vertex stage), in eye space: centre c, normal n turned to face the camera,
-semi-axes u_j, v_j (times radius_scale). The ray of the pixel at offset (dx, dy) from the
-projected centre is d = d_c + (dx / f_x, -dy / f_y, 0) from the eye (d_c = c / -c_z), or
+semi-axes u_j, v_j (times radius_scale; a curved splat's divided by its reach, splatting.py).
+The ray of the pixel at offset (dx, dy) from the projected centre is
+d = d_c + (dx / f_x, -dy / f_y, 0) from the eye (d_c = c / -c_z), or
 starts at o = o_c + (dx, -dy) / s along (0, 0, -1) for an orthographic camera of s pixels per
 unit. Where it meets the splat plane,
 

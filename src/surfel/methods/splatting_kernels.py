@@ -125,6 +125,26 @@ from .splatting_tiles import (
 
 COLOR_RGB, COLOR_CONTINUOUS, COLOR_CATEGORICAL = 0, 1, 2  # gl/colors.glsl's colour modes
 BACK_SPLAT_WEIGHT = np.float32(1.0 / 256.0)  # splatting.glsl's: a back-facing splat's weight beside front ones
+MAX_RIM_TILT = np.float32(1.0)  # splatting.glsl's: a curved splat's field turns by at most this at its rim
+
+
+@nb.njit(inline="always", fastmath=True, error_model="numpy")
+def _reach(e, curved):
+    """splatting.glsl's reach of a curved splat with extras e: the divisors of its axes u and v
+    that end it where its field has turned by MAX_RIM_TILT (1 where it turns less, or is flat)."""
+    one = np.float32(1.0)
+    return (max(abs(e[EALPHA]) / MAX_RIM_TILT, one) if curved else one,
+            max(abs(e[EBETA]) / MAX_RIM_TILT, one) if curved else one)
+
+
+@nb.njit(inline="always", fastmath=True, error_model="numpy")
+def _line_within_reach(a, b, c, reach_u, reach_v):
+    """splatting.glsl line_within_reach: the clip line a u + b v <= c (unit (a, b)) in the
+    coordinates of the axes divided by (reach_u, reach_v), unit again."""
+    a, b = a / reach_u, b / reach_v
+    norm = math.sqrt(a * a + b * b)
+    inv = np.float32(1.0) / norm if norm > 0 else np.float32(1.0)
+    return a * inv, b * inv, c * inv
 
 
 @nb.njit(forceinline=True, fastmath=True, error_model="numpy")
@@ -137,8 +157,10 @@ def _setup(p, e, m, radius_scale, lowpass2, depth_offset, ewa_filter, curved, ba
     fx, fy, cx, cy, ortho, near = m[12], m[13], m[14], m[15], m[16], m[17]
     ex, ey, ez = eye_space(m, p[PX], p[PY], p[PZ])
     nx, ny, nz = rotate(m, p[PNX], p[PNY], p[PNZ])
-    ux, uy, uz = rotate(m, p[PUX] * radius_scale, p[PUY] * radius_scale, p[PUZ] * radius_scale)
-    vx, vy, vz = rotate(m, p[PVX] * radius_scale, p[PVY] * radius_scale, p[PVZ] * radius_scale)
+    reach_u, reach_v = _reach(e, curved)
+    scale_u, scale_v = radius_scale / reach_u, radius_scale / reach_v
+    ux, uy, uz = rotate(m, p[PUX] * scale_u, p[PUY] * scale_u, p[PUZ] * scale_u)
+    vx, vy, vz = rotate(m, p[PVX] * scale_v, p[PVY] * scale_v, p[PVZ] * scale_v)
     nx, ny, nz, ux, uy, uz, vx, vy, vz = face_camera(ex, ey, ez, nx, ny, nz, ux, uy, uz, vx, vy, vz, ortho)
     inv_n = one / max(math.sqrt(nx * nx + ny * ny + nz * nz), tiny)
     facing = nz if ortho > 0 else -(nx * ex + ny * ey + nz * ez)
@@ -205,7 +227,7 @@ def _setup(p, e, m, radius_scale, lowpass2, depth_offset, ewa_filter, curved, ba
               depth, max(lu, lv), weight, zt, p[PR], p[PG], p[PB], nx, ny, nz)
     field = FLAT_FIELD
     if curved:
-        alpha, beta = flip * e[EALPHA], flip * e[EBETA]
+        alpha, beta = flip * e[EALPHA] / reach_u, flip * e[EBETA] / reach_v
         ilu, ilv = one / max(lu, tiny), one / max(lv, tiny)
         eux, euy, euz = ux * ilu, uy * ilu, uz * ilu
         evx, evy, evz = vx * ilv, vy * ilv, vz * ilv
@@ -259,9 +281,11 @@ def _setup_tile(table, ibox, count, ox, oy, m, radius_scale, lowpass2, depth_off
              table[j + ROW[RAD]], table[j + ROW[WT]], table[j + ROW[ZT]], table[j + ROW[R]], table[j + ROW[G]],
              table[j + ROW[B]], table[j + ROW[NX]], table[j + ROW[NY]], table[j + ROW[NZ]]) = record
             if clip_src is not None:
-                (table[j + ROW[C0A]], table[j + ROW[C0B]], table[j + ROW[C0C]], table[j + ROW[C1A]],
-                 table[j + ROW[C1B]], table[j + ROW[C1C]]) = (e[EA0], e[EB0], e[EC0] * scale, e[EA1], e[EB1],
-                                                              e[EC1] * scale)
+                reach_u, reach_v = _reach(e, curved)
+                table[j + ROW[C0A]], table[j + ROW[C0B]], table[j + ROW[C0C]] = _line_within_reach(
+                    e[EA0], e[EB0], e[EC0] * scale, reach_u, reach_v)
+                table[j + ROW[C1A]], table[j + ROW[C1B]], table[j + ROW[C1C]] = _line_within_reach(
+                    e[EA1], e[EB1], e[EC1] * scale, reach_u, reach_v)
             if field_src is not None:  # the curved splat
                 (table[j + ROW[KU]], table[j + ROW[KV]], table[j + ROW[LU]], table[j + ROW[LV]],
                  table[j + ROW[A10]], table[j + ROW[A1X]], table[j + ROW[A1Y]], table[j + ROW[B10]],
