@@ -43,3 +43,22 @@ def test_the_field_fits_the_normals_inside_its_splat():
     centre = np.flatnonzero((np.abs(x) < 1e-9) & (np.abs(y) < 1e-9))[0]
     assert 2 * radius <= abs(alpha[centre]) <= 1.2 * 2 * radius
     assert abs(beta[centre]) < 1e-6  # no curvature along y
+
+
+def test_the_far_side_of_a_thin_tube_does_not_flatten_its_field():
+    """A tube of radius 1 sampled as rings of 8 points 2.5 apart (a coarse tail): a splat's
+    16 neighbours include the far side of the tube, facing away and off its plane. Fitted as
+    the same sheet seen from behind, their normals, nearly parallel to its own at small
+    offsets, flattened the slope around the tube to 0.01; fitted on its own side only, it is
+    the side's: tilt tan 45 degrees at the ring neighbours' sin 45 degrees, over 1 at the rim
+    of a splat half a radius wide."""
+    rings = np.arange(-5, 6) * 2.5
+    theta = np.arange(8) * (2 * np.pi / 8)
+    x, t = (m.ravel() for m in np.meshgrid(rings, theta))
+    normals = np.c_[np.zeros_like(x), np.cos(t), np.sin(t)]
+    around = np.c_[np.zeros_like(x), -np.sin(t), np.cos(t)]
+    axes = np.stack([np.tile([1.25, 0.0, 0.0], (len(x), 1)), 0.5 * around], axis=1)
+    alpha, beta = fit_normal_field(np.c_[x, normals[:, 1:]], normals, axes.astype(np.float32))
+    middle = np.abs(x) < 1e-9
+    np.testing.assert_allclose(beta[middle], 0.5 * np.tan(np.pi / 4) / np.sin(np.pi / 4), rtol=0.1)
+    np.testing.assert_allclose(alpha[middle], 0.0, atol=1e-6)  # straight along the tube
