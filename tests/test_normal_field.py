@@ -48,10 +48,10 @@ def test_the_field_fits_the_normals_inside_its_splat():
 def test_the_far_side_of_a_thin_tube_does_not_flatten_its_field():
     """A tube of radius 1 sampled as rings of 8 points 2.5 apart (a coarse tail): a splat's
     16 neighbours include the far side of the tube, facing away and off its plane. Fitted as
-    the same sheet seen from behind, their normals, nearly parallel to its own at small
-    offsets, flattened the slope around the tube to 0.01; fitted on its own side only, it is
-    the side's: tilt tan 45 degrees at the ring neighbours' sin 45 degrees, over 1 at the rim
-    of a splat half a radius wide."""
+    the same sheet seen from behind, their normals, nearly opposite its own and so barely
+    tilted at small offsets, flattened the slope around the tube to 0.01; fitted on its own
+    side only, it is the side's: tilt tan 45 degrees at the ring neighbours' sin 45 degrees,
+    over 1 at the rim of a splat half a radius wide."""
     rings = np.arange(-5, 6) * 2.5
     theta = np.arange(8) * (2 * np.pi / 8)
     x, t = (m.ravel() for m in np.meshgrid(rings, theta))

@@ -22,10 +22,10 @@ Fitted are the neighbours on p's own sheet. Not fitted:
   * those across a crease, |n_q . n_j| < ACROSS_COS;
   * the far side of a thin part (a tail, an ear, a lip), as borders.py tells it: facing away,
     n_q . n_j < SHEET_COS, and off p's plane, ((q - p) . n_j)^2 > FLAT_SIN2 |q - p|^2. Taken as
-    the same sheet seen from behind, its normals, nearly parallel to n_j at small offsets,
-    flattened the field across a tube sampled as rings, whose splats then stood out as beads
-    along it (13 models' vertices: `phong` median 34.5 -> 35.1 dB, `deferred` 33.5 -> 33.6 dB,
-    cheburashka +1.8 dB, cow +1.4 dB, teapot -0.5 dB; their raw scans within 0.05 dB).
+    the same sheet seen from behind, its normals, nearly opposite n_j and so barely tilted at
+    small offsets, flattened the field across a tube sampled as rings, whose splats stood out
+    as beads along it (13 models' vertices: `phong` median 34.5 -> 35.1 dB, `deferred` 33.5 ->
+    33.6 dB, cheburashka +1.8 dB, cow +1.4 dB, teapot -0.5 dB; their raw scans within 0.05 dB).
 A neighbour facing away in p's plane is the same surface seen from behind (a shell scanned
 from inside and out) and is fitted, its tilt's sign following its normal's.
 """
