@@ -148,16 +148,15 @@ def _line_within_reach(a, b, c, reach_u, reach_v):
 
 
 @nb.njit(forceinline=True, fastmath=True, error_model="numpy")
-def _setup(p, e, m, radius_scale, lowpass2, depth_offset, ewa_filter, curved, back_light):
+def _setup(p, e, m, radius_scale, lowpass2, depth_offset, ewa_filter, curved, back_light, reach_u, reach_v):
     """The record of one splat from its staged inputs p (PACKED values) and extras e (EXTRAS
     values), without branches (the vertex stage of splatting.glsl): (record values MX..NZ, field
     values KU..EZ). `back_light`: a back-facing splat weighs BACK_SPLAT_WEIGHT (the methods
-    that blend normals, not shaded colours)."""
+    that blend normals, not shaded colours). (reach_u, reach_v): `_reach` of its extras."""
     one, zero, tiny = np.float32(1.0), np.float32(0.0), np.float32(1e-30)
     fx, fy, cx, cy, ortho, near = m[12], m[13], m[14], m[15], m[16], m[17]
     ex, ey, ez = eye_space(m, p[PX], p[PY], p[PZ])
     nx, ny, nz = rotate(m, p[PNX], p[PNY], p[PNZ])
-    reach_u, reach_v = _reach(e, curved)
     scale_u, scale_v = radius_scale / reach_u, radius_scale / reach_v
     ux, uy, uz = rotate(m, p[PUX] * scale_u, p[PUY] * scale_u, p[PUZ] * scale_u)
     vx, vy, vz = rotate(m, p[PVX] * scale_v, p[PVY] * scale_v, p[PVZ] * scale_v)
@@ -274,14 +273,15 @@ def _setup_tile(table, ibox, count, ox, oy, m, radius_scale, lowpass2, depth_off
         for q in range(min(BLOCK, count - first)):
             j, jb = base + np.uint64(q), box_base + np.uint64(q)
             p, e = _staged(table, j)
-            record, field = _setup(p, e, cam, radius_scale, lowpass2, depth_offset, ewa_filter, curved, back_light)
+            reach_u, reach_v = _reach(e, curved)
+            record, field = _setup(p, e, cam, radius_scale, lowpass2, depth_offset, ewa_filter, curved, back_light,
+                                   reach_u, reach_v)
             (table[j + ROW[MX]], table[j + ROW[MY]], table[j + ROW[W0]], table[j + ROW[WX]], table[j + ROW[WY]],
              table[j + ROW[Z0]], table[j + ROW[ZX]], table[j + ROW[ZY]], table[j + ROW[U0]], table[j + ROW[UX]],
              table[j + ROW[UY]], table[j + ROW[V0]], table[j + ROW[VX]], table[j + ROW[VY]], table[j + ROW[CZ]],
              table[j + ROW[RAD]], table[j + ROW[WT]], table[j + ROW[ZT]], table[j + ROW[R]], table[j + ROW[G]],
              table[j + ROW[B]], table[j + ROW[NX]], table[j + ROW[NY]], table[j + ROW[NZ]]) = record
             if clip_src is not None:
-                reach_u, reach_v = _reach(e, curved)
                 table[j + ROW[C0A]], table[j + ROW[C0B]], table[j + ROW[C0C]] = _line_within_reach(
                     e[EA0], e[EB0], e[EC0] * scale, reach_u, reach_v)
                 table[j + ROW[C1A]], table[j + ROW[C1B]], table[j + ROW[C1C]] = _line_within_reach(
