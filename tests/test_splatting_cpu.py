@@ -313,3 +313,24 @@ def test_the_hot_loops_compile_to_simd():
     camera = tuple(np.float32(v) for v in (1, 0, 0, 0, 1, 0, 0, 0, 1, 0, 0, -5, 500, 500, 256, 256, 0, 0.1, 100))
     assert _packed_float_ops(bins.bound_block, packed, extras, camera, np.float32(1.0), np.float32(1.0), False, 512,
                              512, np.zeros(4 * bins.BOUND_BLOCK, np.int32), 0, count) >= 16
+
+
+@pytest.mark.parametrize("threads", [1, 2, 3, 8])
+def test_tiles_are_dealt_to_threads_in_equal_shares_of_work(threads):
+    """numba splits a parallel loop into equal contiguous ranges, one a thread: the dealt
+    order visits every tile once, pads with -1 to whole ranges, and gives each range work
+    within one tile's cost of every other's (a screen-ordered split of this skewed screen
+    gives one thread nearly all of it)."""
+    from surfel.methods.ewa import TILE_PIXEL_COST, balanced_tile_order
+
+    rng = np.random.default_rng(3)
+    splats = np.zeros(32 * 32, np.int64)
+    splats[:300] = rng.integers(0, 20000, 300)  # the object fills the top of the screen
+    order = balanced_tile_order(splats, threads)
+    assert len(order) % threads == 0
+    assert np.array_equal(np.sort(order[order >= 0]), np.arange(len(splats)))
+    cost = np.where(order >= 0, splats[np.maximum(order, 0)] + TILE_PIXEL_COST, 0)
+    shares = cost.reshape(threads, -1).sum(axis=1)
+    assert shares.max() - shares.min() <= splats.max() + TILE_PIXEL_COST
+    if threads == 2:
+        assert shares.max() / shares.sum() < 0.51

@@ -339,6 +339,8 @@ def rasterize_tiles(splats, extra, box, offsets, index, order, tiles_x, width, h
     half = np.float32(0.5)
     for k in nb.prange(order.shape[0]):
         t = order[k]
+        if t < 0:  # padding (ewa.balanced_tile_order)
+            continue
         start, stop = offsets[t], offsets[t + 1]
         if start == stop:
             continue

@@ -47,8 +47,9 @@ supersampling's box filter are RenderResult.from_samples', shared with every met
 
 Speed (issue 18): the cloud is drawn in Morton order (made once per cloud by the Renderer), so
 a tile's splats lie together in memory; splats are binned into TILE x TILE screen tiles by
-all threads, and tiles are rasterized in parallel, each in its thread's cache-sized scratch,
-normalized and shaded in place; the splat table, bins and scratch are kept by the Renderer
+all threads, and tiles are rasterized in parallel, dealt to the threads by their splats
+(ewa.balanced_tile_order), each in its thread's cache-sized scratch, normalized and shaded in
+place; the splat table, bins and scratch are kept by the Renderer
 from frame to frame (`CpuSplatBuffers`); per-fragment arithmetic is float32 under fastmath.
 """
 
@@ -67,6 +68,7 @@ from . import splatting_bins as bins
 from . import splatting_kernels as k
 from . import splatting_tiles as t
 from .ewa import (
+    balanced_tile_order,
     ortho_scale,
     spatially_ordered,
     splat_axes,
@@ -74,7 +76,6 @@ from .ewa import (
     splat_colors,
     splat_fields,
     target_camera,
-    tile_order,
 )
 from .ewa_kernels import TILE
 from .splatting import DEFAULT_SUPERSAMPLES, DeferredParams, GaussianParams, PhongParams
@@ -130,7 +131,6 @@ class CpuSplatBuffers:
         self.size, self.threads = (width, height), threads
         self.tiles_x, self.tiles_y = -(-width // TILE), -(-height // TILE)
         tiles = self.tiles_x * self.tiles_y
-        self.order = tile_order(self.tiles_x, self.tiles_y)
         self.counts = np.empty((threads * BIN_CHUNKS_PER_THREAD, tiles), np.int64)
         self.bounds = np.empty((threads * BIN_CHUNKS_PER_THREAD, 4 * bins.BOUND_BLOCK), np.int32)
         self.tile_start = np.empty(tiles, np.int64)
@@ -138,7 +138,7 @@ class CpuSplatBuffers:
         self.present = np.empty((height, width), np.uint8)
         self.zbuf = np.empty((threads, t.STRIDE * t.STRIDE), np.float32)
         self.cover = np.empty((threads, t.STRIDE * t.STRIDE), np.float32)
-        self.accum = np.empty((threads, t.LAYER, t.STRIDE * t.STRIDE), np.float32)
+        self.accum = np.empty((threads, t.STRIDE * t.STRIDE, t.LAYER), np.float32)
         self.best = np.empty((threads, t.STRIDE * t.STRIDE), np.float32)
         self.temp = np.empty((threads, t.TEMP_ROWS * t.BLOCK), np.float32)
         self.capacity = 0
@@ -150,6 +150,7 @@ class CpuSplatBuffers:
         if pairs > len(self.index):  # more tile overlaps than ever before
             self.index = np.empty(pairs + pairs // 4, np.int32)
         bins.place_splats(self.box, self.tiles_x, self.counts, self.index)
+        self.order = balanced_tile_order(self.tile_count, self.threads)
         if largest > self.capacity:
             self.capacity = largest + largest // 4
             self.tables = np.zeros((self.threads, t.table_size(self.capacity)), np.float32)

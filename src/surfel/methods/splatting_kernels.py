@@ -306,15 +306,15 @@ def _normalize(acc, p, model, near, far, color_mode, table, index):
     """Normalization of pixel p's sums: rgb, unit normal, depth; with `model` >= 0, the albedo
     (the colour mode's: the normalized rgb, the colour map's entry of the normalized
     encoded value, or the palette entry `index` of the winning category) shaded per pixel."""
-    inv = np.float32(1.0) / acc[3, p]
-    sx, sy, sz = acc[4, p], acc[5, p], acc[6, p]
+    inv = np.float32(1.0) / acc[p, 3]
+    sx, sy, sz = acc[p, 4], acc[p, 5], acc[p, 6]
     length = math.sqrt(sx * sx + sy * sy + sz * sz)
     if length > 0:
         nx, ny, nz = sx / length, sy / length, sz / length
     else:
         nx, ny, nz = np.float32(0.0), np.float32(0.0), np.float32(1.0)
-    depth = acc[7, p] * inv
-    r, g, b = acc[0, p] * inv, acc[1, p] * inv, acc[2, p] * inv
+    depth = acc[p, 7] * inv
+    r, g, b = acc[p, 0] * inv, acc[p, 1] * inv, acc[p, 2] * inv
     if color_mode == COLOR_CATEGORICAL:
         r, g, b = table[index, 0], table[index, 1], table[index, 2]
     elif color_mode == COLOR_CONTINUOUS and model >= 0:
@@ -365,7 +365,7 @@ def rasterize_tiles(packed, extras, box, index, tile_start, tile_count, order, t
     (the pixel then holds its raw colour and its own coverage). Each thread's scratch: tables
     (threads, table_size(largest tile)), boxes (threads, 4 x that), temp (threads,
     TEMP_ROWS x BLOCK), kept (threads, table_size(largest tile, KEPT_ROWS)), zbuf, cover
-    (threads, STRIDE²), accum (threads, LAYER, STRIDE²).
+    (threads, STRIDE²), accum (threads, STRIDE², LAYER).
     clip_src, field_src, normal_src: the extras where splats are clipped, where they are curved
     by their normal fields, where they are shaded with them too (`phong`); else None, which
     compiles a kernel without that arithmetic, and stages only the extras it reads. The renderer
@@ -387,6 +387,8 @@ def rasterize_tiles(packed, extras, box, index, tile_start, tile_count, order, t
     categorical = color_mode == COLOR_CATEGORICAL
     for k in nb.prange(order.shape[0]):
         t = order[k]
+        if t < 0:  # padding (ewa.balanced_tile_order)
+            continue
         ox, oy = (t % tiles_x) * TILE, (t // tiles_x) * TILE
         tw, th = min(TILE, width - ox), min(TILE, height - oy)
         count = tile_count[t]
@@ -440,7 +442,7 @@ def rasterize_tiles(packed, extras, box, index, tile_start, tile_count, order, t
             for lx in range(tw):
                 x = ox + lx
                 p = ly * STRIDE + lx
-                if acc[3, p] <= 0:
+                if acc[p, 3] <= 0:
                     _write_empty(color, alpha, depth, normals, present, indices, y, x, background, composite,
                                  categorical)
                     continue
@@ -459,7 +461,7 @@ def rasterize_tiles(packed, extras, box, index, tile_start, tile_count, order, t
                         qx = min(max(x + (1 if step == 0 else -1 if step == 1 else 0), 0), width - 1)
                         qy = min(max(y + (1 if step == 2 else -1 if step == 3 else 0), 0), height - 1)
                         if ox <= qx < ox + tw and oy <= qy < oy + th:
-                            whole = whole and acc[3, (qy - oy) * STRIDE + qx - ox] > 0
+                            whole = whole and acc[(qy - oy) * STRIDE + qx - ox, 3] > 0
                         else:
                             state = 2
                     if not whole:

@@ -70,7 +70,9 @@ BLOCK = 1 << BLOCK_BITS
 ROW = tuple(np.uint64(row * BLOCK) for row in range(TABLE_ROWS))  # a row's offset inside a block
 TILE_BITS = TILE.bit_length() - 1  # TILE is a power of two: a pixel's tile is pixel >> TILE_BITS
 STRIDE = TILE + 2  # row stride of the tile scratch: a splat's 2x2 block may reach one past the tile
-LAYER = 8  # accumulator planes, the GL attribute pass's two targets: w r, w g, w b, w, w n, w depth
+# A pixel's accumulators, side by side (a fragment's blend then writes one cache line): the GL
+# attribute pass's two targets, w r, w g, w b, w, w n, w depth
+LAYER = 8
 TEMP_ROWS = 8  # a block's visibility results: 4 lanes each of depth and coverage
 TEMP = tuple(np.uint64(row * BLOCK) for row in range(TEMP_ROWS))
 # A block's attribute-pass results, computed with its visibility results (one ray-splat
@@ -312,16 +314,17 @@ def attribute_output(s, f, hit_record, field_normals, nx, ny, nz):
 
 @nb.njit(inline="always", fastmath=True, error_model="numpy")
 def blend(acc, p, w, z, r, g, b, nx, ny, nz):
-    """The attribute pass's additive blend of one fragment of weight w into pixel p: the place
-    where a further channel (a scalar, or a categorical winner) would join."""
-    acc[0, p] += w * r
-    acc[1, p] += w * g
-    acc[2, p] += w * b
-    acc[3, p] += w
-    acc[4, p] += w * nx
-    acc[5, p] += w * ny
-    acc[6, p] += w * nz
-    acc[7, p] += w * z
+    """The attribute pass's additive blend of one fragment of weight w into pixel p's
+    accumulators (acc (STRIDE², LAYER)): the place where a further channel (a scalar, or a
+    categorical winner) would join."""
+    acc[p, 0] += w * r
+    acc[p, 1] += w * g
+    acc[p, 2] += w * b
+    acc[p, 3] += w
+    acc[p, 4] += w * nx
+    acc[p, 5] += w * ny
+    acc[p, 6] += w * nz
+    acc[p, 7] += w * z
 
 
 @nb.njit(forceinline=True, fastmath=True, error_model="numpy")
