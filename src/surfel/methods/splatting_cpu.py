@@ -49,8 +49,8 @@ Speed (issue 18): the cloud is drawn in Morton order (made once per cloud by the
 a tile's splats lie together in memory; splats are binned into TILE x TILE screen tiles by
 all threads, and tiles are rasterized in parallel, dealt to the threads by their splats
 (ewa.balanced_tile_order), each in its thread's cache-sized scratch, normalized and shaded in
-place; the splat table, bins and scratch are kept by the Renderer
-from frame to frame (`CpuSplatBuffers`); per-fragment arithmetic is float32 under fastmath.
+place; the splat table, bins and scratch are kept by the Renderer from frame to frame
+(`CpuSplatBuffers`); per-fragment arithmetic is float32 under fastmath.
 """
 
 from __future__ import annotations
