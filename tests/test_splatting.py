@@ -444,3 +444,24 @@ def test_a_curved_splat_ends_where_its_field_has_turned_by_45_degrees(backend):
             extent_v = (rows[-1] + 1 - rows[0]) / pixels_per_unit
             np.testing.assert_allclose(extent_u, [left, right], atol=0.03, err_msg=f"{method} alpha {alpha}")
             assert extent_v > 1.9, (method, alpha, extent_v)
+
+
+@pytest.mark.parametrize("backend", ["cpu", "gl"])
+def test_the_low_pass_footprint_does_not_widen_a_resolved_edge_on_splat(backend):
+    """With the EWA filter (deferred), a splat covers at least the pixel around its projected
+    centre, a pixel-wide footprint, wholly while it is smaller than a pixel but not once it is
+    resolved (splatting.glsl footprint_edge): seen edge-on at 80 pixels across, 0.28 thick, a
+    disk centred between two pixel rows covers each by about its own thickness, where the whole
+    footprint gave each half and widened a scan's outline (0.3 dB of the real Stanford scans);
+    the same disk at 0.4 pixels across still covers half of each."""
+    from surfel.camera import Camera
+
+    camera = Camera.look_at([0, 0, 5], [0, 0, 0], size=(241, 240), ortho_height=3.0)  # 80 pixels a unit
+    tilt = np.radians(0.2)
+    normal = [0.0, np.cos(tilt), np.sin(tilt)]
+    axes = [[[1.0, 0, 0], [0, -np.sin(tilt), np.cos(tilt)]]]
+    for radius, least, most in ((1.0, 0.0, 0.3), (0.005, 0.45, 1.0)):
+        splat = PointCloud(np.zeros((1, 3)), normals=[normal], radii=[radius], axes=np.multiply(axes, radius))
+        alpha = render(splat, camera, "deferred", backend=backend, shading="lambert", supersample=1).alpha
+        straddling = alpha[119:121, 120]
+        assert np.all((least <= straddling) & (straddling <= most)), (radius, straddling)

@@ -32,6 +32,7 @@
 #define DEPTH_CLAMP 32.0  // splat radii: how far the plane's depth may stray from the centre's
 #define BACK_SPLAT_WEIGHT (1.0 / 256.0)  // a back-facing splat's weight beside front-facing ones
 #define MAX_RIM_TILT 1.0  // a curved splat's field turns by at most this (tan 45 degrees) at its rim
+#define FULL_FOOTPRINT_AXIS 0.5  // pixels of semi-major axis below which a splat's footprint is whole
 #define FAR_DEPTH 3.0e38  // the visibility target's clear value (gl/passes.py FAR): no surface
 
 uniform float u_radius_scale;
@@ -61,6 +62,7 @@ SPLAT_VARYING vec2 v_center_px;  // projected centre in image pixels (for the lo
 SPLAT_VARYING float v_offset;    // z_t in eye units
 SPLAT_VARYING float v_radius;    // largest semi-axis
 SPLAT_VARYING float v_weight;    // EWA_FILTER: the resampling kernel's relative amplitude
+SPLAT_VARYING float v_footprint; // EWA_FILTER: the share of the pixel-wide footprint off the disk
 SPLAT_VARYING vec3 v_field_u;    // alpha u_j and beta v_j: the normal field's slopes (eye space)
 SPLAT_VARYING vec3 v_field_v;
 #ifdef CLIP_LINES
@@ -169,8 +171,12 @@ bool splat_setup(out vec2 lo, out vec2 hi, out bool crosses_near) {
     float det_s = pow(ju.x * jv.y - ju.y * jv.x, 2.0);
     float trace_s = dot(ju, ju) + dot(jv, jv);
     v_weight = crosses_near ? 1.0 : sqrt(det_s / (det_s + r2 * trace_s + r2 * r2));
+    // S's larger eigenvalue is the squared semi-major axis (footprint_edge)
+    float major = sqrt(0.5 * (trace_s + sqrt(max(trace_s * trace_s - 4.0 * det_s, 0.0))));
+    v_footprint = crosses_near ? 0.0 : clamp(FULL_FOOTPRINT_AXIS + 1.0 - major, 0.0, 1.0);
 #else
     v_weight = 1.0;
+    v_footprint = 1.0;
 #endif
 #ifndef PER_SPLAT_SHADING
     // Two-sided splats: one seen from its back is flipped to face the camera. At a closed
@@ -327,6 +333,17 @@ float filter_distance(vec2 frag, float splat_rho2) {
 #endif
 }
 
+// The edge distance of a splat's pixel-wide footprint: a splat smaller than a pixel covers at
+// least the pixel around its centre, since its own edge would leave every pixel of a dense
+// cloud partly covered. Off the disk, where only the low-pass keeps a fragment, that counts by
+// the splat's share v_footprint: whole up to FULL_FOOTPRINT_AXIS pixels of semi-major axis,
+// none from a pixel more, so that the resolved edge-on splats of an outline (noisy on a scan)
+// do not widen it by the low-pass's reach. The CPU backend computes the same.
+float footprint_edge(vec2 frag, float splat_rho2) {
+    float share = splat_rho2 <= 1.0 ? 1.0 : v_footprint;
+    return share * (1.0 - length(image_coord(frag) - v_center_px)) - 0.5;
+}
+
 #if defined(PASS_ATTRIBUTE) || defined(PASS_CATEGORY)
 // The attribute pass's fragment at window position `frag`, as its fragment shader, its
 // compute program and the category pass take it: false where it is dropped (outside the
@@ -448,8 +465,7 @@ void main() {
         vec2 uv;
         float splat_rho2 = splat_distance(frag, z, uv, clipped);
         if (max(sqrt(filter_distance(frag, splat_rho2)), 1.0 + clipped) > 1.0) continue;
-        float edge = max(analytic_edge_distance(frag, uv, splat_rho2, clipped),
-                         0.5 - length(image_coord(frag) - v_center_px));
+        float edge = max(analytic_edge_distance(frag, uv, splat_rho2, clipped), footprint_edge(frag, splat_rho2));
         uint depth = floatBitsToUint(splat_rho2 > 1.0 ? FAR_DEPTH : z + v_offset);
         uint uncovered = floatBitsToUint(1.0 - clamp(0.5 + edge, 0.0, 1.0));
         // most fragments lie behind one already there: a plain load spares their atomics
@@ -483,11 +499,9 @@ void main() {
     vec2 uv;
     float splat_rho2 = splat_distance(gl_FragCoord.xy, z, uv, clipped);
     // Coverage for anti-aliased silhouettes, to the edge of the splat itself (its rim or a
-    // clip line), not of the low-pass, which filters but covers nothing. A splat smaller than
-    // a pixel covers at least a pixel-wide footprint: its own edge would leave every pixel of
-    // a dense cloud partly covered (surrounded() in the normalization pass sees those whole).
-    float edge = max(edge_distance(max(sqrt(splat_rho2), 1.0 + clipped)),
-                     0.5 - length(image_coord(gl_FragCoord.xy) - v_center_px));
+    // clip line), not of the low-pass, which filters but covers nothing, or to its footprint
+    // (surrounded() in the normalization pass sees the pixels of a dense cloud whole).
+    float edge = max(edge_distance(max(sqrt(splat_rho2), 1.0 + clipped)), footprint_edge(gl_FragCoord.xy, splat_rho2));
     float coverage = clamp(0.5 + edge, 0.0, 1.0);
     if (max(sqrt(filter_distance(gl_FragCoord.xy, splat_rho2)), 1.0 + clipped) > 1.0) discard;
     // A low-pass fragment off the disk filters but hides nothing: the edge-on splats of an

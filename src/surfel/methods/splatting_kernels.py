@@ -62,6 +62,7 @@ from .splatting_tiles import (
     EY,
     EZ,
     FLAT_FIELD,
+    FT,
     FUX,
     FUY,
     FUZ,
@@ -125,6 +126,7 @@ from .splatting_tiles import (
 
 COLOR_RGB, COLOR_CONTINUOUS, COLOR_CATEGORICAL = 0, 1, 2  # gl/colors.glsl's colour modes
 BACK_SPLAT_WEIGHT = np.float32(1.0 / 256.0)  # splatting.glsl's: a back-facing splat's weight beside front ones
+FULL_FOOTPRINT_AXIS = 0.5  # splatting.glsl's: pixels of semi-major axis below which a splat's footprint is whole
 MAX_RIM_TILT = np.float32(1.0)  # splatting.glsl's: a curved splat's field turns by at most this at its rim
 
 
@@ -186,6 +188,10 @@ def _setup(p, e, m, radius_scale, lowpass2, depth_offset, ewa_filter, curved, ba
     det_s = det * det
     trace_s = jux * jux + juy * juy + jvx * jvx + jvy * jvy
     weight = math.sqrt(det_s / max(det_s + lowpass2 * trace_s + lowpass2 * lowpass2, tiny))
+    # the low-pass's pixel-wide footprint, whole for a sub-pixel splat, none past a pixel more
+    # (splatting.glsl footprint_edge): S's larger eigenvalue is the squared semi-major axis
+    major = math.sqrt(np.float32(0.5) * (trace_s + math.sqrt(max(trace_s * trace_s - np.float32(4.0) * det_s, zero))))
+    footprint = zero if crosses_near else min(max(np.float32(FULL_FOOTPRINT_AXIS + 1.0) - major, zero), one)
     weight = weight if ewa_filter and not crosses_near else one
     # Two-sided splats (splatting.glsl): where a closed surface's outline blends front and
     # back splats, a back one's normal, turned to the camera, would brighten the rim; it
@@ -223,7 +229,7 @@ def _setup(p, e, m, radius_scale, lowpass2, depth_offset, ewa_filter, curved, ba
               zero if not perspective else v0,
               (avx * w_ortho + nx * avz) * inv_o if not perspective else hx * inv_fx,
               -(avy * w_ortho + ny * avz) * inv_o if not perspective else -hy * inv_fy,
-              depth, max(lu, lv), weight, zt, p[PR], p[PG], p[PB], nx, ny, nz)
+              depth, max(lu, lv), weight, zt, footprint, p[PR], p[PG], p[PB], nx, ny, nz)
     field = FLAT_FIELD
     if curved:
         alpha, beta = flip * e[EALPHA] / reach_u, flip * e[EBETA] / reach_v
@@ -279,7 +285,8 @@ def _setup_tile(table, ibox, count, ox, oy, m, radius_scale, lowpass2, depth_off
             (table[j + ROW[MX]], table[j + ROW[MY]], table[j + ROW[W0]], table[j + ROW[WX]], table[j + ROW[WY]],
              table[j + ROW[Z0]], table[j + ROW[ZX]], table[j + ROW[ZY]], table[j + ROW[U0]], table[j + ROW[UX]],
              table[j + ROW[UY]], table[j + ROW[V0]], table[j + ROW[VX]], table[j + ROW[VY]], table[j + ROW[CZ]],
-             table[j + ROW[RAD]], table[j + ROW[WT]], table[j + ROW[ZT]], table[j + ROW[R]], table[j + ROW[G]],
+             table[j + ROW[RAD]], table[j + ROW[WT]], table[j + ROW[ZT]], table[j + ROW[FT]], table[j + ROW[R]],
+             table[j + ROW[G]],
              table[j + ROW[B]], table[j + ROW[NX]], table[j + ROW[NY]], table[j + ROW[NZ]]) = record
             if clip_src is not None:
                 table[j + ROW[C0A]], table[j + ROW[C0B]], table[j + ROW[C0C]] = _line_within_reach(

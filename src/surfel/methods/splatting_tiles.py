@@ -52,10 +52,11 @@ EXTRAS = 8
 # setup's record: the projected centre (MX, MY); with (dx, dy) a pixel centre's offset from
 # it, W = W0 + WX dx + WY dy, depth W = Z0 + ZX dx + ZY dy, u W = U0 + UX dx + UY dy and
 # v W likewise; the centre's eye depth CZ; the largest semi-axis RAD; the EWA weight WT; z_t
-# ZT; the albedo (or per-splat shaded colour); the eye normal, turned to face the camera.
+# ZT; the low-pass footprint's share FT; the albedo (or per-splat shaded colour); the eye
+# normal, turned to face the camera.
 STAGED = PACKED + EXTRAS
-(MX, MY, W0, WX, WY, Z0, ZX, ZY, U0, UX, UY, V0, VX, VY, CZ, RAD, WT, ZT, R, G, B, NX, NY, NZ) = range(
-    STAGED, STAGED + 24)
+(MX, MY, W0, WX, WY, Z0, ZX, ZY, U0, UX, UY, V0, VX, VY, CZ, RAD, WT, ZT, FT, R, G, B, NX, NY, NZ) = range(
+    STAGED, STAGED + 25)
 # The clip lines (c over radius_scale: the scaled splat's coordinates).
 (C0A, C0B, C0C, C1A, C1B, C1C) = range(NZ + 1, NZ + 7)
 # Phong splatting's normal field: the curvatures KU = alpha / |u_j|, KV; the semi-axes LU, LV;
@@ -133,7 +134,7 @@ def splat_geometry(table, j):
     return (table[j + ROW[MX]], table[j + ROW[MY]], table[j + ROW[W0]], table[j + ROW[WX]], table[j + ROW[WY]],
             table[j + ROW[Z0]], table[j + ROW[ZX]], table[j + ROW[ZY]], table[j + ROW[U0]], table[j + ROW[UX]],
             table[j + ROW[UY]], table[j + ROW[V0]], table[j + ROW[VX]], table[j + ROW[VY]], table[j + ROW[CZ]],
-            table[j + ROW[RAD]], table[j + ROW[WT]], table[j + ROW[ZT]])
+            table[j + ROW[RAD]], table[j + ROW[WT]], table[j + ROW[ZT]], table[j + ROW[FT]])
 
 
 @nb.njit(inline="always")
@@ -192,7 +193,7 @@ def fragment(s, c, f, clipping, curved, dx, dy, params):
     that misses (parallel to the plane, or past the contour of a curved splat) has
     u² + v² = MISS and the centre's depth; `kept` is the test of both passes (inside the filter
     and the clip lines)."""
-    mx, my, w0, wx, wy, z0, zx, zy, u0, ux, uy, v0, vx, vy, cz, radius, weight, zt = s
+    mx, my, w0, wx, wy, z0, zx, zy, u0, ux, uy, v0, vx, vy, cz, radius, weight, zt, footprint = s
     inv_lowpass2, no_lowpass, depth_clamp = params
     one = np.float32(1.0)
     w = w0 + wx * dx + wy * dy
@@ -245,9 +246,10 @@ def visibility_output(s, c, f, hit_record, clipping, curved, dx, dy, params):
     from rho's screen-space gradient (analytic here and in the GPU's compute pass, a quad's
     differences in its fragment shader), for a curved splat no farther than its contour (where
     the discriminant of its quadratic, over its forward differences, falls to 0), and at least
-    the footprint of a pixel-wide disk at the projected centre (sub-pixel splats)."""
+    the footprint of a pixel-wide disk at the projected centre (sub-pixel splats), which off the
+    disk counts by the splat's share FT (splatting.glsl footprint_edge)."""
     kept, kernel2, z, u, v, rho2, clipped, hit, iw = hit_record
-    mx, my, w0, wx, wy, z0, zx, zy, u0, ux, uy, v0, vx, vy, cz, radius, weight, zt = s
+    mx, my, w0, wx, wy, z0, zx, zy, u0, ux, uy, v0, vx, vy, cz, radius, weight, zt, footprint = s
     one, tiny = np.float32(1.0), np.float32(1e-6)
     # d(u, v)/d(dx, dy) of u = (u W) / W: the plane's, also for a curved splat
     dux, duy = (ux - u * wx) * iw, (uy - u * wy) * iw
@@ -270,7 +272,8 @@ def visibility_output(s, c, f, hit_record, clipping, curved, dx, dy, params):
         ddx = curved_discriminant(s, f, dx + one, dy) - disc
         ddy = curved_discriminant(s, f, dx, dy - one) - disc
         edge = min(edge, disc / max(math.sqrt(ddx * ddx + ddy * ddy), np.float32(1e-30)))
-    edge = max(edge if hit else np.float32(-1e30), np.float32(0.5) - math.sqrt(dx * dx + dy * dy))
+    share = one if rho2 <= one else footprint  # a low-pass fragment off the disk: the splat's footprint share
+    edge = max(edge if hit else np.float32(-1e30), share * (one - math.sqrt(dx * dx + dy * dy)) - np.float32(0.5))
     coverage = min(max(np.float32(0.5) + edge, np.float32(0.0)), one)
     # a low-pass fragment off the disk filters but hides nothing
     return (z + zt if kept and rho2 <= 1 else FAR), (coverage if kept else np.float32(0.0))
