@@ -160,14 +160,16 @@ bool fetch_accumulated(int guard, out Accumulated a) {
     return true;
 }
 
-// Whether splats reach this fragment's pixel and its four neighbours: a pixel inside the
-// surface, whole, whatever the visibility pass's coverage of its single most covering splat
-// (which a dense cloud's sub-pixel splats leave below one everywhere).
+// Whether splats reach this fragment's pixel's four neighbours, each covering a neighbour's
+// centre (coverage at least a half): a pixel inside the surface, whole, whatever the
+// visibility pass's coverage of its single most covering splat (which a dense cloud's
+// sub-pixel splats leave below one everywhere). Not the low-pass's weight: that reaches a
+// pixel beyond an outline, which its neighbours would then make whole.
 bool surrounded(int guard) {
     ivec2 texel = ivec2(gl_FragCoord.xy) + ivec2(guard), last = textureSize(u_accum_color, 0) - 1;
     const ivec2 steps[4] = ivec2[4](ivec2(1, 0), ivec2(-1, 0), ivec2(0, 1), ivec2(0, -1));
     for (int i = 0; i < 4; ++i)
-        if (accumulated_weight(clamp(texel + steps[i], ivec2(0), last)) <= 0.0) return false;
+        if (texelFetch(u_visibility, clamp(texel + steps[i], ivec2(0), last), 0).g > 0.5) return false;
     return true;
 }
 

@@ -35,8 +35,9 @@ The passes, as in splatting.glsl (r_lp the low-pass radius in pixels, z_t = dept
    lookup table sampled at its texel centres), v_w = sqrt(det S / det(S + r_lp² I)) the EWA
    resampling kernel's relative amplitude (S = J Jᵀ of the projected splat);
 3. normalization: rgb = sum w rgb / sum w, n and depth likewise; `deferred` and `phong` shade
-   here, `gaussian` shaded each splat's colour before blending. A pixel whose four neighbours
-   all received splats is whole (alpha 1), else its alpha is the coverage.
+   here, `gaussian` shaded each splat's colour before blending. A pixel whose four neighbours'
+   centres splats cover (coverage at least 1/2; the low-pass's weight alone reaches beyond an
+   outline) is whole (alpha 1), else its alpha is the coverage.
 
 As on the GPU, a splat with a zero normal (no orientation, preprocess.drawn_normals) faces the
 camera, and in `deferred` and `phong` a splat seen from its back weighs 1/256 where front

@@ -127,6 +127,10 @@ from .splatting_tiles import (
 COLOR_RGB, COLOR_CONTINUOUS, COLOR_CATEGORICAL = 0, 1, 2  # gl/colors.glsl's colour modes
 BACK_SPLAT_WEIGHT = np.float32(1.0 / 256.0)  # splatting.glsl's: a back-facing splat's weight beside front ones
 FULL_FOOTPRINT_AXIS = 0.5  # splatting.glsl's: pixels of semi-major axis below which a splat's footprint is whole
+# A pixel counts as reached by splats when one covers its centre: coverage at least HALF (its
+# edge distance >= 0). The low-pass's weight alone reaches a pixel beyond an outline.
+HALF = np.float32(0.5)
+COVERED, UNDECIDED = 1, 2  # the bits of `present`: reached, as above; left to `finish_surrounded`
 MAX_RIM_TILT = np.float32(1.0)  # splatting.glsl's: a curved splat's field turns by at most this at its rim
 
 
@@ -367,9 +371,10 @@ def rasterize_tiles(packed, extras, box, index, tile_start, tile_count, order, t
                     per_splat_model, deferred_model, color_mode, palette, levels, background, composite, tables, boxes,
                     temp, kept, zbuf, cover, accum, best, present, color, alpha, depth, normals, indices):
     """Every tile of `order`, written into color (H, W, 3), alpha, depth (H, W) and normals
-    (H, W, 3). `present` (H, W) uint8 gets, per pixel, 0 (no splat), 1, or 2 where
-    `finish_surrounded` must still decide whether its neighbours in other tiles make it whole
-    (the pixel then holds its raw colour and its own coverage). Each thread's scratch: tables
+    (H, W, 3). `present` (H, W) uint8 gets, per pixel, the bit COVERED where a splat covers
+    its centre and the bit UNDECIDED where `finish_surrounded` must still decide whether its
+    neighbours in other tiles make it whole (the pixel then holds its raw colour and its own
+    coverage). Each thread's scratch: tables
     (threads, table_size(largest tile)), boxes (threads, 4 x that), temp (threads,
     TEMP_ROWS x BLOCK), kept (threads, table_size(largest tile, KEPT_ROWS)), zbuf, cover
     (threads, STRIDE²), accum (threads, STRIDE², LAYER).
@@ -468,14 +473,14 @@ def rasterize_tiles(packed, extras, box, index, tile_start, tile_count, order, t
                         qx = min(max(x + (1 if step == 0 else -1 if step == 1 else 0), 0), width - 1)
                         qy = min(max(y + (1 if step == 2 else -1 if step == 3 else 0), 0), height - 1)
                         if ox <= qx < ox + tw and oy <= qy < oy + th:
-                            whole = whole and acc[(qy - oy) * STRIDE + qx - ox, 3] > 0
+                            whole = whole and cov[(qy - oy) * STRIDE + qx - ox] >= HALF
                         else:
                             state = 2
                     if not whole:
                         state = 1
                     elif state == 1:
                         a = np.float32(1.0)
-                present[y, x] = state
+                present[y, x] = (UNDECIDED if state == 2 else 0) | (COVERED if cov[p] >= HALF else 0)
                 if state == 2:  # the raw sample, for finish_surrounded
                     color[y, x, 0], color[y, x, 1], color[y, x, 2] = r, g, b
                     alpha[y, x], depth[y, x] = a, z
@@ -486,15 +491,15 @@ def rasterize_tiles(packed, extras, box, index, tile_start, tile_count, order, t
 
 @nb.njit(parallel=True, cache=True)
 def finish_surrounded(present, color, alpha, depth, normals, background, composite):
-    """The pixels `rasterize_tiles` left undecided: whole where splats reach all four
-    neighbours, else their own coverage; then written as every other pixel."""
+    """The pixels `rasterize_tiles` left undecided: whole where splats cover all four
+    neighbours' centres, else their own coverage; then written as every other pixel."""
     height, width = present.shape
     for y in nb.prange(height):
         for x in range(width):
-            if present[y, x] != 2:
+            if not present[y, x] & UNDECIDED:
                 continue
-            whole = (present[y, min(x + 1, width - 1)] > 0 and present[y, max(x - 1, 0)] > 0
-                     and present[min(y + 1, height - 1), x] > 0 and present[max(y - 1, 0), x] > 0)
+            whole = (present[y, min(x + 1, width - 1)] & COVERED and present[y, max(x - 1, 0)] & COVERED
+                     and present[min(y + 1, height - 1), x] & COVERED and present[max(y - 1, 0), x] & COVERED)
             a = np.float32(1.0) if whole else alpha[y, x]
             _write(color, alpha, depth, normals, y, x, color[y, x, 0], color[y, x, 1], color[y, x, 2], a,
                    depth[y, x], normals[y, x, 0], normals[y, x, 1], normals[y, x, 2], background, composite)
