@@ -290,8 +290,7 @@ def _setup_tile(table, ibox, count, ox, oy, m, radius_scale, lowpass2, depth_off
              table[j + ROW[Z0]], table[j + ROW[ZX]], table[j + ROW[ZY]], table[j + ROW[U0]], table[j + ROW[UX]],
              table[j + ROW[UY]], table[j + ROW[V0]], table[j + ROW[VX]], table[j + ROW[VY]], table[j + ROW[CZ]],
              table[j + ROW[RAD]], table[j + ROW[WT]], table[j + ROW[ZT]], table[j + ROW[FT]], table[j + ROW[R]],
-             table[j + ROW[G]],
-             table[j + ROW[B]], table[j + ROW[NX]], table[j + ROW[NY]], table[j + ROW[NZ]]) = record
+             table[j + ROW[G]], table[j + ROW[B]], table[j + ROW[NX]], table[j + ROW[NY]], table[j + ROW[NZ]]) = record
             if clip_src is not None:
                 table[j + ROW[C0A]], table[j + ROW[C0B]], table[j + ROW[C0C]] = _line_within_reach(
                     e[EA0], e[EB0], e[EC0] * scale, reach_u, reach_v)
@@ -374,10 +373,9 @@ def rasterize_tiles(packed, extras, box, index, tile_start, tile_count, order, t
     (H, W, 3). `present` (H, W) uint8 gets, per pixel, the bit COVERED where a splat covers
     its centre and the bit UNDECIDED where `finish_surrounded` must still decide whether its
     neighbours in other tiles make it whole (the pixel then holds its raw colour and its own
-    coverage). Each thread's scratch: tables
-    (threads, table_size(largest tile)), boxes (threads, 4 x that), temp (threads,
-    TEMP_ROWS x BLOCK), kept (threads, table_size(largest tile, KEPT_ROWS)), zbuf, cover
-    (threads, STRIDE²), accum (threads, STRIDE², LAYER).
+    coverage). Each thread's scratch: tables (threads, table_size(largest tile)), boxes
+    (threads, 4 x that), temp (threads, TEMP_ROWS x BLOCK), kept (threads, table_size(largest
+    tile, KEPT_ROWS)), zbuf, cover (threads, STRIDE²), accum (threads, STRIDE², LAYER).
     clip_src, field_src, normal_src: the extras where splats are clipped, where they are curved
     by their normal fields, where they are shaded with them too (`phong`); else None, which
     compiles a kernel without that arithmetic, and stages only the extras it reads. The renderer
