@@ -335,13 +335,17 @@ float filter_distance(vec2 frag, float splat_rho2) {
 
 // The edge distance of a splat's pixel-wide footprint: a splat smaller than a pixel covers at
 // least the pixel around its centre, since its own edge would leave every pixel of a dense
-// cloud partly covered. Off the disk, where only the low-pass keeps a fragment, that counts by
+// cloud partly covered. Off the disk, where only the low-pass keeps a fragment, it covers the
+// half-pixel around its centre, 1/2 - |x - m|: a pixel whose centre lies x beyond a dense
+// cloud's last splats is covered 1/2 - x, as the outline covers it (1 - x widened every
+// outline by half a pixel: 40.5 against 44.6 dB on 400k points of the bunny). That counts by
 // the splat's share v_footprint: whole up to FULL_FOOTPRINT_AXIS pixels of semi-major axis,
 // none from a pixel more, so that the resolved edge-on splats of an outline (noisy on a scan)
 // do not widen it by the low-pass's reach. The CPU backend computes the same.
 float footprint_edge(vec2 frag, float splat_rho2) {
-    float share = splat_rho2 <= 1.0 ? 1.0 : v_footprint;
-    return share * (1.0 - length(image_coord(frag) - v_center_px)) - 0.5;
+    bool on_disk = splat_rho2 <= 1.0;
+    float share = on_disk ? 1.0 : v_footprint;
+    return share * ((on_disk ? 1.0 : 0.5) - length(image_coord(frag) - v_center_px)) - 0.5;
 }
 
 #if defined(PASS_ATTRIBUTE) || defined(PASS_CATEGORY)

@@ -27,8 +27,9 @@ The passes, as in splatting.glsl (r_lp the low-pass radius in pixels, z_t = dept
    clip lines, give per pixel Z = min(depth + z_t) (a low-pass fragment off the disk hides
    nothing: it filters, it covers no surface) and the coverage max(clamp(0.5 + e)), e the
    larger of the signed distance (1 - rho) / |grad rho| to the splat's edge (rho's analytic
-   screen gradient) and s (1 - |x - m|) - 0.5, the footprint of a sub-pixel splat, its share
-   s = 1 on the disk and off it clamp(1.5 - a, 0, 1), a the projected semi-major axis in
+   screen gradient) and s (r - |x - m|) - 0.5, the footprint of a sub-pixel splat: on the
+   disk s = r = 1; off it r = 1/2 (a dense cloud's outline covers the pixels beyond it as a
+   mesh's does) and its share s = clamp(1.5 - a, 0, 1), a the projected semi-major axis in
    pixels (the largest eigenvalue of S below is a²), so that resolved edge-on splats do not
    widen an outline by the low-pass (splatting.glsl footprint_edge);
 2. attributes: fragments with depth <= Z add w (rgb, 1, n, depth), w = v_w exp(-3 rho²) (the

@@ -246,8 +246,8 @@ def visibility_output(s, c, f, hit_record, clipping, curved, dx, dy, params):
     from rho's screen-space gradient (analytic here and in the GPU's compute pass, a quad's
     differences in its fragment shader), for a curved splat no farther than its contour (where
     the discriminant of its quadratic, over its forward differences, falls to 0), and at least
-    the footprint of a pixel-wide disk at the projected centre (sub-pixel splats), which off the
-    disk counts by the splat's share FT (splatting.glsl footprint_edge)."""
+    the footprint of a pixel-wide disk at the projected centre (sub-pixel splats), a half-pixel
+    one off the disk, counted by the splat's share FT (splatting.glsl footprint_edge)."""
     kept, kernel2, z, u, v, rho2, clipped, hit, iw = hit_record
     mx, my, w0, wx, wy, z0, zx, zy, u0, ux, uy, v0, vx, vy, cz, radius, weight, zt, footprint = s
     one, tiny = np.float32(1.0), np.float32(1e-6)
@@ -272,8 +272,9 @@ def visibility_output(s, c, f, hit_record, clipping, curved, dx, dy, params):
         ddx = curved_discriminant(s, f, dx + one, dy) - disc
         ddy = curved_discriminant(s, f, dx, dy - one) - disc
         edge = min(edge, disc / max(math.sqrt(ddx * ddx + ddy * ddy), np.float32(1e-30)))
-    share = one if rho2 <= one else footprint  # a low-pass fragment off the disk: the splat's footprint share
-    edge = max(edge if hit else np.float32(-1e30), share * (one - math.sqrt(dx * dx + dy * dy)) - np.float32(0.5))
+    # a low-pass fragment off the disk: the half-pixel footprint, by the splat's share
+    share, reach = (one, one) if rho2 <= one else (footprint, np.float32(0.5))
+    edge = max(edge if hit else np.float32(-1e30), share * (reach - math.sqrt(dx * dx + dy * dy)) - np.float32(0.5))
     coverage = min(max(np.float32(0.5) + edge, np.float32(0.0)), one)
     # a low-pass fragment off the disk filters but hides nothing
     return (z + zt if kept and rho2 <= 1 else FAR), (coverage if kept else np.float32(0.0))
