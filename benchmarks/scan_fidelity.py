@@ -5,10 +5,11 @@ scan is compared with the mesh's (`surfel compare`'s metrics, surfel.metrics.com
 at 512 x 512 with lambert shading, from the front and from azimuth 60, elevation 20.
 
     python benchmarks/scan_fidelity.py MESH.obj [MESH.ply ...] [--methods deferred,phong]
-        [--smooth] [--json]
+        [--smooth | --vertices] [--json]
 
 --smooth denoises the scan first: the positions of `surfel prepare --smooth` (normals and
-splats are then estimated by each method's completion, as for the raw scan).
+splats are then estimated by each method's completion, as for the raw scan). --vertices
+renders the mesh's own vertices (with the mesh's normals) instead of a scan.
 Prints one row per model and view, then the median PSNR of each method over all of them.
 """
 
@@ -32,9 +33,9 @@ SIZE = (512, 512)
 VIEWS = {"front": (None, None), "az60el20": (60.0, 20.0)}
 
 
-def measure(path: str, methods: list[str], smooth: bool, renderer: Renderer) -> list[dict]:
+def measure(path: str, methods: list[str], smooth: bool, vertices: bool, renderer: Renderer) -> list[dict]:
     mesh = load(path)
-    cloud = scan(mesh, ScanSettings(), renderer)
+    cloud = mesh.take(np.arange(len(mesh))) if vertices else scan(mesh, ScanSettings(), renderer)
     if smooth:
         cloud = cloud.with_(positions=prepare(cloud, smooth=True)[0].positions)
     options = RenderOptions(shading="lambert", background=(0.0, 0.0, 0.0))
@@ -56,14 +57,16 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("meshes", nargs="+")
     parser.add_argument("--methods", default="deferred,phong")
-    parser.add_argument("--smooth", action="store_true")
+    mode = parser.add_mutually_exclusive_group()
+    mode.add_argument("--smooth", action="store_true")
+    mode.add_argument("--vertices", action="store_true")
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args()
     methods = args.methods.split(",")
     renderer = Renderer()
     rows = []
     for path in args.meshes:
-        for row in measure(path, methods, args.smooth, renderer):
+        for row in measure(path, methods, args.smooth, args.vertices, renderer):
             rows.append(row)
             if not args.json:
                 print("  ".join(f"{key} {value}" for key, value in row.items()), flush=True)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from surfel.preprocess.grid_knn import k_nearest, sorted_k_nearest, stable_order
+from surfel.preprocess.grid_knn import k_nearest, scan_all_nearest, sorted_k_nearest, stable_order
 from surfel.preprocess.neighbourhood import Neighbourhood
 
 
@@ -96,6 +96,25 @@ def test_grid_queries_match_kd_tree(name, points, k, wide):
     assert np.array_equal(index[:, 0], rows)
     found = np.linalg.norm(grid.points[index] - grid.points[rows][:, None], axis=2)
     expected, _ = cKDTree(grid.points).query(grid.points[rows], k=wide)
+    assert np.allclose(np.sort(found, axis=1), expected, rtol=0, atol=1e-12)
+    assert (np.diff(found[:, 1:], axis=1) >= 0).all()
+    assert (np.diff(np.sort(index, axis=1), axis=1) > 0).all()
+
+
+@pytest.mark.parametrize("name, points", [
+    ("cube", rng.random((3_000, 3))),
+    ("lattice, ties everywhere", np.stack(np.meshgrid(np.arange(12), np.arange(12), np.arange(12)), -1).reshape(-1, 3)),
+    ("coincident", np.zeros((200, 3))),
+])
+def test_scanning_all_points_finds_the_kd_trees_neighbours(name, points):
+    """The fallback for the few points the grid's shells leave unsettled (scan_all_nearest)
+    finds the k-d tree's distances, the point itself first, nearest first, no neighbour twice."""
+    points = np.asarray(points, np.float64)
+    rows = np.r_[0, np.arange(5, len(points), 97), len(points) - 1]
+    index = scan_all_nearest(points, 40, rows)
+    assert np.array_equal(index[:, 0], rows)
+    found = np.linalg.norm(points[index] - points[rows][:, None], axis=2)
+    expected, _ = cKDTree(points).query(points[rows], k=40)
     assert np.allclose(np.sort(found, axis=1), expected, rtol=0, atol=1e-12)
     assert (np.diff(found[:, 1:], axis=1) >= 0).all()
     assert (np.diff(np.sort(index, axis=1), axis=1) > 0).all()

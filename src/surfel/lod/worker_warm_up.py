@@ -23,6 +23,7 @@ from ..preprocess import complete
 from ..preprocess.borders import BORDER_CONFIRM, border_outwards
 from ..preprocess.cells import RADIUS_NEIGHBOURS, clip_lines
 from ..preprocess.frames import tangent_frames, unit
+from ..preprocess.grid_knn import scan_all_nearest
 from ..preprocess.neighbourhood import Neighbourhood
 from ..preprocess.sharp_features import find_sharp_features
 
@@ -61,12 +62,13 @@ def neighbours() -> None:
 
 
 def borders() -> None:
-    """The kernels of the borders (borders.py) and of the wider queries that confirm them,
-    after `neighbours`."""
+    """The kernels of the borders (borders.py) and of the wider queries that confirm them
+    (grid_knn.py), after `neighbours`."""
     nbh, normals = _neighbourhood()
     rows = np.arange(8)
     nbh.within(rows, BORDER_CONFIRM)
     nbh.nearest(rows, BORDER_CONFIRM)
+    scan_all_nearest(nbh.points, BORDER_CONFIRM, rows)  # the rows the grid's shells leave unsettled
     border_outwards(nbh, normals, nbh.first(RADIUS_NEIGHBOURS), False, np.full(len(normals), np.inf))
 
 

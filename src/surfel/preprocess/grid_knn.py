@@ -62,6 +62,7 @@ MAX_CELL = 4096        # more points in one cell (coincident points): the k-d tr
 HASH_MULTIPLIER = 0x5851F42D4C957F2D  # odd, below 2^63: the hash of a cell key is its product's bits 32+
 QUERY_RINGS = 4        # shells of cells a query (Grid.nearest) scans before the k-d tree takes over
 QUERY_BATCH = 64       # points queried per parallel task
+SCAN_ALL_ROWS = 64     # at most this many unsettled points scan all points instead of a k-d tree
 SURE_SHRINK = 1e-6     # cell widths by which `grid_within` shrinks its reach: far above roundings
 # the 3 x 3 x 3 block's cell offsets, nearest first: the nearest fill the k first
 BLOCK_OFFSETS = np.array(sorted(((x, y, z) for x in (-1, 0, 1) for y in (-1, 0, 1) for z in (-1, 0, 1)),
@@ -536,9 +537,32 @@ class Grid:
         return grid_within(self.points, self.starts, self.run_keys, self.slots, self.lo, self.h, k, rows)
 
 
+@numba.njit(parallel=True, cache=True)
+def scan_all_nearest(points, k, rows):  # pragma: no cover - compiled
+    """The k nearest of each of the points `rows` (nearest first, the point itself first, ties
+    in index order as the grid's scans keep them), offering every point to each."""
+    m = len(rows)
+    index = np.empty((m, k), np.int32)
+    for r in numba.prange(m):
+        best_d = np.empty(k, np.float64)
+        best_i = np.empty(k, np.int64)
+        spare_d = np.empty(k, np.float64)
+        spare_i = np.empty(k, np.int64)
+        best_d[0] = -1.0
+        best_i[0] = rows[r]
+        _scan(points, rows[r], 0, len(points), best_d, best_i, spare_d, spare_i, 1, k)
+        for j in range(k):
+            index[r, j] = best_i[j]
+    return index
+
+
 def _tree_nearest(points: np.ndarray, rows: np.ndarray, k: int, workers: int) -> np.ndarray:
-    """The k nearest of points[rows] from a k-d tree, the point itself first, as the grid has
-    it (a coincident point may come first)."""
+    """The k nearest of points[rows] where the grid's shells did not settle them, the point
+    itself first, as the grid has it (a coincident point may come first): a few rows (the
+    isolated points of a scan, the corners of a partition) scan every point, since a k-d tree
+    over a million points takes as long to build as a hundred such scans; more query one."""
+    if len(rows) <= SCAN_ALL_ROWS:
+        return scan_all_nearest(points, k, np.asarray(rows, np.int64))
     _, found = cKDTree(points).query(points[rows], k=k, workers=workers)
     found = found.reshape(len(rows), k)
     itself = found == rows[:, None]
