@@ -403,8 +403,9 @@ def test_compiled_border_and_cap_kernels_match_numpy():
         normals = np.tile([0.0, 0.0, 1.0], (len(nbh.points), 1))
         frames = orthonormal_basis(normals)
         rows = np.arange(len(nbh.points))
+        unbounded = np.full(len(nbh.points), np.inf)
         got, reach = borders._border_outwards(nbh.points, normals, nbh.index, rows, frames, cells.SHEET_COS,
-                                              borders.FLAT_SIN2, np.full(len(nbh.points), np.inf))
+                                              borders.FLAT_SIN2, unbounded, unbounded)
         assert not reach.any()  # no fold: every normal faces one way
         d = nbh.points[nbh.index] - nbh.points[:, None]
         angles = np.sort(np.arctan2(np.einsum("nkj,nj->nk", d, frames[:, 1]),
@@ -569,6 +570,41 @@ def test_a_border_beside_an_inner_corner_points_straight_out():
         assert np.degrees(np.arccos(np.clip(outwards[found, :2] @ normal, -1, 1))).max() < 10
 
 
+def _in_notch(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Inside a V notch cut into the top of the 20 x 20 part: apex (10, 8), 8 wide at y = 20."""
+    return (y > 8) & (np.abs(x - 10) < (y - 8) / 3)
+
+
+def test_a_notch_in_an_outline_stays_open(monkeypatch):
+    """A flat part sampled as a coarse mesh's vertices (a jittered grid, its outline sampled
+    along), with a V notch cut into it: the samples across the notch close no border gap of
+    the samples along its sides (borders.CLOSING_SPACINGS), so their splats end at the sides
+    and leave most of the notch open, where they filled more than half of it, and the part stays
+    covered."""
+    from surfel.preprocess import borders
+
+    rng = np.random.default_rng(3)
+    grid = np.stack(np.meshgrid(np.arange(0.0, 20.01), np.arange(0.0, 20.01)), -1).reshape(-1, 2)
+    grid += rng.uniform(-0.25, 0.25, grid.shape)
+    grid = grid[~_in_notch(*grid.T) & (grid.min(axis=1) >= 0) & (grid.max(axis=1) <= 20)]
+    t = np.arange(12) / 12.0
+    sides = np.r_[np.c_[10 - 4 * t, 8 + 12 * t], np.c_[10 + 4 * t, 8 + 12 * t]]
+    grid = grid[np.min(np.linalg.norm(grid[:, None] - sides[None], axis=2), axis=1) > 0.5]
+    xy = np.r_[grid, sides]
+    cloud = PointCloud(np.c_[xy, np.zeros(len(xy))], normals=np.tile([0.0, 0, 1], (len(xy), 1)))
+    probe = rng.uniform(0, 20, (40_000, 2))
+    to_sides = np.abs(np.abs(probe[:, 0] - 10) - (probe[:, 1] - 8) / 3) / np.hypot(1, 1 / 3)
+    notch = probe[_in_notch(*probe.T) & (to_sides > 0.3)]
+    part = probe[~_in_notch(*probe.T) & (to_sides > 0.3) & (probe.min(axis=1) > 1) & (probe.max(axis=1) < 19)]
+    notch, part = (np.c_[p, np.zeros(len(p))] for p in (notch, part))
+    prepared, _ = prepare(cloud)
+    everything = np.arange(len(prepared))
+    assert covered_by(prepared, everything, notch).mean() < 0.35
+    assert covered_by(prepared, everything, part).all()
+    monkeypatch.setattr(borders, "CLOSING_SPACINGS", np.inf)
+    assert covered_by(prepare(cloud)[0], everything, notch).mean() > 0.5
+
+
 def test_settled_candidates_keep_the_borders_of_the_full_confirmation():
     """Candidates settled by the neighbours certainly among their BORDER_CONFIRM nearest
     (Grid.within, borders._settled) are no borders, as the query of all those nearest finds:
@@ -578,6 +614,7 @@ def test_settled_candidates_keep_the_borders_of_the_full_confirmation():
     from surfel.preprocess import borders, cells
     from surfel.preprocess.frames import orthonormal_basis
     from surfel.preprocess.neighbourhood import Neighbourhood
+    from surfel.preprocess.spacing import local_spacing
     from surfel.preprocess.thickness import layer_thickness
 
     # no EMPTY_RUN + 1 consecutive empty bins leave no gap counted
@@ -593,20 +630,22 @@ def test_settled_candidates_keep_the_borders_of_the_full_confirmation():
         normals = unit(nbh.points) if normals is None else normals
         index = nbh.first(cells.RADIUS_NEIGHBOURS)
         layers = layer_thickness(nbh.points, normals, index)
-        got, _ = borders.border_outwards(nbh, normals, index, False, layers)
+        spacing = local_spacing(nbh, False)
+        closing = borders.CLOSING_SPACINGS * spacing
+        got, _ = borders.border_outwards(nbh, normals, index, False, layers, spacing)
         rows = np.arange(len(nbh.points))
         first, _ = borders._border_outwards(nbh.points, normals, index, rows, orthonormal_basis(normals),
-                                            cells.SHEET_COS, borders.FLAT_SIN2, layers)
+                                            cells.SHEET_COS, borders.FLAT_SIN2, layers, closing)
         candidates = np.flatnonzero(first.any(axis=1))
         expected = first.copy()
         wide, _ = borders._border_outwards(nbh.points, normals, nbh.nearest(candidates, 64), candidates,
                                            orthonormal_basis(normals[candidates]), cells.SHEET_COS, borders.FLAT_SIN2,
-                                           layers)
+                                           layers, closing)
         expected[candidates[~wide.any(axis=1)]] = 0.0  # confirmed ones keep their nearest neighbours' direction
         assert np.array_equal(got, expected)
         sure, count = nbh.within(candidates, borders.BORDER_CONFIRM)
         settled = borders._settled(nbh.points, normals, sure, count, candidates, orthonormal_basis(normals[candidates]),
-                                   cells.SHEET_COS, borders.FLAT_SIN2, layers)
+                                   cells.SHEET_COS, borders.FLAT_SIN2, layers, closing)
         assert not expected[candidates[settled]].any()
         confirmed = expected[candidates].any(axis=1)
         tally += [settled.sum(), confirmed.sum(), (~settled & ~confirmed).sum()]

@@ -23,9 +23,9 @@ from ..preprocess import complete
 from ..preprocess.borders import BORDER_CONFIRM, border_outwards
 from ..preprocess.cells import RADIUS_NEIGHBOURS, clip_lines
 from ..preprocess.frames import tangent_frames, unit
-from ..preprocess.grid_knn import scan_all_nearest
 from ..preprocess.neighbourhood import Neighbourhood
 from ..preprocess.sharp_features import find_sharp_features
+from ..preprocess.unsettled import scan_all_nearest
 
 TIMEOUT = 600.0  # seconds of warm-up after which a worker stops waiting for the others
 

@@ -215,7 +215,8 @@ def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np
     if features is not None:
         # aerial scan lines look like borders (borders.py)
         outwards, reach = ((np.zeros((len(nbh.points), 3)), np.zeros(len(nbh.points))) if cloud.geospatial
-                           else border_outwards(nbh, unit_normals, nbh.first(RADIUS_NEIGHBOURS), progress, thickness))
+                           else border_outwards(nbh, unit_normals, nbh.first(RADIUS_NEIGHBOURS), progress, thickness,
+                                                spacing))
         lines = clip_lines(nbh, unit_normals, axes, features, outwards, reach, progress,
                            margin=NOISY_MARGIN if noisy else 0.0)
         if facing is not None:

@@ -27,9 +27,9 @@ Every point not scanned lies outside the block, at least
 
 away, so the k found are the k nearest when the k-th lies within m. Otherwise the shells of
 cells at Chebyshev distance r = 2, 3, ... RINGS are scanned too (m grows by h each), and a
-point still unresolved after them (an outlier far from the rest) is queried in a k-d tree
-(scipy's cKDTree) instead, as is every point when some cell holds more than MAX_CELL points
-(many coincident points, which no cell width separates).
+point still unresolved after them (an outlier far from the rest) is searched otherwise
+(`unsettled.py`), as is every point when some cell holds more than MAX_CELL points (many
+coincident points, which no cell width separates).
 
 Queries of some of the points (`Grid.nearest`, e.g. a wider neighbourhood of a few of them)
 reuse the grid: a point scans its own cell, then the shells r = 1, 2, ... QUERY_RINGS around
@@ -49,9 +49,9 @@ from dataclasses import dataclass
 
 import numba
 import numpy as np
-from scipy.spatial import cKDTree
 
 from ..cloud import corners, take_rows
+from .unsettled import unsettled_nearest
 
 MORTON_BITS = 21       # bits of a cell coordinate per axis (3 x 21 in an int64 key)
 CELL_SHARE = 2.0       # points per occupied cell: k / this (measured fastest on scanned surfaces)
@@ -62,7 +62,6 @@ MAX_CELL = 4096        # more points in one cell (coincident points): the k-d tr
 HASH_MULTIPLIER = 0x5851F42D4C957F2D  # odd, below 2^63: the hash of a cell key is its product's bits 32+
 QUERY_RINGS = 4        # shells of cells a query (Grid.nearest) scans before the k-d tree takes over
 QUERY_BATCH = 64       # points queried per parallel task
-SCAN_ALL_ROWS = 64     # at most this many unsettled points scan all points instead of a k-d tree
 SURE_SHRINK = 1e-6     # cell widths by which `grid_within` shrinks its reach: far above roundings
 # the 3 x 3 x 3 block's cell offsets, nearest first: the nearest fill the k first
 BLOCK_OFFSETS = np.array(sorted(((x, y, z) for x in (-1, 0, 1) for y in (-1, 0, 1) for z in (-1, 0, 1)),
@@ -524,7 +523,7 @@ class Grid:
             index = grid_query(self.points, self.starts, self.run_keys, self.slots, self.lo, self.h, k, rows)
             unresolved = np.flatnonzero(index[:, 0] < 0)
         if len(unresolved):
-            index[unresolved] = _tree_nearest(self.points, rows[unresolved], k, workers)
+            index[unresolved] = unsettled_nearest(self.points, rows[unresolved], k, workers)
         return index
 
     def within(self, rows: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
@@ -535,43 +534,6 @@ class Grid:
         if self.dense:
             return np.empty((len(rows), k), np.int32), np.full(len(rows), -1, np.int64)
         return grid_within(self.points, self.starts, self.run_keys, self.slots, self.lo, self.h, k, rows)
-
-
-@numba.njit(parallel=True, cache=True)
-def scan_all_nearest(points, k, rows):  # pragma: no cover - compiled
-    """The k nearest of each of the points `rows` (nearest first, the point itself first, ties
-    in index order as the grid's scans keep them), offering every point to each."""
-    m = len(rows)
-    index = np.empty((m, k), np.int32)
-    for r in numba.prange(m):
-        best_d = np.empty(k, np.float64)
-        best_i = np.empty(k, np.int64)
-        spare_d = np.empty(k, np.float64)
-        spare_i = np.empty(k, np.int64)
-        best_d[0] = -1.0
-        best_i[0] = rows[r]
-        _scan(points, rows[r], 0, len(points), best_d, best_i, spare_d, spare_i, 1, k)
-        for j in range(k):
-            index[r, j] = best_i[j]
-    return index
-
-
-def _tree_nearest(points: np.ndarray, rows: np.ndarray, k: int, workers: int) -> np.ndarray:
-    """The k nearest of points[rows] where the grid's shells did not settle them, the point
-    itself first, as the grid has it (a coincident point may come first): a few rows (the
-    isolated points of a scan, the corners of a partition) scan every point, since a k-d tree
-    over a million points takes as long to build as a hundred such scans; more query one."""
-    if len(rows) <= SCAN_ALL_ROWS:
-        return scan_all_nearest(points, k, np.asarray(rows, np.int64))
-    _, found = cKDTree(points).query(points[rows], k=k, workers=workers)
-    found = found.reshape(len(rows), k)
-    itself = found == rows[:, None]
-    has_self = itself.any(axis=1)
-    at = np.argmax(itself, axis=1)
-    swap = np.flatnonzero(has_self)
-    found[swap, at[swap]] = found[swap, 0]
-    found[:, 0] = rows
-    return found
 
 
 def stable_order(keys: np.ndarray) -> np.ndarray:
@@ -611,7 +573,7 @@ def sorted_k_nearest(points: np.ndarray, k: int, workers: int = -1) -> tuple[np.
         index = grid_neighbours(sorted_points, starts, grid.run_keys, grid.slots, lo, h, k, largest)
         unresolved = np.flatnonzero(index[:, 0] < 0)
     if len(unresolved):
-        index[unresolved] = _tree_nearest(sorted_points, unresolved, k, workers)
+        index[unresolved] = unsettled_nearest(sorted_points, unresolved, k, workers)
     return order, index, grid
 
 

@@ -1,0 +1,66 @@
+"""The k nearest neighbours of the points that the grid search (`grid_knn.py`) leaves unsettled:
+outliers far from the rest, whose shells of cells hold too few points, and every point of a
+grid with a cell of many coincident points.
+
+Few of them (at most SCAN_ALL_ROWS) each offer every point to their k best (`scan_all_nearest`,
+linear in the points): a k-d tree over a million points takes as long to build as some hundred
+such scans, and a partition of an out-of-core build leaves two or so of its border candidates'
+wider queries unsettled (its corners), where building the tree took a tenth of the partition's
+completion. More of them query a k-d tree (scipy's cKDTree).
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+from scipy.spatial import cKDTree
+
+SCAN_ALL_ROWS = 64  # at most this many unsettled points scan all points instead of a k-d tree
+
+
+@numba.njit(parallel=True, cache=True)
+def scan_all_nearest(points, k, rows):  # pragma: no cover - compiled
+    """(len(rows), k) int32: the k nearest of each of the points `rows` (1 <= k <= N; nearest
+    first, the point itself first, equal distances in index order), offering every point."""
+    m = len(rows)
+    index = np.empty((m, k), np.int32)
+    for r in numba.prange(m):
+        p = rows[r]
+        best_d = np.full(k, np.inf)
+        best_i = np.zeros(k, np.int64)
+        best_d[0] = -1.0
+        best_i[0] = p
+        for j in range(len(points)):
+            dx = points[j, 0] - points[p, 0]
+            dy = points[j, 1] - points[p, 1]
+            dz = points[j, 2] - points[p, 2]
+            d = dx * dx + dy * dy + dz * dz
+            if j == p or d >= best_d[k - 1]:
+                continue
+            slot = k - 1
+            while best_d[slot - 1] > d:  # stops at the point itself, at -1
+                best_d[slot] = best_d[slot - 1]
+                best_i[slot] = best_i[slot - 1]
+                slot -= 1
+            best_d[slot] = d
+            best_i[slot] = j
+        for c in range(k):
+            index[r, c] = best_i[c]
+    return index
+
+
+def unsettled_nearest(points: np.ndarray, rows: np.ndarray, k: int, workers: int) -> np.ndarray:
+    """(len(rows), k): the k nearest of the points `rows` (module docstring), the point itself
+    first, as the grid has it (a coincident point may come first); workers: the k-d tree's threads."""
+    rows = np.asarray(rows, np.int64)
+    if len(rows) <= SCAN_ALL_ROWS:
+        return scan_all_nearest(points, k, rows)
+    _, found = cKDTree(points).query(points[rows], k=k, workers=workers)
+    found = found.reshape(len(rows), k)
+    itself = found == rows[:, None]
+    has_self = itself.any(axis=1)
+    at = np.argmax(itself, axis=1)
+    swap = np.flatnonzero(has_self)
+    found[swap, at[swap]] = found[swap, 0]
+    found[:, 0] = rows
+    return found
