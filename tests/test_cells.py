@@ -631,21 +631,21 @@ def test_settled_candidates_keep_the_borders_of_the_full_confirmation():
         index = nbh.first(cells.RADIUS_NEIGHBOURS)
         layers = layer_thickness(nbh.points, normals, index)
         spacing = local_spacing(nbh, False)
-        closing = borders.CLOSING_SPACINGS * spacing
+        closing2 = (borders.CLOSING_SPACINGS * spacing) ** 2
         got, _ = borders.border_outwards(nbh, normals, index, False, layers, spacing)
         rows = np.arange(len(nbh.points))
         first, _ = borders._border_outwards(nbh.points, normals, index, rows, orthonormal_basis(normals),
-                                            cells.SHEET_COS, borders.FLAT_SIN2, layers, closing)
+                                            cells.SHEET_COS, borders.FLAT_SIN2, layers, closing2)
         candidates = np.flatnonzero(first.any(axis=1))
         expected = first.copy()
         wide, _ = borders._border_outwards(nbh.points, normals, nbh.nearest(candidates, 64), candidates,
                                            orthonormal_basis(normals[candidates]), cells.SHEET_COS, borders.FLAT_SIN2,
-                                           layers, closing)
+                                           layers, closing2)
         expected[candidates[~wide.any(axis=1)]] = 0.0  # confirmed ones keep their nearest neighbours' direction
         assert np.array_equal(got, expected)
         sure, count = nbh.within(candidates, borders.BORDER_CONFIRM)
         settled = borders._settled(nbh.points, normals, sure, count, candidates, orthonormal_basis(normals[candidates]),
-                                   cells.SHEET_COS, borders.FLAT_SIN2, layers, closing)
+                                   cells.SHEET_COS, borders.FLAT_SIN2, layers, closing2)
         assert not expected[candidates[settled]].any()
         confirmed = expected[candidates].any(axis=1)
         tally += [settled.sum(), confirmed.sum(), (~settled & ~confirmed).sum()]

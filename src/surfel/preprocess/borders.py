@@ -85,7 +85,7 @@ ROW_DEPTH = 0.5   # a neighbour at least 30 degrees off the border line lies in 
 
 @numba.njit(parallel=True, cache=True)
 def _border_outwards(points, normals, index, rows, frames, sheet_cos, flat_sin2, layers,
-                     closing):  # pragma: no cover - compiled
+                     closing2):  # pragma: no cover - compiled
     """Per point rows[i], the unit tangent (3,) pointing out of the surface if the point lies on
     the border of an open surface, else zero, and the fold's reach f_p (0 elsewhere).
 
@@ -94,20 +94,20 @@ def _border_outwards(points, normals, index, rows, frames, sheet_cos, flat_sin2,
     INTERIOR_GAP (two wide gaps: a scan line, not a border); outwards is the middle of the gap.
     Neither the far side of a fold (neighbours facing away, n_p . n_q < sheet_cos, off p's
     plane by more than flat_sin2) nor another layer (separated by more than layers[p],
-    thickness.py) closes a gap, nor a neighbour q farther than max(closing[p], closing[q])
-    unless the rows of `_point_outwards` say so (module docstring)."""
+    thickness.py) closes a gap, nor a neighbour q farther than the square root of
+    max(closing2[p], closing2[q]) unless the rows of `_point_outwards` say so (module docstring)."""
     m, k = index.shape
     outwards = np.zeros((m, 3))
     reach = np.zeros(m)
     for block in numba.prange((m + KERNEL_BLOCK - 1) // KERNEL_BLOCK):
         # one set of buffers per block of points: an allocation per point costs as much as its work
-        found = np.empty((5, k))  # key, x, y, distance, closing distance as they come
+        found = np.empty((5, k))  # key, x, y, squared distance and closing distance as they come
         keys = np.empty(k)
         xs = np.empty(k)
         ys = np.empty(k)
         far = np.empty((2, k))  # x, y of the fold's far side
         for i in range(block * KERNEL_BLOCK, min(m, (block + 1) * KERNEL_BLOCK)):
-            _point_outwards(points, normals, index, rows, frames, sheet_cos, flat_sin2, layers, closing, i, found,
+            _point_outwards(points, normals, index, rows, frames, sheet_cos, flat_sin2, layers, closing2, i, found,
                             keys, xs, ys, far, outwards, reach)
     return outwards, reach
 
@@ -172,10 +172,11 @@ def _one_row(bins):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, inline="always")
-def _widest_gap(found, used, inner, keys, xs, ys):  # pragma: no cover - compiled
+def _widest_gap(found, used, inner2, keys, xs, ys):  # pragma: no cover - compiled
     """(widest, second, middle): the two widest angular gaps between the neighbours found[:, :used]
-    that close gaps (within their closing distance found[4], or `inner`), and the direction of
-    the widest's middle; (0, 0, 0) when no gap is wider than INTERIOR_GAP / 2 in pseudo-angle.
+    that close gaps (their squared distance found[3] within the squared closing distance found[4]
+    or `inner2`), and the direction of the widest's middle; (0, 0, 0) when no gap is wider than
+    INTERIOR_GAP / 2 in pseudo-angle.
 
     The neighbours are sorted by the pseudo-angle a = 1 - x / (|x| + |y|), signed as y, in
     [-2, 2]: it orders directions as their angle does, without an arctangent, and
@@ -187,7 +188,7 @@ def _widest_gap(found, used, inner, keys, xs, ys):  # pragma: no cover - compile
     bins = np.uint64(0)  # bit b set: some key lies in [-2 + b KEY_BIN, -2 + (b + 1) KEY_BIN)
     count = 0
     for a in range(used):
-        if found[3, a] <= max(found[4, a], inner):
+        if found[3, a] <= max(found[4, a], inner2):
             bins |= _key_bit(found[0, a])
             count += 1
     if count < 3 or _no_wide_gap(bins):
@@ -196,12 +197,12 @@ def _widest_gap(found, used, inner, keys, xs, ys):  # pragma: no cover - compile
     # keys below it and of equal ones before it (counts that compile to SIMD compares, where an
     # insertion sort mispredicted a branch per direction)
     for a in range(used):
-        if found[3, a] > max(found[4, a], inner):
+        if found[3, a] > max(found[4, a], inner2):
             continue
         key = found[0, a]
         rank = 0
         for b in range(used):
-            counted = found[3, b] <= max(found[4, b], inner)
+            counted = found[3, b] <= max(found[4, b], inner2)
             rank += counted & ((found[0, b] < key) | ((found[0, b] == key) & (b < a)))
         keys[rank] = key
         xs[rank] = found[1, a]
@@ -226,7 +227,7 @@ def _widest_gap(found, used, inner, keys, xs, ys):  # pragma: no cover - compile
 
 
 @numba.njit(cache=True, inline="always")
-def _point_outwards(points, normals, index, rows, frames, sheet_cos, flat_sin2, layers, closing, i, found, keys,
+def _point_outwards(points, normals, index, rows, frames, sheet_cos, flat_sin2, layers, closing2, i, found, keys,
                     xs, ys, far, out, reach):  # pragma: no cover
     """out[i], reach[i]: row i of `_border_outwards`, with found (5, k), keys, xs, ys (k,) and far
     (2, k) as scratch. The gaps are those of `_widest_gap`: among the neighbours within their
@@ -252,16 +253,19 @@ def _point_outwards(points, normals, index, rows, frames, sheet_cos, flat_sin2, 
         found[0, used] = key
         found[1, used] = x
         found[2, used] = y
-        found[3, used] = math.sqrt(x * x + y * y)
-        found[4, used] = max(closing[p], closing[q])
+        found[3, used] = x * x + y * y
+        # p's own closing distance settles most: q's is read only past it
+        found[4, used] = closing2[p] if found[3, used] <= closing2[p] else max(closing2[p], closing2[q])
         if found[3, used] <= found[4, used]:
             near_bins |= _key_bit(key)
         used += 1
-    inner = np.inf if _one_row(near_bins) else 0.0
-    widest, second, middle = _widest_gap(found, used, inner, keys, xs, ys)
+    if _no_wide_gap(near_bins):
+        return  # the near neighbours close every gap, and every rule below counts them
+    inner2 = np.inf if _one_row(near_bins) else 0.0
+    widest, second, middle = _widest_gap(found, used, inner2, keys, xs, ys)
     if widest < BORDER_GAP or second > INTERIOR_GAP:
         return
-    if inner == 0.0:
+    if inner2 == 0.0:
         # rows farther apart across than along (a coarse tessellation's strips): the next row
         # out lies as far beyond p as the nearest row inside lies behind it
         co = math.cos(middle)
@@ -269,11 +273,11 @@ def _point_outwards(points, normals, index, rows, frames, sheet_cos, flat_sin2, 
         depth = np.inf
         for a in range(used):
             behind = -(found[1, a] * co + found[2, a] * si)
-            if found[3, a] <= found[4, a] and behind >= ROW_DEPTH * found[3, a]:
+            if found[3, a] <= found[4, a] and behind >= ROW_DEPTH * math.sqrt(found[3, a]):
                 depth = min(depth, behind)
         if depth < np.inf:
-            inner = CLOSING_SPACINGS * depth
-            widest, second, middle = _widest_gap(found, used, inner, keys, xs, ys)
+            inner2 = (CLOSING_SPACINGS * depth) ** 2
+            widest, second, middle = _widest_gap(found, used, inner2, keys, xs, ys)
             if widest < BORDER_GAP or second > INTERIOR_GAP:
                 return
     co = math.cos(middle)
@@ -286,7 +290,7 @@ def _point_outwards(points, normals, index, rows, frames, sheet_cos, flat_sin2, 
 
 @numba.njit(parallel=True, cache=True)
 def _settled(points, normals, index, count, rows, frames, sheet_cos, flat_sin2, layers,
-             closing):  # pragma: no cover - compiled
+             closing2):  # pragma: no cover - compiled
     """Per point rows[i], True when its neighbours index[i, :count[i]], all among its
     BORDER_CONFIRM nearest, already prove it no border there: their pseudo-angles leave no
     EMPTY_RUN + 1 consecutive bins empty (nor then do those of all its BORDER_CONFIRM nearest:
@@ -303,7 +307,7 @@ def _settled(points, normals, index, count, rows, frames, sheet_cos, flat_sin2, 
             if _far_side(facing, x, y, height, sheet_cos, flat_sin2):
                 continue
             if q == p or (x == 0.0 and y == 0.0) or 0.5 * abs(antisymmetric) > layers[p] or \
-                    x * x + y * y > max(closing[p], closing[q]) ** 2:
+                    x * x + y * y > max(closing2[p], closing2[q]):
                 continue
             bins |= _key_bit(math.copysign(1.0 - x / (abs(x) + abs(y)), y))
         settled[i] = _no_wide_gap(bins)
@@ -323,11 +327,11 @@ def border_outwards(nbh: Neighbourhood, normals: np.ndarray, index: np.ndarray, 
     closing distance."""
     n = len(nbh.points)
     layers = np.full(n, np.inf) if layers is None else np.asarray(layers, np.float64)
-    closing = np.full(n, np.inf) if spacing is None else CLOSING_SPACINGS * np.asarray(spacing, np.float64)
+    closing2 = np.full(n, np.inf) if spacing is None else (CLOSING_SPACINGS * np.asarray(spacing, np.float64)) ** 2
     outwards, reach = map_chunks(lambda start, stop: _border_outwards(nbh.points, normals, index[start:stop],
                                                                       np.arange(start, stop),
                                                                       orthonormal_basis(normals[start:stop]),
-                                                                      SHEET_COS, FLAT_SIN2, layers, closing),
+                                                                      SHEET_COS, FLAT_SIN2, layers, closing2),
                                  n, progress, "borders")
     candidates = np.flatnonzero(outwards.any(axis=1))
     if len(candidates) and n > index.shape[1]:
@@ -335,7 +339,7 @@ def border_outwards(nbh: Neighbourhood, normals: np.ndarray, index: np.ndarray, 
         # nearest (those of the grid cells around them), without querying those nearest
         frames = orthonormal_basis(normals[candidates])
         sure, count = nbh.within(candidates, BORDER_CONFIRM)
-        settled = _settled(nbh.points, normals, sure, count, candidates, frames, SHEET_COS, FLAT_SIN2, layers, closing)
+        settled = _settled(nbh.points, normals, sure, count, candidates, frames, SHEET_COS, FLAT_SIN2, layers, closing2)
         outwards[candidates[settled]] = 0.0
         rest = candidates[~settled]
         wide = nbh.nearest(rest, BORDER_CONFIRM)
@@ -343,7 +347,7 @@ def border_outwards(nbh: Neighbourhood, normals: np.ndarray, index: np.ndarray, 
         # neighbours': farther samples of a curving outline (a shoulder turning into a neck) would
         # tilt the gap's middle, and every splat's clip line with it, into a sawtooth along the outline
         confirmed = _border_outwards(nbh.points, normals, wide, rest, frames[~settled], SHEET_COS, FLAT_SIN2,
-                                     layers, closing)[0].any(axis=1)
+                                     layers, closing2)[0].any(axis=1)
         outwards[rest[~confirmed]] = 0.0
     reach[~outwards.any(axis=1)] = 0.0
     return outwards, reach
