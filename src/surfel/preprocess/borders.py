@@ -79,8 +79,8 @@ KEY_BINS = 64
 KEY_BIN = 4.0 / KEY_BINS
 EMPTY_RUN = 11
 ALL_BINS = np.uint64(0xFFFFFFFFFFFFFFFF)
-ROW_SECTORS = 8   # sectors of the pseudo-angle in which near neighbours lie along one row
-ROW_DEPTH = 0.5   # a neighbour at least 30 degrees off the border line lies in a row inside
+ROW_SECTORS = 8                     # sectors of the pseudo-angle in which near neighbours lie in a row
+ROW_DEPTH = 0.5                     # a neighbour 30 degrees or more off the border line: a row inside
 
 
 @numba.njit(parallel=True, cache=True)
@@ -328,6 +328,7 @@ def border_outwards(nbh: Neighbourhood, normals: np.ndarray, index: np.ndarray, 
     n = len(nbh.points)
     layers = np.full(n, np.inf) if layers is None else np.asarray(layers, np.float64)
     closing2 = np.full(n, np.inf) if spacing is None else (CLOSING_SPACINGS * np.asarray(spacing, np.float64)) ** 2
+    closing2[~np.isfinite(closing2)] = np.inf  # no spacing known (no distinct neighbour): no closing distance
     outwards, reach = map_chunks(lambda start, stop: _border_outwards(nbh.points, normals, index[start:stop],
                                                                       np.arange(start, stop),
                                                                       orthonormal_basis(normals[start:stop]),
