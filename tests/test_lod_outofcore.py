@@ -16,7 +16,7 @@ from surfel.cli import main
 from surfel.cloud import PointCloud
 from surfel.errors import InputError, SurfelError
 from surfel.io import load, write_ply
-from surfel.lod import binning, outofcore
+from surfel.lod import binning, outofcore, worker_warm_up
 from surfel.lod.binning import bin_input, fine_cells, halo_pairs, lone_cells, piece_files
 from surfel.lod.lazy import LazyHierarchy
 from surfel.lod.outofcore import (
@@ -446,9 +446,9 @@ def test_the_warm_up_compiles_what_a_partition_needs(needs):
 
 def test_workers_share_the_warm_up(monkeypatch):
     """Every warm-up task is run first by one worker alone, a task that needs another starts
-    after it, both workers take tasks, and each worker ends having run every task once (the
-    others' loading their kernels from numba's cache): what lets the pool compile each kernel
-    once from an empty cache."""
+    after it, both workers take tasks, and each worker, once it has finished (as before its
+    first partition), has run every task once (the others' loading their kernels from numba's
+    cache): what lets the pool compile each kernel once from an empty cache."""
     import threading
     import time
     from multiprocessing import get_context
@@ -469,8 +469,11 @@ def test_workers_share_the_warm_up(monkeypatch):
     monkeypatch.setattr(outofcore, "warm_up_tasks", lambda *needs: ([task(i) for i in range(5)], {3: 0, 4: 0}))
     context = get_context("spawn")
     taken, done = context.Value("i", 0), [context.Event() for _ in range(5)]
-    workers = [threading.Thread(target=outofcore._start_worker, args=(taken, done, (True, True, False)),
-                                name=f"w{i}") for i in range(2)]
+    def worker():
+        outofcore._start_worker(taken, done, (True, True, False))
+        worker_warm_up.finish()
+
+    workers = [threading.Thread(target=worker, name=f"w{i}") for i in range(2)]
     for worker in workers:
         worker.start()
     for worker in workers:

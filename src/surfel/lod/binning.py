@@ -44,6 +44,7 @@ from tqdm import tqdm
 
 from ..attributes import Schema
 from ..cloud import framing_sphere
+from . import worker_warm_up
 from .streaming import CHUNK_POINTS, Chunk, KindVote, StreamInput, all_chunks, read_ahead, summarise
 
 HISTOGRAM_BITS = 7
@@ -297,6 +298,12 @@ class Bins:
         return self.add(read, piece)
 
 
+def _add_ply_in_worker(bins: Bins, *args) -> np.ndarray:
+    """`Bins.add_ply` in a pool's worker, once it has the binning's kernels (worker_warm_up.py)."""
+    worker_warm_up.finish(warm_up)
+    return bins.add_ply(*args)
+
+
 def piece_files(folder: Path, name: str, suffix: str) -> list[Path]:
     """The pieces of partition `name`'s file (suffix "bin" or "halo"), in piece order: their
     concatenation holds the points in input order."""
@@ -360,7 +367,7 @@ def bin_input(inputs: list[StreamInput], partial: Path, cap: int, signature: dic
     with progress_bar(total, "partition", progress) as bar:
         if pool is not None and workers > 1 and len(chunks) > 1 and binned_by_workers(inputs):
             cuts = np.linspace(0, len(chunks), min(workers, len(chunks)) + 1).round().astype(int)
-            jobs = {pool.submit(bins.add_ply, inputs, chunks[a:b], CHUNK_POINTS, piece): b - a
+            jobs = {pool.submit(_add_ply_in_worker, bins, inputs, chunks[a:b], CHUNK_POINTS, piece): b - a
                     for piece, (a, b) in enumerate(zip(cuts[:-1], cuts[1:], strict=True))}
             counts = np.zeros(bins.groups, np.int64)
             try:

@@ -314,9 +314,9 @@ def _build_partitions(partial: Path, counts: list[int], dtype: np.dtype, schema:
 
 def _start_worker(taken, done, needs: tuple[bool, bool, bool]) -> None:
     """A worker builds one partition at a time on one thread (the pool gives the parallelism);
-    it loads its kernels first, sharing their compiling with the other workers
-    (worker_warm_up.py: `taken` and `done` are its shared counter and events; `needs` are
-    `warm_up_tasks`' arguments)."""
+    it loads its share of the kernels first, sharing their compiling with the other workers,
+    and the others' before the first job that needs them (worker_warm_up.py: `taken` and
+    `done` are its shared counter and events; `needs` are `warm_up_tasks`' arguments)."""
     numba.set_num_threads(1)
     worker_warm_up.share(*warm_up_tasks(*needs), taken, done)
 
@@ -348,7 +348,9 @@ M_TRIM_THRESHOLD, M_MMAP_MAX = -1, -4  # glibc's mallopt parameters (malloc.h)
 
 
 def _build_partition_in_worker(*args) -> None:
-    """`_build_partition` in a pool's worker, which keeps the memory it frees from then on."""
+    """`_build_partition` in a pool's worker, which keeps the memory it frees from then on,
+    once it has the kernels of the other workers' warm-up tasks (the tree's: before the tree)."""
+    worker_warm_up.finish(but=_warm_up_tree)
     _keep_freed_memory()
     _build_partition(*args)
 
@@ -403,6 +405,7 @@ def _build_partition(partial: Path, name: str, dtype: np.dtype, schema: Schema, 
     cloud, _ = complete(cloud, progress=False)
     points = len(cloud)
     lo, hi = cloud.bounds
+    worker_warm_up.finish(_warm_up_tree)  # in a pool's worker: the other may still compile them
     tree = build_lod(cloud, progress=False)
     del cloud
     root = _root_summary(tree)

@@ -4,8 +4,11 @@ the workers so that each kernel is compiled once.
 
 `share(tasks, after, taken, done)`: a worker takes the next task (`taken`, a counter shared by
 the workers) until none is left, a task listed in `after` once the task it needs is done
-(`done`, an event per task), and then runs the others' tasks as they are done: those load
-their kernels from numba's cache instead of compiling them again.
+(`done`, an event per task). `finish(task)` then runs, before a job that needs them, the
+tasks the other workers took, each once it is done: those load their kernels from numba's
+cache instead of compiling them again. A worker whose own share is done meanwhile bins the
+input (needing the binning's task only) and completes a partition while the other still
+compiles the tree's kernels, which a partition needs only once its completion is done.
 
 The tasks below, with `binning.warm_up` and outofcore's tree task, run what binning,
 `preprocess.complete` and the tree build run, on a few points of the same types, so that they
@@ -14,6 +17,7 @@ compile the very signatures a partition needs.
 
 from __future__ import annotations
 
+import threading
 import time
 
 import numpy as np
@@ -30,10 +34,13 @@ from ..preprocess.unsettled import scan_all_nearest
 TIMEOUT = 600.0  # seconds of warm-up after which a worker stops waiting for the others
 
 
+_pending = threading.local()  # per worker: the tasks, their events, and those not run here yet
+
+
 def share(tasks, after: dict[int, int], taken, done) -> None:
-    """Run this worker's share of `tasks`, then the others' (module docstring)."""
+    """Run this worker's share of `tasks` (module docstring); `finish` runs the others'."""
     deadline = time.monotonic() + TIMEOUT
-    mine = set()
+    others = set(range(len(tasks)))
     while True:
         with taken.get_lock():
             index = taken.value
@@ -44,12 +51,24 @@ def share(tasks, after: dict[int, int], taken, done) -> None:
             done[after[index]].wait(max(0.0, deadline - time.monotonic()))
         tasks[index]()
         done[index].set()
-        mine.add(index)
-    for index, task in enumerate(tasks):
-        if index not in mine:
-            # past the deadline (a worker died), this one compiles the task itself
+        others.discard(index)
+    _pending.state = (tasks, done, others, deadline)
+
+
+def finish(task=None, but=None) -> None:
+    """Run the tasks that other workers took (only `task` if given, all but `but` if given),
+    each once it is done there, so that this worker loads their kernels instead of compiling
+    them; past the deadline (a worker died) it compiles them itself. Nothing outside a
+    warmed-up worker."""
+    state = getattr(_pending, "state", None)
+    if state is None:
+        return
+    tasks, done, others, deadline = state
+    for index in sorted(others):
+        if (task is None or tasks[index] is task) and tasks[index] is not but:
             done[index].wait(max(0.0, deadline - time.monotonic()))
-            task()
+            tasks[index]()
+            others.discard(index)
 
 
 def neighbours() -> None:
