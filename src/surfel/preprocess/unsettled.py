@@ -21,7 +21,9 @@ SCAN_ALL_ROWS = 64  # at most this many unsettled points scan all points instead
 @numba.njit(parallel=True, cache=True)
 def scan_all_nearest(points, k, rows):  # pragma: no cover - compiled
     """(len(rows), k) int32: the k nearest of each of the points `rows` (1 <= k <= N; nearest
-    first, the point itself first, equal distances in index order), offering every point."""
+    first, the point itself first, equal distances in index order), offering every point. The
+    insertion is grid_knn's `_insert` written again: a kernel here reads no helper of another
+    module, whose change numba's cache would not see (docs/architecture.md)."""
     m = len(rows)
     index = np.empty((m, k), np.int32)
     for r in numba.prange(m):
