@@ -380,7 +380,7 @@ def test_leaves_compile_once_whatever_the_cloud_holds():
     """A cloud without colours, radii or axes passes read-only stand-ins like the arrays it
     has, so the leaf kernel compiles one signature for all of them (each a compile of about a
     second in every out-of-core worker)."""
-    from surfel.lod.build import _init_leaves
+    from surfel.lod.build import _leaf_rows
 
     rng = np.random.default_rng(1)
     positions = rng.random((50, 3))
@@ -390,7 +390,7 @@ def test_leaves_compile_once_whatever_the_cloud_holds():
               PointCloud(positions, normals=normals, radii=np.full(50, 0.01)),
               PointCloud(positions, normals=normals, colors=rng.random((50, 3)), radii=np.full(50, 0.01), axes=axes)]
     lod.build_lod(clouds[0], progress=False)
-    signatures = set(_init_leaves.signatures)
+    signatures = set(_leaf_rows.signatures)
     for cloud in clouds[1:]:
         lod.build_lod(cloud, progress=False)
-    assert set(_init_leaves.signatures) == signatures
+    assert set(_leaf_rows.signatures) == signatures

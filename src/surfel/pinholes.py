@@ -35,6 +35,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from .threads import over_rows
+
 MIN_FRONT = 7  # of the 8 neighbours: the eighth may be the other half of a two-sample pinhole
 ROUNDS = 2
 RELATIVE_TOLERANCE = 1e-5
@@ -77,47 +79,51 @@ def _front_count(depth, coverage, y, x):  # pragma: no cover - compiled
             + (_depth(depth, coverage, y + 1, x) < z) + (_depth(depth, coverage, y + 1, x + 1) < z))
 
 
-@numba.njit(parallel=True, cache=True)
-def _find(depth, coverage, found):  # pragma: no cover - compiled
-    """(ys, xs): the pinholes' positions, row by row; found[y, x] marks them. A row's samples
-    are counted first (`_front_count`, no pinhole on the image's border); only those with
-    MIN_FRONT neighbours in front, a few, take the whole test."""
+def _find(depth, coverage, found):
+    """(ys, xs): the pinholes' positions, row by row; found[y, x] marks them."""
+    over_rows(_find_rows, depth.shape[0], depth, coverage, found, grain=16)
+    return np.nonzero(found)
+
+
+@numba.njit(cache=True, nogil=True)
+def _find_rows(first, stop, depth, coverage, found):  # pragma: no cover - compiled
+    """Rows first:stop of `_find`. A row's samples are counted first (`_front_count`, no
+    pinhole on the image's border); only those with MIN_FRONT neighbours in front, a few, take
+    the whole test."""
     h, w = depth.shape
-    row_counts = np.zeros(h, np.int64)
-    for y in numba.prange(h):
-        front = np.zeros(w, np.uint8)
-        if 0 < y < h - 1:
-            for x in range(1, w - 1):
-                front[x] = _front_count(depth, coverage, y, x)
-        count = 0
+    front = np.zeros(w, np.uint8)  # the border columns' counts stay 0
+    for y in range(first, stop):
+        if y == 0 or y == h - 1:
+            found[y] = False
+            continue
+        for x in range(1, w - 1):
+            front[x] = _front_count(depth, coverage, y, x)
         for x in range(w):
             found[y, x] = front[x] >= MIN_FRONT and _is_pinhole(depth, coverage, y, x)
-            if found[y, x]:
-                count += 1
-        row_counts[y] = count
-    ends = np.cumsum(row_counts)
-    ys, xs = np.empty(ends[-1], np.int64), np.empty(ends[-1], np.int64)
-    for y in numba.prange(h):
-        if row_counts[y] == 0:
-            continue
-        k = ends[y] - row_counts[y]
-        for x in range(w):
-            if found[y, x]:
-                ys[k], xs[k] = y, x
-                k += 1
-    return ys, xs
 
 
-@numba.njit(parallel=True, cache=True)
-def _find_near(filled_ys, filled_xs, depth, coverage, found):  # pragma: no cover - compiled
+def _find_near(filled_ys, filled_xs, depth, coverage, found):
     """(ys, xs): the pinholes among the samples within one of the samples just filled, the
     only ones whose neighbourhoods changed (every other sample was no pinhole before and is
     none now); found (all False on entry) marks them, so that none is counted twice. A
     pinhole never lies on the image's border, so the samples around one are all inside it."""
-    hole = np.zeros((len(filled_ys), 9), np.bool_)
-    for k in numba.prange(len(filled_ys)):
+    hole = np.empty((len(filled_ys), 9), np.bool_)
+    over_rows(_near_rows, len(filled_ys), filled_ys, filled_xs, depth, coverage, hole, grain=256)
+    return _mark_once(filled_ys, filled_xs, hole, found)
+
+
+@numba.njit(cache=True, nogil=True)
+def _near_rows(first, stop, filled_ys, filled_xs, depth, coverage, hole):  # pragma: no cover - compiled
+    """hole[k, c]: whether the sample c (of the 3 x 3 around filled sample k) is a pinhole, for
+    k in first:stop."""
+    for k in range(first, stop):
         for c in range(9):
             hole[k, c] = _is_pinhole(depth, coverage, filled_ys[k] + c // 3 - 1, filled_xs[k] + c % 3 - 1)
+
+
+@numba.njit(cache=True)
+def _mark_once(filled_ys, filled_xs, hole, found):  # pragma: no cover - compiled
+    """The samples `hole` marks, each once (in found), as (ys, xs)."""
     most = hole.sum()
     ys, xs = np.empty(most, np.int64), np.empty(most, np.int64)
     count = 0
@@ -131,13 +137,25 @@ def _find_near(filled_ys, filled_xs, depth, coverage, found):  # pragma: no cove
     return ys[:count], xs[:count]
 
 
-@numba.njit(parallel=True, cache=True)
-def _fill(ys, xs, shaded, coverage, depth, normals, indices, categorical):  # pragma: no cover - compiled
+def _fill(ys, xs, shaded, coverage, depth, normals, indices, categorical):
     """Each pinhole (ys, xs) filled in place from its front neighbours. All are computed
     before any is written, so that the order of the pinholes does not matter."""
     values = np.zeros((len(ys), 8), np.float32)  # colour, coverage, depth, normal
     labels = np.empty(len(ys), np.int32)
-    for k in numba.prange(len(ys)):
+    over_rows(_fill_values, len(ys), ys, xs, shaded, coverage, depth, normals, indices, categorical, values, labels,
+              grain=256)
+    shaded[ys, xs] = values[:, :3]
+    coverage[ys, xs], depth[ys, xs] = values[:, 3], values[:, 4]
+    normals[ys, xs] = values[:, 5:]
+    if categorical:
+        indices[ys, xs] = labels
+
+
+@numba.njit(cache=True, nogil=True)
+def _fill_values(first, stop, ys, xs, shaded, coverage, depth, normals, indices, categorical, values,
+                 labels):  # pragma: no cover - compiled
+    """The values (colour, coverage, depth, normal) and labels of pinholes first:stop."""
+    for k in range(first, stop):
         y, x = ys[k], xs[k]
         z = _depth(depth, coverage, y, x)
         source = -1  # in a categorical mode: the first front neighbour showing the commonest category
@@ -170,14 +188,6 @@ def _fill(ys, xs, shaded, coverage, depth, normals, indices, categorical):  # pr
         length = np.sqrt(values[k, 5] ** 2 + values[k, 6] ** 2 + values[k, 7] ** 2)
         for c in range(5, 8):
             values[k, c] = values[k, c] / length if length > 0 else values[k, c]
-    for k in numba.prange(len(ys)):
-        y, x = ys[k], xs[k]
-        for c in range(3):
-            shaded[y, x, c] = values[k, c]
-            normals[y, x, c] = values[k, 5 + c]
-        coverage[y, x], depth[y, x] = values[k, 3], values[k, 4]
-        if categorical:
-            indices[y, x] = labels[k]
 
 
 def fill_pinholes(shaded: np.ndarray, coverage: np.ndarray, depth: np.ndarray, normals: np.ndarray,

@@ -44,6 +44,7 @@ from tqdm import tqdm
 
 from ..attributes import Schema
 from ..cloud import framing_sphere
+from ..threads import over_rows
 from . import worker_warm_up
 from .streaming import CHUNK_POINTS, Chunk, KindVote, StreamInput, all_chunks, read_ahead, summarise
 
@@ -136,37 +137,45 @@ def _halo_of(position, lo, scale, res, lookup, lone, own, halo, reach, found):  
     return count
 
 
-@numba.njit(parallel=True, cache=True)
-def halo_pairs(positions, lo, scale, res, lookup, lone, own, halo):  # pragma: no cover - compiled
+def halo_pairs(positions, lo, scale, res, lookup, lone, own, halo):
     """(point index, partition) of every halo membership (module docstring), halo in cell
     widths; lone: `lone_cells(lookup, res, halo)`."""
-    reach = halo_reach(halo)
     n = len(positions)
-    block = 4096
-    blocks = (n + block - 1) // block
-    per_block = np.zeros(blocks + 1, np.int64)
     counts = np.empty(n, np.int32)  # the second pass revisits only the few points in a halo
-    for b in numba.prange(blocks):
-        found = np.empty((2 * reach + 1) ** 3, np.int32)
-        for i in range(b * block, min(n, (b + 1) * block)):
-            counts[i] = _halo_of(positions[i], lo, scale, res, lookup, lone, own[i], halo, reach, found)
-            per_block[b + 1] += counts[i]
-    for b in range(blocks):
-        per_block[b + 1] += per_block[b]
-    points = np.empty(per_block[blocks], np.int64)
-    parts = np.empty(per_block[blocks], np.int32)
-    for b in numba.prange(blocks):
-        found = np.empty((2 * reach + 1) ** 3, np.int32)
-        out = per_block[b]
-        for i in range(b * block, min(n, (b + 1) * block)):
-            if counts[i] == 0:
-                continue
-            count = _halo_of(positions[i], lo, scale, res, lookup, lone, own[i], halo, reach, found)
-            for j in range(count):
-                points[out] = i
-                parts[out] = found[j]
-                out += 1
+    over_rows(_halo_counts, n, positions, lo, scale, res, lookup, lone, own, halo, counts, grain=4096)
+    ends = np.cumsum(counts)
+    points = np.empty(ends[-1] if n else 0, np.int64)
+    parts = np.empty(len(points), np.int32)
+    over_rows(_halo_rows, n, positions, lo, scale, res, lookup, lone, own, halo, counts, ends - counts, points,
+              parts, grain=4096)
     return points, parts
+
+
+@numba.njit(cache=True, nogil=True)
+def _halo_counts(first, stop, positions, lo, scale, res, lookup, lone, own, halo,
+                 counts):  # pragma: no cover - compiled
+    """The number of halos each point first:stop lies in."""
+    reach = halo_reach(halo)
+    found = np.empty((2 * reach + 1) ** 3, np.int32)
+    for i in range(first, stop):
+        counts[i] = _halo_of(positions[i], lo, scale, res, lookup, lone, own[i], halo, reach, found)
+
+
+@numba.njit(cache=True, nogil=True)
+def _halo_rows(first, stop, positions, lo, scale, res, lookup, lone, own, halo, counts, offsets, points,
+               parts):  # pragma: no cover - compiled
+    """The halo memberships of points first:stop, the counts[i] of point i from offsets[i] on."""
+    reach = halo_reach(halo)
+    found = np.empty((2 * reach + 1) ** 3, np.int32)
+    for i in range(first, stop):
+        if counts[i] == 0:
+            continue
+        out = offsets[i]
+        count = _halo_of(positions[i], lo, scale, res, lookup, lone, own[i], halo, reach, found)
+        for j in range(count):
+            points[out] = i
+            parts[out] = found[j]
+            out += 1
 
 
 @numba.njit(cache=True)

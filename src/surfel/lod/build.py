@@ -70,6 +70,7 @@ from tqdm import tqdm
 from ..attributes import CATEGORICAL
 from ..cloud import PointCloud, corners, read_only
 from ..preprocess import CLIP_LINES, INACTIVE_CLIP, clipped_away
+from ..threads import over_rows
 
 MORTON_BITS = 21  # bits per axis: 63-bit codes
 # r_max of the root is infinite; it is stored as the largest float32 because point-cloud
@@ -177,15 +178,22 @@ def _absent(shape: tuple[int, ...]) -> np.ndarray:
     return read_only(np.empty(shape, np.float32))
 
 
-@numba.njit(parallel=True, cache=True)
 def _init_leaves(order, in_pos, in_col, in_axes, in_normals, in_radii, in_clip,
-                 pos, col, nrm, rad, axes, weight, clip):  # pragma: no cover - compiled
+                 pos, col, nrm, rad, axes, weight, clip):
     """Leaf j = input point order[j] (Morton order, so that siblings are neighbours in memory):
     axes as given (or circular from the normal), enclosing radius max(|u|, |v|), area weight
     |u| |v| (the ellipse area / pi), its clip lines (if in_clip is not empty); the rows of clip
     past the leaves, the inner nodes', get INACTIVE_CLIP."""
-    n = len(order)
-    for j in numba.prange(n):
+    over_rows(_leaf_rows, len(order), order, in_pos, in_col, in_axes, in_normals, in_radii, in_clip,
+              pos, col, nrm, rad, axes, weight, clip)
+    clip[len(order):] = INACTIVE_CLIP
+
+
+@numba.njit(cache=True, nogil=True)
+def _leaf_rows(first, stop, order, in_pos, in_col, in_axes, in_normals, in_radii, in_clip,
+               pos, col, nrm, rad, axes, weight, clip):  # pragma: no cover - compiled
+    """Leaves first:stop of `_init_leaves`."""
+    for j in range(first, stop):
         i = order[j]
         nx, ny, nz = in_normals[i, 0], in_normals[i, 1], in_normals[i, 2]
         for c in range(3):
@@ -210,9 +218,6 @@ def _init_leaves(order, in_pos, in_col, in_axes, in_normals, in_radii, in_clip,
             lu = lv = r
         rad[j] = max(lu, lv)
         weight[j] = lu * lv
-    for j in numba.prange(n, len(clip)):
-        for line in range(clip.shape[1]):
-            clip[j, line, 0], clip[j, line, 1], clip[j, line, 2] = INACTIVE_CLIP
 
 
 @numba.njit(inline="always")
@@ -270,14 +275,21 @@ def _reach(dx, dy, dz, nx, ny, nz, ux, uy, uz, radius, slab):  # pragma: no cove
     return dx * ux + dy * uy + dz * uz, radius * np.sqrt(max(0.0, 1.0 - nu * nu)) + slab * abs(nu)
 
 
-@numba.njit(parallel=True, cache=True)
 def _merge_cells(starts, counts, members, first, pos, nrm, col, rad, axes, weight, lo, hi,
-                 e_p, e_t, e_g, parent, d_parent, representative, with_color, facing):  # pragma: no cover - compiled
+                 e_p, e_t, e_g, parent, d_parent, representative, with_color, facing):
     """Create node first + g from the children members[starts[g]:starts[g] + counts[g]];
     its representative leaf is that of its heaviest child. `facing` (M,) marks the
     screen-facing nodes (empty: none), which a new node joins when most of its children's
     area faces the camera."""
-    for g in numba.prange(len(starts)):
+    over_rows(_merge_rows, len(starts), starts, counts, members, first, pos, nrm, col, rad, axes, weight, lo, hi,
+              e_p, e_t, e_g, parent, d_parent, representative, with_color, facing)
+
+
+@numba.njit(cache=True, nogil=True)
+def _merge_rows(begin, stop, starts, counts, members, first, pos, nrm, col, rad, axes, weight, lo, hi,
+                e_p, e_t, e_g, parent, d_parent, representative, with_color, facing):  # pragma: no cover - compiled
+    """Cells begin:stop of `_merge_cells`."""
+    for g in range(begin, stop):
         s = starts[g]
         e = s + counts[g]
         out = first + g

@@ -53,6 +53,7 @@ import numpy as np
 from ..camera import Camera
 from ..cloud import PointCloud, take_rows
 from ..preprocess import CLIP_LINES
+from ..threads import over_rows
 from .build import ROOT_PARENT_ERROR, LodTree, build_lod
 
 EXTRAS = ("lod_emin", "lod_emax", "lod_dparent", "lod_dsuffix")
@@ -85,8 +86,7 @@ def sequential_order(tree: LodTree) -> np.ndarray:
     return np.concatenate(([tree.root], tree.children_of(inner)))
 
 
-@numba.njit(parallel=True, cache=True)
-def _gather(order, pos, nrm, col, rad, axes, e_g, parent, d_parent, root_error, clip, facing):  # pragma: no cover
+def _gather(order, pos, nrm, col, rad, axes, e_g, parent, d_parent, root_error, clip, facing):
     """The node attributes, clip lines and screen-facing flags (col, clip, facing empty where
     the tree has none) and the LOD extras, permuted into sequential order in one pass."""
     m = len(order)
@@ -100,7 +100,17 @@ def _gather(order, pos, nrm, col, rad, axes, e_g, parent, d_parent, root_error, 
     emin = np.empty(m, np.float32)
     emax = np.empty(m, np.float32)
     dpar = np.empty(m, np.float32)
-    for j in numba.prange(m):
+    over_rows(_gather_rows, m, order, pos, nrm, col, rad, axes, e_g, parent, d_parent, root_error, clip, facing,
+              out_pos, out_nrm, out_col, out_rad, out_axes, out_clip, out_facing, emin, emax, dpar)
+    return out_pos, out_nrm, out_col, out_rad, out_axes, out_clip, out_facing, emin, emax, dpar
+
+
+@numba.njit(cache=True, nogil=True)
+def _gather_rows(first, stop, order, pos, nrm, col, rad, axes, e_g, parent, d_parent,
+                 root_error, clip, facing, out_pos, out_nrm, out_col, out_rad,
+                 out_axes, out_clip, out_facing, emin, emax, dpar):  # pragma: no cover - compiled
+    """Rows first:stop of `_gather`."""
+    for j in range(first, stop):
         i = order[j]
         for c in range(3):
             out_pos[j, c] = pos[i, c]
@@ -118,7 +128,6 @@ def _gather(order, pos, nrm, col, rad, axes, e_g, parent, d_parent, root_error, 
         emin[j] = e_g[i]
         emax[j] = e_g[parent[i]] if parent[i] >= 0 else root_error
         dpar[j] = d_parent[i]
-    return out_pos, out_nrm, out_col, out_rad, out_axes, out_clip, out_facing, emin, emax, dpar
 
 
 def to_sequential_cloud(tree: LodTree) -> PointCloud:

@@ -32,6 +32,7 @@ import numpy as np
 
 from ..colors import continuous_pixel
 from ..shading import shade_pixel
+from ..threads import over_rows
 from .ewa_kernels import FAR, TILE, layer_offset
 from .splatting_bins import camera_scalars, eye_space, rotate, to_pixels
 from .splatting_tiles import (
@@ -487,12 +488,17 @@ def rasterize_tiles(packed, extras, box, index, tile_start, tile_count, order, t
                     _write(color, alpha, depth, normals, y, x, r, g, b, a, z, nx, ny, nz, background, composite)
 
 
-@nb.njit(parallel=True, cache=True)
 def finish_surrounded(present, color, alpha, depth, normals, background, composite):
     """The pixels `rasterize_tiles` left undecided: whole where splats cover all four
     neighbours' centres, else their own coverage; then written as every other pixel."""
+    over_rows(_finish_rows, present.shape[0], present, color, alpha, depth, normals, background, composite, grain=64)
+
+
+@nb.njit(cache=True, nogil=True)
+def _finish_rows(first, stop, present, color, alpha, depth, normals, background, composite):  # pragma: no cover
+    """Rows first:stop of `finish_surrounded`."""
     height, width = present.shape
-    for y in nb.prange(height):
+    for y in range(first, stop):
         for x in range(width):
             if not present[y, x] & UNDECIDED:
                 continue

@@ -61,6 +61,7 @@ import math
 import numba
 import numpy as np
 
+from ..threads import over_rows
 from .chunked import map_chunks
 from .frames import orthonormal_basis
 from .neighbourhood import Neighbourhood
@@ -69,7 +70,7 @@ from .sharp_features import FLAT_SIN2, SHEET_COS
 BORDER_GAP = math.radians(120.0)   # neighbours leaving a gap this wide: p is on a border
 INTERIOR_GAP = math.radians(100.0)  # ... unless another gap is this wide too (a scan line)
 BORDER_CONFIRM = 64                 # neighbours among which a border is confirmed
-KERNEL_BLOCK = 1024                 # points per parallel task of the kernel
+KERNEL_BLOCK = 1024                 # the fewest points per thread's piece of the kernels
 CLOSING_SPACINGS = 4.0              # neighbours farther than this many spacings lie across a gap
 NOISY_MARGIN = 0.2                  # a noisy cloud's border lines move out by this much of the splat
 # pseudo-angle bins (of [-2, 2], circular) of which no EMPTY_RUN + 1 consecutive ones are empty
@@ -83,9 +84,7 @@ ROW_SECTORS = 8                     # sectors of the pseudo-angle in which near 
 ROW_DEPTH = 0.5                     # a neighbour 30 degrees or more off the border line: a row inside
 
 
-@numba.njit(parallel=True, cache=True)
-def _border_outwards(points, normals, index, rows, frames, sheet_cos, flat_sin2, layers,
-                     closing2):  # pragma: no cover - compiled
+def _border_outwards(points, normals, index, rows, frames, sheet_cos, flat_sin2, layers, closing2):
     """Per point rows[i], the unit tangent (3,) pointing out of the surface if the point lies on
     the border of an open surface, else zero, and the fold's reach f_p (0 elsewhere).
 
@@ -96,20 +95,27 @@ def _border_outwards(points, normals, index, rows, frames, sheet_cos, flat_sin2,
     plane by more than flat_sin2) nor another layer (separated by more than layers[p],
     thickness.py) closes a gap, nor a neighbour q farther than the square root of
     max(closing2[p], closing2[q]) unless the rows of `_point_outwards` say so (module docstring)."""
-    m, k = index.shape
-    outwards = np.zeros((m, 3))
-    reach = np.zeros(m)
-    for block in numba.prange((m + KERNEL_BLOCK - 1) // KERNEL_BLOCK):
-        # one set of buffers per block of points: an allocation per point costs as much as its work
-        found = np.empty((5, k))  # key, x, y, squared distance and closing distance as they come
-        keys = np.empty(k)
-        xs = np.empty(k)
-        ys = np.empty(k)
-        far = np.empty((2, k))  # x, y of the fold's far side
-        for i in range(block * KERNEL_BLOCK, min(m, (block + 1) * KERNEL_BLOCK)):
-            _point_outwards(points, normals, index, rows, frames, sheet_cos, flat_sin2, layers, closing2, i, found,
-                            keys, xs, ys, far, outwards, reach)
+    outwards = np.zeros((len(rows), 3))
+    reach = np.zeros(len(rows))
+    over_rows(_outwards_rows, len(rows), points, normals, index, rows, frames, sheet_cos, flat_sin2, layers,
+              closing2, outwards, reach, grain=KERNEL_BLOCK)
     return outwards, reach
+
+
+@numba.njit(cache=True, nogil=True)
+def _outwards_rows(first, stop, points, normals, index, rows, frames, sheet_cos, flat_sin2, layers, closing2,
+                   outwards, reach):  # pragma: no cover - compiled
+    """Rows first:stop of `_border_outwards`."""
+    k = index.shape[1]
+    # one set of buffers per call: an allocation per point costs as much as its work
+    found = np.empty((5, k))  # key, x, y, squared distance and closing distance as they come
+    keys = np.empty(k)
+    xs = np.empty(k)
+    ys = np.empty(k)
+    far = np.empty((2, k))  # x, y of the fold's far side
+    for i in range(first, stop):
+        _point_outwards(points, normals, index, rows, frames, sheet_cos, flat_sin2, layers, closing2, i, found,
+                        keys, xs, ys, far, outwards, reach)
 
 
 @numba.njit(cache=True, inline="always")
@@ -226,7 +232,7 @@ def _widest_gap(found, used, inner2, keys, xs, ys):  # pragma: no cover - compil
     return widest, second, middle
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True)
 def _point_outwards(points, normals, index, rows, frames, sheet_cos, flat_sin2, layers, closing2, i, found, keys,
                     xs, ys, far, out, reach):  # pragma: no cover
     """out[i], reach[i]: row i of `_border_outwards`, with found (5, k), keys, xs, ys (k,) and far
@@ -288,17 +294,23 @@ def _point_outwards(points, normals, index, rows, frames, sheet_cos, flat_sin2, 
         reach[i] = max(reach[i], far[0, f] * co + far[1, f] * si)
 
 
-@numba.njit(parallel=True, cache=True)
-def _settled(points, normals, index, count, rows, frames, sheet_cos, flat_sin2, layers,
-             closing2):  # pragma: no cover - compiled
+def _settled(points, normals, index, count, rows, frames, sheet_cos, flat_sin2, layers, closing2):
     """Per point rows[i], True when its neighbours index[i, :count[i]], all among its
     BORDER_CONFIRM nearest, already prove it no border there: their pseudo-angles leave no
     EMPTY_RUN + 1 consecutive bins empty (nor then do those of all its BORDER_CONFIRM nearest:
     no gap counts). The neighbours are taken as `_point_outwards` takes them, those within
     their closing distance only: whatever else `_point_outwards` counts adds to them."""
-    m = len(rows)
-    settled = np.zeros(m, np.bool_)
-    for i in numba.prange(m):
+    settled = np.zeros(len(rows), np.bool_)
+    over_rows(_settled_rows, len(rows), points, normals, index, count, rows, frames, sheet_cos, flat_sin2, layers,
+              closing2, settled, grain=KERNEL_BLOCK)
+    return settled
+
+
+@numba.njit(cache=True, nogil=True)
+def _settled_rows(first, stop, points, normals, index, count, rows, frames, sheet_cos, flat_sin2, layers, closing2,
+                  settled):  # pragma: no cover - compiled
+    """Rows first:stop of `_settled`."""
+    for i in range(first, stop):
         p = rows[i]
         bins = np.uint64(0)
         for j in range(count[i]):
@@ -311,7 +323,6 @@ def _settled(points, normals, index, count, rows, frames, sheet_cos, flat_sin2, 
                 continue
             bins |= _key_bit(math.copysign(1.0 - x / (abs(x) + abs(y)), y))
         settled[i] = _no_wide_gap(bins)
-    return settled
 
 
 def border_outwards(nbh: Neighbourhood, normals: np.ndarray, index: np.ndarray, progress: bool | None,

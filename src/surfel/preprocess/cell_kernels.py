@@ -15,6 +15,8 @@ import math
 import numba
 import numpy as np
 
+from ..threads import over_rows
+
 ELLIPSE_MAX_ASPECT = 4.0       # no needles: major / minor semi-axis at most this
 CURVATURE_ANISOTROPY = 0.05    # radians by which the normals turn more one way than the other
                                # across a cell, above which an ellipse follows the curvature
@@ -23,7 +25,7 @@ CAP_SIDES = 8                  # a cell starts as a regular octagon inscribed in
 CLIP_LINES = 2                 # clip lines per splat: an edge, or an edge and a corner
 INACTIVE_CLIP = (0.0, 0.0, 1.0)  # 0 u + 0 v <= 1: cuts nothing
 PARALLEL_COS = math.cos(math.radians(30.0))  # clip lines closer in direction are one edge
-CELL_BLOCK = 1024              # points per parallel task of the cell kernels
+CELL_BLOCK = 1024              # the fewest points per thread's piece of the cell kernels
 
 
 # ---------------------------------------------------------------------------------------------
@@ -272,60 +274,73 @@ def _covering_ellipse(polygon, vertices, co, si):  # pragma: no cover - compiled
 # every point: the kernels of one chunk, points start + i
 
 
-@numba.njit(parallel=True, cache=True)
-def cell_radii(points, normals, index, start, frames, features, sheet_cos, layers):  # pragma: no cover
+def cell_radii(points, normals, index, start, frames, features, sheet_cos, layers):
     """The covering radius of each point's cell (0 where all its neighbours coincide with it)."""
-    m, k = index.shape
-    radius = np.zeros(m)
-    for block in numba.prange((m + CELL_BLOCK - 1) // CELL_BLOCK):
-        # one set of scratch buffers per block: five allocations per point cost half the kernel
-        lines, creases, bounding = np.empty((k, 3)), np.empty((k, 3)), np.empty(k, np.int64)
-        polygon, spare = np.empty((CAP_SIDES + k + 1, 2)), np.empty((CAP_SIDES + k + 1, 2))
-        for i in range(block * CELL_BLOCK, min(m, (block + 1) * CELL_BLOCK)):
-            _, count, reach = _cell_bounds(points, normals, index, frames, i, start + i, features, sheet_cos,
-                                           layers, lines, creases, bounding)
-            if reach == 0.0:
-                continue
-            cell, vertices = _cell_polygon(lines, count, reach, polygon, spare)
-            radius[i] = _covering_radius(cell, vertices)
+    radius = np.zeros(len(index))
+    over_rows(_radii_rows, len(index), points, normals, index, start, frames, features, sheet_cos, layers, radius,
+              grain=CELL_BLOCK)
     return radius
 
 
-@numba.njit(parallel=True, cache=True)
-def cell_ellipses(points, normals, index, start, frames, features, sheet_cos, layers):  # pragma: no cover
+@numba.njit(cache=True, nogil=True)
+def _radii_rows(first, stop, points, normals, index, start, frames, features, sheet_cos, layers,
+                radius):  # pragma: no cover - compiled
+    """Rows first:stop of `cell_radii`."""
+    k = index.shape[1]
+    # one set of scratch buffers per call: five allocations per point cost half the kernel
+    lines, creases, bounding = np.empty((k, 3)), np.empty((k, 3)), np.empty(k, np.int64)
+    polygon, spare = np.empty((CAP_SIDES + k + 1, 2)), np.empty((CAP_SIDES + k + 1, 2))
+    for i in range(first, stop):
+        _, count, reach = _cell_bounds(points, normals, index, frames, i, start + i, features, sheet_cos,
+                                       layers, lines, creases, bounding)
+        if reach == 0.0:
+            continue
+        cell, vertices = _cell_polygon(lines, count, reach, polygon, spare)
+        radius[i] = _covering_radius(cell, vertices)
+
+
+def cell_ellipses(points, normals, index, start, frames, features, sheet_cos, layers):
     """The covering radius of each point's cell, and the semi-axes (m, 2) and direction
     (m, 2: cos, sin in the frame) of its covering ellipse (zero semi-axes for degenerate cells)."""
-    m, k = index.shape
+    m = len(index)
     radius = np.zeros(m)
     semi = np.zeros((m, 2))
     direction = np.zeros((m, 2))
     direction[:, 0] = 1.0
-    for block in numba.prange((m + CELL_BLOCK - 1) // CELL_BLOCK):
-        lines, creases, bounding = np.empty((k, 3)), np.empty((k, 3)), np.empty(k, np.int64)
-        polygon, spare = np.empty((CAP_SIDES + k + 1, 2)), np.empty((CAP_SIDES + k + 1, 2))
-        for i in range(block * CELL_BLOCK, min(m, (block + 1) * CELL_BLOCK)):
-            p = start + i
-            bisectors, count, reach = _cell_bounds(points, normals, index, frames, i, p, features, sheet_cos,
-                                                   layers, lines, creases, bounding)
-            if reach == 0.0:
-                continue
-            cell, vertices = _cell_polygon(lines, count, reach, polygon, spare)
-            radius[i] = _covering_radius(cell, vertices)
-            if vertices < 3:
-                continue
-            # Splats "aligned along the curvature" (survey 2.1.4), so that the normal field's two
-            # slopes (eq. 8) describe the surface: the principal curvature directions, wherever the
-            # normals turn more one way than the other across the cell.
-            theta = _spread_direction(lines, bisectors)
-            curvature_theta, anisotropy = _curvature_direction(lines, bisectors, bounding, normals, frames, i, p)
-            if anisotropy * reach > CURVATURE_ANISOTROPY:
-                theta = curvature_theta
-            co = math.cos(theta)
-            si = math.sin(theta)
-            semi[i, 0], semi[i, 1] = _covering_ellipse(cell, vertices, co, si)
-            direction[i, 0] = co
-            direction[i, 1] = si
+    over_rows(_ellipse_rows, m, points, normals, index, start, frames, features, sheet_cos, layers, radius, semi,
+              direction, grain=CELL_BLOCK)
     return radius, semi, direction
+
+
+@numba.njit(cache=True, nogil=True)
+def _ellipse_rows(first, stop, points, normals, index, start, frames, features, sheet_cos, layers, radius, semi,
+                  direction):  # pragma: no cover - compiled
+    """Rows first:stop of `cell_ellipses`."""
+    k = index.shape[1]
+    lines, creases, bounding = np.empty((k, 3)), np.empty((k, 3)), np.empty(k, np.int64)
+    polygon, spare = np.empty((CAP_SIDES + k + 1, 2)), np.empty((CAP_SIDES + k + 1, 2))
+    for i in range(first, stop):
+        p = start + i
+        bisectors, count, reach = _cell_bounds(points, normals, index, frames, i, p, features, sheet_cos,
+                                               layers, lines, creases, bounding)
+        if reach == 0.0:
+            continue
+        cell, vertices = _cell_polygon(lines, count, reach, polygon, spare)
+        radius[i] = _covering_radius(cell, vertices)
+        if vertices < 3:
+            continue
+        # Splats "aligned along the curvature" (survey 2.1.4), so that the normal field's two
+        # slopes (eq. 8) describe the surface: the principal curvature directions, wherever the
+        # normals turn more one way than the other across the cell.
+        theta = _spread_direction(lines, bisectors)
+        curvature_theta, anisotropy = _curvature_direction(lines, bisectors, bounding, normals, frames, i, p)
+        if anisotropy * reach > CURVATURE_ANISOTROPY:
+            theta = curvature_theta
+        co = math.cos(theta)
+        si = math.sin(theta)
+        semi[i, 0], semi[i, 1] = _covering_ellipse(cell, vertices, co, si)
+        direction[i, 0] = co
+        direction[i, 1] = si
 
 
 @numba.njit(cache=True, inline="always")
@@ -409,24 +424,29 @@ def _nearest_creases(candidates, count, lines, i):  # pragma: no cover - compile
         used += 1
 
 
-@numba.njit(parallel=True, cache=True)
-def cell_clip_lines(points, normals, index, start, axes, features, outwards, reach, margin):  # pragma: no cover
+def cell_clip_lines(points, normals, index, start, axes, features, outwards, reach, margin):
     """CLIP_LINES clip lines (a, b, c) per splat, in its local coordinates (u, v) (1 on the rim):
     the crease half-planes that end its cell and the border lines of its neighbours (`outwards`).
     A dropped splat keeps nothing (u <= -2, -u <= -2)."""
-    m = index.shape[0]
-    lines = np.empty((m, CLIP_LINES, 3), np.float32)
-    for block in numba.prange((m + CELL_BLOCK - 1) // CELL_BLOCK):
-        candidates = np.empty((2 * index.shape[1], 3))  # one per block: an allocation per point costs as much
-        for i in range(block * CELL_BLOCK, min(m, (block + 1) * CELL_BLOCK)):
-            p = start + i
-            dropped = features.crease[p]
-            for line in range(CLIP_LINES):
-                lines[i, line, 0] = 1.0 - 2.0 * line if dropped else INACTIVE_CLIP[0]
-                lines[i, line, 1] = 0.0 if dropped else INACTIVE_CLIP[1]
-                lines[i, line, 2] = -2.0 if dropped else INACTIVE_CLIP[2]
-            if not dropped:
-                count = _crease_candidates(points, normals, index, axes, i, p, features, candidates)
-                count = _border_candidates(points, index, axes, i, p, outwards, reach, margin, candidates, count)
-                _nearest_creases(candidates, count, lines, i)
+    lines = np.empty((len(index), CLIP_LINES, 3), np.float32)
+    over_rows(_clip_rows, len(index), points, normals, index, start, axes, features, outwards, reach, margin, lines,
+              grain=CELL_BLOCK)
     return lines
+
+
+@numba.njit(cache=True, nogil=True)
+def _clip_rows(first, stop, points, normals, index, start, axes, features, outwards, reach, margin,
+               lines):  # pragma: no cover - compiled
+    """Rows first:stop of `cell_clip_lines`."""
+    candidates = np.empty((2 * index.shape[1], 3))  # one per call: an allocation per point costs as much
+    for i in range(first, stop):
+        p = start + i
+        dropped = features.crease[p]
+        for line in range(CLIP_LINES):
+            lines[i, line, 0] = 1.0 - 2.0 * line if dropped else INACTIVE_CLIP[0]
+            lines[i, line, 1] = 0.0 if dropped else INACTIVE_CLIP[1]
+            lines[i, line, 2] = -2.0 if dropped else INACTIVE_CLIP[2]
+        if not dropped:
+            count = _crease_candidates(points, normals, index, axes, i, p, features, candidates)
+            count = _border_candidates(points, index, axes, i, p, outwards, reach, margin, candidates, count)
+            _nearest_creases(candidates, count, lines, i)

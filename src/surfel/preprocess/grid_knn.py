@@ -51,17 +51,18 @@ import numba
 import numpy as np
 
 from ..cloud import corners, take_rows
+from ..threads import over_rows
 from .unsettled import unsettled_nearest
 
 MORTON_BITS = 21       # bits of a cell coordinate per axis (3 x 21 in an int64 key)
 CELL_SHARE = 2.0       # points per occupied cell: k / this (measured fastest on scanned surfaces)
 COARSE_CELLS = 64      # cells along the longest side of the first occupancy measurement
 RINGS = 3              # shells of cells scanned around a point before the k-d tree takes over
-RUN_BATCH = 256        # cells searched per parallel task
+RUN_BATCH = 256        # the fewest cells per thread's piece of the search
 MAX_CELL = 4096        # more points in one cell (coincident points): the k-d tree for all
 HASH_MULTIPLIER = 0x5851F42D4C957F2D  # odd, below 2^63: the hash of a cell key is its product's bits 32+
 QUERY_RINGS = 4        # shells of cells a query (Grid.nearest) scans before the k-d tree takes over
-QUERY_BATCH = 64       # points queried per parallel task
+QUERY_BATCH = 64       # the fewest points per thread's piece of a query
 SURE_SHRINK = 1e-6     # cell widths by which `grid_within` shrinks its reach: far above roundings
 # the 3 x 3 x 3 block's cell offsets, nearest first: the nearest fill the k first
 BLOCK_OFFSETS = np.array(sorted(((x, y, z) for x in (-1, 0, 1) for y in (-1, 0, 1) for z in (-1, 0, 1)),
@@ -357,28 +358,28 @@ def _search_run(points, starts, run_keys, slots, run, lo, h, k, index, best_d, b
             index[i, j] = best_i[j]
 
 
-@numba.njit(parallel=True, cache=True)
-def grid_neighbours(points, starts, run_keys, slots, lo, h, k, largest):  # pragma: no cover - compiled
+def grid_neighbours(points, starts, run_keys, slots, lo, h, k, largest):
     """The k nearest (nearest first, the point itself first) of each of the key-sorted points,
     as int32 indices into them; rows of points the grid could not resolve are -1 (module
     docstring). largest: the most points of one cell."""
-    runs = len(starts) - 1
     index = np.empty((len(points), k), np.int32)
-    most = 27 * largest  # points a block can hold
-    for batch in numba.prange((runs + RUN_BATCH - 1) // RUN_BATCH):
-        best_d = np.empty(k, np.float64)
-        best_i = np.empty(k, np.int64)
-        spare_d = np.empty(k, np.float64)
-        spare_i = np.empty(k, np.int64)
-        block = np.empty((4, most), np.float64)
-        dist = np.empty(most, np.float64)
-        near_d = np.empty(most, np.float64)
-        near_c = np.empty(most, np.int64)
-        previous = np.full(4, -1.0)
-        for run in range(batch * RUN_BATCH, min(runs, (batch + 1) * RUN_BATCH)):
-            _search_run(points, starts, run_keys, slots, run, lo, h, k, index, best_d, best_i, spare_d, spare_i,
-                        block, dist, near_d, near_c, previous)
+    over_rows(_neighbour_runs, len(starts) - 1, points, starts, run_keys, slots, lo, h, k, largest, index,
+              grain=RUN_BATCH)
     return index
+
+
+@numba.njit(cache=True, nogil=True)
+def _neighbour_runs(first, stop, points, starts, run_keys, slots, lo, h, k, largest,
+                    index):  # pragma: no cover - compiled
+    """The rows of `grid_neighbours` of the points of runs first:stop."""
+    most = 27 * largest  # points a block can hold
+    best_d, best_i, spare_d, spare_i = np.empty(k), np.empty(k, np.int64), np.empty(k), np.empty(k, np.int64)
+    block = np.empty((4, most), np.float64)
+    dist, near_d, near_c = np.empty(most), np.empty(most), np.empty(most, np.int64)
+    previous = np.full(4, -1.0)
+    for run in range(first, stop):
+        _search_run(points, starts, run_keys, slots, run, lo, h, k, index, best_d, best_i, spare_d, spare_i, block,
+                    dist, near_d, near_c, previous)
 
 
 def cell_width(points: np.ndarray, k: int, lo: np.ndarray, hi: np.ndarray) -> float:
@@ -437,39 +438,45 @@ def _query_point(points, starts, run_keys, slots, lo, h, k, p, best_d, best_i, s
     return False
 
 
-@numba.njit(parallel=True, cache=True)
-def grid_query(points, starts, run_keys, slots, lo, h, k, rows):  # pragma: no cover - compiled
+def grid_query(points, starts, run_keys, slots, lo, h, k, rows):
     """The k nearest (nearest first, the point itself first) of each of the key-sorted points
     `rows`, as int32 indices; rows of points the shells could not settle are -1."""
-    m = len(rows)
-    index = np.empty((m, k), np.int32)
-    for batch in numba.prange((m + QUERY_BATCH - 1) // QUERY_BATCH):
-        best_d = np.empty(k, np.float64)
-        best_i = np.empty(k, np.int64)
-        spare_d = np.empty(k, np.float64)
-        spare_i = np.empty(k, np.int64)
-        for r in range(batch * QUERY_BATCH, min(m, (batch + 1) * QUERY_BATCH)):
-            if _query_point(points, starts, run_keys, slots, lo, h, k, rows[r], best_d, best_i, spare_d, spare_i):
-                for j in range(k):
-                    index[r, j] = best_i[j]
-            else:
-                index[r, 0] = -1
+    index = np.empty((len(rows), k), np.int32)
+    over_rows(_query_rows, len(rows), points, starts, run_keys, slots, lo, h, k, rows, index, grain=QUERY_BATCH)
     return index
 
 
-@numba.njit(parallel=True, cache=True)
-def grid_within(points, starts, run_keys, slots, lo, h, k, rows):  # pragma: no cover - compiled
+@numba.njit(cache=True, nogil=True)
+def _query_rows(first, stop, points, starts, run_keys, slots, lo, h, k, rows, index):  # pragma: no cover - compiled
+    """Rows first:stop of `grid_query`."""
+    best_d, best_i, spare_d, spare_i = np.empty(k), np.empty(k, np.int64), np.empty(k), np.empty(k, np.int64)
+    for r in range(first, stop):
+        if _query_point(points, starts, run_keys, slots, lo, h, k, rows[r], best_d, best_i, spare_d, spare_i):
+            for j in range(k):
+                index[r, j] = best_i[j]
+        else:
+            index[r, 0] = -1
+
+
+def grid_within(points, starts, run_keys, slots, lo, h, k, rows):
     """Per point p = rows[r], the points nearer to p than m - SURE_SHRINK h (m: its distance to
     the faces of the 3 x 3 x 3 block of cells around its cell; the margin keeps out what a
     rounding might bring in), p itself included, into index[r, :count[r]] when there are at
     most k of them; count[r] = -1 when there are more. All points that near lie in the block,
     so, at most k of them, each is among p's k nearest, whichever way ties are broken."""
-    m = len(rows)
-    index = np.empty((m, k), np.int32)
-    count = np.empty(m, np.int64)
+    index = np.empty((len(rows), k), np.int32)
+    count = np.empty(len(rows), np.int64)
+    over_rows(_within_rows, len(rows), points, starts, run_keys, slots, lo, h, k, rows, index, count)
+    return index, count
+
+
+@numba.njit(cache=True, nogil=True)
+def _within_rows(first, stop, points, starts, run_keys, slots, lo, h, k, rows, index,
+                 count):  # pragma: no cover - compiled
+    """Rows first:stop of `grid_within`."""
     top = (1 << MORTON_BITS) - 1
     inv_h = 1.0 / h
-    for r in numba.prange(m):
+    for r in range(first, stop):
         p = rows[r]
         qx, qy, qz, fx, fy, fz = _cell_of(points, p, lo, h, inv_h)
         reach = min(fx + h, 2.0 * h - fx, fy + h, 2.0 * h - fy, fz + h, 2.0 * h - fz) - SURE_SHRINK * h
@@ -495,7 +502,6 @@ def grid_within(points, starts, run_keys, slots, lo, h, k, rows):  # pragma: no 
                     index[r, c] = j
                     c += 1
         count[r] = c
-    return index, count
 
 
 @dataclass(frozen=True, eq=False)

@@ -37,6 +37,7 @@ import math
 import numba
 import numpy as np
 
+from ..threads import over_rows
 from .chunked import map_chunks
 from .frames import unit
 from .neighbourhood import Neighbourhood
@@ -76,14 +77,22 @@ def _off_plane(points, normals, p, q, flat_sin2):  # pragma: no cover - compiled
     return height * height > flat_sin2 * distance2
 
 
-@numba.njit(parallel=True, cache=True)
-def _slopes(points, index, start, normals, axes, sheet_cos, flat_sin2):  # pragma: no cover - compiled
+def _slopes(points, index, start, normals, axes, sheet_cos, flat_sin2):
     """Weighted least-squares slopes (alpha, beta) (m, 2) of each splat start + i over its
     neighbours on its own sheet (module docstring: sheet_cos, flat_sin2 tell the far side of
     a thin part)."""
     m, k = index.shape
     slopes = np.zeros((m, 2))
-    for i in numba.prange(m):
+    over_rows(_slopes_rows, m, points, index, start, normals, axes, sheet_cos, flat_sin2, slopes)
+    return slopes
+
+
+@numba.njit(cache=True, nogil=True)
+def _slopes_rows(first, stop, points, index, start, normals, axes, sheet_cos, flat_sin2,
+                 slopes):  # pragma: no cover - compiled
+    """Rows first:stop of `_slopes`."""
+    m, k = index.shape
+    for i in range(first, stop):
         p = start + i
         num_u = den_u = num_v = den_v = weights = 0.0
         for j in range(k):
@@ -109,7 +118,6 @@ def _slopes(points, index, start, normals, axes, sheet_cos, flat_sin2):  # pragm
             slopes[i, 0] = num_u / den_u
         if den_v > 1e-12 * weights:
             slopes[i, 1] = num_v / den_v
-    return slopes
 
 
 def field_slopes(nbh: Neighbourhood, normals: np.ndarray, axes: np.ndarray, progress: bool | None,

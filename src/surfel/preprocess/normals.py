@@ -60,6 +60,7 @@ import math
 import numba
 import numpy as np
 
+from ..threads import over_rows
 from .chunked import map_chunks
 from .neighbourhood import Neighbourhood, as_points
 
@@ -74,8 +75,7 @@ CURVATURE_WEIGHT = 0.15  # a of E_j: the least mean error over the scans of benc
 NOISE_SCATTERING = 0.01  # median lambda0 / lambda2 above which a cloud's normals select their scale
 
 
-@numba.njit(parallel=True, cache=True)
-def _pca(points, index, start):  # pragma: no cover - compiled
+def _pca(points, index, start):
     """Eigenvalues (m, 3), ascending, of the neighbourhood covariance of each point start + i,
     and the unit eigenvector (m, 3) of the smallest: the covariance from offsets to the point
     itself, diagonalised by cyclic Jacobi rotations (no gathered (m, k, 3) array, no LAPACK
@@ -83,7 +83,15 @@ def _pca(points, index, start):  # pragma: no cover - compiled
     m, k = index.shape
     values = np.empty((m, 3))
     vectors = np.empty((m, 3))
-    for i in numba.prange(m):
+    over_rows(_pca_rows, m, points, index, start, values, vectors)
+    return values, vectors
+
+
+@numba.njit(cache=True, nogil=True)
+def _pca_rows(first, stop, points, index, start, values, vectors):  # pragma: no cover - compiled
+    """Rows first:stop of `_pca`."""
+    m, k = index.shape
+    for i in range(first, stop):
         p = start + i
         s = np.zeros(3)
         a = np.zeros((3, 3))
@@ -135,7 +143,6 @@ def _pca(points, index, start):  # pragma: no cover - compiled
         values[i, 0], values[i, 1], values[i, 2] = a[low, low], a[middle, middle], a[high, high]
         for x in range(3):
             vectors[i, x] = v[x, low]
-    return values, vectors
 
 
 def pca_normals(nbh: Neighbourhood, k: int, progress: bool | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -15,6 +15,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from ..threads import over_rows
 from .chunked import map_chunks
 from .sharp_features import SHARP_COS
 
@@ -65,24 +66,29 @@ def _median_at_least(values, n, bound):  # pragma: no cover - compiled
     return below <= (n - 1) // 2
 
 
-@numba.njit(parallel=True, cache=True)
-def _outlier_cap(raw, index, start, normals, same_cos):  # pragma: no cover - compiled
+def _outlier_cap(raw, index, start, normals, same_cos):
     """cap_p of each point p = start + i, p's surface being its neighbours with n_p . n_q >= same_cos."""
     m, k = index.shape
     cap = np.empty(m)
-    for block in numba.prange((m + CAP_BLOCK - 1) // CAP_BLOCK):
-        values = np.empty(k - 1)  # one buffer per block: an allocation per point costs as much as its work
-        for i in range(block * CAP_BLOCK, min(m, (block + 1) * CAP_BLOCK)):
-            p, count = start + i, 0
-            for j in range(1, k):
-                q = index[i, j]
-                facing = normals[q, 0] * normals[p, 0] + normals[q, 1] * normals[p, 1] + normals[q, 2] * normals[p, 2]
-                values[count] = raw[q]
-                count += facing >= same_cos  # kept when on p's surface, without a branch
-            if not count:  # none on p's surface (rare): all of them count
-                for j in range(1, k):
-                    values[j - 1] = raw[index[i, j]]
-                count = k - 1
-            cap[i] = 1.0 if _median_at_least(values, count, raw[p] / ISOLATED_FACTOR) else \
-                min(1.0, ISOLATED_FACTOR * _median(values, count) / raw[p])
+    over_rows(_outlier_cap_rows, m, raw, index, start, normals, same_cos, cap, grain=CAP_BLOCK)
     return cap
+
+
+@numba.njit(cache=True, nogil=True)
+def _outlier_cap_rows(first, stop, raw, index, start, normals, same_cos, cap):  # pragma: no cover - compiled
+    """Rows first:stop of `_outlier_cap`."""
+    m, k = index.shape
+    values = np.empty(k - 1)  # one buffer per call: an allocation per point costs as much as its work
+    for i in range(first, stop):
+        p, count = start + i, 0
+        for j in range(1, k):
+            q = index[i, j]
+            facing = normals[q, 0] * normals[p, 0] + normals[q, 1] * normals[p, 1] + normals[q, 2] * normals[p, 2]
+            values[count] = raw[q]
+            count += facing >= same_cos  # kept when on p's surface, without a branch
+        if not count:  # none on p's surface (rare): all of them count
+            for j in range(1, k):
+                values[j - 1] = raw[index[i, j]]
+            count = k - 1
+        cap[i] = 1.0 if _median_at_least(values, count, raw[p] / ISOLATED_FACTOR) else \
+            min(1.0, ISOLATED_FACTOR * _median(values, count) / raw[p])

@@ -36,6 +36,7 @@ from typing import NamedTuple
 import numba
 import numpy as np
 
+from ..threads import over_rows
 from .chunked import map_chunks
 from .frames import unit
 from .neighbourhood import Neighbourhood
@@ -66,13 +67,20 @@ class SharpFeatures(NamedTuple):
         return cls(np.zeros(n, bool), np.zeros(n, bool), SHARP_COS, ON_PLANE_SIN2, SHEET_COS, FLAT_SIN2)
 
 
-@numba.njit(parallel=True, cache=True)
-def _flat_points(points, index, start, normals):  # pragma: no cover - compiled
+def _flat_points(points, index, start, normals):
     """Whether each point start + i is flat: its neighbours with normals within SHARP_ANGLE of
     its own lie in its tangent plane (within FLAT_SIN2)."""
     m, k = index.shape
     flat = np.ones(m, np.bool_)
-    for i in numba.prange(m):
+    over_rows(_flat_points_rows, m, points, index, start, normals, flat)
+    return flat
+
+
+@numba.njit(cache=True, nogil=True)
+def _flat_points_rows(first, stop, points, index, start, normals, flat):  # pragma: no cover - compiled
+    """Rows first:stop of `_flat_points`."""
+    m, k = index.shape
+    for i in range(first, stop):
         p = start + i
         for j in range(k):
             q = index[i, j]
@@ -87,57 +95,61 @@ def _flat_points(points, index, start, normals):  # pragma: no cover - compiled
             if facing >= SHARP_COS and height * height > FLAT_SIN2 * distance2:
                 flat[i] = False
                 break
-    return flat
 
 
-@numba.njit(parallel=True, cache=True)
-def _crease_points(points, index, start, normals, flat):  # pragma: no cover - compiled
+def _crease_points(points, index, start, normals, flat):
     """Whether each point start + i lies on a crease itself: in the tangent planes (within
     ON_PLANE_SIN2) of two flat neighbours whose normals are more than SHARP_ANGLE apart, neither
     facing away from the point's (n_p . n_q < SHEET_COS: its surface seen from behind)."""
     m, k = index.shape
     crease = np.zeros(m, np.bool_)
-    for block in numba.prange((m + CREASE_BLOCK - 1) // CREASE_BLOCK):
-        # flat neighbours in whose tangent plane the point lies, those with normals within half
-        # SHARP_ANGLE of p's (NEAR_COS) and the others; one buffer per block: an allocation
-        # per point costs as much as its work
-        near, far = np.empty(k, np.int64), np.empty(k, np.int64)
-        for i in range(block * CREASE_BLOCK, min(m, (block + 1) * CREASE_BLOCK)):
-            p = start + i
-            nears = fars = 0
-            for j in range(k):
-                q = index[i, j]
-                if q == p or not flat[q]:
-                    continue
-                side = 0.0
-                distance2 = 0.0
-                towards_p = 0.0
-                for a in range(3):
-                    offset = points[p, a] - points[q, a]
-                    side += offset * normals[q, a]
-                    distance2 += offset * offset
-                    towards_p += normals[q, a] * normals[p, a]
-                if side * side > ON_PLANE_SIN2 * distance2 or towards_p < SHEET_COS:
-                    continue
-                # two normals within half SHARP_ANGLE of p's lie less than SHARP_ANGLE apart (the
-                # triangle inequality of angles): on a flat face no pair needs comparing
-                is_near = towards_p >= NEAR_COS
-                for other in range(fars + (0 if is_near else nears)):
-                    o = far[other] if other < fars else near[other - fars]
-                    across = 0.0
-                    for a in range(3):
-                        across += normals[q, a] * normals[o, a]
-                    if across < SHARP_COS:
-                        crease[i] = True
-                if crease[i]:
-                    break
-                if is_near:
-                    near[nears] = q
-                    nears += 1
-                else:
-                    far[fars] = q
-                    fars += 1
+    over_rows(_crease_points_rows, m, points, index, start, normals, flat, crease, grain=CREASE_BLOCK)
     return crease
+
+
+@numba.njit(cache=True, nogil=True)
+def _crease_points_rows(first, stop, points, index, start, normals, flat, crease):  # pragma: no cover - compiled
+    """Rows first:stop of `_crease_points`."""
+    m, k = index.shape
+    # flat neighbours in whose tangent plane the point lies, those with normals within half
+    # SHARP_ANGLE of p's (NEAR_COS) and the others; one buffer per call: an allocation
+    # per point costs as much as its work
+    near, far = np.empty(k, np.int64), np.empty(k, np.int64)
+    for i in range(first, stop):
+        p = start + i
+        nears = fars = 0
+        for j in range(k):
+            q = index[i, j]
+            if q == p or not flat[q]:
+                continue
+            side = 0.0
+            distance2 = 0.0
+            towards_p = 0.0
+            for a in range(3):
+                offset = points[p, a] - points[q, a]
+                side += offset * normals[q, a]
+                distance2 += offset * offset
+                towards_p += normals[q, a] * normals[p, a]
+            if side * side > ON_PLANE_SIN2 * distance2 or towards_p < SHEET_COS:
+                continue
+            # two normals within half SHARP_ANGLE of p's lie less than SHARP_ANGLE apart (the
+            # triangle inequality of angles): on a flat face no pair needs comparing
+            is_near = towards_p >= NEAR_COS
+            for other in range(fars + (0 if is_near else nears)):
+                o = far[other] if other < fars else near[other - fars]
+                across = 0.0
+                for a in range(3):
+                    across += normals[q, a] * normals[o, a]
+                if across < SHARP_COS:
+                    crease[i] = True
+            if crease[i]:
+                break
+            if is_near:
+                near[nears] = q
+                nears += 1
+            else:
+                far[fars] = q
+                fars += 1
 
 
 def find_sharp_features(nbh: Neighbourhood, normals: np.ndarray, k: int) -> SharpFeatures:

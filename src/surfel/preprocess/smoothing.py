@@ -38,6 +38,7 @@ import math
 import numba
 import numpy as np
 
+from ..threads import over_rows
 from .chunked import map_chunks
 from .neighbourhood import Neighbourhood
 
@@ -48,12 +49,20 @@ SMOOTH_STEPS = 2        # projections: the second corrects a(x), n(x) at the mov
 SAME_SURFACE_ANGLE = 25.0  # degrees: neighbours with normals farther from the point's are another surface
 
 
-@numba.njit(parallel=True, cache=True)
-def _project(points, normals, index, start, width_neighbour, width, steps, same_surface):  # pragma: no cover - compiled
+def _project(points, normals, index, start, width_neighbour, width, steps, same_surface):
     """Positions (m, 3) of points start + i projected onto the MLS surface (module docstring)."""
     m, k = index.shape
     out = np.empty((m, 3))
-    for i in numba.prange(m):
+    over_rows(_project_rows, m, points, normals, index, start, width_neighbour, width, steps, same_surface, out)
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _project_rows(first, stop, points, normals, index, start, width_neighbour, width, steps, same_surface,
+                  out):  # pragma: no cover - compiled
+    """Rows first:stop of `_project`."""
+    m, k = index.shape
+    for i in range(first, stop):
         p = start + i
         w_far = min(width_neighbour, k - 1)
         q = index[i, w_far]
@@ -90,7 +99,6 @@ def _project(points, normals, index, start, width_neighbour, width, steps, same_
             f = n0 * (x0 - a0 / total) + n1 * (x1 - a1 / total) + n2 * (x2 - a2 / total)
             x0, x1, x2 = x0 - f * n0, x1 - f * n1, x2 - f * n2
         out[i, 0], out[i, 1], out[i, 2] = x0, x1, x2
-    return out
 
 
 def smoothed_points(nbh: Neighbourhood, normals: np.ndarray, progress: bool | None = None) -> np.ndarray:

@@ -83,6 +83,7 @@ import numba
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ..threads import over_rows
 from .chunked import map_chunks
 from .neighbourhood import Neighbourhood
 
@@ -103,13 +104,20 @@ ROW_REACH = 0.55            # there a splat may reach this share of the way to t
 WIDE_NEIGHBOURS = 64        # neighbours searched where the k nearest lie along one row
 
 
-@numba.njit(parallel=True, cache=True)
-def _local_spacing(points, index, start, count):  # pragma: no cover - compiled
+def _local_spacing(points, index, start, count):
     """Median distance from each point start + i to its `count` nearest distinct neighbours
     (neighbours come nearest first); NaN where it has none."""
     m, k = index.shape
     out = np.full(m, np.nan)
-    for i in numba.prange(m):
+    over_rows(_local_spacing_rows, m, points, index, start, count, out)
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _local_spacing_rows(first, stop, points, index, start, count, out):  # pragma: no cover - compiled
+    """Rows first:stop of `_local_spacing`."""
+    m, k = index.shape
+    for i in range(first, stop):
         p = start + i
         distances = np.empty(count)
         found = 0
@@ -126,7 +134,6 @@ def _local_spacing(points, index, start, count):  # pragma: no cover - compiled
                     break
         if found > 0:  # ascending: the median is the middle one or two
             out[i] = 0.5 * (distances[(found - 1) // 2] + distances[found // 2])
-    return out
 
 
 def local_spacing(nbh: Neighbourhood, progress: bool | None = None) -> np.ndarray:
@@ -137,8 +144,7 @@ def local_spacing(nbh: Neighbourhood, progress: bool | None = None) -> np.ndarra
                       len(nbh.points), progress, "spacing")
 
 
-@numba.njit(parallel=True, cache=True)
-def _row_distances(points, normals, index, rows, spacing):  # pragma: no cover - compiled
+def _row_distances(points, normals, index, rows, spacing):
     """Per point rows[i], among its neighbours index[i] (nearest first; only those within 45
     degrees of its tangent plane: not the far side of a thin sheet), the nearest in each
     quadrant of its tangent plane: the farthest of those distances where the sampling is
@@ -146,7 +152,15 @@ def _row_distances(points, normals, index, rows, spacing):  # pragma: no cover -
     a wire: look further)."""
     m, k = index.shape
     out = np.zeros(m)
-    for i in numba.prange(m):
+    over_rows(_row_distances_rows, m, points, normals, index, rows, spacing, out)
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _row_distances_rows(first, stop, points, normals, index, rows, spacing, out):  # pragma: no cover - compiled
+    """Rows first:stop of `_row_distances`."""
+    m, k = index.shape
+    for i in range(first, stop):
         p = rows[i]
         nx, ny, nz = normals[p, 0], normals[p, 1], normals[p, 2]
         if nx * nx + ny * ny + nz * nz < 0.25:  # no normal, no tangent plane
@@ -190,7 +204,6 @@ def _row_distances(points, normals, index, rows, spacing):  # pragma: no cover -
         elif (farthest2 >= ANISOTROPY * ANISOTROPY * nearest2 and farthest_facing >= FLAT_ACROSS_COS
               and ROW_REACH / BOUND_FACTOR * math.sqrt(farthest2) > spacing[p]):
             out[i] = math.sqrt(farthest2)
-    return out
 
 
 def anisotropic_spacing(nbh: Neighbourhood, normals: np.ndarray, spacing: np.ndarray,
@@ -270,15 +283,21 @@ def sampling_spacing(nbh: Neighbourhood, *, geospatial: bool, ranges: np.ndarray
     return spacing, report
 
 
-@numba.njit(parallel=True, cache=True)
-def _bound_semi_axes(axes, radii, bound):  # pragma: no cover - compiled
+def _bound_semi_axes(axes, radii, bound):
     """`bound_semi_axes` in one pass, with numpy's arithmetic (each length the square root of
     the sum of the squares, in order): the same values to the bit, without its temporaries."""
     n = len(axes)
     out = np.empty((n, 2, 3))
     out_radii = np.empty(n)
     capped = np.empty(n, np.bool_)
-    for i in numba.prange(n):
+    over_rows(_bound_semi_axes_rows, n, axes, radii, bound, out, out_radii, capped)
+    return out, out_radii, capped
+
+
+@numba.njit(cache=True, nogil=True)
+def _bound_semi_axes_rows(first, stop, axes, radii, bound, out, out_radii, capped):  # pragma: no cover - compiled
+    """Rows first:stop of `_bound_semi_axes`."""
+    for i in range(first, stop):
         b = bound[i]
         cut = radii[i] > b
         for j in range(2):
@@ -290,7 +309,6 @@ def _bound_semi_axes(axes, radii, bound):  # pragma: no cover - compiled
             out[i, j, 2] = z * scale
         out_radii[i] = min(np.float64(radii[i]), b)
         capped[i] = cut
-    return out, out_radii, capped
 
 
 def bound_semi_axes(axes: np.ndarray, radii: np.ndarray, spacing: np.ndarray) -> tuple[np.ndarray, np.ndarray,

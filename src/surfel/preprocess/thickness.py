@@ -55,6 +55,7 @@ import numpy as np
 
 from ..attributes import INFINITE_LENGTH
 from ..cloud import PointCloud
+from ..threads import over_rows
 from .chunked import map_chunks
 
 PARALLEL_COS = 0.5   # neighbours whose normals are within 60 degrees count as parallel layers
@@ -102,47 +103,52 @@ def _sort_by_rank(keys, values, n, sorted_keys, sorted_values):  # pragma: no co
         sorted_values[rank] = values[a]
 
 
-@numba.njit(parallel=True, cache=True)
-def _layer_thickness(points, normals, index, start):  # pragma: no cover - compiled
+def _layer_thickness(points, normals, index, start):
     """tau_p of each point p = start + i."""
     m, k = index.shape
     out = np.empty(m)
-    for block in numba.prange((m + THICKNESS_BLOCK - 1) // THICKNESS_BLOCK):
-        # buffers per block (an allocation per point costs as much as its work): the neighbours'
-        # separations and extents as they come, then sorted by separation
-        found_h, found_e, separation, extent = np.empty(k), np.empty(k), np.empty(k), np.empty(k)
-        for i in range(block * THICKNESS_BLOCK, min(m, (block + 1) * THICKNESS_BLOCK)):
-            p = start + i
-            f = index[i, min(FLOOR_NEIGHBOUR, k - 1)]
-            spacing2 = (points[f, 0] - points[p, 0]) ** 2 + (points[f, 1] - points[p, 1]) ** 2 \
-                + (points[f, 2] - points[p, 2]) ** 2
-            floor = GAP_FLOOR * math.sqrt(spacing2)
-            count = 0
-            widest = 0.0
-            for j in range(1, k):
-                q = index[i, j]
-                cos = normals[p, 0] * normals[q, 0] + normals[p, 1] * normals[q, 1] + normals[p, 2] * normals[q, 2]
-                if cos < PARALLEL_COS:
-                    continue
-                dx, dy, dz = points[q, 0] - points[p, 0], points[q, 1] - points[p, 1], points[q, 2] - points[p, 2]
-                d_pq = dx * normals[p, 0] + dy * normals[p, 1] + dz * normals[p, 2]
-                d_qp = -(dx * normals[q, 0] + dy * normals[q, 1] + dz * normals[q, 2])
-                tangential2 = max(dx * dx + dy * dy + dz * dz - d_pq * d_pq, 0.0)
-                antisymmetric = 0.5 * abs(d_pq - d_qp)
-                crease = math.sqrt(tangential2 * max(2.0 - 2.0 * cos, 0.0)) if cos < CREASE_COS else 0.0
-                h = max(antisymmetric - 0.5 * crease, 0.0)
-                bend = 0.5 * (abs(d_pq) + abs(d_qp)) * min(1.0, spacing2 / max(tangential2, 1e-300))
-                found_h[count], found_e[count] = h, max(antisymmetric, bend)
-                count += 1
-                widest = max(widest, h)
-            out[i] = np.inf
-            if widest <= floor:
-                continue  # no separation reaches past the floor of a gap: one layer, no sort needed
-            _sort_by_rank(found_h, found_e, count, separation, extent)
-            layer = 0.0
-            for j in range(count):
-                if j >= MIN_LAYER and count - j >= MIN_OTHER and separation[j] > GAP_FACTOR * layer + floor:
-                    out[i] = 0.5 * (layer + separation[j])
-                    break
-                layer = max(layer, extent[j])
+    over_rows(_layer_thickness_rows, m, points, normals, index, start, out, grain=THICKNESS_BLOCK)
     return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _layer_thickness_rows(first, stop, points, normals, index, start, out):  # pragma: no cover - compiled
+    """Rows first:stop of `_layer_thickness`."""
+    m, k = index.shape
+    # buffers per call (an allocation per point costs as much as its work): the neighbours'
+    # separations and extents as they come, then sorted by separation
+    found_h, found_e, separation, extent = np.empty(k), np.empty(k), np.empty(k), np.empty(k)
+    for i in range(first, stop):
+        p = start + i
+        f = index[i, min(FLOOR_NEIGHBOUR, k - 1)]
+        spacing2 = (points[f, 0] - points[p, 0]) ** 2 + (points[f, 1] - points[p, 1]) ** 2 \
+            + (points[f, 2] - points[p, 2]) ** 2
+        floor = GAP_FLOOR * math.sqrt(spacing2)
+        count = 0
+        widest = 0.0
+        for j in range(1, k):
+            q = index[i, j]
+            cos = normals[p, 0] * normals[q, 0] + normals[p, 1] * normals[q, 1] + normals[p, 2] * normals[q, 2]
+            if cos < PARALLEL_COS:
+                continue
+            dx, dy, dz = points[q, 0] - points[p, 0], points[q, 1] - points[p, 1], points[q, 2] - points[p, 2]
+            d_pq = dx * normals[p, 0] + dy * normals[p, 1] + dz * normals[p, 2]
+            d_qp = -(dx * normals[q, 0] + dy * normals[q, 1] + dz * normals[q, 2])
+            tangential2 = max(dx * dx + dy * dy + dz * dz - d_pq * d_pq, 0.0)
+            antisymmetric = 0.5 * abs(d_pq - d_qp)
+            crease = math.sqrt(tangential2 * max(2.0 - 2.0 * cos, 0.0)) if cos < CREASE_COS else 0.0
+            h = max(antisymmetric - 0.5 * crease, 0.0)
+            bend = 0.5 * (abs(d_pq) + abs(d_qp)) * min(1.0, spacing2 / max(tangential2, 1e-300))
+            found_h[count], found_e[count] = h, max(antisymmetric, bend)
+            count += 1
+            widest = max(widest, h)
+        out[i] = np.inf
+        if widest <= floor:
+            continue  # no separation reaches past the floor of a gap: one layer, no sort needed
+        _sort_by_rank(found_h, found_e, count, separation, extent)
+        layer = 0.0
+        for j in range(count):
+            if j >= MIN_LAYER and count - j >= MIN_OTHER and separation[j] > GAP_FACTOR * layer + floor:
+                out[i] = 0.5 * (layer + separation[j])
+                break
+            layer = max(layer, extent[j])

@@ -15,18 +15,26 @@ import numba
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ..threads import over_rows
+
 SCAN_ALL_ROWS = 64  # at most this many unsettled points scan all points instead of a k-d tree
 
 
-@numba.njit(parallel=True, cache=True)
-def scan_all_nearest(points, k, rows):  # pragma: no cover - compiled
+def scan_all_nearest(points, k, rows):
     """(len(rows), k) int32: the k nearest of each of the points `rows` (1 <= k <= N; nearest
     first, the point itself first, equal distances in index order), offering every point. The
     insertion is grid_knn's `_insert` written again: a kernel here reads no helper of another
     module, whose change numba's cache would not see (docs/architecture.md)."""
     m = len(rows)
     index = np.empty((m, k), np.int32)
-    for r in numba.prange(m):
+    over_rows(_scan_all_nearest_rows, m, points, k, rows, index, grain=1)  # a row scans every point
+    return index
+
+
+@numba.njit(cache=True, nogil=True)
+def _scan_all_nearest_rows(first, stop, points, k, rows, index):  # pragma: no cover - compiled
+    """Rows first:stop of `scan_all_nearest`."""
+    for r in range(first, stop):
         p = rows[r]
         best_d = np.full(k, np.inf)
         best_i = np.zeros(k, np.int64)
@@ -48,7 +56,6 @@ def scan_all_nearest(points, k, rows):  # pragma: no cover - compiled
             best_i[slot] = j
         for c in range(k):
             index[r, c] = best_i[c]
-    return index
 
 
 def unsettled_nearest(points: np.ndarray, rows: np.ndarray, k: int, workers: int) -> np.ndarray:

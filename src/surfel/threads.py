@@ -1,0 +1,55 @@
+"""Kernels run over rows on numba's number of threads, compiled as serial code.
+
+A kernel compiled with `parallel=True` costs numba's parfor passes on top of its own compiling,
+over the whole loop body with every `inline="always"` callee in it: two to four times as long
+as the same kernel compiled serially (25 s against 6 s for the borders' kernel on a 2-core
+machine). The kernels of a first render, a first `prepare` and a first hierarchy build after
+installing are compiled once, but then take minutes; so the heavy per-point kernels are serial
+functions `kernel(first, stop, *args)` of a range of rows, compiled with `nogil=True`, and
+`over_rows` runs them on pieces of the rows from Python threads, which run in parallel because
+the kernel releases the GIL. Pieces are handed out as threads come free, so uneven rows
+balance.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import threading
+from concurrent.futures import ThreadPoolExecutor, wait
+
+import numba
+
+PIECES_PER_THREAD = 8  # pieces per thread: a thread that draws slow rows leaves the rest to the others
+
+_pools: dict[tuple[int, int], ThreadPoolExecutor] = {}  # (process, threads): a fork gets its own
+_pools_lock = threading.Lock()
+
+
+def over_rows(kernel, rows: int, *args, grain: int = 1024) -> None:
+    """Run kernel(first, stop, *args) over the rows [0, rows), on numba.get_num_threads()
+    threads, in pieces of at least `grain` rows (one call when one thread, or one piece,
+    suffices). The kernel writes its results into arrays among `args`."""
+    threads = numba.get_num_threads()
+    pieces = min(math.ceil(rows / grain), threads * PIECES_PER_THREAD)
+    if threads == 1 or pieces <= 1:
+        kernel(0, rows, *args)
+        return
+    bounds = [rows * piece // pieces for piece in range(pieces + 1)]
+    _run(kernel, [(bounds[piece], bounds[piece + 1]) for piece in range(pieces)], args, threads)
+
+
+def _run(kernel, pieces: list[tuple], args: tuple, threads: int) -> None:
+    pool = _pool(threads)
+    futures = [pool.submit(kernel, *piece, *args) for piece in pieces]
+    wait(futures)  # all, so that no piece still writes once this returns or raises
+    for future in futures:
+        future.result()
+
+
+def _pool(threads: int) -> ThreadPoolExecutor:
+    key = (os.getpid(), threads)
+    with _pools_lock:
+        if key not in _pools:
+            _pools[key] = ThreadPoolExecutor(max_workers=threads, thread_name_prefix="surfel-rows")
+        return _pools[key]
