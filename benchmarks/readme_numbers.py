@@ -407,6 +407,17 @@ def section_build20m(ctx: Context) -> str:
             f"({2e7 / later / 1e6:.2f}M points/s) once the kernels are cached.")
 
 
+def section_firstrun(ctx: Context) -> str:
+    cache = ctx.scratch / "numba-cache"
+    argv = [sys.executable, "-m", "surfel.cli", "render", "--demo", "-o", str(ctx.scratch / "demo.png")]
+    shown = "surfel render --demo -o demo.png"
+    first, _ = peak_run(ctx, argv, shown, "from an empty NUMBA_CACHE_DIR, then again", {"NUMBA_CACHE_DIR": str(cache)})
+    later, _ = peak_run(ctx, argv, shown, None, {"NUMBA_CACHE_DIR": str(cache)})
+    return (f"The first render after installing compiles surfel's numba kernels, once (numba keeps them on disk): "
+            f"`surfel render --demo` takes {first:.0f} s from an empty numba cache, {later:.1f} s once they are "
+            f"cached.")
+
+
 # ---------------------------------------------------------------------------------------------
 # The driver
 
@@ -430,6 +441,7 @@ SECTIONS = {
     "batch": Section(section_batch, "2 min", "24 turntable frames: surfel batch against surfel render"),
     "scans": Section(section_scans, "2 min", "range scans of the shared models: median PSNR, worst holes"),
     "copc": Section(section_copc, "30 s", "bytes a far COPC view reads"),
+    "firstrun": Section(section_firstrun, "3 min", "the demo render, first (compiling) and later"),
     "build20m": Section(section_build20m, "3 min, 0.5 GB disk", "a 20M-point build, first (compiling) and later"),
     "build100m": Section(section_build100m, "20 min, 2.4 GB disk (expensive)", "the 100M-point out-of-core build"),
 }
