@@ -4,11 +4,16 @@ A kernel compiled with `parallel=True` costs numba's parfor passes on top of its
 over the whole loop body with every `inline="always"` callee in it: two to four times as long
 as the same kernel compiled serially (25 s against 6 s for the borders' kernel on a 2-core
 machine). The kernels of a first render, a first `prepare` and a first hierarchy build after
-installing are compiled once, but then take minutes; so the heavy per-point kernels are serial
-functions `kernel(first, stop, *args)` of a range of rows, compiled with `nogil=True`, and
-`over_rows` runs them on pieces of the rows from Python threads, which run in parallel because
-the kernel releases the GIL. Pieces are handed out as threads come free, so uneven rows
-balance.
+installing are compiled once, but then take minutes; so the preprocessing, hierarchy and
+pinhole kernels are serial functions `kernel(first, stop, *args)` of a range of rows, compiled
+with `nogil=True`, and `over_rows` runs them on pieces of the rows from Python threads, which
+run in parallel because the kernel releases the GIL. Pieces are handed out as threads come
+free, so uneven rows balance.
+
+The rasterizers (splatting, EWA, MLS) keep their parfors: a parfor's loop body is compiled
+with its arrays marked as not aliasing one another, which their SIMD loops need (the
+`deferred` frame of `surfel bench` took a fifth longer as serial kernels on threads), and
+their compiling is mostly LLVM's own, which a serial kernel pays as well.
 """
 
 from __future__ import annotations

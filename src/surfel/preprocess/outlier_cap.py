@@ -20,7 +20,7 @@ from .chunked import map_chunks
 from .sharp_features import SHARP_COS
 
 ISOLATED_FACTOR = 2.0  # a radius at most this x the median of its neighbours' radii
-CAP_BLOCK = 1024       # points per parallel task
+CAP_BLOCK = 1024       # the fewest points per thread's piece
 
 
 def outlier_cap(raw: np.ndarray, index: np.ndarray, normals: np.ndarray, oriented: bool) -> np.ndarray:

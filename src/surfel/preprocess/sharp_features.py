@@ -48,7 +48,7 @@ FLAT_SIN2 = math.sin(math.radians(10.0)) ** 2     # a face: its neighbours this 
 ON_PLANE_SIN2 = math.sin(math.radians(3.0)) ** 2  # a point this close to a neighbour's plane lies in it
 SHEET_COS = -0.5     # neighbours' normals more than 120 degrees apart: two sides of a sheet
 NEAR_COS = math.cos(math.radians(0.5 * SHARP_ANGLE) - 1e-6)  # within half SHARP_ANGLE, rounding aside
-CREASE_BLOCK = 1024  # points per parallel task of `_crease_points`
+CREASE_BLOCK = 1024  # the fewest points per thread's piece of `_crease_points`
 
 
 class SharpFeatures(NamedTuple):

@@ -65,7 +65,7 @@ GAP_FLOOR = 0.1      # ... plus this fraction of the local spacing separates two
 FLOOR_NEIGHBOUR = 4  # the neighbour whose distance is that spacing
 MIN_LAYER = 2        # neighbours that must share the point's layer before a gap counts ...
 MIN_OTHER = 5        # ... and lie beyond it (a third of them: fewer are the tail of its noise)
-THICKNESS_BLOCK = 1024  # points per parallel task
+THICKNESS_BLOCK = 1024  # the fewest points per thread's piece
 
 
 def layer_thickness(points: np.ndarray, normals: np.ndarray, index: np.ndarray) -> np.ndarray:
