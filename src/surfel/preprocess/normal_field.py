@@ -81,7 +81,7 @@ def _slopes(points, index, start, normals, axes, sheet_cos, flat_sin2):
     """Weighted least-squares slopes (alpha, beta) (m, 2) of each splat start + i over its
     neighbours on its own sheet (module docstring: sheet_cos, flat_sin2 tell the far side of
     a thin part)."""
-    m, k = index.shape
+    m = len(index)
     slopes = np.zeros((m, 2))
     over_rows(_slopes_rows, m, points, index, start, normals, axes, sheet_cos, flat_sin2, slopes)
     return slopes
@@ -91,7 +91,7 @@ def _slopes(points, index, start, normals, axes, sheet_cos, flat_sin2):
 def _slopes_rows(first, stop, points, index, start, normals, axes, sheet_cos, flat_sin2,
                  slopes):  # pragma: no cover - compiled
     """Rows first:stop of `_slopes`."""
-    m, k = index.shape
+    k = index.shape[1]
     for i in range(first, stop):
         p = start + i
         num_u = den_u = num_v = den_v = weights = 0.0

@@ -80,7 +80,7 @@ def _pca(points, index, start):
     and the unit eigenvector (m, 3) of the smallest: the covariance from offsets to the point
     itself, diagonalised by cyclic Jacobi rotations (no gathered (m, k, 3) array, no LAPACK
     call per point)."""
-    m, k = index.shape
+    m = len(index)
     values = np.empty((m, 3))
     vectors = np.empty((m, 3))
     over_rows(_pca_rows, m, points, index, start, values, vectors)
@@ -90,7 +90,7 @@ def _pca(points, index, start):
 @numba.njit(cache=True, nogil=True)
 def _pca_rows(first, stop, points, index, start, values, vectors):  # pragma: no cover - compiled
     """Rows first:stop of `_pca`."""
-    m, k = index.shape
+    k = index.shape[1]
     for i in range(first, stop):
         p = start + i
         s = np.zeros(3)

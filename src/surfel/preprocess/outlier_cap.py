@@ -68,7 +68,7 @@ def _median_at_least(values, n, bound):  # pragma: no cover - compiled
 
 def _outlier_cap(raw, index, start, normals, same_cos):
     """cap_p of each point p = start + i, p's surface being its neighbours with n_p . n_q >= same_cos."""
-    m, k = index.shape
+    m = len(index)
     cap = np.empty(m)
     over_rows(_outlier_cap_rows, m, raw, index, start, normals, same_cos, cap, grain=CAP_BLOCK)
     return cap
@@ -77,7 +77,7 @@ def _outlier_cap(raw, index, start, normals, same_cos):
 @numba.njit(cache=True, nogil=True)
 def _outlier_cap_rows(first, stop, raw, index, start, normals, same_cos, cap):  # pragma: no cover - compiled
     """Rows first:stop of `_outlier_cap`."""
-    m, k = index.shape
+    k = index.shape[1]
     values = np.empty(k - 1)  # one buffer per call: an allocation per point costs as much as its work
     for i in range(first, stop):
         p, count = start + i, 0

@@ -70,7 +70,7 @@ class SharpFeatures(NamedTuple):
 def _flat_points(points, index, start, normals):
     """Whether each point start + i is flat: its neighbours with normals within SHARP_ANGLE of
     its own lie in its tangent plane (within FLAT_SIN2)."""
-    m, k = index.shape
+    m = len(index)
     flat = np.ones(m, np.bool_)
     over_rows(_flat_points_rows, m, points, index, start, normals, flat)
     return flat
@@ -79,7 +79,7 @@ def _flat_points(points, index, start, normals):
 @numba.njit(cache=True, nogil=True)
 def _flat_points_rows(first, stop, points, index, start, normals, flat):  # pragma: no cover - compiled
     """Rows first:stop of `_flat_points`."""
-    m, k = index.shape
+    k = index.shape[1]
     for i in range(first, stop):
         p = start + i
         for j in range(k):
@@ -101,7 +101,7 @@ def _crease_points(points, index, start, normals, flat):
     """Whether each point start + i lies on a crease itself: in the tangent planes (within
     ON_PLANE_SIN2) of two flat neighbours whose normals are more than SHARP_ANGLE apart, neither
     facing away from the point's (n_p . n_q < SHEET_COS: its surface seen from behind)."""
-    m, k = index.shape
+    m = len(index)
     crease = np.zeros(m, np.bool_)
     over_rows(_crease_points_rows, m, points, index, start, normals, flat, crease, grain=CREASE_BLOCK)
     return crease
@@ -110,7 +110,7 @@ def _crease_points(points, index, start, normals, flat):
 @numba.njit(cache=True, nogil=True)
 def _crease_points_rows(first, stop, points, index, start, normals, flat, crease):  # pragma: no cover - compiled
     """Rows first:stop of `_crease_points`."""
-    m, k = index.shape
+    k = index.shape[1]
     # flat neighbours in whose tangent plane the point lies, those with normals within half
     # SHARP_ANGLE of p's (NEAR_COS) and the others; one buffer per call: an allocation
     # per point costs as much as its work

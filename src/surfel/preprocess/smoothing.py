@@ -51,7 +51,7 @@ SAME_SURFACE_ANGLE = 25.0  # degrees: neighbours with normals farther from the p
 
 def _project(points, normals, index, start, width_neighbour, width, steps, same_surface):
     """Positions (m, 3) of points start + i projected onto the MLS surface (module docstring)."""
-    m, k = index.shape
+    m = len(index)
     out = np.empty((m, 3))
     over_rows(_project_rows, m, points, normals, index, start, width_neighbour, width, steps, same_surface, out)
     return out
@@ -61,7 +61,7 @@ def _project(points, normals, index, start, width_neighbour, width, steps, same_
 def _project_rows(first, stop, points, normals, index, start, width_neighbour, width, steps, same_surface,
                   out):  # pragma: no cover - compiled
     """Rows first:stop of `_project`."""
-    m, k = index.shape
+    k = index.shape[1]
     for i in range(first, stop):
         p = start + i
         w_far = min(width_neighbour, k - 1)

@@ -107,7 +107,7 @@ WIDE_NEIGHBOURS = 64        # neighbours searched where the k nearest lie along 
 def _local_spacing(points, index, start, count):
     """Median distance from each point start + i to its `count` nearest distinct neighbours
     (neighbours come nearest first); NaN where it has none."""
-    m, k = index.shape
+    m = len(index)
     out = np.full(m, np.nan)
     over_rows(_local_spacing_rows, m, points, index, start, count, out)
     return out
@@ -116,7 +116,7 @@ def _local_spacing(points, index, start, count):
 @numba.njit(cache=True, nogil=True)
 def _local_spacing_rows(first, stop, points, index, start, count, out):  # pragma: no cover - compiled
     """Rows first:stop of `_local_spacing`."""
-    m, k = index.shape
+    k = index.shape[1]
     for i in range(first, stop):
         p = start + i
         distances = np.empty(count)
@@ -150,7 +150,7 @@ def _row_distances(points, normals, index, rows, spacing):
     quadrant of its tangent plane: the farthest of those distances where the sampling is
     anisotropic (module docstring), else 0; -1 where they fill two quadrants at most (one row,
     a wire: look further)."""
-    m, k = index.shape
+    m = len(index)
     out = np.zeros(m)
     over_rows(_row_distances_rows, m, points, normals, index, rows, spacing, out)
     return out
@@ -159,7 +159,7 @@ def _row_distances(points, normals, index, rows, spacing):
 @numba.njit(cache=True, nogil=True)
 def _row_distances_rows(first, stop, points, normals, index, rows, spacing, out):  # pragma: no cover - compiled
     """Rows first:stop of `_row_distances`."""
-    m, k = index.shape
+    k = index.shape[1]
     for i in range(first, stop):
         p = rows[i]
         nx, ny, nz = normals[p, 0], normals[p, 1], normals[p, 2]

@@ -105,7 +105,7 @@ def _sort_by_rank(keys, values, n, sorted_keys, sorted_values):  # pragma: no co
 
 def _layer_thickness(points, normals, index, start):
     """tau_p of each point p = start + i."""
-    m, k = index.shape
+    m = len(index)
     out = np.empty(m)
     over_rows(_layer_thickness_rows, m, points, normals, index, start, out, grain=THICKNESS_BLOCK)
     return out
@@ -114,7 +114,7 @@ def _layer_thickness(points, normals, index, start):
 @numba.njit(cache=True, nogil=True)
 def _layer_thickness_rows(first, stop, points, normals, index, start, out):  # pragma: no cover - compiled
     """Rows first:stop of `_layer_thickness`."""
-    m, k = index.shape
+    k = index.shape[1]
     # buffers per call (an allocation per point costs as much as its work): the neighbours'
     # separations and extents as they come, then sorted by separation
     found_h, found_e, separation, extent = np.empty(k), np.empty(k), np.empty(k), np.empty(k)
