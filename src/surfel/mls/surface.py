@@ -143,8 +143,7 @@ DEFAULT_KERNEL = MlsKernel()
 
 # What the compiled kernels read, in Morton order (numba takes a namedtuple of arrays whole):
 # points (N, 3), normals (N, 3) unit and oriented, h (N,) kernel widths, spacing (N,) s_i,
-# area (N,) the surface each sample stands for, (m_i / median s)^2 (m_i: widths.py; sqrt(a_i)
-# times the median width is h_scale m_i, the width its sampling density alone gives),
+# area (N,) the surface each sample stands for, (s_i / median s)^2 (edges.py),
 # colors (N, 3), boxes (2L - 1, 2, 3) support boxes of the tree's nodes, domain, normal_weight
 # (1 / sigma_n^2), residual_weight (1 / sigma_r^2), boundary (the half-disc bound), reach (of
 # the candidate cache, CACHE_REACH h).
@@ -223,7 +222,7 @@ def build_surface(cloud: PointCloud, kernel: MlsKernel = DEFAULT_KERNEL) -> MLSS
     order = np.argsort(morton_codes(cloud.positions), kind="stable")
     points = np.ascontiguousarray(cloud.positions[order] - origin)
     normals = np.ascontiguousarray(oriented_normals(cloud)[order])
-    sampled, local = sample_spacing(points, normals)
+    sampled = sample_spacing(points, normals)[0]
     h = kernel.h_scale * sampled
     unit = np.ones((len(points), 3))
     for _ in range(WIDTH_PASSES):
@@ -231,7 +230,7 @@ def build_surface(cloud: PointCloud, kernel: MlsKernel = DEFAULT_KERNEL) -> MLSS
                               leaf_tree(points, SUPPORT * h), 0.0, 0.0, 0.0, 0.0, CACHE_REACH * float(np.median(h)))
         h = limited_widths(provisional, WIDTH_SLOPE)
     spacing = h / kernel.h_scale
-    area = (local / np.median(spacing)) ** 2
+    area = (spacing / np.median(spacing)) ** 2
     colors = np.ones((len(points), 3)) if cloud.colors is None else cloud.colors[order].astype(np.float64)
     boxes = leaf_tree(points, SUPPORT * h)
     samples = Samples(points, normals, h, spacing, area, np.ascontiguousarray(colors), boxes, float(kernel.domain),

@@ -46,8 +46,8 @@ the kernel there would only round the edge off. Neighbours with n_i . n_j <= 0 a
 side of a thin part and do not close a gap of this side. Windows rather than the four
 quadrants of the tangent frame keep g_i (nearly) independent of how the frame is turned.
 
-The area a sample stands for (the half-disc test's weight) is m_i squared: the sampling density,
-which the gap does not change.
+The area a sample stands for (the half-disc test's weight, edges.py) is s_i squared: where the
+gap widens the kernel, the sample stands for the strip out to the next row as well.
 """
 
 from __future__ import annotations
