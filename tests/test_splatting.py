@@ -127,6 +127,35 @@ def test_back_splats_do_not_brighten_a_closed_surfaces_silhouette():
         assert deferred["psnr"] >= gaussian["psnr"] - 1.0, (view, deferred, gaussian)
 
 
+def facing_patches(gap: float) -> PointCloud:
+    """A red sheet facing the camera (+z, 21 x 21 samples 0.1 apart) and, `gap` in front of its
+    middle, a blue one facing away: a closed surface's back splats reaching in front of its
+    front ones near an outline, or, farther out, a sheet seen from behind."""
+    g = np.arange(-10, 11) * 0.1
+    x, y = (v.ravel() for v in np.meshgrid(g, g))
+    front = np.stack([x, y, np.zeros_like(x)], 1)
+    back = front[(np.abs(x) <= 0.5) & (np.abs(y) <= 0.5)] + [0.0, 0.0, gap]
+    normals = np.concatenate([np.tile([0.0, 0.0, 1.0], (len(front), 1)), np.tile([0.0, 0.0, -1.0], (len(back), 1))])
+    colors = np.concatenate([np.tile([1.0, 0.0, 0.0], (len(front), 1)), np.tile([0.0, 0.0, 1.0], (len(back), 1))])
+    return PointCloud(np.concatenate([front, back]), normals=normals, colors=colors.astype(np.float32))
+
+
+@pytest.mark.parametrize("backend", ["cpu", "gl"])
+@pytest.mark.parametrize("method", ["deferred", "phong"])
+def test_back_splats_hide_no_front_splats_within_a_radius(method, backend):
+    """A back splat's visibility depth lies BACK_SPLAT_BEHIND radii further back (splatting.py):
+    back splats a spacing in front of front ones (splat radius about 0.085 here) no longer hide
+    them, as under Spot's chin in the demo, where they drew bright crescents over the dark
+    underside; three spacings in front they do, as a sheet seen from behind must."""
+    from surfel.camera import Camera
+
+    camera = Camera.look_at([0.0, 0.0, 5.0], [0.0, 0.0, 0.0], up=(0, 1, 0), size=(64, 64))
+    for gap, shown in ((0.1, [1.0, 0.0, 0.0]), (0.15, [1.0, 0.0, 0.0]), (0.3, [0.0, 0.0, 1.0])):
+        result = render(facing_patches(gap), camera, method, backend=backend, shading="none")
+        middle = result.color[24:40, 24:40].reshape(-1, 3).mean(axis=0)
+        assert np.abs(middle - shown).max() <= 0.01, (gap, middle)
+
+
 def test_phong_splatting_against_mesh(dense_spot, views):
     cams, refs = views
     metrics = compare_results(refs["front"], render(dense_spot.with_(faces=None), cams["front"], "phong",

@@ -31,6 +31,7 @@
 
 #define DEPTH_CLAMP 32.0  // splat radii: how far the plane's depth may stray from the centre's
 #define BACK_SPLAT_WEIGHT (1.0 / 256.0)  // a back-facing splat's weight beside front-facing ones
+#define BACK_SPLAT_BEHIND 1.0  // radii a back-facing splat's visibility depth lies further back
 #define MAX_RIM_TILT 1.0  // a curved splat's field turns by at most this (tan 45 degrees) at its rim
 #define FULL_FOOTPRINT_AXIS 0.5  // pixels of semi-major axis below which a splat's footprint is whole
 #define FAR_DEPTH 3.0e38  // the visibility target's clear value (gl/passes.py FAR): no surface
@@ -219,7 +220,11 @@ bool splat_setup(out vec2 lo, out vec2 hi, out bool crosses_near) {
     v_clip1 = in_clip1;
 #endif
     v_radius = max(length(au), length(av));
-    v_offset = layer_offset(u_depth_offset * v_radius, c, n, in_thickness);
+    float offset = u_depth_offset;
+#ifndef PER_SPLAT_SHADING
+    if (back) offset += BACK_SPLAT_BEHIND;  // it hides no front splat that close (splatting.py)
+#endif
+    v_offset = layer_offset(offset * v_radius, c, n, in_thickness);
     return true;
 }
 

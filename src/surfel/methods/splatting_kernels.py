@@ -127,6 +127,7 @@ from .splatting_tiles import (
 
 COLOR_RGB, COLOR_CONTINUOUS, COLOR_CATEGORICAL = 0, 1, 2  # gl/colors.glsl's colour modes
 BACK_SPLAT_WEIGHT = np.float32(1.0 / 256.0)  # splatting.glsl's: a back-facing splat's weight beside front ones
+BACK_SPLAT_BEHIND = np.float32(1.0)  # splatting.glsl's: radii a back splat's visibility depth lies further back
 FULL_FOOTPRINT_AXIS = 0.5  # splatting.glsl's: pixels of semi-major axis below which a splat's footprint is whole
 # A pixel counts as reached by splats when one covers its centre: coverage at least HALF (its
 # edge distance >= 0). The low-pass's weight alone reaches a pixel beyond an outline.
@@ -177,7 +178,8 @@ def _setup(p, e, m, radius_scale, lowpass2, depth_offset, ewa_filter, curved, ba
     perspective = ortho <= 0
     # z_t, capped by the layer's thickness along the ray (gl/common.glsl layer_offset)
     to_eye = one / max(math.sqrt(ex * ex + ey * ey + ez * ez), tiny)
-    zt = layer_offset(depth_offset * max(lu, lv), p[PT], abs(facing) * inv_n * (one if not perspective else to_eye))
+    offset = depth_offset + (BACK_SPLAT_BEHIND if back_light and flip < 0 else zero)  # splatting.glsl's
+    zt = layer_offset(offset * max(lu, lv), p[PT], abs(facing) * inv_n * (one if not perspective else to_eye))
     # a corner of the bounding square behind the near plane: the GPU's quad covers the whole
     # viewport and its EWA weight is 1
     crosses_near = perspective and (depth - abs(uz) - abs(vz) < near)
