@@ -5,7 +5,8 @@ A sheet that the normal weight of surface.py separates from its neighbour would 
 crease or rim where it ends, so where a projection converges the half-disc test of Bendels,
 Schnabel & Klein ("Detecting holes in point set surfaces", 2006) applies too: the mean of the
 samples, weighted by a_i exp(-|p_i - r|^2 / l^2 - |n_i - n_r|^2 / sigma_n^2) (a_i the area a
-sample stands for: its spacing s_i of widths.py, squared, relative), may lie at most
+sample stands for: its spacing s_i of widths.py squared, or h_i^2 = (h_scale s_i)^2, the same
+weights up to a factor that the mean divides out), may lie at most
 `boundary * l` from r across the tangent plane (at the edge of a half-plane it lies
 l / sqrt(pi) = 0.56 l away). The areas and the one width l keep a jump in sampling density from
 reading as an edge. That bound lets a sheet run on past its last samples by a tenth of l or
@@ -56,14 +57,15 @@ def past_edge(poly, samples, scratch):
     projection converges: past the edge of a sheet the mean of the samples about x, each
     counted for its area under one Gaussian of the local width, lies off to one side of x
     (a jump in sampling density does not: the areas even it out)."""
-    nb, area = scratch.nb, samples.area
+    nb = scratch.nb
     inv_l2 = 1.0 / (poly[P_SCALE] * poly[P_SCALE])
     sa = ax = ay = az = 0.0
     for k in range(scratch.found[0]):
         dx, dy, dz = nb[k, 0], nb[k, 1], nb[k, 2]
-        # w with the sample's width h_i replaced by l: the normal-agreement factor stays
-        wa = area[int(nb[k, 5])] * nb[k, 3] * math.exp((dx * dx + dy * dy + dz * dz) * (1.0 / (nb[k, 4] * nb[k, 4])
-                                                                                        - inv_l2))
+        # the area h_i^2 times w with the sample's width h_i replaced by l: the normal-agreement
+        # factor stays
+        hi2 = nb[k, 4] * nb[k, 4]
+        wa = hi2 * nb[k, 3] * math.exp((dx * dx + dy * dy + dz * dz) * (1.0 / hi2 - inv_l2))
         sa += wa
         ax += wa * dx
         ay += wa * dy

@@ -43,7 +43,7 @@ uniform bool u_retry;           // a later candidate: the nearest beyond the one
 // every mip level of a power-of-two texture: the mean over each texel's pixels
 uniform sampler2D u_failed;
 
-// Three vec4 per point: (p_i, h_i), (colour, s_i), (n_i, a_i) (a_i: its area, surface.Samples).
+// Three vec4 per point: (p_i, h_i), (colour, s_i), (n_i, h_scale m_i) (surface.MLSSurface.density_width).
 layout(std430, binding = 0) readonly buffer Points { vec4 points[]; };
 // Six vec4 per point (the CPU pre-pass's polynomial): (q, valid), (n, 0), (e1, 0), (e2, 0),
 // (c0, c1, c2, c3), (c4, c5, l, 0).
@@ -237,9 +237,9 @@ void main() {
     if (!ray_quadratic(point_quadratic(i), o + t_in * d, d, 0.0, t_out - t_in, dt)) discard;
     float t = t_in + dt;
     // beyond the failed candidate's sheet: its other samples meet the ray at nearly its t.
-    // In units of the width the sample's density gives, sqrt(a_i) u_scale: a kernel widened
-    // across a gap (widths.py) spans more than a thin part's thickness
-    if (u_retry && t <= failed + RETRY_GAP * sqrt(points[3 * i + 2].w) * u_scale) discard;
+    // In units of the width the sample's density gives, h_scale m_i: a kernel widened across a
+    // gap (widths.py) spans more than a thin part's thickness
+    if (u_retry && t <= failed + RETRY_GAP * points[3 * i + 2].w) discard;
     out_t = vec4(t, 0.0, 0.0, 0.0);
     out_first = out_t;
     out_reference = vec4(points[3 * i + 2].xyz, 0.0);
@@ -359,8 +359,8 @@ void main() {
     bool alongside = sideways2 <= u_edge_lateral * u_edge_lateral * n.w * n.w;
     bool beyond = reach <= 1e-6 * n.w || (same_sheet && forward >= 0.0 && alongside);
     out_m5 = vec4(w * f * vv, beyond ? 1.0 : 0.0, 0.0, 0.0);
-    float h = points[3 * v_index].w, area = points[3 * v_index + 2].w;
-    float wa = area * w * exp(d2 * (1.0 / (h * h) - 1.0 / (n.w * n.w)));
+    float h = points[3 * v_index].w;  // h_i^2: the area the sample stands for, up to a factor (edges.py)
+    float wa = h * h * w * exp(d2 * (1.0 / (h * h) - 1.0 / (n.w * n.w)));
     out_m6 = wa * vec4((points[3 * v_index].xyz - r) / n.w, 1.0);
 }
 #endif

@@ -89,7 +89,7 @@ class MlsGpuParams(MlsKernel):
 
 
 def pack_points(scene: MLSScene) -> np.ndarray:
-    """(N, 3, 4) float32: (p_i, h_i), (colour, s_i), (n_i, a_i), positions relative to the local origin."""
+    """(N, 3, 4) float32: (p_i, h_i), (colour, s_i), (n_i, h_scale m_i), positions relative to the local origin."""
     s = scene.surface
     out = np.zeros((len(s.points), 3, 4), np.float32)
     out[:, 0, :3] = s.points
@@ -97,7 +97,7 @@ def pack_points(scene: MLSScene) -> np.ndarray:
     out[:, 1, :3] = s.samples.colors
     out[:, 1, 3] = s.samples.spacing
     out[:, 2, :3] = s.normals
-    out[:, 2, 3] = s.samples.area
+    out[:, 2, 3] = s.density_width
     return out
 
 

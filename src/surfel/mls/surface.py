@@ -143,11 +143,10 @@ DEFAULT_KERNEL = MlsKernel()
 
 # What the compiled kernels read, in Morton order (numba takes a namedtuple of arrays whole):
 # points (N, 3), normals (N, 3) unit and oriented, h (N,) kernel widths, spacing (N,) s_i,
-# area (N,) the surface each sample stands for, (s_i / median s)^2 (edges.py),
 # colors (N, 3), boxes (2L - 1, 2, 3) support boxes of the tree's nodes, domain, normal_weight
 # (1 / sigma_n^2), residual_weight (1 / sigma_r^2), boundary (the half-disc bound), reach (of
 # the candidate cache, CACHE_REACH h).
-Samples = namedtuple("Samples", "points normals h spacing area colors boxes domain normal_weight residual_weight "
+Samples = namedtuple("Samples", "points normals h spacing colors boxes domain normal_weight residual_weight "
                                  "boundary reach")
 # One thread's scratch for `fit`: nb (MAX_NEIGHBOURS, 6) neighbour rows (found[0] of them
 # written by the last fit), stack (STACK,) of the
@@ -159,11 +158,14 @@ Scratch = namedtuple("Scratch", "nb found stack cache centre work")
 @dataclass(frozen=True, eq=False)
 class MLSSurface:
     """A point set prepared for MLS projection (positions relative to `origin`, in Morton
-    order: `order[k]` is the cloud's index of sample k)."""
+    order: `order[k]` is the cloud's index of sample k). `density_width` (N,): h_scale m_i, the
+    kernel width each sample's sampling density alone gives (m_i: widths.py), which the GPU
+    caster's retries step by (gpu.glsl RETRY_GAP)."""
 
     origin: np.ndarray
     order: np.ndarray
     samples: Samples
+    density_width: np.ndarray
 
     @property
     def points(self) -> np.ndarray:
@@ -222,21 +224,20 @@ def build_surface(cloud: PointCloud, kernel: MlsKernel = DEFAULT_KERNEL) -> MLSS
     order = np.argsort(morton_codes(cloud.positions), kind="stable")
     points = np.ascontiguousarray(cloud.positions[order] - origin)
     normals = np.ascontiguousarray(oriented_normals(cloud)[order])
-    sampled = sample_spacing(points, normals)[0]
+    sampled, local = sample_spacing(points, normals)
     h = kernel.h_scale * sampled
     unit = np.ones((len(points), 3))
     for _ in range(WIDTH_PASSES):
-        provisional = Samples(points, normals, h, h / kernel.h_scale, unit[:, 0], unit,
+        provisional = Samples(points, normals, h, h / kernel.h_scale, unit,
                               leaf_tree(points, SUPPORT * h), 0.0, 0.0, 0.0, 0.0, CACHE_REACH * float(np.median(h)))
         h = limited_widths(provisional, WIDTH_SLOPE)
     spacing = h / kernel.h_scale
-    area = (spacing / np.median(spacing)) ** 2
     colors = np.ones((len(points), 3)) if cloud.colors is None else cloud.colors[order].astype(np.float64)
     boxes = leaf_tree(points, SUPPORT * h)
-    samples = Samples(points, normals, h, spacing, area, np.ascontiguousarray(colors), boxes, float(kernel.domain),
+    samples = Samples(points, normals, h, spacing, np.ascontiguousarray(colors), boxes, float(kernel.domain),
                       1.0 / kernel.normal_sigma**2, 1.0 / kernel.residual_sigma**2, float(kernel.boundary),
                       CACHE_REACH * float(np.median(h)))
-    return MLSSurface(origin, order, samples)
+    return MLSSurface(origin, order, samples, kernel.h_scale * local)
 
 
 @numba.njit(cache=True)
