@@ -16,6 +16,17 @@ those that pass near the surface would descend the hierarchy for nothing. Per ra
    intersection is found (unless the half-disc or extent test of edges.py puts r_k past
    the edge of its sheet), else r_{k+1} = ray meets the new polynomial near r_k; repeat
    (typically 2 to 3 fits). A failed fit or a diverging ray moves on to the next sphere.
+   Once one iterate lies above its fit and another below (the sign of n . (r_k - P(r_k))),
+   the crossing is bracketed; a step that misses the polynomial, or that leaves the bracket
+   from an iterate no nearer the surface than the one before, is replaced by false position
+   between the last iterates above and below. A ray that
+   grazes the surface (just inside an outline) otherwise overshoots: each fit's polynomial,
+   tilted a little from the last, sends the next iterate further across the crossing, and
+   the ray misses. On the vertices of five coarse figures (quadric-decimated to 1500-3200
+   vertices), front and azimuth-60 views at 512 x 512: holes 0.143% -> 0.078% at worst,
+   median PSNR 30.84 -> 30.83 dB (benchmarks/scan_fidelity.py --vertices --methods mls).
+   Bracketing every step instead gains 0.07 dB more there but takes up to 17 fits where
+   4 did (kernels spanning gaps on a thin part, which converge slowly but surely).
 
 Colour is the fit's weighted mean of the neighbours' colours, the normal the gradient of
 the last polynomial (n - g_u e1 - g_v e2). Parameters (`MlsParams`):
@@ -48,7 +59,7 @@ from ..result import RenderResult
 from ..shading import KEY_LIGHT, shade
 from .adaptive import interpolate, smooth_pixels
 from .edges import past_edge
-from .polynomial import P_COLOR, P_SCALE, POLY_SIZE, poly_normal, poly_project, poly_ray
+from .polynomial import P_COLOR, P_N, P_SCALE, POLY_SIZE, poly_normal, poly_project, poly_ray
 from .surface import (
     BLOCK,
     DEFAULT_KERNEL,
@@ -233,6 +244,7 @@ def trace_ray(o, d, t_min, t_max, samples, polys, radius, boxes, tolerance, max_
             continue
         for a in range(3):
             nref[a] = normals[i, a]
+        t_above, t_below, r_above, r_below, last = -1.0, -1.0, 0.0, 0.0, math.inf
         for it in range(max_iter):
             for a in range(3):
                 x[a] = o[a] + t * d[a]
@@ -246,8 +258,26 @@ def trace_ray(o, d, t_min, t_max, samples, polys, radius, boxes, tolerance, max_
                 for a in range(3):
                     color[a] = poly[P_COLOR + a]
                 return t, fits
+            # x's height over its fit: the ray crosses the surface between an iterate above
+            # and one below (false position, with the Illinois weight, which halves an end
+            # kept twice lest the search creep in from one side)
+            height = (x[0] - y[0]) * poly[P_N] + (x[1] - y[1]) * poly[P_N + 1] + (x[2] - y[2]) * poly[P_N + 2]
+            if height > 0.0:
+                if last > 0.0:
+                    r_below *= 0.5
+                t_above, r_above = t, height
+            else:
+                if last <= 0.0:
+                    r_above *= 0.5
+                t_below, r_below = t, height
+            stalled = abs(height) >= abs(last)
+            last = height
             window = SUPPORT * poly[P_SCALE]
             t = poly_ray(poly, o, d, max(t - window, t_min), min(t + window, t_max))
+            if t_above >= 0.0 and t_below >= 0.0 and (t < 0.0 or stalled) and \
+                    not (min(t_above, t_below) < t < max(t_above, t_below)):
+                # a grazing ray overshoots the crossing, further each time: false position
+                t = t_above + (t_below - t_above) * r_above / (r_above - r_below)
             if t < 0.0:
                 break
             if it < REFERENCE_UPDATES:
