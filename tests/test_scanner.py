@@ -104,6 +104,18 @@ def test_the_seed_reproduces_a_scan(sphere):
     assert len(first) != len(other) or not np.array_equal(first.positions, other.positions)
 
 
+def test_a_coloured_mesh_is_scanned_with_its_colours(sphere):
+    # red above the equator, blue below: each sample takes the colour of the surface it measured
+    top = sphere.positions[:, 2:3] > 0
+    painted = sphere.with_(colors=np.where(top, [0.9, 0.1, 0.1], [0.1, 0.2, 0.8]).astype(np.float32))
+    cloud = scan(painted, ScanSettings(views=4, resolution=64, noise=0.0, misalignment=0.0))
+    z = cloud.positions[:, 2]
+    assert cloud.colors is not None and len(cloud.colors) == len(cloud)
+    assert np.allclose(cloud.colors[z > 0.05], [0.9, 0.1, 0.1], atol=0.01)
+    assert np.allclose(cloud.colors[z < -0.05], [0.1, 0.2, 0.8], atol=0.01)
+    assert scan(sphere, ScanSettings(views=2, resolution=32)).colors is None  # no colours to record
+
+
 def test_cli_writes_a_scan_with_its_sensors(tmp_path):
     out = tmp_path / "scan.ply"
     result = invoke("scan", SPOT, "-o", out, "--views", "3", "--resolution", "64", "--seed", "2")

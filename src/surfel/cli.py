@@ -286,7 +286,8 @@ def prepare(input, output, neighbors, sensor, elliptical, normal_field, sharp_fe
 @table_options(*SCAN)
 def scan(mesh, output, **values):
     """Scan MESH with a virtual range scanner: depth images from several views, samples lost at
-    grazing angles, range noise along each ray, each view misregistered; no normals.
+    grazing angles, range noise along each ray, each view misregistered; no normals; the mesh's
+    colours where it has them.
 
     \b
     Example:

@@ -21,7 +21,11 @@ misalignment x S) and a translation of misalignment x S in a random direction. T
 sensor position is moved alike, so that it stays the origin of its own rays.
 
 The result has no normals: positions, the integer attribute `scan` (the view of each point)
-and `sensors` (V, 3), the registered sensor positions.
+and `sensors` (V, 3), the registered sensor positions. A mesh with colours is scanned as a
+scanner with a colour camera scans it (structured light and RGB-D sensors record texture):
+each sample takes the mesh's unlit colour at its pixel, so that its renders compare with the
+mesh's without a colour difference all over (a grey CAD part scanned white: 19 dB obliquely,
+where its geometry alone is 28).
 """
 
 from __future__ import annotations
@@ -84,9 +88,11 @@ def random_rotation(rng: np.random.Generator, angle: float) -> np.ndarray:
 
 
 def scan_view(mesh: PointCloud, camera, settings: ScanSettings, rng: np.random.Generator,
-              renderer: Renderer) -> tuple[np.ndarray, np.ndarray]:
-    """The world positions (M, 3) one view measures, and its sensor position (3,), both registered."""
-    result = renderer.render(mesh, camera, "mesh", options=RenderOptions(supersample=1, background=(0, 0, 0)))
+              renderer: Renderer) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The world positions (M, 3) one view measures, their unlit colours (M, 3) and its sensor
+    position (3,), positions and sensor registered."""
+    result = renderer.render(mesh, camera, "mesh",
+                             options=RenderOptions(supersample=1, background=(0, 0, 0), shading="none"))
     rows, cols = np.nonzero((result.alpha > 0.5) & np.isfinite(result.depth))
     direction = np.stack([(cols + 0.5 - camera.cx) / camera.fx, (camera.cy - (rows + 0.5)) / camera.fy,
                           -np.ones(len(rows))], axis=1)
@@ -107,28 +113,31 @@ def scan_view(mesh: PointCloud, camera, settings: ScanSettings, rng: np.random.G
     shift = rng.normal(size=3)
     shift *= settings.misalignment * size / np.linalg.norm(shift)
     centre = mesh.center
-    return (world - centre) @ rotation.T + centre + shift, (sensor - centre) @ rotation.T + centre + shift
+    colors = result.color[rows, cols][kept]
+    return (world - centre) @ rotation.T + centre + shift, colors, (sensor - centre) @ rotation.T + centre + shift
 
 
 def scan(mesh: PointCloud, settings: ScanSettings = ScanSettings(), renderer: Renderer | None = None) -> PointCloud:
-    """A simulated range scan of `mesh` (see the module docstring): positions, `scan`, `sensors`."""
+    """A simulated range scan of `mesh` (see the module docstring): positions, `scan`, `sensors`,
+    and colours where the mesh has them."""
     if not mesh.is_mesh:
         raise SurfelError(f"{mesh.source}: scan needs a mesh (faces) to measure")
     renderer = renderer or Renderer()
     rng = np.random.default_rng(settings.seed)
-    points, sensors, owner = [], [], []
+    points, colors, sensors, owner = [], [], [], []
     for index, (azimuth, elevation) in enumerate(view_directions(settings.views)):
         camera = frame(mesh.center, mesh.bounding_radius, azimuth=azimuth, elevation=elevation,
                        size=(settings.resolution, settings.resolution))
-        measured, sensor = scan_view(mesh, camera, settings, rng, renderer)
+        measured, seen, sensor = scan_view(mesh, camera, settings, rng, renderer)
         points.append(measured)
+        colors.append(seen)
         sensors.append(sensor)
         owner.append(np.full(len(measured), index, np.int16))
     positions = np.concatenate(points)
     if not len(positions):
         raise SurfelError(f"{mesh.source}: the scanner measured no point")
-    return PointCloud(positions, attributes={"scan": np.concatenate(owner)}, sensors=np.array(sensors),
-                      source=mesh.source)
+    return PointCloud(positions, colors=None if mesh.colors is None else np.concatenate(colors).astype(np.float32),
+                      attributes={"scan": np.concatenate(owner)}, sensors=np.array(sensors), source=mesh.source)
 
 
 def scan_command(mesh_path: str, output: str, values: dict) -> PointCloud:
