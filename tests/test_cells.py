@@ -362,6 +362,25 @@ def test_a_noisy_scan_moves_its_border_lines_out():
     assert covered_by(estimated, everything, strip).mean() > covered_by(given, everything, strip).mean() + 0.2
 
 
+def test_a_denoised_scan_keeps_the_margin_of_its_border_lines():
+    """Denoising (`prepare --smooth`) leaves the scan's samples lost near its edge lost: its
+    border lines still lie NOISY_MARGIN further out than those of the same positions taken for
+    a clean cloud, though the normals estimated after smoothing no longer find it noisy."""
+    from surfel.preprocess import borders
+
+    h = 0.05
+    sheet = _open_sheet(h)
+    rng = np.random.default_rng(16)
+    noisy = sheet.positions + np.c_[np.zeros((len(sheet), 2)), rng.normal(0, 0.15 * h, len(sheet))]
+    smoothed, report = prepare(PointCloud(noisy), smooth=True)
+    assert "smooth" in report and "noisy" not in report["normals"]
+    clean, _ = prepare(PointCloud(smoothed.positions))
+    out, kept = smoothed.attributes["clip_lines"][:, 0], clean.attributes["clip_lines"][:, 0]
+    border = (out[:, 2] < 1) & (kept[:, 2] < 1)
+    assert border.sum() > 40
+    assert np.allclose(out[border, 2] - kept[border, 2], borders.NOISY_MARGIN, atol=1e-5)
+
+
 def test_closed_surfaces_and_aerial_scans_have_no_borders():
     """Neither a sphere, nor a sampling much denser on one side than the other, nor aerial
     LiDAR scan lines 30 times farther apart than the points on a line has border lines; the

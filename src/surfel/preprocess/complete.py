@@ -20,8 +20,8 @@ FIELD_NEIGHBOURS), serves every estimation, in this order, each using the ones b
   7. the sampling bound on both (`spacing.py`), and the radii of the screen-facing splats
      (`structure.py`);
   8. clip lines at the sharp features and at the borders of open surfaces (`borders.py`,
-     `cells.py`; a margin out where the normals were estimated on a noisy cloud), none on
-     screen-facing splats;
+     `cells.py`; a margin out where the normals were estimated on a noisy cloud, also when
+     `smooth` denoised it first), none on screen-facing splats;
   9. Phong splatting's normal fields (`normal_field.py`), flat on screen-facing splats;
 
 Given attributes are kept as they are.
@@ -128,9 +128,16 @@ def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np
         axes64 = given["axes"].astype(np.float64)
         from_axes = unit(np.cross(axes64[:, 0], axes64[:, 1]))
     positions = None
+    # normals estimated on a noisy cloud (a raw scan): its borders get a margin (borders.py); a
+    # raw scan keeps it once denoised, since its samples lost at grazing angles stay lost
+    noisy = False
     if smooth:
-        guide = normals if normals is not None else from_axes if given["axes"] is not None else \
-            oriented_normals(nbh, k_normals, towards, progress, select, up)[0]
+        if normals is not None:
+            guide = normals
+        elif given["axes"] is not None:
+            guide = from_axes
+        else:
+            guide, _, _, noisy = oriented_normals(nbh, k_normals, towards, progress, select, up)
         moved = smoothed_points(nbh, guide, progress)
         positions = cloud.positions + nbh.unsort(moved - nbh.points)
         report["smooth"] = (f"MLS projection (k={SMOOTH_NEIGHBOURS}), mean move "
@@ -139,14 +146,14 @@ def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np
         # than k_estimations of them (one contiguous copy, not one per estimation: Neighbourhood.first)
         nbh = replace(nbh, points=moved, index=nbh.first(k_estimations))
     facing = None
-    noisy = False  # normals estimated on a noisy cloud (a raw scan): its borders get a margin (borders.py)
     if normals is None and given["axes"] is not None:
         normals = estimated["normals"] = from_axes
         report["normals"] = "from the splat axes (u x v)"
     elif normals is None:
-        normals, ambiguous, eigenvalues, noisy = oriented_normals(nbh, k_normals, towards, progress, select, up)
+        normals, ambiguous, eigenvalues, noisy_now = oriented_normals(nbh, k_normals, towards, progress, select, up)
         estimated["normals"] = normals
-        scale = f"k per point in {SCALES[0]}..{SCALES[-1]} (noisy)" if noisy else f"k={k_normals}"
+        scale = f"k per point in {SCALES[0]}..{SCALES[-1]} (noisy)" if noisy_now else f"k={k_normals}"
+        noisy = noisy or noisy_now
         report["normals"] = f"estimated (PCA, {scale}, {how})"
         report["ambiguous_normals"] = int(ambiguous.sum())
         located = cloud if sensor is None else cloud.with_(sensors=np.asarray(sensor, np.float64).reshape(1, 3))
