@@ -19,14 +19,14 @@ those that pass near the surface would descend the hierarchy for nothing. Per ra
    Once one iterate lies above its fit and another below (the sign of n . (r_k - P(r_k))),
    the crossing is bracketed; a step that misses the polynomial, or that leaves the bracket
    from an iterate no nearer the surface than the one before, is replaced by false position
-   between the last iterates above and below. A ray that
-   grazes the surface (just inside an outline) otherwise overshoots: each fit's polynomial,
-   tilted a little from the last, sends the next iterate further across the crossing, and
-   the ray misses. On the vertices of five coarse figures (quadric-decimated to 1500-3200
-   vertices), front and azimuth-60 views at 512 x 512: holes 0.143% -> 0.078% at worst,
-   median PSNR 30.84 -> 30.83 dB (benchmarks/scan_fidelity.py --vertices --methods mls).
-   Bracketing every step instead gains 0.07 dB more there but takes up to 17 fits where
-   4 did (kernels spanning gaps on a thin part, which converge slowly but surely).
+   between the last iterates above and below. Without it a ray that grazes the surface (just
+   inside an outline) overshoots: each fit's polynomial, tilted a little from the last, sends
+   the next iterate further across the crossing, and the ray misses. On the vertices of
+   five coarse figures (quadric-decimated to 1500-3200 vertices), front and azimuth-60
+   views at 512 x 512: holes 0.143% -> 0.078% at worst, median PSNR 30.84 -> 30.83 dB
+   (benchmarks/scan_fidelity.py --vertices --methods mls). Bracketing every step instead
+   gains 0.07 dB more there but takes up to 17 fits where 4 did (kernels spanning gaps on
+   a thin part, which converge slowly but surely).
 
 Colour is the fit's weighted mean of the neighbours' colours, the normal the gradient of
 the last polynomial (n - g_u e1 - g_v e2). Parameters (`MlsParams`):
