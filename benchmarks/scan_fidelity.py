@@ -5,10 +5,12 @@ scan is compared with the mesh's (`surfel compare`'s metrics, surfel.metrics.com
 at 512 x 512 with lambert shading, from the front and from azimuth 60, elevation 20.
 
     python benchmarks/scan_fidelity.py MESH.obj [MESH.ply ...] [--methods deferred,phong]
-        [--smooth | --vertices] [--json]
+        [--smooth [--prepared] | --vertices] [--json]
 
 --smooth denoises the scan first: the positions of `surfel prepare --smooth` (normals and
-splats are then estimated by each method's completion, as for the raw scan). --vertices
+splats are then estimated by each method's completion, as for the raw scan); with
+--prepared, the whole cloud `surfel prepare --smooth --elliptical --normal-field` writes
+(its normals, splats and clip lines), as a user who prepares the scan first renders it. --vertices
 renders the mesh's own vertices (with the mesh's normals) instead of a scan.
 Prints one row per model and view, then the median PSNR of each method over all of them.
 """
@@ -33,10 +35,13 @@ SIZE = (512, 512)
 VIEWS = {"front": (None, None), "az60el20": (60.0, 20.0)}
 
 
-def measure(path: str, methods: list[str], smooth: bool, vertices: bool, renderer: Renderer) -> list[dict]:
+def measure(path: str, methods: list[str], smooth: bool, vertices: bool, renderer: Renderer,
+            prepared: bool = False) -> list[dict]:
     mesh = load(path)
     cloud = mesh.take(np.arange(len(mesh))) if vertices else scan(mesh, ScanSettings(), renderer)
-    if smooth:
+    if smooth and prepared:
+        cloud = prepare(cloud, smooth=True, elliptical=True, normal_field=True)[0]
+    elif smooth:
         cloud = cloud.with_(positions=prepare(cloud, smooth=True)[0].positions)
     options = RenderOptions(shading="lambert", background=(0.0, 0.0, 0.0))
     rows = []
@@ -60,13 +65,16 @@ def main() -> None:
     mode = parser.add_mutually_exclusive_group()
     mode.add_argument("--smooth", action="store_true")
     mode.add_argument("--vertices", action="store_true")
+    parser.add_argument("--prepared", action="store_true")
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args()
+    if args.prepared and not args.smooth:
+        parser.error("--prepared: renders the cloud --smooth prepares; give --smooth too")
     methods = args.methods.split(",")
     renderer = Renderer()
     rows = []
     for path in args.meshes:
-        for row in measure(path, methods, args.smooth, args.vertices, renderer):
+        for row in measure(path, methods, args.smooth, args.vertices, renderer, args.prepared):
             rows.append(row)
             if not args.json:
                 print("  ".join(f"{key} {value}" for key, value in row.items()), flush=True)
