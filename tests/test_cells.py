@@ -381,6 +381,31 @@ def test_a_denoised_scan_keeps_the_margin_of_its_border_lines():
     assert np.allclose(out[border, 2] - kept[border, 2], borders.NOISY_MARGIN, atol=1e-5)
 
 
+def _rows(x, step, y_step=0.018):
+    """Points of the plane z = 0 at x in `x` (a range with `step`), y in [-0.3, 0.3] every y_step."""
+    xs, ys = np.meshgrid(np.arange(x[0], x[1] + 1e-9, step), np.arange(-0.3, 0.3 + 1e-9, y_step), indexing="ij")
+    return np.c_[xs.ravel(), ys.ravel(), np.zeros(xs.size)]
+
+
+def test_a_face_of_sparse_rows_beside_a_dense_strip_has_no_border():
+    """A CAD part's face tessellated by rows 0.05 apart (0.018 along them) between two strips
+    sampled 0.006 apart (fillets): the 64 nearest of the rows' points all lie in the strip
+    beside them, but the next row lies within their closing distance ahead, so no border cuts
+    their splats; where no row follows, the last row is a border."""
+    strip = _rows((-0.08, -0.012), 0.006, 0.006)
+    row, next_row = _rows((0.0, 0.0), 1.0), _rows((0.05, 0.05), 1.0)
+    other_strip = _rows((0.062, 0.13), 0.006, 0.006)
+    middle = np.arange(len(strip), len(strip) + len(row))[5:-5]  # away from the rows' ends
+
+    def clipped(*parts):
+        points = np.concatenate(parts)
+        prepared, _ = prepare(PointCloud(points, normals=np.tile([0.0, 0.0, 1.0], (len(points), 1))))
+        return prepared.attributes["clip_lines"][middle, 0, 2] < 1
+
+    assert not clipped(strip, row, next_row, other_strip).any()
+    assert clipped(strip, row).all()
+
+
 def test_closed_surfaces_and_aerial_scans_have_no_borders():
     """Neither a sphere, nor a sampling much denser on one side than the other, nor aerial
     LiDAR scan lines 30 times farther apart than the points on a line has border lines; the

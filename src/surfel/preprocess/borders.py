@@ -14,6 +14,17 @@ nearest ones. Neighbours on another layer lying close (a body under a sheet, `th
 not close a gap. Its outward direction w_p is the middle of the gap among its nearest
 neighbours, also where the wider ones confirmed it.
 
+Where a far denser sampling lies to one side of p (a CAD part's fillet, its vertices crowded
+along the curve, beside a flat face tessellated by rows far apart), even the BORDER_CONFIRM
+nearest may all lie within p's closing distance (below) on that side, and leave the face a
+gap. Such a border is confirmed among the BORDER_WIDE nearest, and dropped where one of them
+continues p's sheet ahead of it, within its closing distance: facing its way, on its layer
+(within SHEET_SPACINGS spacings, by thickness.py's measure) and within 45 degrees of w_p. On a
+rocker arm's vertices seen from its side (512 x 512, azimuth 270, elevation 10) the false
+borders had cut a star-shaped hole of 76 pixels into a face: holes 0.165% -> 0.067% and
++1.7 dB (`phong`); over 11 models' vertices in six views each, no render lost more than
+0.03 dB, and raw scans moved by no more than that.
+
 A neighbour q farther from p in the tangent plane than CLOSING_SPACINGS times the larger of
 their spacings (spacing.py) lies across a gap and closes none: in a concave notch of an outline
 (a figure's armpit, the fork of its legs), the samples across the notch would otherwise close
@@ -73,6 +84,10 @@ from .sharp_features import FLAT_SIN2, SHEET_COS
 BORDER_GAP = math.radians(120.0)   # neighbours leaving a gap this wide: p is on a border
 INTERIOR_GAP = math.radians(100.0)  # ... unless another gap is this wide too (a scan line)
 BORDER_CONFIRM = 64                 # neighbours among which a border is confirmed
+BORDER_WIDE = 256                   # ... and where those lie within its closing distance, these
+SHEET_SPACINGS = 0.25               # a neighbour this many spacings off p's layer is another sheet
+BEYOND_COS2 = math.cos(math.radians(45.0)) ** 2  # ... ahead of a border: within 45 degrees of w_p
+BEYOND_BLOCK = 4096                 # borders checked at once (bounds the (rows, BORDER_WIDE) arrays)
 KERNEL_BLOCK = 1024                 # the fewest points per thread's piece of the kernels
 CLOSING_SPACINGS = 4.0              # neighbours farther than this many spacings lie across a gap
 NOISY_MARGIN = 0.2                  # a noisy cloud's border lines move out by this much of the splat
@@ -328,6 +343,28 @@ def _settled_rows(first, stop, points, normals, index, count, rows, frames, shee
         settled[i] = _no_wide_gap(bins)
 
 
+def _sheet_beyond(nbh: Neighbourhood, normals: np.ndarray, rows: np.ndarray, outwards: np.ndarray,
+                  closing2: np.ndarray, spacing: np.ndarray) -> np.ndarray:
+    """Per border point p = rows[i], whether its own sheet goes on ahead of it (module
+    docstring): among its BORDER_WIDE nearest, a neighbour q within its own closing distance,
+    facing its way (n_p . n_q >= SHEET_COS), on its layer (|d . (n_p + n_q)| / 2, d = q - p,
+    within SHEET_SPACINGS spacings) and within 45 degrees of its outward direction outwards[i]."""
+    ahead = np.zeros(len(rows), bool)
+    for start in range(0, len(rows), BEYOND_BLOCK):
+        block = slice(start, start + BEYOND_BLOCK)
+        p = rows[block]
+        wider = nbh.nearest(p, min(BORDER_WIDE, len(nbh.points)))
+        d = nbh.points[wider] - nbh.points[p][:, None, :]
+        n_p, n_q = normals[p][:, None, :], normals[wider]
+        dist2 = np.sum(d * d, axis=2)
+        along = np.sum(d * outwards[block][:, None, :], axis=2)
+        separation = 0.5 * np.abs(np.sum(d * (n_p + n_q), axis=2))
+        same_sheet = (np.sum(n_p * n_q, axis=2) >= SHEET_COS) & (separation <= SHEET_SPACINGS * spacing[p, None])
+        forward = (along > 0) & (along * along >= BEYOND_COS2 * dist2)
+        ahead[block] = np.any(same_sheet & forward & (dist2 > 0) & (dist2 <= closing2[p, None]), axis=1)
+    return ahead
+
+
 def border_outwards(nbh: Neighbourhood, normals: np.ndarray, index: np.ndarray, progress: bool | None,
                     layers: np.ndarray | None = None,
                     spacing: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -364,5 +401,12 @@ def border_outwards(nbh: Neighbourhood, normals: np.ndarray, index: np.ndarray, 
         confirmed = _border_outwards(nbh.points, normals, wide, rest, frames[~settled], SHEET_COS, FLAT_SIN2,
                                      layers, closing2)[0].any(axis=1)
         outwards[rest[~confirmed]] = 0.0
+        if spacing is not None:
+            # a denser sampling's BORDER_CONFIRM nearest may all lie nearer than the closing
+            # distance, on one side: the sheet may go on beyond them (module docstring)
+            reached = np.sum((nbh.points[wide[:, -1]] - nbh.points[rest]) ** 2, axis=1)
+            short = rest[confirmed & (reached < closing2[rest])]
+            beyond = _sheet_beyond(nbh, normals, short, outwards[short], closing2, np.asarray(spacing, np.float64))
+            outwards[short[beyond]] = 0.0
     reach[~outwards.any(axis=1)] = 0.0
     return outwards, reach
