@@ -87,7 +87,7 @@ BORDER_CONFIRM = 64                 # neighbours among which a border is confirm
 BORDER_WIDE = 256                   # ... and where those lie within its closing distance, these
 SHEET_SPACINGS = 0.25               # a neighbour this many spacings off p's layer is another sheet
 BEYOND_COS2 = math.cos(math.radians(45.0)) ** 2  # ... ahead of a border: within 45 degrees of w_p
-BEYOND_BLOCK = 4096                 # borders checked at once (bounds the (rows, BORDER_WIDE) arrays)
+BEYOND_BLOCK = 1024                 # borders checked at once (bounds the (rows, BORDER_WIDE) arrays)
 KERNEL_BLOCK = 1024                 # the fewest points per thread's piece of the kernels
 CLOSING_SPACINGS = 4.0              # neighbours farther than this many spacings lie across a gap
 NOISY_MARGIN = 0.2                  # a noisy cloud's border lines move out by this much of the splat
@@ -405,7 +405,7 @@ def border_outwards(nbh: Neighbourhood, normals: np.ndarray, index: np.ndarray, 
             # a denser sampling's BORDER_CONFIRM nearest may all lie nearer than the closing
             # distance, on one side: the sheet may go on beyond them (module docstring)
             reached = np.sum((nbh.points[wide[:, -1]] - nbh.points[rest]) ** 2, axis=1)
-            short = rest[confirmed & (reached < closing2[rest])]
+            short = rest[confirmed & (reached < closing2[rest]) & np.isfinite(closing2[rest])]
             beyond = _sheet_beyond(nbh, normals, short, outwards[short], closing2, np.asarray(spacing, np.float64))
             outwards[short[beyond]] = 0.0
     reach[~outwards.any(axis=1)] = 0.0
