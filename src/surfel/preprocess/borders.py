@@ -17,8 +17,8 @@ neighbours, also where the wider ones confirmed it.
 Where a far denser sampling lies to one side of p (a CAD part's fillet, its vertices crowded
 along the curve, beside a flat face tessellated by rows far apart), even the BORDER_CONFIRM
 nearest may all lie within p's closing distance (below) on that side, and leave the face a
-gap. Such a border is confirmed among the BORDER_WIDE nearest, and dropped where one of them
-continues p's sheet ahead of it, within its closing distance: facing its way, on its layer
+gap. Such a border is dropped where one of its BORDER_WIDE nearest continues p's sheet ahead
+of it, within its closing distance (`_sheet_beyond`): facing its way, on its layer
 (within SHEET_SPACINGS spacings, by thickness.py's measure) and within 45 degrees of w_p. On a
 rocker arm's vertices seen from its side (512 x 512, azimuth 270, elevation 10) the false
 borders had cut a star-shaped hole of 76 pixels into a face: holes 0.165% -> 0.067% and
@@ -84,7 +84,7 @@ from .sharp_features import FLAT_SIN2, SHEET_COS
 BORDER_GAP = math.radians(120.0)   # neighbours leaving a gap this wide: p is on a border
 INTERIOR_GAP = math.radians(100.0)  # ... unless another gap is this wide too (a scan line)
 BORDER_CONFIRM = 64                 # neighbours among which a border is confirmed
-BORDER_WIDE = 256                   # ... and where those lie within its closing distance, these
+BORDER_WIDE = 256                   # where those lie within its closing distance: the sheet ahead among these
 SHEET_SPACINGS = 0.25               # a neighbour this many spacings off p's layer is another sheet
 BEYOND_COS2 = math.cos(math.radians(45.0)) ** 2  # ... ahead of a border: within 45 degrees of w_p
 BEYOND_BLOCK = 1024                 # borders checked at once (bounds the (rows, BORDER_WIDE) arrays)
