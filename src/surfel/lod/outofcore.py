@@ -72,9 +72,15 @@ Layout of NAME.lod/ (format "surfel-lod-dir", version 1):
     top/*.npy          the top-tree nodes (absent with one partition), likewise
 
 Files: everything is written into NAME.partial/; a finished partition is a directory
-renamed into place; manifest.json is written last and NAME.partial/ is then renamed to
-NAME. An interrupted build leaves only NAME.partial/ (never a complete-looking NAME);
-`resume=True` reuses its binning and finished partitions when the input is unchanged.
+renamed into place, its arrays written through to the disk and dropped from the page cache
+(where the OS can: posix_fadvise), so that the next partition's writes reuse those pages:
+the build's page cache stays about one partition per worker instead of the whole output, and
+fresh pages cost far more than reused ones where memory is lent by a hypervisor (20M points
+on 2 cores of a VM: the writes took 14.4 s of the workers' time, 13.2 of it in the kernel;
+now 4.1 s);
+manifest.json is written last and NAME.partial/ is then renamed to NAME. An interrupted
+build leaves only NAME.partial/ (never a complete-looking NAME); `resume=True` reuses
+its binning and finished partitions when the input is unchanged.
 """
 
 from __future__ import annotations
@@ -434,7 +440,16 @@ def _build_partition(partial: Path, name: str, dtype: np.dtype, schema: Schema, 
 
 
 def _save_array(path: Path, value: np.ndarray) -> None:
-    write_atomically(path, lambda file: np.save(file, value, allow_pickle=False))
+    """`value` as .npy, written through to the disk and dropped from the page cache (module
+    docstring)."""
+    def write(file) -> None:
+        np.save(file, value, allow_pickle=False)
+        if hasattr(os, "posix_fadvise"):
+            file.flush()
+            os.fdatasync(file.fileno())
+            os.posix_fadvise(file.fileno(), 0, 0, os.POSIX_FADV_DONTNEED)
+
+    write_atomically(path, write)
 
 
 def _root_summary(tree) -> dict:
