@@ -435,6 +435,9 @@ def test_compiled_border_and_cap_kernels_match_numpy():
     from surfel.preprocess.neighbourhood import Neighbourhood
     from surfel.preprocess.outlier_cap import ISOLATED_FACTOR, outlier_cap
 
+    # no BORDER_RUN + 1 consecutive empty bins leave no gap of BORDER_GAP (an angle is at most
+    # twice its pseudo-angle): the kernel's early answer
+    assert (borders.BORDER_RUN + 2) * borders.KEY_BIN < borders.BORDER_GAP / 2
     rng = np.random.default_rng(5)
     xy = rng.uniform(-1, 1, size=(4_000, 2))
     xy = xy[(np.hypot(*xy.T) < 1) & (xy[:, 1] > 0)]

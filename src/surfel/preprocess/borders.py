@@ -92,11 +92,13 @@ KERNEL_BLOCK = 1024                 # the fewest points per thread's piece of th
 CLOSING_SPACINGS = 4.0              # neighbours farther than this many spacings lie across a gap
 NOISY_MARGIN = 0.2                  # a noisy cloud's border lines move out by this much of the splat
 # pseudo-angle bins (of [-2, 2], circular) of which no EMPTY_RUN + 1 consecutive ones are empty
-# leave no gap of (EMPTY_RUN + 2) KEY_BIN between keys, less than INTERIOR_GAP / 2: the point is
-# no border, found without sorting its neighbours
+# leave no gap of (EMPTY_RUN + 2) KEY_BIN between keys, less than INTERIOR_GAP / 2: no gap counts,
+# found without sorting the neighbours; no BORDER_RUN + 1 empty ones leave none of BORDER_GAP / 2
+# (every angle is at most twice its pseudo-angle): the point is no border
 KEY_BINS = 64
 KEY_BIN = 4.0 / KEY_BINS
 EMPTY_RUN = 11
+BORDER_RUN = 14
 ALL_BINS = np.uint64(0xFFFFFFFFFFFFFFFF)
 ROW_SECTORS = 8                     # sectors of the pseudo-angle in which near neighbours lie in a row
 ROW_DEPTH = 0.5                     # a neighbour 30 degrees or more off the border line: a row inside
@@ -169,12 +171,12 @@ def _key_bit(key):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, inline="always")
-def _no_wide_gap(bins):  # pragma: no cover - compiled
-    """Whether every EMPTY_RUN + 1 circularly consecutive bins of `bins` hold a key: then any two
-    keys next to each other lie less than (EMPTY_RUN + 2) KEY_BIN apart (the bins between them,
-    at most EMPTY_RUN, and their own two)."""
+def _no_wide_gap(bins, empty_run):  # pragma: no cover - compiled
+    """Whether every empty_run + 1 circularly consecutive bins of `bins` hold a key: then any two
+    keys next to each other lie less than (empty_run + 2) KEY_BIN apart (the bins between them,
+    at most empty_run, and their own two)."""
     covered = bins
-    for shift in range(1, EMPTY_RUN + 1):
+    for shift in range(1, empty_run + 1):
         covered |= (bins << np.uint64(shift)) | (bins >> np.uint64(KEY_BINS - shift))
     return covered == ALL_BINS
 
@@ -215,7 +217,7 @@ def _widest_gap(found, used, inner2, keys, xs, ys):  # pragma: no cover - compil
         if found[3, a] <= max(found[4, a], inner2):
             bins |= _key_bit(found[0, a])
             count += 1
-    if count < 3 or _no_wide_gap(bins):
+    if count < 3 or _no_wide_gap(bins, EMPTY_RUN):
         return 0.0, 0.0, 0.0
     # sorted by key, equal keys in their order: each direction goes to its rank, the number of
     # keys below it and of equal ones before it (counts that compile to SIMD compares, where an
@@ -283,8 +285,8 @@ def _point_outwards(points, normals, index, rows, frames, sheet_cos, flat_sin2, 
         if found[3, used] <= found[4, used]:
             near_bins |= _key_bit(key)
         used += 1
-    if _no_wide_gap(near_bins):
-        return  # the near neighbours close every gap, and every rule below counts them
+    if _no_wide_gap(near_bins, BORDER_RUN):
+        return  # the near neighbours leave no gap of BORDER_GAP, and every rule below counts them
     inner2 = np.inf if _one_row(near_bins) else 0.0
     widest, second, middle = _widest_gap(found, used, inner2, keys, xs, ys)
     if widest < BORDER_GAP or second > INTERIOR_GAP:
@@ -315,9 +317,9 @@ def _point_outwards(points, normals, index, rows, frames, sheet_cos, flat_sin2, 
 def _settled(points, normals, index, count, rows, frames, sheet_cos, flat_sin2, layers, closing2):
     """Per point rows[i], True when its neighbours index[i, :count[i]], all among its
     BORDER_CONFIRM nearest, already prove it no border there: their pseudo-angles leave no
-    EMPTY_RUN + 1 consecutive bins empty (nor then do those of all its BORDER_CONFIRM nearest:
-    no gap counts). The neighbours are taken as `_point_outwards` takes them, those within
-    their closing distance only: whatever else `_point_outwards` counts adds to them."""
+    BORDER_RUN + 1 consecutive bins empty (nor then do those of all its BORDER_CONFIRM nearest:
+    no gap reaches BORDER_GAP). The neighbours are taken as `_point_outwards` takes them, those
+    within their closing distance only: whatever else `_point_outwards` counts adds to them."""
     settled = np.zeros(len(rows), np.bool_)
     over_rows(_settled_rows, len(rows), points, normals, index, count, rows, frames, sheet_cos, flat_sin2, layers,
               closing2, settled, grain=KERNEL_BLOCK)
@@ -340,7 +342,7 @@ def _settled_rows(first, stop, points, normals, index, count, rows, frames, shee
                     x * x + y * y > max(closing2[p], closing2[q]):
                 continue
             bins |= _key_bit(math.copysign(1.0 - x / (abs(x) + abs(y)), y))
-        settled[i] = _no_wide_gap(bins)
+        settled[i] = _no_wide_gap(bins, BORDER_RUN)
 
 
 def _sheet_beyond(nbh: Neighbourhood, normals: np.ndarray, rows: np.ndarray, outwards: np.ndarray,
