@@ -47,13 +47,10 @@ k = p / eps and d_parent = 0.
 
 from __future__ import annotations
 
-import numba
 import numpy as np
 
 from ..camera import Camera
 from ..cloud import PointCloud, take_rows
-from ..preprocess import CLIP_LINES
-from ..threads import over_rows
 from .build import ROOT_PARENT_ERROR, LodTree, build_lod
 
 EXTRAS = ("lod_emin", "lod_emax", "lod_dparent", "lod_dsuffix")
@@ -86,68 +83,28 @@ def sequential_order(tree: LodTree) -> np.ndarray:
     return np.concatenate(([tree.root], tree.children_of(inner)))
 
 
-def _gather(order, pos, nrm, col, rad, axes, e_g, parent, d_parent, root_error, clip, facing):
-    """The node attributes, clip lines and screen-facing flags (col, clip, facing empty where
-    the tree has none) and the LOD extras, permuted into sequential order in one pass."""
-    m = len(order)
-    out_pos = np.empty((m, 3), np.float64)
-    out_nrm = np.empty((m, 3), np.float32)
-    out_col = np.empty((m if len(col) else 0, 3), np.float32)
-    out_rad = np.empty(m, np.float32)
-    out_axes = np.empty((m, 2, 3), np.float32)
-    out_clip = np.empty((m if len(clip) else 0, clip.shape[1], 3), np.float32)
-    out_facing = np.empty(m if len(facing) else 0, np.float32)
-    emin = np.empty(m, np.float32)
-    emax = np.empty(m, np.float32)
-    dpar = np.empty(m, np.float32)
-    over_rows(_gather_rows, m, order, pos, nrm, col, rad, axes, e_g, parent, d_parent, root_error, clip, facing,
-              out_pos, out_nrm, out_col, out_rad, out_axes, out_clip, out_facing, emin, emax, dpar)
-    return out_pos, out_nrm, out_col, out_rad, out_axes, out_clip, out_facing, emin, emax, dpar
-
-
-@numba.njit(cache=True, nogil=True)
-def _gather_rows(first, stop, order, pos, nrm, col, rad, axes, e_g, parent, d_parent,
-                 root_error, clip, facing, out_pos, out_nrm, out_col, out_rad,
-                 out_axes, out_clip, out_facing, emin, emax, dpar):  # pragma: no cover - compiled
-    """Rows first:stop of `_gather`."""
-    for j in range(first, stop):
-        i = order[j]
-        for c in range(3):
-            out_pos[j, c] = pos[i, c]
-            out_nrm[j, c] = nrm[i, c]
-            out_axes[j, 0, c] = axes[i, 0, c]
-            out_axes[j, 1, c] = axes[i, 1, c]
-            if len(col):
-                out_col[j, c] = col[i, c]
-            if len(clip):
-                for line in range(clip.shape[1]):
-                    out_clip[j, line, c] = clip[i, line, c]
-        if len(facing):
-            out_facing[j] = facing[i]
-        out_rad[j] = rad[i]
-        emin[j] = e_g[i]
-        emax[j] = e_g[parent[i]] if parent[i] >= 0 else root_error
-        dpar[j] = d_parent[i]
-
-
 def to_sequential_cloud(tree: LodTree) -> PointCloud:
     """All nodes of `tree` as one cloud in sequential order, with its attributes and the LOD
     extras."""
     order = sequential_order(tree)
-    absent = np.empty((0, 3), np.float32)
-    clip = tree.clip_lines if tree.clip_lines is not None else np.empty((0, CLIP_LINES, 3), np.float32)
-    facing = tree.screen_facing if tree.screen_facing is not None else np.empty(0, np.float32)
-    pos, nrm, col, rad, axes, clip, facing, emin, emax, dparent = _gather(
-        order, tree.positions, tree.normals, tree.colors if tree.colors is not None else absent, tree.radii,
-        tree.axes, tree.e_g, tree.parent, tree.d_parent, ROOT_PARENT_ERROR, clip, facing)
+
+    # one array at a time: np.take streams each, twice as fast as one loop reading all at once
+    def permuted(values: np.ndarray | None, dtype=np.float32) -> np.ndarray | None:
+        return None if values is None else take_rows(np.asarray(values, dtype), order)
+
+    parent = take_rows(tree.parent, order)
+    emax = np.where(parent >= 0, take_rows(np.asarray(tree.e_g, np.float32), np.maximum(parent, 0)),
+                    np.float32(ROOT_PARENT_ERROR))
+    dparent = permuted(tree.d_parent)
     dsuffix = np.maximum.accumulate(dparent[::-1])[::-1]
     attributes = {name: take_rows(values, order) for name, values in tree.attributes.items()}
-    attributes.update(lod_emin=emin, lod_emax=emax, lod_dparent=dparent, lod_dsuffix=dsuffix)
+    attributes.update(lod_emin=permuted(tree.e_g), lod_emax=emax, lod_dparent=dparent, lod_dsuffix=dsuffix)
     if tree.clip_lines is not None:
-        attributes["clip_lines"] = clip
+        attributes["clip_lines"] = permuted(tree.clip_lines)
     if tree.screen_facing is not None:
-        attributes["screen_facing"] = facing
-    return PointCloud(pos, normals=nrm, colors=col if tree.colors is not None else None, radii=rad, axes=axes,
+        attributes["screen_facing"] = permuted(tree.screen_facing)
+    return PointCloud(permuted(tree.positions, np.float64), normals=permuted(tree.normals),
+                      colors=permuted(tree.colors), radii=permuted(tree.radii), axes=permuted(tree.axes),
                       attributes=attributes, kinds=tree.kinds, geospatial=tree.geospatial)
 
 
