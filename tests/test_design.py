@@ -11,7 +11,7 @@ MAX_LINES = 600
 
 # Lowest first; a module may import from its own layer and those below it.
 LAYERS = [
-    ("core", ["errors", "files", "attributes", "cloud", "camera", "data", "parsers", "threads"]),
+    ("core", ["errors", "files", "attributes", "cloud", "camera", "data", "parsers", "threads", "pages"]),
     ("io", ["io"]),
     ("preprocess", ["preprocess"]),
     ("lod", ["lod"]),

@@ -13,6 +13,7 @@ import click
 
 from .errors import SurfelError
 from .methods import DEFAULT_METHOD
+from .pages import no_huge_pages
 from .request import (
     CAMERA,
     OPTIONS,
@@ -90,6 +91,7 @@ def main():
       surfel compare bunny.obj --method deferred --size 512x512 --shading lambert
       surfel bench --methods points,deferred --points 1000000 --size 1024x1024
     """
+    no_huge_pages()
 
 
 @main.command(context_settings=CONTEXT)

@@ -106,6 +106,7 @@ from ..attributes import Schema
 from ..cloud import PointCloud
 from ..errors import SurfelError
 from ..files import write_atomically, write_json
+from ..pages import no_huge_pages
 from ..preprocess import INACTIVE_CLIP
 from . import binning, worker_warm_up
 from .binning import bin_input, piece_files, progress_bar, record_dtype
@@ -324,6 +325,7 @@ def _start_worker(taken, done, needs: tuple[bool, bool, bool]) -> None:
     and the others' before the first job that needs them (worker_warm_up.py: `taken` and
     `done` are its shared counter and events; `needs` are `warm_up_tasks`' arguments)."""
     numba.set_num_threads(1)
+    no_huge_pages()  # as the command line sets it; also when called from Python
     worker_warm_up.share(*warm_up_tasks(*needs), taken, done)
 
 

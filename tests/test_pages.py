@@ -1,0 +1,32 @@
+"""surfel.pages: the command line's processes take no transparent huge pages."""
+
+import os
+import subprocess
+import sys
+
+import pytest
+
+pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="PR_SET_THP_DISABLE is Linux's")
+
+# in a fresh interpreter: THP_enabled of /proc/self/status after the given statement
+PROBE = "{}\nprint(open('/proc/self/status').read().split('THP_enabled:')[1].split()[0])"
+
+
+def _thp_enabled(statement: str, **environment: str) -> str:
+    env = {k: v for k, v in os.environ.items() if k != "NUMPY_MADVISE_HUGEPAGE"} | environment
+    result = subprocess.run([sys.executable, "-c", PROBE.format(statement)], capture_output=True, text=True,
+                            check=True, env=env)
+    return result.stdout.strip()
+
+
+def test_no_huge_pages_turns_them_off_unless_numpy_is_told():
+    assert _thp_enabled("pass") == "1"
+    assert _thp_enabled("from surfel.pages import no_huge_pages; no_huge_pages()") == "0"
+    assert _thp_enabled("from surfel.pages import no_huge_pages; no_huge_pages()", NUMPY_MADVISE_HUGEPAGE="1") == "1"
+
+
+def test_a_command_turns_them_off():
+    """Any command (here `surfel methods`) first turns them off, for its workers too."""
+    command = "from surfel.cli import main; main(['methods'], standalone_mode=False)"
+    assert _thp_enabled(command).splitlines()[-1] == "0"
+    assert _thp_enabled("import surfel.cli").splitlines()[-1] == "1"  # importing it changes nothing
