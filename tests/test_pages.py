@@ -8,8 +8,11 @@ import pytest
 
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="PR_SET_THP_DISABLE is Linux's")
 
-# in a fresh interpreter: THP_enabled of /proc/self/status after the given statement
-PROBE = "{}\nprint(open('/proc/self/status').read().split('THP_enabled:')[1].split()[0])"
+# in a fresh interpreter, huge pages allowed first (the test process may have turned them off,
+# by running a command in it, and its children inherit that): THP_enabled of /proc/self/status
+# after the given statement
+PROBE = ("import ctypes; ctypes.CDLL(None).prctl(41, 0, 0, 0, 0)\n{}\n"
+         "print(open('/proc/self/status').read().split('THP_enabled:')[1].split()[0])")
 
 
 def _thp_enabled(statement: str, **environment: str) -> str:
