@@ -77,10 +77,9 @@ renamed into place, its arrays written through to the disk and dropped from the 
 the build's page cache stays about one partition per worker instead of the whole output, and
 fresh pages cost far more than reused ones where memory is lent by a hypervisor (20M points
 on 2 cores of a VM: the writes took 14.4 s of the workers' time, 13.2 of it in the kernel;
-now 4.1 s);
-manifest.json is written last and NAME.partial/ is then renamed to NAME. An interrupted
-build leaves only NAME.partial/ (never a complete-looking NAME); `resume=True` reuses
-its binning and finished partitions when the input is unchanged.
+now 4.1 s). manifest.json is written last and NAME.partial/ is then renamed to NAME. An
+interrupted build leaves only NAME.partial/ (never a complete-looking NAME); `resume=True`
+reuses its binning and finished partitions when the input is unchanged.
 """
 
 from __future__ import annotations

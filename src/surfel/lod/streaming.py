@@ -31,8 +31,9 @@ from ..cloud import corners, file_normals
 from ..errors import InputError, SurfelError
 
 # points read and binned at once: a chunk's arrays (about 200 bytes a point) are memory the
-# process touches for the first time, which costs more than the binning itself (2M-point
-# chunks: 4.7-4.9 s per worker binning 10M points, of which 3 s on the first chunk; 500k: 1.6 s)
+# process touches for the first time, which costs more than the binning itself (with huge
+# pages, before pages.py, 2M-point chunks: 4.7-4.9 s per worker binning 10M points, 3 s of it
+# on the first chunk; 500k: 1.6 s)
 CHUNK_POINTS = 500_000
 READ_AHEAD = 1  # chunks read ahead of the one processed (read_ahead)
 

@@ -94,7 +94,7 @@ NOISY_MARGIN = 0.2                  # a noisy cloud's border lines move out by t
 # pseudo-angle bins (of [-2, 2], circular) of which no EMPTY_RUN + 1 consecutive ones are empty
 # leave no gap of (EMPTY_RUN + 2) KEY_BIN between keys, less than INTERIOR_GAP / 2: no gap counts,
 # found without sorting the neighbours; no BORDER_RUN + 1 empty ones leave none of BORDER_GAP / 2
-# (every angle is at most twice its pseudo-angle): the point is no border
+# in pseudo-angle, so none of BORDER_GAP (an angle is at most twice its pseudo-angle): no border
 KEY_BINS = 64
 KEY_BIN = 4.0 / KEY_BINS
 EMPTY_RUN = 11
