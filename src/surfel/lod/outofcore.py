@@ -84,6 +84,7 @@ reuses its binning and finished partitions when the input is unchanged.
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import functools
 import json
@@ -447,8 +448,10 @@ def _save_array(path: Path, value: np.ndarray) -> None:
         np.save(file, value, allow_pickle=False)
         if hasattr(os, "posix_fadvise"):
             file.flush()
-            os.fdatasync(file.fileno())
-            os.posix_fadvise(file.fileno(), 0, 0, os.POSIX_FADV_DONTNEED)
+            # only a saving: a file system without these (some FUSE mounts) writes as before
+            with contextlib.suppress(OSError):
+                os.fdatasync(file.fileno())
+                os.posix_fadvise(file.fileno(), 0, 0, os.POSIX_FADV_DONTNEED)
 
     write_atomically(path, write)
 
