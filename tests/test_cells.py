@@ -39,6 +39,34 @@ def test_radii_and_ellipses_cover_a_dense_mesh(step):
     assert area.mean() <= (radii.astype(np.float64) ** 2).mean()
 
 
+def test_radii_are_the_voronoi_cells_covering_radii():
+    """On a plane, a point's radius is RADIUS_MARGIN times the distance to the farthest vertex
+    of its Voronoi cell (scipy's), wherever its RADIUS_NEIGHBOURS nearest hold all the cell's
+    neighbours and the cell lies inside the cap's octagon: every bisector that cuts the cell
+    cuts it, whatever the kernel skips."""
+    from scipy.spatial import Voronoi, cKDTree
+
+    from surfel.preprocess.cell_kernels import CAP_SIDES
+    from surfel.preprocess.cells import RADIUS_MARGIN, RADIUS_NEIGHBOURS
+
+    rng = np.random.default_rng(11)
+    xy = rng.uniform(-1, 1, (3000, 2))
+    radii = estimate_radii(np.c_[xy, np.zeros(len(xy))], normals=np.tile([0.0, 0.0, 1.0], (len(xy), 1)))
+    voronoi = Voronoi(xy)
+    distance, nearest = cKDTree(xy).query(xy, RADIUS_NEIGHBOURS)
+    neighbours = [set() for _ in xy]
+    for a, b in voronoi.ridge_points:
+        neighbours[a].add(b)
+        neighbours[b].add(a)
+    checked = []
+    for i in np.flatnonzero(np.abs(xy).max(axis=1) < 0.8):
+        farthest = np.linalg.norm(voronoi.vertices[voronoi.regions[voronoi.point_region[i]]] - xy[i], axis=1).max()
+        if neighbours[i] <= set(nearest[i]) and farthest < distance[i, -1] * np.cos(np.pi / CAP_SIDES):
+            checked.append((radii[i], RADIUS_MARGIN * farthest))
+    assert len(checked) > 1000
+    assert np.allclose(*np.array(checked).T, rtol=1e-6)
+
+
 def test_radii_and_ellipses_cover_lidar_scan_lines():
     rng = np.random.default_rng(6)
     strip = scan_lines(rng, 0.0, line=1.0, along=0.3)

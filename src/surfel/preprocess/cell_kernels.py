@@ -26,6 +26,7 @@ CLIP_LINES = 2                 # clip lines per splat: an edge, or an edge and a
 INACTIVE_CLIP = (0.0, 0.0, 1.0)  # 0 u + 0 v <= 1: cuts nothing
 PARALLEL_COS = math.cos(math.radians(30.0))  # clip lines closer in direction are one edge
 CELL_BLOCK = 1024              # the fewest points per thread's piece of the cell kernels
+SKIP_MARGIN = 1.0 + 1e-6       # a line this much farther than the farthest vertex (squared) misses the cell
 
 
 # ---------------------------------------------------------------------------------------------
@@ -148,14 +149,19 @@ def _cell_polygon(lines, count, reach, polygon, spare):  # pragma: no cover - co
     clip of a convex polygon adds at most one vertex). Returns (the one of them holding it, its
     number of vertices). A line that no vertex lies beyond cuts nothing: it is skipped before
     the clip, whose division per vertex costs several times the test (most bisectors of the
-    farther neighbours miss the cell)."""
+    farther neighbours miss the cell); first, without visiting the vertices, a line farther
+    from the centre than the farthest vertex (c^2 >= r^2 (a^2 + b^2), with SKIP_MARGIN for
+    roundings: such a line the vertex test would skip too)."""
     for c in range(CAP_SIDES):
         angle = 2.0 * math.pi * c / CAP_SIDES
         polygon[c, 0] = reach * math.cos(angle)
         polygon[c, 1] = reach * math.sin(angle)
     vertices = CAP_SIDES
+    far2 = reach * reach  # the farthest vertex's squared distance
     for j in range(count):
         a, b, c = lines[j, 0], lines[j, 1], lines[j, 2]
+        if c > 0.0 and c * c >= far2 * (a * a + b * b) * SKIP_MARGIN:
+            continue
         beyond = -np.inf
         for v in range(vertices):
             beyond = max(beyond, a * polygon[v, 0] + b * polygon[v, 1] - c)
@@ -163,6 +169,9 @@ def _cell_polygon(lines, count, reach, polygon, spare):  # pragma: no cover - co
             continue
         vertices = _clip(polygon, vertices, a, b, c, spare)
         polygon, spare = spare, polygon
+        far2 = 0.0
+        for v in range(vertices):
+            far2 = max(far2, polygon[v, 0] * polygon[v, 0] + polygon[v, 1] * polygon[v, 1])
     return polygon, vertices
 
 
