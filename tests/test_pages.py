@@ -29,7 +29,8 @@ def test_no_huge_pages_turns_them_off_unless_numpy_is_told():
 
 
 def test_a_command_turns_them_off():
-    """Any command (here `surfel methods`) first turns them off, for its workers too."""
+    """Any command (here `surfel methods`) first turns them off; the processes it starts inherit
+    that from it."""
     command = "from surfel.cli import main; main(['methods'], standalone_mode=False)"
     assert _thp_enabled(command).splitlines()[-1] == "0"
     assert _thp_enabled("import surfel.cli").splitlines()[-1] == "1"  # importing it changes nothing
