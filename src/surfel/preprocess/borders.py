@@ -252,7 +252,8 @@ def _widest_gap(found, used, inner2, keys, xs, ys):  # pragma: no cover - compil
     return widest, second, middle
 
 
-@numba.njit(cache=True)
+# inlined into its loop: a call per point, with its 17 arguments, took a sixth of the pass
+@numba.njit(cache=True, inline="always")
 def _point_outwards(points, normals, index, rows, frames, sheet_cos, flat_sin2, layers, closing2, i, found, keys,
                     xs, ys, far, out, reach):  # pragma: no cover
     """out[i], reach[i]: row i of `_border_outwards`, with found (5, k), keys, xs, ys (k,) and far
