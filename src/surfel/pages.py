@@ -12,6 +12,12 @@ do_huge_pmd_anonymous_page). Measured on 2 cores of such a VM, alternated runs:
 `no_huge_pages` turns them off for the process and every process it starts (Linux's
 PR_SET_THP_DISABLE is inherited across fork and exec); the command line does so first. A
 NUMPY_MADVISE_HUGEPAGE set in the environment says what numpy should do, and is left to it.
+
+`keep_freed_memory` has glibc serve every allocation from the process's heap and keep what it
+frees (mallopt: no mmap, no trimming), so that a loop of large allocations (the out-of-core
+build's partitions) reuses the pages of the round before instead of mapping fresh ones, which
+the kernel faults in and zeroes one by one; the peak stays the largest round's. (20M points,
+2 workers: system time 10.5 -> 8-9 s, wall time 3-5% less.)
 """
 
 from __future__ import annotations
@@ -21,6 +27,7 @@ import os
 import platform
 
 PR_SET_THP_DISABLE = 41  # Linux's prctl option (linux/prctl.h)
+M_TRIM_THRESHOLD, M_MMAP_MAX = -1, -4  # glibc's mallopt parameters (malloc.h)
 
 
 def no_huge_pages() -> None:
@@ -29,3 +36,13 @@ def no_huge_pages() -> None:
     if platform.system() != "Linux" or "NUMPY_MADVISE_HUGEPAGE" in os.environ:
         return
     ctypes.CDLL(None).prctl(PR_SET_THP_DISABLE, 1, 0, 0, 0)
+
+
+def keep_freed_memory() -> None:
+    """This process's allocations from its heap, and what it frees kept there (module
+    docstring). glibc only."""
+    if platform.libc_ver()[0] != "glibc":
+        return
+    libc = ctypes.CDLL(None)  # the C library this process already uses
+    libc.mallopt(M_MMAP_MAX, 0)
+    libc.mallopt(M_TRIM_THRESHOLD, 2**31 - 1)

@@ -85,12 +85,10 @@ reuses its binning and finished partitions when the input is unchanged.
 from __future__ import annotations
 
 import contextlib
-import ctypes
 import functools
 import json
 import math
 import os
-import platform
 import re
 import shutil
 import time
@@ -106,7 +104,7 @@ from ..attributes import Schema
 from ..cloud import PointCloud
 from ..errors import SurfelError
 from ..files import write_atomically, write_json
-from ..pages import no_huge_pages
+from ..pages import keep_freed_memory, no_huge_pages
 from ..preprocess import INACTIVE_CLIP
 from . import binning, worker_warm_up
 from .binning import bin_input, piece_files, progress_bar, record_dtype
@@ -353,29 +351,14 @@ def warm_up_tasks(bins: bool, normals: bool, geospatial: bool) -> tuple[list, di
     return tasks, after
 
 
-M_TRIM_THRESHOLD, M_MMAP_MAX = -1, -4  # glibc's mallopt parameters (malloc.h)
-
-
 def _build_partition_in_worker(*args) -> None:
     """`_build_partition` in a pool's worker, which keeps the memory it frees from then on,
     once it has the kernels of the other workers' warm-up tasks (the tree's: before the tree)."""
     worker_warm_up.finish(but=_warm_up_tree)
-    _keep_freed_memory()
+    # from the first partition on, not for binning, whose big zeroed chunks fresh mappings
+    # give without a memset: a partition reuses the pages of the one before
+    keep_freed_memory()
     _build_partition(*args)
-
-
-def _keep_freed_memory() -> None:
-    """With glibc, a worker serves every allocation from its heap and keeps what it frees
-    (mallopt: no mmap, no trimming), so that a partition reuses the pages of the one before
-    instead of mapping fresh ones, which the kernel faults in and zeroes one by one. Its peak
-    memory stays its largest partition's. Set from the first partition on, not for binning,
-    whose big zeroed chunks fresh mappings give without a memset. 20M points, 2 workers:
-    system time 10.5 to 8-9 s, wall time 3-5% less."""
-    if platform.libc_ver()[0] != "glibc":
-        return
-    libc = ctypes.CDLL(None)  # the C library this process already uses
-    libc.mallopt(M_MMAP_MAX, 0)
-    libc.mallopt(M_TRIM_THRESHOLD, 2**31 - 1)
 
 
 def _replace_dir(partial: Path, out: Path) -> None:
