@@ -349,7 +349,7 @@ def _settled_rows(first, stop, points, normals, index, count, rows, frames, shee
 def _sheet_beyond(nbh: Neighbourhood, normals: np.ndarray, rows: np.ndarray, outwards: np.ndarray,
                   closing2: np.ndarray, spacing: np.ndarray) -> np.ndarray:
     """Per border point p = rows[i], whether its own sheet goes on ahead of it (module
-    docstring): among its BORDER_WIDE nearest, a neighbour q within its own closing distance,
+    docstring): among its BORDER_WIDE nearest, a neighbour q within p's closing distance,
     facing its way (n_p . n_q >= SHEET_COS), on its layer (|d . (n_p + n_q)| / 2, d = q - p,
     within SHEET_SPACINGS spacings) and within 45 degrees of its outward direction outwards[i]."""
     ahead = np.zeros(len(rows), bool)
