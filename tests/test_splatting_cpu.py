@@ -94,6 +94,21 @@ def test_screen_facing_splats_match_gl(method):
         assert_agree(*both(cloud, camera, method, shading="lambert"), covered=0.01)  # eight small disks
 
 
+def test_a_first_frame_with_every_splat_off_screen_is_empty(dense_spot):
+    """A camera path can start with the cloud out of view: that frame leaves every tile empty,
+    and the next, looking at the cloud, draws it as a fresh renderer would (the per-thread
+    tables are made on the first frame whatever it holds)."""
+    renderer = Renderer()
+    camera = frame(dense_spot.center, dense_spot.bounding_radius, size=SIZE)
+    away = frame(dense_spot.center + 10 * dense_spot.bounding_radius, dense_spot.bounding_radius, size=SIZE)
+    for method in METHODS:
+        empty = renderer.render(dense_spot, away, method, backend="cpu", shading="lambert")
+        assert empty.alpha.max() == 0.0
+        seen = renderer.render(dense_spot, camera, method, backend="cpu", shading="lambert")
+        assert compare_results(seen, Renderer().render(dense_spot, camera, method, backend="cpu",
+                                                       shading="lambert"))["psnr"] == float("inf")
+
+
 def test_level_of_detail_matches_gl(dense_spot):
     """--lod-error: the CPU draws the cut the Renderer selects, GL the one its vertex stage keeps."""
     camera = frame(dense_spot.center, dense_spot.bounding_radius, size=SIZE)

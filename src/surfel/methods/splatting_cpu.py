@@ -124,7 +124,7 @@ class CpuSplatBuffers:
         count = len(cloud)
         self.box = np.empty((4, count), np.int32)  # a column per splat, as `packed`
         self.index = np.empty(count + count // 4 + 1, np.int32)
-        self.capacity = 0
+        self.capacity = -1  # no tables yet: the first frame makes them, even with every tile empty
         self.size = None
         self.threads = 0
 
@@ -146,7 +146,7 @@ class CpuSplatBuffers:
         self.accum = np.empty((threads, t.STRIDE * t.STRIDE, t.LAYER), np.float32)
         self.best = np.empty((threads, t.STRIDE * t.STRIDE), np.float32)
         self.temp = np.empty((threads, t.TEMP_ROWS * t.BLOCK), np.float32)
-        self.capacity = 0
+        self.capacity = -1
 
     def bin(self) -> None:
         """Sort this frame's splats into tiles (after bins.bound_splats counted them); make each
