@@ -257,6 +257,30 @@ def test_a_face_cuts_the_splats_of_a_coarse_curved_surface_meeting_it():
     assert height[kept].max() < 1e-4 * step
 
 
+def test_a_coarse_face_leaves_a_bolt_hole_open():
+    """A CAD plate triangulated coarsely around a bolt hole of radius 1: the hole's wall is a
+    cylinder 16 vertices round (no point on it is flat), its rim's normals are averaged over
+    plate and wall, and the plate's vertices lie on rings 2, 4 and 6 from the hole's axis. The
+    plate's big splats reached across the hole (86% of its core covered); the rim points, in
+    the plate's plane with normals 45 degrees off, now end them short of it, and the plate
+    itself stays covered."""
+    around = 16
+    angles = 2 * np.pi * np.arange(around) / around
+    rim = np.stack([np.cos(angles), np.sin(angles), np.zeros(around)], 1)
+    wall = np.concatenate([rim - [0, 0, 0.4 * k] for k in range(1, 4)])
+    plate = np.concatenate([np.stack([radius * np.cos(a), radius * np.sin(a), 0 * a], 1)
+                            for radius, count, turn in [(2.0, 8, 0.0), (4.0, 12, 0.3), (6.0, 16, 0.0)]
+                            for a in [turn + 2 * np.pi * np.arange(count) / count]])
+    normals = np.concatenate([np.tile([0.0, 0, 1], (len(plate), 1)), -wall * [1, 1, 0], unit(-rim + [0, 0, 1])])
+    prepared, _ = prepare(PointCloud(np.concatenate([plate, wall, rim]), normals=normals))
+    rng = np.random.default_rng(0)
+    distance, angle = np.sqrt(rng.uniform(0, 36, 20000)), rng.uniform(0, 2 * np.pi, 20000)
+    samples = np.stack([distance * np.cos(angle), distance * np.sin(angle), np.zeros_like(distance)], 1)
+    covered = covered_by(prepared, np.arange(len(plate)), samples)
+    assert covered[distance < 0.5].mean() < 0.25
+    assert covered[(distance > 1) & (distance < 5.5)].all()
+
+
 def test_a_tip_gets_a_small_splat_and_stays_covered():
     """The apex of a cone of half-angle 20 degrees (a horn, a hoof), sampled in rings as a mesh's
     vertices are: all its neighbours lie more than 45 degrees below its tangent plane. Its cell

@@ -26,6 +26,8 @@ CLIP_LINES = 2                 # clip lines per splat: an edge, or an edge and a
 INACTIVE_CLIP = (0.0, 0.0, 1.0)  # 0 u + 0 v <= 1: cuts nothing
 PARALLEL_COS = math.cos(math.radians(30.0))  # clip lines closer in direction are one edge
 CELL_BLOCK = 1024              # the fewest points per thread's piece of the cell kernels
+RIM_MARGIN = 0.5               # a face's clip line at a curved rim: beyond the rim point by this
+                               # share of its distance from the splat's centre
 SKIP_MARGIN = 1.0 + 1e-6       # a line this much farther than the farthest vertex (squared) misses the cell
 
 
@@ -363,23 +365,57 @@ def _append_unit_line(candidates, count, a, b, c, length):  # pragma: no cover -
 
 
 @numba.njit(cache=True, inline="always")
+def _in_plane(points, normals, p, q, flat_sin2):  # pragma: no cover - compiled
+    """Whether neighbour q lies in p's tangent plane: ((q - p) . n_p)^2 <= flat_sin2 |q - p|^2."""
+    height = 0.0
+    distance2 = 0.0
+    for a in range(3):
+        offset = points[q, a] - points[p, a]
+        height += offset * normals[p, a]
+        distance2 += offset * offset
+    return height * height <= flat_sin2 * distance2
+
+
+@numba.njit(cache=True, inline="always")
+def _splat_distance(points, axes, i, p, q):  # pragma: no cover - compiled
+    """|(u, v)| of neighbour q projected into splat p's axes (u, v) = axes[i] (1 on the rim)."""
+    u = 0.0
+    v = 0.0
+    uu = 0.0
+    vv = 0.0
+    for a in range(3):
+        offset = points[q, a] - points[p, a]
+        u += offset * axes[i, 0, a]
+        v += offset * axes[i, 1, a]
+        uu += axes[i, 0, a] * axes[i, 0, a]
+        vv += axes[i, 1, a] * axes[i, 1, a]
+    return math.hypot(u / uu if uu > 0.0 else 0.0, v / vv if vv > 0.0 else 0.0)
+
+
+@numba.njit(cache=True, inline="always")
 def _crease_candidates(points, normals, index, axes, i, p, features, candidates):  # pragma: no cover - compiled
     """The crease half-planes of splat p that cut it, among its neighbours index[i], in its axes
-    (u, v) = axes[i], as unit (a, b, c) rows of candidates; returns their number."""
+    (u, v) = axes[i], as unit (a, b, c) rows of candidates, a rim's moved out by RIM_MARGIN of
+    the rim point's distance (cells.py); returns their number."""
     count = 0
     for j in range(index.shape[1]):
         q = index[i, j]
         facing = 0.0
         for a in range(3):
             facing += normals[q, a] * normals[p, a]
-        if facing >= features.sharp_cos or features.crease[q] or not features.flat[q]:
+        if facing >= features.sharp_cos or features.crease[q]:
             continue
-        if facing < features.sheet_cos:  # rare, so allocating below costs nothing on the usual path
-            offset = points[q] - points[p]
-            if np.dot(offset, normals[p]) ** 2 <= features.flat_sin2 * np.dot(offset, offset):
-                continue  # in p's face: the same surface seen from behind
+        # a curved neighbour in p's face's plane lies on the rim of that face: a bolt hole's, a
+        # rounded outer edge's, where no second face makes crease points
+        rim = not features.flat[q]
+        if rim and not (features.flat[p] and _in_plane(points, normals, p, q, features.flat_sin2)):
+            continue
+        if facing < features.sheet_cos and _in_plane(points, normals, p, q, features.flat_sin2):
+            continue  # in p's face: the same surface seen from behind
         la, lb, lc = _crease_half_plane(points, p, q, normals[q], axes[i], features.on_plane_sin2)
         length = math.sqrt(la * la + lb * lb)
+        if rim:
+            lc += RIM_MARGIN * _splat_distance(points, axes, i, p, q) * length
         if length < 1e-6 or lc >= length:  # parallel planes, or the line misses the splat
             continue
         count = _append_unit_line(candidates, count, la, lb, lc, length)

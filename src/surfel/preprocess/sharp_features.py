@@ -12,6 +12,9 @@ cut at creases. This module finds where:
   * a point p and a flat neighbour q with normals more than SHARP_ANGLE apart lie across a
     crease, the line where their tangent planes meet, whether p is flat too or lies on a
     coarsely sampled curved surface meeting q's face (only a face's plane makes an edge);
+  * a flat point p and a neighbour q in its plane (within FLAT_SIN2) with normals more than
+    SHARP_ANGLE apart lie across the rim of p's face, where a coarse curved surface meets it
+    (a bolt hole, a rounded outer edge): q is not flat, and it is on the crease line;
   * crease points, which lie (within ON_PLANE_SIN2) in the planes of two flat neighbours more
     than SHARP_ANGLE apart (on the edge itself, their normals averaged over both faces), stick
     out of one face or the other whatever their orientation: they are dropped;
@@ -23,9 +26,10 @@ cut at creases. This module finds where:
     side, off that plane, still clips.
 
 What is done with it is the cells' (`cells.py`): a point's cell ends at such a crease instead
-of at the bisector, and its clip lines are the nearest such creases; crease points are cut away
-whole and bound no cell. Those kernels share the crease geometry, so they live in one module
-(numba's on-disk cache does not see a change to a function in another file).
+of at the bisector, and its clip lines are the nearest such creases, or rims (moved out a
+little); crease points are cut away whole and bound no cell. Those kernels share the crease
+geometry, so they live in one module (numba's on-disk cache does not see a change to a function
+in another file).
 """
 
 from __future__ import annotations
