@@ -123,6 +123,21 @@ def test_info_reports_attributes_and_estimates():
     assert "colors" in info["attributes"] and "normals" in info["would_estimate"]
 
 
+def test_an_output_named_for_another_format_is_refused(tmp_path):
+    """prepare writes a PLY and compare a PNG: under another extension the file would not read
+    back as what its name says (load takes a .npz for an archive), so the name is refused
+    before any work, in one line, and nothing is written."""
+    cloud = DATA / "autzen_trim.laz"
+    for command, output, wanted in (("prepare", "prepared.npz", ".ply"), ("compare", "side.jpg", ".png")):
+        target = tmp_path / output
+        args = (cloud, "-o", target) + (("--size", "32x32") if command == "compare" else ())
+        proc = run(command, *args)
+        lines = proc.stderr.strip().splitlines()
+        assert proc.returncode == 2 and len(lines) == 1, (command, proc.stderr)
+        assert output in lines[0] and wanted in lines[0], lines
+        assert not target.exists()
+
+
 def test_unknown_method_is_a_clear_error(tmp_path):
     proc = run("render", "--demo", "-o", tmp_path / "x.png", "--method", "nope")
     assert proc.returncode == 2 and "unknown method" in proc.stderr

@@ -232,7 +232,7 @@ def compare(mesh, output, as_json, every, **values):
 
     request = parse_render({**values, "input": mesh}, require_output=False)
     output = output or f"compare-{request.method}.png"
-    check_output(output, "--output")
+    check_output(output, "--output", (".png",))
     cloud = load(mesh)
     reference, result, metrics = compare_with_mesh(cloud, request.camera.camera(cloud), request.method,
                                                    request.options, Renderer(), backend=request.backend,
@@ -273,7 +273,7 @@ def prepare(input, output, neighbors, sensor, elliptical, normal_field, sharp_fe
     from .request import parse_values
 
     position = parse_values({"sensor": sensor}, ("sensor",)).get("sensor")
-    check_output(output, "--output")
+    check_output(output, "--output", (".ply",))
     cloud = with_sensor(load(input), position)
     prepared, report = do_prepare(cloud.with_(radii=None, axes=None) if elliptical else cloud, k_normals=neighbors,
                                   elliptical=elliptical, normal_field=normal_field, sharp_features=sharp_features,
