@@ -1,11 +1,14 @@
-"""Phong splatting's normal field: the fitted slopes reproduce the true normals."""
+"""Phong splatting's normal field: the fitted slopes reproduce the true normals; the field that
+shapes a curved splat leaves a face's rim out."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from samples import angles, sphere
-from surfel.preprocess import fit_ellipses, fit_normal_field
+from samples import angles, sphere, unit
+from surfel.attributes import FIELD_SLOPES
+from surfel.cloud import PointCloud
+from surfel.preprocess import fit_ellipses, fit_normal_field, prepare
 
 
 def test_normal_field_reproduces_sphere_normals():
@@ -62,3 +65,38 @@ def test_the_far_side_of_a_thin_tube_does_not_flatten_its_field():
     middle = np.abs(x) < 1e-9
     np.testing.assert_allclose(beta[middle], 0.5 * np.tan(np.pi / 4) / np.sin(np.pi / 4), rtol=0.1)
     np.testing.assert_allclose(alpha[middle], 0.0, atol=1e-6)  # straight along the tube
+
+
+def test_a_face_is_shaped_flat_up_to_its_rim_and_shaded_round():
+    """A flat cap meeting a cylinder 12 vertices round, as a CAD part's mesh has them: the
+    rim's normals are averaged over cap and side. The cap's shading field tilts towards the
+    rim, as the mesh's interpolated normals shade it; the field that shapes its curved splats
+    leaves the rim out and is flat, so that they reach the edge instead of bending down short
+    of it. Scanned with noise and no normals, a normal far off is noise: one field."""
+    around = 12
+    step = 2 * np.pi / around
+    circle = np.stack([np.cos(step * np.arange(around)), np.sin(step * np.arange(around)), np.zeros(around)], 1)
+    side = np.concatenate([circle - [0, 0, k * step] for k in range(1, 8)])
+    grid = np.arange(-1, 1 + 1e-9, step / 2)
+    x, y = (values.ravel() for values in np.meshgrid(grid, grid))
+    inside = np.hypot(x, y) < 1 - step / 4
+    cap = np.stack([x[inside], y[inside], np.zeros(inside.sum())], 1)
+    normals = np.concatenate([side * [1, 1, 0], np.tile([0.0, 0, 1], (len(cap), 1)), unit(circle + [0, 0, 1])])
+    prepared, _ = prepare(PointCloud(np.concatenate([side, cap, circle]), normals=normals), normal_field=True)
+    slopes = {key: np.abs(prepared.attributes[key]) for key in FIELD_SLOPES}
+    cap_points = np.arange(len(side), len(side) + len(cap))
+    by_rim = cap_points[np.hypot(*cap[:, :2].T) > 1 - step]
+    assert np.median(np.maximum(slopes["phong_alpha"], slopes["phong_beta"])[by_rim]) > 0.15
+    assert np.maximum(slopes["curve_alpha"], slopes["curve_beta"])[cap_points].max() < 1e-6
+    # the side below its first ring, curved, is shaped by its curvature as it is shaded
+    below = np.flatnonzero(side[:, 2] < -1.5 * step)
+    for shading, shape in (("phong_alpha", "curve_alpha"), ("phong_beta", "curve_beta")):
+        np.testing.assert_allclose(slopes[shape][below], slopes[shading][below], atol=0.05)
+    assert np.maximum(slopes["curve_alpha"], slopes["curve_beta"])[below].min() > 0.2
+
+    points = np.concatenate([side, cap, circle])
+    scanned = points + np.random.default_rng(0).normal(0, 0.02, points.shape)
+    noisy, report = prepare(PointCloud(scanned), normal_field=True)
+    assert "(noisy)" in report["normals"]
+    for shading, shape in (("phong_alpha", "curve_alpha"), ("phong_beta", "curve_beta")):
+        np.testing.assert_array_equal(noisy.attributes[shading], noisy.attributes[shape])

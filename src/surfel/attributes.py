@@ -27,17 +27,18 @@ Kinds. A reader that knows may state a kind (`PointCloud(kinds={...})`); otherwi
 
 Derived arrays. Attributes estimated by surfel rather than measured by a scanner have reserved
 names (`DERIVED`): the Phong normal-field slopes ``phong_alpha``, ``phong_beta`` (Botsch et al.
-2004), the sharp-feature ``clip_lines`` (surfel.preprocess), ``screen_facing`` (1 for the
-points on no surface, drawn as round splats facing the camera: surfel.preprocess.structure),
-the ``thickness`` of a splat's layer, which caps z_t (surfel.preprocess.thickness), and the
-sequential point tree's ``lod_emin``, ``lod_emax``, ``lod_dparent``, ``lod_dsuffix`` (Dachsbacher
-et al. 2003). They go through the same schema (`AttributeSpec.derived` is true for them), are
-always float32 and continuous, and describe the splats they were estimated for: a level-of-detail
-path keeps the leaves' clip lines (inner nodes cut nothing), computes its own lod_* and drops the
-slopes and thicknesses (inner nodes are new disks; Phong splatting fits them again), makes an
-inner node screen-facing when most of its children's area is, while scanner attributes are
-aggregated (lod/build.py). `Schema.scanner` lists the scanner fields, so that users see them
-apart from surfel's estimates.
+2004) that shade a splat, and ``curve_alpha``, ``curve_beta`` that shape it (a face's, flat up
+to its rim: surfel.preprocess.normal_field), the sharp-feature ``clip_lines``
+(surfel.preprocess), ``screen_facing`` (1 for the points on no surface, drawn as round splats
+facing the camera: surfel.preprocess.structure), the ``thickness`` of a splat's layer, which
+caps z_t (surfel.preprocess.thickness), and the sequential point tree's ``lod_emin``,
+``lod_emax``, ``lod_dparent``, ``lod_dsuffix`` (Dachsbacher et al. 2003). They go through the
+same schema (`AttributeSpec.derived` is true for them), are always float32 and continuous, and
+describe the splats they were estimated for: a level-of-detail path keeps the leaves' clip lines
+(inner nodes cut nothing), computes its own lod_* and drops the slopes and thicknesses (inner
+nodes are new disks; Phong splatting fits them again), makes an inner node screen-facing when
+most of its children's area is, while scanner attributes are aggregated (lod/build.py).
+`Schema.scanner` lists the scanner fields, so that users see them apart from surfel's estimates.
 """
 
 from __future__ import annotations
@@ -65,7 +66,9 @@ KNOWN_KINDS = {
 }
 # Other spellings of known names, in compact form: LAS 1.0-1.3's whole-degree scan angle.
 _ALIASES = {"scananglerank": "scan_angle"}
-DERIVED = frozenset({"phong_alpha", "phong_beta", "clip_lines", "screen_facing", "thickness", "lod_emin",
+# The normal field's slopes, in the order preprocessing fits them: the shading's, then the surface's.
+FIELD_SLOPES = ("phong_alpha", "phong_beta", "curve_alpha", "curve_beta")
+DERIVED = frozenset({*FIELD_SLOPES, "clip_lines", "screen_facing", "thickness", "lod_emin",
                      "lod_emax", "lod_dparent", "lod_dsuffix"})
 DERIVED_DTYPE = np.dtype(np.float32)
 # Each derived array's per-point shape (scalars but the clip lines: two lines a u + b v <= c,

@@ -11,7 +11,7 @@ SPLAT_INPUT vec3 in_normal;   // unit normal; zero: the splat faces the camera (
 SPLAT_INPUT vec3 in_color;    // albedo
 SPLAT_INPUT vec3 in_axis_u;   // tangent axes scaled to the ellipse's semi-axes
 SPLAT_INPUT vec3 in_axis_v;
-SPLAT_INPUT vec2 in_field;    // Phong splatting's normal-field slopes (alpha, beta)
+SPLAT_INPUT vec4 in_field;    // normal-field slopes: Phong splatting's (alpha, beta), then the curved surface's
 SPLAT_INPUT vec3 in_lod;      // sequential point tree: e_g, the parent's e_g, the distance to the parent
 SPLAT_INPUT vec3 in_clip0;    // clip lines at sharp features: keep dot(xy, (u, v)) <= z
 SPLAT_INPUT vec3 in_clip1;
@@ -31,7 +31,7 @@ vec3 packed_vec3(int at) {
 void load_splat_lod(int i) {
     int at = i * SPLAT_FLOATS;
     in_center = packed_vec3(at);
-    in_lod = packed_vec3(at + 17);
+    in_lod = packed_vec3(at + 19);
 }
 
 // The rest of splat i, after load_splat_lod.
@@ -41,9 +41,9 @@ void load_splat(int i) {
     in_color = packed_vec3(at + 6);
     in_axis_u = packed_vec3(at + 9);
     in_axis_v = packed_vec3(at + 12);
-    in_field = vec2(packed_splats[at + 15], packed_splats[at + 16]);
-    in_clip0 = packed_vec3(at + 20);
-    in_clip1 = packed_vec3(at + 23);
-    in_thickness = packed_splats[at + 26];
+    in_field = vec4(packed_splats[at + 15], packed_splats[at + 16], packed_splats[at + 17], packed_splats[at + 18]);
+    in_clip0 = packed_vec3(at + 22);
+    in_clip1 = packed_vec3(at + 25);
+    in_thickness = packed_splats[at + 28];
 }
 #endif

@@ -5,7 +5,9 @@ Every splat method reads the same layout (see splat_common.glsl):
     in_normal (3) unit normal; zero for a splat that faces the camera (preprocess.structure)
     in_color  (3) RGB albedo
     in_axis_u (3), in_axis_v (3) tangent axes scaled to the ellipse semi-axes
-    in_field  (2) Phong splatting's normal-field slopes (alpha, beta), 0 when absent
+    in_field  (4) the normal field's slopes: Phong splatting's (alpha, beta) that shade the
+                  splat, then those that shape a curved one (surfel.preprocess.normal_field), 0
+                  when absent
     in_lod    (3) sequential point tree node: e_g, parent's e_g, distance to the parent
                   (surfel.lod; a cloud without them is all leaves that always pass)
     in_clip0 (3), in_clip1 (3) clip lines (a, b, c) at sharp features: the splat keeps
@@ -23,6 +25,7 @@ import weakref
 
 import numpy as np
 
+from ..attributes import FIELD_SLOPES
 from ..cloud import PointCloud
 from ..preprocess import INACTIVE_CLIP, drawn_normals, splat_thickness
 from .context import get_context
@@ -31,7 +34,7 @@ from .program import set_uniforms
 CHUNK = 2_000_000
 ATTRIBUTES = ("in_center", "in_normal", "in_color", "in_axis_u", "in_axis_v", "in_field", "in_lod",
               "in_clip0", "in_clip1", "in_thickness")
-WIDTHS = (3, 3, 3, 3, 3, 2, 3, 3, 3, 1)
+WIDTHS = (3, 3, 3, 3, 3, 4, 3, 3, 3, 1)
 LOD_EXTRAS = ("lod_emin", "lod_emax", "lod_dparent")
 FLOATS = sum(WIDTHS)  # splat_attributes.glsl SPLAT_FLOATS
 COMPUTE_GROUP = 64    # the local size of splatting.glsl's compute programs
@@ -50,17 +53,18 @@ def pack(cloud: PointCloud, start: int = 0, stop: int | None = None) -> np.ndarr
         out[:, 9:15] = cloud.axes[start:stop].reshape(n, 6)
     else:
         out[:, 9:15] = 0.0
-    for column, key in ((15, "phong_alpha"), (16, "phong_beta")):
+    for column, key in enumerate(FIELD_SLOPES, 15):
+        key = key if key in cloud.attributes else key.replace("curve", "phong")  # shaped as it is shaded
         out[:, column] = cloud.attributes[key][start:stop] if key in cloud.attributes else 0.0
     if all(key in cloud.attributes for key in LOD_EXTRAS):
-        out[:, 17:20] = np.stack([cloud.attributes[key][start:stop] for key in LOD_EXTRAS], axis=1)
+        out[:, 19:22] = np.stack([cloud.attributes[key][start:stop] for key in LOD_EXTRAS], axis=1)
     else:
-        out[:, 17:20] = (0.0, np.finfo(np.float32).max, 0.0)
+        out[:, 19:22] = (0.0, np.finfo(np.float32).max, 0.0)
     if "clip_lines" in cloud.attributes:
-        out[:, 20:26] = cloud.attributes["clip_lines"][start:stop].reshape(n, 6)
+        out[:, 22:28] = cloud.attributes["clip_lines"][start:stop].reshape(n, 6)
     else:
-        out[:, 20:26] = INACTIVE_CLIP * 2
-    out[:, 26] = splat_thickness(cloud, start, stop)
+        out[:, 22:28] = INACTIVE_CLIP * 2
+    out[:, 28] = splat_thickness(cloud, start, stop)
     return out
 
 

@@ -151,6 +151,16 @@ def splat_fields(cloud: PointCloud) -> np.ndarray:
     return np.zeros((1, 2), np.float32)
 
 
+def splat_curves(cloud: PointCloud) -> np.ndarray:
+    """(N, 2) slopes (curve_alpha, curve_beta) that shape a curved splat, or (1, 2) zeros: a
+    face's field without its rim (surfel.preprocess.normal_field); a cloud fitted without them
+    is shaped by its shading field."""
+    if "curve_alpha" in cloud.attributes and "curve_beta" in cloud.attributes:
+        slopes = np.stack([cloud.attributes["curve_alpha"], cloud.attributes["curve_beta"]], 1)
+        return np.ascontiguousarray(slopes, np.float32)
+    return splat_fields(cloud)
+
+
 def splat_axes(cloud: PointCloud) -> np.ndarray:
     """(N, 2, 3) tangent axes; from normals and radii when the cloud has none."""
     if cloud.axes is not None:

@@ -66,6 +66,7 @@ SPLAT_VARYING float v_weight;    // EWA_FILTER: the resampling kernel's relative
 SPLAT_VARYING float v_footprint; // EWA_FILTER: the share of the pixel-wide footprint off the disk
 SPLAT_VARYING vec3 v_field_u;    // alpha u_j and beta v_j: the normal field's slopes (eye space)
 SPLAT_VARYING vec3 v_field_v;
+SPLAT_VARYING vec2 v_bend;       // CURVED_SPLATS: the surface's curvatures k_u, k_v along the axes
 #ifdef CLIP_LINES
 SPLAT_VARYING vec3 v_clip0;      // clip lines in local coordinates (sharp features)
 SPLAT_VARYING vec3 v_clip1;
@@ -128,14 +129,22 @@ bool splat_setup(out vec2 lo, out vec2 hi, out bool crosses_near) {
     vec3 n = mat3(u_view) * in_normal;
     vec3 au = mat3(u_view) * in_axis_u * u_radius_scale;
     vec3 av = mat3(u_view) * in_axis_v * u_radius_scale;
-    vec2 field = in_field;
+    vec2 field = in_field.xy;
 #ifdef CURVED_SPLATS
-    // A curved splat reaches no farther along each axis than where its field has turned by
+    // A curved splat reaches no farther along each axis than where its surface has turned by
     // MAX_RIM_TILT, its slope there then at most that (splatting.py)
-    vec2 reach = max(abs(field) / MAX_RIM_TILT, 1.0);
+#ifdef NORMAL_FIELD
+    vec2 bend = in_field.zw;  // shaped by the surface's field, shaded by the other (normal_field.py)
+#else
+    // lit by its splats' normals, a face's splats bent by the shading field put the rim's
+    // averaged normal on its outline, as a mesh's interpolated normals shade it
+    vec2 bend = in_field.xy;
+#endif
+    vec2 reach = max(abs(bend) / MAX_RIM_TILT, 1.0);
     au /= reach.x;
     av /= reach.y;
     field /= reach;
+    bend /= reach;
 #endif
     if (!face_camera(c, n, au, av)) n = normalize(n);
     bool back = faces_away(c, n);
@@ -143,6 +152,9 @@ bool splat_setup(out vec2 lo, out vec2 hi, out bool crosses_near) {
     // the normal field turns with the normal when the splat is seen from its back
     v_field_u = (back ? -1.0 : 1.0) * field.x * normalize(au + 1e-30);
     v_field_v = (back ? -1.0 : 1.0) * field.y * normalize(av + 1e-30);
+#ifdef CURVED_SPLATS
+    v_bend = (back ? -1.0 : 1.0) * bend / max(vec2(length(au), length(av)), 1e-30);
+#endif
     float near = u_depth_range.x;
     bool before_near = u_ortho == 0.0 && -c.z + length(au) + length(av) < near;  // wholly behind the camera's near plane
     bool culled = (back && u_backface_culling != 0) || before_near;
@@ -266,7 +278,7 @@ void main() {
 // outline of a curved surface, over whatever lies behind it.
 float curved_quadratic(vec3 o, vec3 d, float denom, float t, out float qb, out float qc) {
     vec3 eu = normalize(v_u), ev = normalize(v_v), p0 = o + d * t - v_center;
-    float ku = dot(v_field_u, v_u), kv = dot(v_field_v, v_v);
+    float ku = v_bend.x, kv = v_bend.y;
     float a0 = dot(p0, eu), a1 = dot(d, eu), b0 = dot(p0, ev), b1 = dot(d, ev);
     float qa = 0.5 * (ku * a1 * a1 + kv * b1 * b1);
     qb = denom + ku * a0 * a1 + kv * b0 * b1;

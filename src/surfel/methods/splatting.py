@@ -41,8 +41,13 @@ otherwise claim a pixel-wide band of the surface behind, drawn with their grazin
 describes, so a splat ends at the true contour -- while the shading keeps the blended splat
 normals, which fitted fields would make noisier on raw scans (issue 17: a coarse CAD part in
 an oblique view, 26.0 dB flat, 30.3 dB curved, 30.7 dB with the low-pass hiding nothing;
-phong 31.6 dB). A level-of-detail cut's splats are flat (rendering.py): fitting fields to
-every frame's cut would cost more than the frame.
+phong 31.6 dB). Unlike `phong`'s, they are bent by the shading field (phong_alpha,
+phong_beta), rim included: a face's splats then bend down at its edge and leave its outline
+to the rim's averaged normal, as a mesh's interpolated normals shade it. Shaped by the
+surface's field instead (flat up to the edge), they lit the outline like the face: -0.3 to
+-0.6 dB on CAD parts' vertices in some views (casting.obj, fandisk, rocker-arm, the turned
+part). A level-of-detail cut's splats are flat (rendering.py): fitting fields to every frame's
+cut would cost more than the frame.
 
 `phong` -- Botsch, Spernat & Kobbelt 2004, "Phong splatting" (survey 2.1.4): elliptical
 splats (c_j, u_j, v_j) aligned with the principal curvature directions, the per-fragment
@@ -51,9 +56,11 @@ v_jᵀ(q - c_j)) / |axis|² (eq. 7), discarding u² + v² > 1, exact per-pixel d
 linear normal field N_j(u, v) = n̄_j + u α_j û_j + v β_j v̂_j (eq. 8, α_j and β_j fitted in
 preprocessing: surfel.preprocess.fit_normal_field), blended with Gaussian weights,
 normalized and lit per pixel as in `deferred`. Beyond the paper, each splat is the curved
-surface its normal field describes (the height field h = -(k_u s_u² + k_v s_v²)/2 over the
-splat plane, k the field's tilt per unit length): the ray meets that instead of the plane,
-which puts the depth on the surface and ends the splat at the surface's true contour. Flat
+surface a normal field describes (the height field h = -(k_u s_u² + k_v s_v²)/2 over the
+splat plane, k the field's tilt per unit length; the field fitted without a face's rim,
+curve_alpha and curve_beta, so that a face stays flat up to its edge: normal_field.py): the
+ray meets that instead of the plane, which puts the depth on the surface and ends the splat
+at the surface's true contour. Flat
 splats stick out past the outline of a coarsely sampled curved surface, dark (their field
 normals turn edge-on there) over the bright surface behind: the largest error of sparse
 sampling (bunny thinned to every 4th point: +0.7 to +2.5 dB interior PSNR over five views;

@@ -79,6 +79,7 @@ from .ewa import (
     splat_axes,
     splat_clip_lines,
     splat_colors,
+    splat_curves,
     splat_fields,
     target_camera,
 )
@@ -111,6 +112,7 @@ def pack_splats(cloud: PointCloud, extras: bool) -> tuple[np.ndarray, np.ndarray
     extra = np.empty((t.EXTRAS, n), np.float32)
     extra[t.EA0:t.EC1 + 1] = splat_clip_lines(cloud).reshape(-1, 6).T
     extra[t.EALPHA:t.EBETA + 1] = splat_fields(cloud).T
+    extra[t.ECURVE_ALPHA:t.ECURVE_BETA + 1] = splat_curves(cloud).T
     return packed, extra
 
 

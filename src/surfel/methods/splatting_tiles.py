@@ -44,10 +44,10 @@ from .splatting import GAUSSIAN_SHARPNESS, KERNEL_SIZE
 # layer's thickness, the cap of z_t (0: none).
 (PX, PY, PZ, PNX, PNY, PNZ, PUX, PUY, PUZ, PVX, PVY, PVZ, PR, PG, PB, PT) = range(16)
 PACKED = 16
-# Rows of its extras: two clip lines a u + b v <= c (surfel.preprocess) and the normal
-# field's slopes alpha, beta (Phong splatting).
-(EA0, EB0, EC0, EA1, EB1, EC1, EALPHA, EBETA) = range(8)
-EXTRAS = 8
+# Rows of its extras: two clip lines a u + b v <= c (surfel.preprocess), the normal field's
+# slopes alpha, beta that shade it (Phong splatting) and those that shape a curved splat.
+(EA0, EB0, EC0, EA1, EB1, EC1, EALPHA, EBETA, ECURVE_ALPHA, ECURVE_BETA) = range(10)
+EXTRAS = 10
 # Rows of a tile's table. The first PACKED + EXTRAS rows are the staged inputs. Then the
 # setup's record: the projected centre (MX, MY); with (dx, dy) a pixel centre's offset from
 # it, W = W0 + WX dx + WY dy, depth W = Z0 + ZX dx + ZY dy, u W = U0 + UX dx + UY dy and

@@ -22,7 +22,8 @@ FIELD_NEIGHBOURS), serves every estimation, in this order, each using the ones b
   8. clip lines at the sharp features and at the borders of open surfaces (`borders.py`,
      `cells.py`; a margin out where the normals were estimated on a noisy cloud, also when
      `smooth` denoised it first), none on screen-facing splats;
-  9. Phong splatting's normal fields (`normal_field.py`), flat on screen-facing splats;
+  9. Phong splatting's normal fields (`normal_field.py`): the shading's and the curved
+     surface's, flat on screen-facing splats;
 
 Given attributes are kept as they are.
 
@@ -37,7 +38,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from ..attributes import INFINITE_LENGTH
+from ..attributes import FIELD_SLOPES, INFINITE_LENGTH
 from ..cloud import PointCloud
 from .borders import NOISY_MARGIN, border_outwards
 from .cell_kernels import INACTIVE_CLIP
@@ -94,7 +95,7 @@ def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np
     axes: if None, fitted ellipses when `elliptical`, else circular frames of the radii.
     Estimated radii and axes are bounded by the sampling (`spacing.py`), whose reference spacing
     is `reference_spacing` (N,) when the caller knows it (a COPC node's), else its model's.
-    normal_field: also fit attributes["phong_alpha"], attributes["phong_beta"] if missing.
+    normal_field: also fit the normal field (attributes FIELD_SLOPES) if missing.
     sharp_features: when radii and axes are estimated, cells end at creases and
     attributes["clip_lines"] (N, CLIP_LINES, 3) cut the splats there and at the borders of open
     surfaces (`cells.py`).
@@ -233,10 +234,11 @@ def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np
                                     f"(normals > {SHARP_ANGLE:g} degrees apart) or borders, "
                                     f"{int(features.crease.sum())} crease points dropped")
     if need_field:
-        alpha, beta = field_slopes(nbh, unit_normals, axes, progress)
+        slopes = field_slopes(nbh, unit_normals, axes, progress, rims=not noisy)
         if drawn_facing is not None:
-            alpha[drawn_facing] = beta[drawn_facing] = 0.0  # facing the camera: flat, lit head-on
-        attributes.update(phong_alpha=nbh.unsort(alpha), phong_beta=nbh.unsort(beta))
+            slopes[drawn_facing] = 0.0  # facing the camera: flat, lit head-on
+        slopes = nbh.unsort(slopes)
+        attributes.update({key: slopes[:, column].copy() for column, key in enumerate(FIELD_SLOPES)})
         report["normal_field"] = f"fitted (weighted least squares, k={FIELD_NEIGHBOURS})"
     if attributes.keys() != cloud.attributes.keys():
         changes["attributes"] = attributes

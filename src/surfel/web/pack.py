@@ -30,7 +30,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..cloud import PointCloud
-from ..methods.ewa import has_normal_field, splat_fields
+from ..methods.ewa import has_normal_field, splat_curves, splat_fields
 from ..preprocess import facing_mask, splat_thickness
 
 POSITION_STEPS = 65535
@@ -110,7 +110,7 @@ def pack_cloud(cloud: PointCloud, values: dict[str, np.ndarray]) -> tuple[dict, 
     if cloud.colors is not None:
         columns["color"] = np.round(cloud.colors * 255).astype(np.uint8)
     if has_normal_field(cloud):  # dimensionless slopes, which a flipped axis_v leaves as they are
-        columns["field"] = splat_fields(cloud).astype(np.float16)
+        columns["field"] = np.concatenate([splat_fields(cloud), splat_curves(cloud)], axis=1).astype(np.float16)
     if "clip_lines" in cloud.attributes:
         v_decoded = np.cos(phi)[:, None] * t2 - np.sin(phi)[:, None] * t1
         flip = np.einsum("ij,ij->i", v, v_decoded) < 0

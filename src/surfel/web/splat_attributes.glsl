@@ -14,7 +14,7 @@ in float a_angle;    // angle of axis_u in tangent_frame(normal), [0, 1) of a tu
 in vec3 a_color;     // rgb albedo
 in float a_value;    // the attribute the colour mode shows: 16-bit steps (normalized) or a palette index
 in vec3 a_lod;       // e_g, the parent's e_g, the distance to the parent, in length units
-in vec2 a_field;     // Phong splatting's normal-field slopes (alpha, beta), 0 when absent
+in vec4 a_field;     // normal-field slopes: Phong splatting's (alpha, beta), then the curved surface's; 0 when absent
 in vec3 a_clip0;     // clip lines in the local coordinates of axis_u, axis_v
 in vec3 a_clip1;
 in float a_thickness; // the layer's thickness, z_t's cap, in length units (0: none)

@@ -243,7 +243,7 @@
     bind(LOC.a_angle, "angle", 1);
     if (columns.color) bind(LOC.a_color, "color", 3);
     if (columns.lod) bind(LOC.a_lod, "lod", 3);
-    if (columns.field) bind(LOC.a_field, "field", 2);
+    if (columns.field) bind(LOC.a_field, "field", 4);
     if (columns.clip) { bind(LOC.a_clip0, "clip", 3, 0, 12); bind(LOC.a_clip1, "clip", 3, 6, 12); }
     if (columns.thickness) bind(LOC.a_thickness, "thickness", 1);  // else the generic value 0: no cap
     if (columns["value:" + S.color]) bind(LOC.a_value, "value:" + S.color, 1);
