@@ -82,6 +82,24 @@ def scan_lines(rng, angle: float, line: float, along: float, half: float = 25.0)
     return np.concatenate(rows) @ np.array([[c, s], [-s, c]])
 
 
+def capped_cylinder(around: int = 12):
+    """A flat cap on a cylinder of radius 1, sampled as a CAD part's mesh is: the side in rings
+    of `around` vertices a step 2 pi / around apart (normals turning that much from vertex to
+    vertex, so that no point there is flat), the cap on a grid of half that step, and the rim
+    with normals averaged over cap and side. Returns (side, cap, rim, normals), the normals of
+    side, cap and rim in that order."""
+    step = 2 * np.pi / around
+    angles = step * np.arange(around)
+    rim = np.stack([np.cos(angles), np.sin(angles), np.zeros(around)], 1)
+    side = np.concatenate([rim - [0, 0, k * step] for k in range(1, 8)])
+    grid = np.arange(-1, 1 + 1e-9, step / 2)
+    x, y = (values.ravel() for values in np.meshgrid(grid, grid))
+    inside = np.hypot(x, y) < 1 - step / 4
+    cap = np.stack([x[inside], y[inside], np.zeros(inside.sum())], 1)
+    normals = np.concatenate([side * [1, 1, 0], np.tile([0.0, 0, 1], (len(cap), 1)), unit(rim + [0, 0, 1])])
+    return side, cap, rim, normals
+
+
 def edge_wedge(h: float = 0.05):
     """Two faces meeting at a 90 degree convex edge along y (the solid is x <= 0, z <= 0): face A
     (z = 0, x <= 0, normal +z) and face B (x = 0, z <= 0, normal +x), sampled on a jittered grid

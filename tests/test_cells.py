@@ -6,7 +6,17 @@ import numpy as np
 import pytest
 
 from models import turned_part
-from samples import coverage, covered_by, dense_samples, edge_wedge, nn_spacing, scan_lines, sphere, unit
+from samples import (
+    capped_cylinder,
+    coverage,
+    covered_by,
+    dense_samples,
+    edge_wedge,
+    nn_spacing,
+    scan_lines,
+    sphere,
+    unit,
+)
 from scenes import sheet_on_body, sheet_over_body
 from surfel.cloud import PointCloud
 from surfel.preprocess import (
@@ -234,16 +244,8 @@ def test_a_face_cuts_the_splats_of_a_coarse_curved_surface_meeting_it():
     normals turn 30 degrees from vertex to vertex, so no point there is flat, but the cap is.
     The rim's splats (normals averaged over cap and side) end at the cap's plane instead of
     standing above it."""
-    around = 12
-    step = 2 * np.pi / around
-    angles = step * np.arange(around)
-    circle = np.stack([np.cos(angles), np.sin(angles), np.zeros(around)], 1)
-    side = np.concatenate([circle - [0, 0, k * step] for k in range(1, 8)])
-    grid = np.arange(-1, 1 + 1e-9, step / 2)
-    x, y = (values.ravel() for values in np.meshgrid(grid, grid))
-    inside = np.hypot(x, y) < 1 - step / 4
-    cap = np.stack([x[inside], y[inside], np.zeros(inside.sum())], 1)
-    normals = np.concatenate([side * [1, 1, 0], np.tile([0.0, 0, 1], (len(cap), 1)), unit(circle + [0, 0, 1])])
+    side, cap, circle, normals = capped_cylinder()
+    step = 2 * np.pi / len(circle)
     prepared, _ = prepare(PointCloud(np.concatenate([side, cap, circle]), normals=normals))
     rim = np.arange(len(side) + len(cap), len(prepared))
     lines = prepared.attributes["clip_lines"][rim].astype(np.float64)

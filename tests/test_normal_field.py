@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from samples import angles, sphere, unit
+from samples import angles, capped_cylinder, sphere
 from surfel.attributes import FIELD_SLOPES
 from surfel.cloud import PointCloud
 from surfel.preprocess import fit_ellipses, fit_normal_field, prepare
@@ -73,15 +73,8 @@ def test_a_face_is_shaped_flat_up_to_its_rim_and_shaded_round():
     rim, as the mesh's interpolated normals shade it; the field that shapes its curved splats
     leaves the rim out and is flat, so that they reach the edge instead of bending down short
     of it. Scanned with noise and no normals, a normal far off is noise: one field."""
-    around = 12
-    step = 2 * np.pi / around
-    circle = np.stack([np.cos(step * np.arange(around)), np.sin(step * np.arange(around)), np.zeros(around)], 1)
-    side = np.concatenate([circle - [0, 0, k * step] for k in range(1, 8)])
-    grid = np.arange(-1, 1 + 1e-9, step / 2)
-    x, y = (values.ravel() for values in np.meshgrid(grid, grid))
-    inside = np.hypot(x, y) < 1 - step / 4
-    cap = np.stack([x[inside], y[inside], np.zeros(inside.sum())], 1)
-    normals = np.concatenate([side * [1, 1, 0], np.tile([0.0, 0, 1], (len(cap), 1)), unit(circle + [0, 0, 1])])
+    side, cap, circle, normals = capped_cylinder()
+    step = 2 * np.pi / len(circle)
     prepared, _ = prepare(PointCloud(np.concatenate([side, cap, circle]), normals=normals), normal_field=True)
     slopes = {key: np.abs(prepared.attributes[key]) for key in FIELD_SLOPES}
     cap_points = np.arange(len(side), len(side) + len(cap))
