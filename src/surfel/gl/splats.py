@@ -25,9 +25,8 @@ import weakref
 
 import numpy as np
 
-from ..attributes import FIELD_SLOPES
 from ..cloud import PointCloud
-from ..preprocess import INACTIVE_CLIP, drawn_normals, splat_thickness
+from ..preprocess import INACTIVE_CLIP, drawn_normals, splat_slopes, splat_thickness
 from .context import get_context
 from .program import set_uniforms
 
@@ -53,9 +52,8 @@ def pack(cloud: PointCloud, start: int = 0, stop: int | None = None) -> np.ndarr
         out[:, 9:15] = cloud.axes[start:stop].reshape(n, 6)
     else:
         out[:, 9:15] = 0.0
-    for column, key in enumerate(FIELD_SLOPES, 15):
-        key = key if key in cloud.attributes else key.replace("curve", "phong")  # shaped as it is shaded
-        out[:, column] = cloud.attributes[key][start:stop] if key in cloud.attributes else 0.0
+    slopes = splat_slopes(cloud, start, stop)
+    out[:, 15:19] = 0.0 if slopes is None else slopes
     if all(key in cloud.attributes for key in LOD_EXTRAS):
         out[:, 19:22] = np.stack([cloud.attributes[key][start:stop] for key in LOD_EXTRAS], axis=1)
     else:

@@ -68,7 +68,7 @@ import numpy as np
 from ..camera import Camera
 from ..cloud import PointCloud, read_only
 from ..options import RenderOptions, check_cpu_samples, non_negative, open_unit_interval, positive, setting
-from ..preprocess import INACTIVE_CLIP, drawn_normals, splat_thickness
+from ..preprocess import INACTIVE_CLIP, drawn_normals, splat_slopes, splat_thickness
 from ..result import RenderResult
 from ..shading import shade
 from .params import SplatParams
@@ -145,20 +145,8 @@ def has_normal_field(cloud: PointCloud) -> bool:
 
 def splat_fields(cloud: PointCloud) -> np.ndarray:
     """(N, 2) Phong normal-field slopes (alpha, beta), or (1, 2) zeros: flat splats."""
-    if has_normal_field(cloud):
-        slopes = np.stack([cloud.attributes["phong_alpha"], cloud.attributes["phong_beta"]], 1)
-        return np.ascontiguousarray(slopes, np.float32)
-    return np.zeros((1, 2), np.float32)
-
-
-def splat_curves(cloud: PointCloud) -> np.ndarray:
-    """(N, 2) slopes (curve_alpha, curve_beta) that shape a curved splat, or (1, 2) zeros: a
-    face's field without its rim (surfel.preprocess.normal_field); a cloud fitted without them
-    is shaped by its shading field."""
-    if "curve_alpha" in cloud.attributes and "curve_beta" in cloud.attributes:
-        slopes = np.stack([cloud.attributes["curve_alpha"], cloud.attributes["curve_beta"]], 1)
-        return np.ascontiguousarray(slopes, np.float32)
-    return splat_fields(cloud)
+    slopes = splat_slopes(cloud)
+    return np.zeros((1, 2), np.float32) if slopes is None else np.ascontiguousarray(slopes[:, :2])
 
 
 def splat_axes(cloud: PointCloud) -> np.ndarray:

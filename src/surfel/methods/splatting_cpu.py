@@ -66,7 +66,7 @@ import numpy as np
 from ..cloud import PointCloud
 from ..options import check_cpu_samples, fitting_supersample
 from ..pinholes import fill_pinholes
-from ..preprocess import drawn_normals, splat_thickness
+from ..preprocess import drawn_normals, splat_slopes, splat_thickness
 from ..result import RenderResult
 from ..shading import MODEL_IDS
 from . import splatting_bins as bins
@@ -79,8 +79,6 @@ from .ewa import (
     splat_axes,
     splat_clip_lines,
     splat_colors,
-    splat_curves,
-    splat_fields,
     target_camera,
 )
 from .ewa_kernels import TILE
@@ -111,8 +109,8 @@ def pack_splats(cloud: PointCloud, extras: bool) -> tuple[np.ndarray, np.ndarray
         return packed, None
     extra = np.empty((t.EXTRAS, n), np.float32)
     extra[t.EA0:t.EC1 + 1] = splat_clip_lines(cloud).reshape(-1, 6).T
-    extra[t.EALPHA:t.EBETA + 1] = splat_fields(cloud).T
-    extra[t.ECURVE_ALPHA:t.ECURVE_BETA + 1] = splat_curves(cloud).T
+    slopes = splat_slopes(cloud)  # the shading field's, then the surface's: EALPHA..ECURVE_BETA
+    extra[t.EALPHA:t.ECURVE_BETA + 1] = 0.0 if slopes is None else slopes.T
     return packed, extra
 
 

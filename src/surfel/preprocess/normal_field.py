@@ -50,6 +50,8 @@ import math
 import numba
 import numpy as np
 
+from ..attributes import FIELD_SLOPES
+from ..cloud import PointCloud
 from ..threads import over_rows
 from .chunked import map_chunks
 from .frames import unit
@@ -167,3 +169,14 @@ def fit_normal_field(positions: np.ndarray, normals: np.ndarray, axes: np.ndarra
     nbh = Neighbourhood.build(positions, k, workers, progress)
     slopes = nbh.unsort(field_slopes(nbh, nbh.sort(normals), nbh.sort(axes), progress, k))
     return slopes[:, 0].copy(), slopes[:, 1].copy()
+
+
+def splat_slopes(cloud: PointCloud, start: int = 0, stop: int | None = None) -> np.ndarray | None:
+    """(n, 4) float32 normal-field slopes of points start:stop as the renderers take them, in
+    FIELD_SLOPES order: the shading field's, then the surface's, which a cloud fitted without
+    them (by an earlier surfel) takes from the shading field; None without a normal field."""
+    a = cloud.attributes
+    if not {"phong_alpha", "phong_beta"} <= a.keys():
+        return None
+    keys = FIELD_SLOPES if {"curve_alpha", "curve_beta"} <= a.keys() else FIELD_SLOPES[:2] * 2
+    return np.stack([a[key][start:stop] for key in keys], 1).astype(np.float32)

@@ -30,8 +30,8 @@ from __future__ import annotations
 import numpy as np
 
 from ..cloud import PointCloud
-from ..methods.ewa import has_normal_field, splat_curves, splat_fields
-from ..preprocess import facing_mask, splat_thickness
+from ..methods.ewa import has_normal_field
+from ..preprocess import facing_mask, splat_slopes, splat_thickness
 
 POSITION_STEPS = 65535
 LOD_SEARCH_STRIDE = 64  # the CPU's prefix search reads every 64th node's bounds
@@ -110,7 +110,7 @@ def pack_cloud(cloud: PointCloud, values: dict[str, np.ndarray]) -> tuple[dict, 
     if cloud.colors is not None:
         columns["color"] = np.round(cloud.colors * 255).astype(np.uint8)
     if has_normal_field(cloud):  # dimensionless slopes, which a flipped axis_v leaves as they are
-        columns["field"] = np.concatenate([splat_fields(cloud), splat_curves(cloud)], axis=1).astype(np.float16)
+        columns["field"] = splat_slopes(cloud).astype(np.float16)
     if "clip_lines" in cloud.attributes:
         v_decoded = np.cos(phi)[:, None] * t2 - np.sin(phi)[:, None] * t1
         flip = np.einsum("ij,ij->i", v, v_decoded) < 0
