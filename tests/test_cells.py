@@ -283,6 +283,28 @@ def test_a_coarse_face_leaves_a_bolt_hole_open():
     assert covered[(distance > 1) & (distance < 5.5)].all()
 
 
+def test_a_crease_line_through_the_splat_keeps_the_side_away_from_the_neighbour_whatever_its_axes():
+    """A splat's centre p on its neighbour's tangent plane cannot tell the crease's sides apart
+    by its own height: it keeps the side away from where q projects into its plane. In the
+    splat's semi-axes (u, v), q's coordinates there are its offsets along them over |u|^2 and
+    |v|^2; taken without, an elliptical splat (|u| = 4, |v| = 1/2) kept q's side."""
+    from surfel.preprocess.cell_kernels import _crease_half_plane
+
+    normal_q = unit(np.array([-0.1, 0.5, 0.8]))
+    points = np.array([[0.0, 0, 0], [1.0, 1.0, -0.5]])  # p, and q with p on q's plane
+    rng = np.random.default_rng(0)
+    offsets = np.concatenate([rng.uniform(-2, 2, (500, 2)), np.zeros((500, 1))], 1)  # in p's plane z = 0
+    q_in_plane = points[1] * [1, 1, 0]
+    for lengths in [(1.0, 1.0), (4.0, 0.5), (0.5, 4.0)]:
+        frame = np.diag([*lengths, 0.0])[:2]
+        a, b, c = _crease_half_plane(points, 0, 1, normal_q, frame, 1e-4)
+        # world points p + x u + y v: x = offset . u / |u|^2, y likewise
+        coordinates = offsets[:, :2] / lengths
+        kept = coordinates @ [a, b] <= c
+        assert np.array_equal(kept, offsets @ normal_q <= 0), lengths  # the half-plane away from q
+        assert q_in_plane[:2] / lengths @ [a, b] > c, lengths
+
+
 def test_a_tip_gets_a_small_splat_and_stays_covered():
     """The apex of a cone of half-angle 20 degrees (a horn, a hoof), sampled in rings as a mesh's
     vertices are: all its neighbours lie more than 45 degrees below its tangent plane. Its cell

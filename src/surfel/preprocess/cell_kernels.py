@@ -39,7 +39,8 @@ SKIP_MARGIN = 1.0 + 1e-6       # a line this much farther than the farthest vert
 @numba.njit(cache=True, inline="always")
 def _crease_half_plane(points, p, q, normal_q, frame, on_plane_sin2):  # pragma: no cover - compiled
     """Where splat p meets the tangent plane of its neighbour q across a crease: the half-plane
-    a x + b y <= c of p's plane points p + x e1 + y e2, (e1, e2) = frame, that p keeps."""
+    a x + b y <= c of p's plane points p + x e1 + y e2, (e1, e2) = frame (orthogonal, of any
+    lengths: a cell's unit frame or a splat's semi-axes), that p keeps."""
     side = 0.0
     ga = 0.0
     gb = 0.0
@@ -56,10 +57,17 @@ def _crease_half_plane(points, p, q, normal_q, frame, on_plane_sin2):  # pragma:
     else:  # p on the crease line cannot tell its sides apart: the side away from q
         qx = 0.0
         qy = 0.0
+        e1_length2 = 0.0
+        e2_length2 = 0.0
         for a in range(3):
             qx += (points[q, a] - points[p, a]) * frame[0, a]
             qy += (points[q, a] - points[p, a]) * frame[1, a]
-        at_q = side + qx * ga + qy * gb  # g where q projects into p's plane: that side goes
+            e1_length2 += frame[0, a] * frame[0, a]
+            e2_length2 += frame[1, a] * frame[1, a]
+        # g where q projects into p's plane (its coordinates there: over the axes' lengths
+        # squared; a degenerate axis adds nothing): that side goes
+        at_q = side + (qx * ga / e1_length2 if e1_length2 > 0.0 else 0.0) + \
+            (qy * gb / e2_length2 if e2_length2 > 0.0 else 0.0)
         sign = -1.0 if at_q > 0.0 else 1.0
     return -sign * ga, -sign * gb, sign * side
 
