@@ -55,21 +55,27 @@ def _crease_half_plane(points, p, q, normal_q, frame, on_plane_sin2):  # pragma:
     if side * side > on_plane_sin2 * distance2:
         sign = 1.0 if side > 0.0 else -1.0
     else:  # p on the crease line cannot tell its sides apart: the side away from q
-        qx = 0.0
-        qy = 0.0
-        e1_length2 = 0.0
-        e2_length2 = 0.0
-        for a in range(3):
-            qx += (points[q, a] - points[p, a]) * frame[0, a]
-            qy += (points[q, a] - points[p, a]) * frame[1, a]
-            e1_length2 += frame[0, a] * frame[0, a]
-            e2_length2 += frame[1, a] * frame[1, a]
-        # g where q projects into p's plane (its coordinates there: over the axes' lengths
-        # squared; a degenerate axis adds nothing): that side goes
-        at_q = side + (qx * ga / e1_length2 if e1_length2 > 0.0 else 0.0) + \
-            (qy * gb / e2_length2 if e2_length2 > 0.0 else 0.0)
+        qx, qy = _frame_coordinates(points, frame, p, q)
+        at_q = side + qx * ga + qy * gb  # g where q projects into p's plane: that side goes
         sign = -1.0 if at_q > 0.0 else 1.0
     return -sign * ga, -sign * gb, sign * side
+
+
+@numba.njit(cache=True, inline="always")
+def _frame_coordinates(points, frame, p, q):  # pragma: no cover - compiled
+    """(x, y) of q projected into p's plane p + x e1 + y e2, (e1, e2) = frame orthogonal, of
+    any lengths: its offsets along them over their lengths squared (0 along a degenerate axis)."""
+    x = 0.0
+    y = 0.0
+    e1_length2 = 0.0
+    e2_length2 = 0.0
+    for a in range(3):
+        offset = points[q, a] - points[p, a]
+        x += offset * frame[0, a]
+        y += offset * frame[1, a]
+        e1_length2 += frame[0, a] * frame[0, a]
+        e2_length2 += frame[1, a] * frame[1, a]
+    return x / e1_length2 if e1_length2 > 0.0 else 0.0, y / e2_length2 if e2_length2 > 0.0 else 0.0
 
 
 @numba.njit(cache=True, inline="always")
@@ -385,22 +391,6 @@ def _in_plane(points, normals, p, q, flat_sin2):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, inline="always")
-def _splat_distance(points, axes, i, p, q):  # pragma: no cover - compiled
-    """|(u, v)| of neighbour q projected into splat p's axes (u, v) = axes[i] (1 on the rim)."""
-    u = 0.0
-    v = 0.0
-    uu = 0.0
-    vv = 0.0
-    for a in range(3):
-        offset = points[q, a] - points[p, a]
-        u += offset * axes[i, 0, a]
-        v += offset * axes[i, 1, a]
-        uu += axes[i, 0, a] * axes[i, 0, a]
-        vv += axes[i, 1, a] * axes[i, 1, a]
-    return math.hypot(u / uu if uu > 0.0 else 0.0, v / vv if vv > 0.0 else 0.0)
-
-
-@numba.njit(cache=True, inline="always")
 def _crease_candidates(points, normals, index, axes, i, p, features, candidates):  # pragma: no cover - compiled
     """The crease half-planes of splat p that cut it, among its neighbours index[i], in its axes
     (u, v) = axes[i], as unit (a, b, c) rows of candidates, a rim's moved out by RIM_MARGIN of
@@ -423,7 +413,7 @@ def _crease_candidates(points, normals, index, axes, i, p, features, candidates)
         la, lb, lc = _crease_half_plane(points, p, q, normals[q], axes[i], features.on_plane_sin2)
         length = math.sqrt(la * la + lb * lb)
         if rim:
-            lc += RIM_MARGIN * _splat_distance(points, axes, i, p, q) * length
+            lc += RIM_MARGIN * math.hypot(*_frame_coordinates(points, axes[i], p, q)) * length
         if length < 1e-6 or lc >= length:  # parallel planes, or the line misses the splat
             continue
         count = _append_unit_line(candidates, count, la, lb, lc, length)
