@@ -68,7 +68,7 @@ import numpy as np
 from ..camera import Camera
 from ..cloud import PointCloud, read_only
 from ..options import RenderOptions, check_cpu_samples, non_negative, open_unit_interval, positive, setting
-from ..preprocess import INACTIVE_CLIP, drawn_normals, splat_slopes, splat_thickness
+from ..preprocess import INACTIVE_CLIP, drawn_normals, has_normal_field, splat_slopes, splat_thickness
 from ..result import RenderResult
 from ..shading import shade
 from .params import SplatParams
@@ -137,10 +137,6 @@ def splat_clip_lines(cloud: PointCloud) -> np.ndarray:
     if "clip_lines" in cloud.attributes:
         return np.ascontiguousarray(cloud.attributes["clip_lines"], np.float32)
     return np.array([[INACTIVE_CLIP, INACTIVE_CLIP]], np.float32)
-
-
-def has_normal_field(cloud: PointCloud) -> bool:
-    return "phong_alpha" in cloud.attributes and "phong_beta" in cloud.attributes
 
 
 def splat_fields(cloud: PointCloud) -> np.ndarray:

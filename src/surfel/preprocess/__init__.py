@@ -34,11 +34,11 @@ from .cell_kernels import CLIP_LINES, INACTIVE_CLIP
 from .cells import clipped_away, estimate_radii, fit_ellipses
 from .complete import complete, prepare
 from .frames import tangent_frames
-from .normal_field import fit_normal_field, splat_slopes
+from .normal_field import fit_normal_field, has_normal_field, splat_slopes
 from .normals import estimate_normals
 from .structure import drawn_normals, facing_mask
 from .thickness import splat_thickness
 
 __all__ = ["CLIP_LINES", "INACTIVE_CLIP", "clipped_away", "complete", "drawn_normals", "estimate_normals",
-           "estimate_radii", "facing_mask", "fit_ellipses", "fit_normal_field", "prepare", "splat_slopes",
-           "splat_thickness", "tangent_frames"]
+           "estimate_radii", "facing_mask", "fit_ellipses", "fit_normal_field", "has_normal_field", "prepare",
+           "splat_slopes", "splat_thickness", "tangent_frames"]

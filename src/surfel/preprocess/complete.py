@@ -45,7 +45,7 @@ from .cell_kernels import INACTIVE_CLIP
 from .cells import RADIUS_MARGIN, RADIUS_NEIGHBOURS, clip_lines, covering_ellipses, covering_radii
 from .frames import tangent_frames, unit
 from .neighbourhood import Neighbourhood
-from .normal_field import FIELD_NEIGHBOURS, field_slopes
+from .normal_field import FIELD_NEIGHBOURS, field_slopes, has_normal_field
 from .normals import NORMAL_NEIGHBOURS, SCALES, oriented_normals
 from .sharp_features import SHARP_ANGLE, find_sharp_features
 from .smoothing import SMOOTH_NEIGHBOURS, smoothed_points
@@ -104,7 +104,7 @@ def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np
     points face the camera) and "splat_bound" (the spacing model and how many splats it capped).
     """
     report: dict = {}
-    need_field = normal_field and not {"phong_alpha", "phong_beta"} <= set(cloud.attributes)
+    need_field = normal_field and not has_normal_field(cloud)
     complete = cloud.normals is not None and cloud.radii is not None and cloud.axes is not None
     if complete and not need_field and not smooth:
         return cloud, report

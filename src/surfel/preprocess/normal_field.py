@@ -171,12 +171,17 @@ def fit_normal_field(positions: np.ndarray, normals: np.ndarray, axes: np.ndarra
     return slopes[:, 0].copy(), slopes[:, 1].copy()
 
 
+def has_normal_field(cloud: PointCloud) -> bool:
+    """Whether the cloud carries a normal field: at least the shading field's slopes."""
+    return {"phong_alpha", "phong_beta"} <= cloud.attributes.keys()
+
+
 def splat_slopes(cloud: PointCloud, start: int = 0, stop: int | None = None) -> np.ndarray | None:
     """(n, 4) float32 normal-field slopes of points start:stop as the renderers take them, in
     FIELD_SLOPES order: the shading field's, then the surface's, which a cloud fitted without
     them (by an earlier surfel) takes from the shading field; None without a normal field."""
-    a = cloud.attributes
-    if not {"phong_alpha", "phong_beta"} <= a.keys():
+    if not has_normal_field(cloud):
         return None
+    a = cloud.attributes
     keys = FIELD_SLOPES if {"curve_alpha", "curve_beta"} <= a.keys() else FIELD_SLOPES[:2] * 2
     return np.stack([a[key][start:stop] for key in keys], 1).astype(np.float32)

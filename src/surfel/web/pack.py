@@ -30,7 +30,6 @@ from __future__ import annotations
 import numpy as np
 
 from ..cloud import PointCloud
-from ..methods.ewa import has_normal_field
 from ..preprocess import facing_mask, splat_slopes, splat_thickness
 
 POSITION_STEPS = 65535
@@ -109,8 +108,9 @@ def pack_cloud(cloud: PointCloud, values: dict[str, np.ndarray]) -> tuple[dict, 
     columns["radii"] = (lengths / unit).astype(np.float16)
     if cloud.colors is not None:
         columns["color"] = np.round(cloud.colors * 255).astype(np.uint8)
-    if has_normal_field(cloud):  # dimensionless slopes, which a flipped axis_v leaves as they are
-        columns["field"] = splat_slopes(cloud).astype(np.float16)
+    slopes = splat_slopes(cloud)
+    if slopes is not None:  # dimensionless slopes, which a flipped axis_v leaves as they are
+        columns["field"] = slopes.astype(np.float16)
     if "clip_lines" in cloud.attributes:
         v_decoded = np.cos(phi)[:, None] * t2 - np.sin(phi)[:, None] * t1
         flip = np.einsum("ij,ij->i", v, v_decoded) < 0
