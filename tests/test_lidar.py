@@ -23,6 +23,7 @@ from surfel.preprocess import prepare, tangent_frames
 from surfel.preprocess.spacing import BOUND_FACTOR
 from surfel.rendering import Renderer, render
 from surfel.request import open_input, parse_render
+from surfel.scan import ScanSettings, scan
 
 DATA = Path(__file__).parent / "data"
 SPLAT_METHODS = ("points", "gaussian", "deferred", "phong", "object-space", "ewa")
@@ -157,6 +158,42 @@ def test_the_spacing_of_a_scan_grows_with_the_range_from_its_sensor():
     far = ranges > np.percentile(ranges, 90)
     near = ranges < np.percentile(ranges, 10)
     assert prepared.radii[far].mean() > 1.5 * prepared.radii[near].mean()
+
+
+def _square_mesh(centre, turn_degrees: float, rows: int = 20) -> PointCloud:
+    """A 2 x 2 square facing +z, turned about y by `turn_degrees` (its normal towards +x), at `centre`."""
+    u = np.linspace(-1.0, 1.0, rows + 1)
+    x, y = np.meshgrid(u, u)
+    cos, sin = math.cos(math.radians(turn_degrees)), math.sin(math.radians(turn_degrees))
+    rotation = np.array([[cos, 0.0, sin], [0.0, 1.0, 0.0], [-sin, 0.0, cos]])
+    corners = np.stack([x.ravel(), y.ravel(), np.zeros(x.size)], 1) @ rotation.T + centre
+    first = (np.arange(rows)[:, None] * (rows + 1) + np.arange(rows)).ravel()
+    faces = np.concatenate([np.stack([first, first + 1, first + rows + 2], 1),
+                            np.stack([first, first + rows + 2, first + rows + 1], 1)])
+    return PointCloud(corners, faces=faces)
+
+
+@requires_gl
+def test_a_surface_scanned_at_a_grazing_angle_stays_hole_free():
+    """One view of two squares, one facing the scanner and one turned 65 degrees from its rays:
+    the turned one's samples lie farther apart along its tilt, and most of its returns are lost
+    at that angle, at random. Its splats must still cover it: the spacing bound grows with the
+    incidence (spacing.py), where it had cut a quarter of the square into scattered dots."""
+    facing, turned = _square_mesh([-1.2, 0.0, 0.0], 0.0), _square_mesh([1.2, 0.0, 0.0], 65.0)
+    mesh = PointCloud(np.concatenate([facing.positions, turned.positions]),
+                      faces=np.concatenate([facing.faces, turned.faces + len(facing)]))
+    raw = scan(mesh, ScanSettings(views=1, resolution=256, misalignment=0.0), Renderer())
+    on_turned = raw.positions[:, 0] > 0.05
+    assert 0.02 < on_turned.mean() < 0.1  # far sparser than the square facing the scanner
+    prepared, report = prepare(raw, progress=False)
+    normal = np.array([math.sin(math.radians(65.0)), 0.0, math.cos(math.radians(65.0))])
+    camera = frame(np.zeros(3), 1.5, eye=[1.2, 0.0, 0.0] + 6.0 * normal, target=[1.2, 0.0, 0.0], size=(256, 256))
+    result = render(prepared, camera, "deferred", backend="cpu", shading="lambert")
+    pixels, _ = camera.project(prepared.positions[on_turned])
+    inside = _inside_hull(pixels, (256, 256), shrink=6.0)
+    assert inside.sum() > 0.25 * inside.size
+    assert (result.alpha[inside] < 0.5).mean() < 0.005
+    assert "incidence" in report["splat_bound"]["reference"]
 
 
 # --- screen-facing splats ----------------------------------------------------------------------

@@ -180,9 +180,17 @@ def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np
                                    f"splat radius of another layer (z_t capped there)")
     spacing = None
     if bound_radii or bound_axes:
-        ranges = None if towards_sensor is None else np.linalg.norm(towards_sensor, axis=1)
+        ranges = incidence = None
+        if towards_sensor is not None:
+            ranges = np.linalg.norm(towards_sensor, axis=1)
+            # cos of the angle between each splat's normal and its sensor's ray; facing the
+            # camera, a point has no tangent plane to tilt
+            incidence = np.abs(np.einsum("ij,ij->i", unit_normals, towards_sensor)) / np.maximum(ranges, 1e-300)
+            if drawn_facing is not None:
+                incidence[drawn_facing] = 1.0
         spacing, spacing_report = sampling_spacing(
-            nbh, geospatial=cloud.geospatial, ranges=ranges, framing_radius=cloud.bounding_radius,
+            nbh, geospatial=cloud.geospatial, ranges=ranges, incidence=incidence,
+            framing_radius=cloud.bounding_radius,
             reference=None if reference_spacing is None else nbh.sort(reference_spacing),
             surface=None if drawn_facing is None else ~drawn_facing, progress=progress)
     features = None
