@@ -196,6 +196,29 @@ def test_a_surface_scanned_at_a_grazing_angle_stays_hole_free():
     assert "incidence" in report["splat_bound"]["reference"]
 
 
+def test_the_ground_around_a_terrestrial_scanner_stays_closed_at_grazing_ranges():
+    """A scanner on a tripod sees the ground ever more obliquely with range: its rings of samples
+    lie 1 / cos theta farther apart than its angular step there, and fewer returns come back.
+    The spacing bound follows the incidence (spacing.py), so the ground seen from above is one
+    surface out to the edge of the scan, not rings of dots (87% of it covered before)."""
+    rng = np.random.default_rng(1)
+    step = math.radians(0.4)
+    azimuth, elevation = np.meshgrid(np.arange(-math.pi, math.pi, step),
+                                     np.arange(math.radians(-60.0), math.radians(-4.0), step))
+    rays = np.stack([np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation)],
+                    -1).reshape(-1, 3)
+    sensor = np.array([0.0, 0.0, 1.5])
+    ranges = 1.5 / -rays[:, 2] + rng.normal(0.0, 0.005, len(rays))
+    returned = rng.random(len(rays)) < np.clip((-rays[:, 2] - 0.05) / 0.3, 0.0, 1.0)  # lost at grazing angles
+    points = sensor + rays * ranges[:, None]
+    points = points[returned & (np.abs(points[:, :2]) < 10.0).all(axis=1)]
+    prepared, report = prepare(PointCloud(points, sensors=sensor[None], geospatial=True), progress=False)
+    camera = frame(np.zeros(3), 10.0, view="top", geospatial=True, size=(256, 256), ortho_height=20.0)
+    result = render(prepared, camera, "deferred", backend="cpu", shading="lambert")
+    assert (result.alpha > 0.5).mean() > 0.98
+    assert "incidence" in report["splat_bound"]["reference"]
+
+
 # --- screen-facing splats ----------------------------------------------------------------------
 
 def facing_cloud(count: int = 8, radius: float = 2.0) -> PointCloud:

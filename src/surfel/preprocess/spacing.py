@@ -36,7 +36,10 @@ estimated semi-axis is capped at
              cheburashka's. Growing only along the tilt, or only where the neighbourhood is
              planar, kept most of those holes; only off the borders, half of them. A floor of
              cos 60 degrees kept the cost and left 9 renders over 0.1% holes; cos 80 degrees
-             gave the same as cos 75.)
+             gave the same as cos 75. The ground around a scanner on a tripod, seen from
+             above out to 6.7 times the tripod's height, where the rays meet it at 8.5
+             degrees (tests/test_lidar.py): rings of dots, 87% of it covered, became one
+             surface, 99.4%.)
            * otherwise a geospatial cloud (an airborne tile, sampled evenly by design): the
              median horizontal nearest-neighbour distance over the tile (of REFERENCE_SAMPLE
              points spread over it), the point spacing of the survey, s_h; on the points
