@@ -117,6 +117,7 @@ BOUND_FACTOR = 2.5          # semi-axes at most this x the spacing: past the 1.2
 LOCAL_NEIGHBOURS = 4        # distinct neighbours whose median distance is the local spacing
 REFERENCE_SAMPLE = 20_000   # points whose horizontal nearest neighbour gives the tile's spacing
 REFERENCE_NEIGHBOURS = 8    # neighbours searched for the nearest distinct one (duplicates)
+INCIDENCE_FLOOR = math.cos(math.radians(75.0))  # a scan's spacing grows up to 1 / cos 75 = 3.9 times at grazing
 ONE_LAYER_RATIO = 0.7       # nearest-neighbour distance / s_local on one surface: 0.57 at random,
                             # about 0.6 along airborne scan lines, 0.85 on a jittered grid
 SURFACE_MAJORITY = 0.5      # share of points with a tangent plane above which their spacing is
@@ -126,7 +127,6 @@ ANISOTROPY = 8.0            # farthest / nearest of the quadrants' nearest neigh
                             # anisotropically (rows far apart, dense within a row)
 FLAT_ACROSS_COS = 0.985     # ... and flat across the rows: the next row's normal within 10 degrees
 ROW_REACH = 0.55            # there a splat may reach this share of the way to the next row
-INCIDENCE_FLOOR = math.cos(math.radians(75.0))  # a scan's spacing grows up to 1 / cos 75 = 3.9 times at grazing
 WIDE_NEIGHBOURS = 64        # neighbours searched where the k nearest lie along one row
 
 
