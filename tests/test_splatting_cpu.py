@@ -109,6 +109,24 @@ def test_a_first_frame_with_every_splat_off_screen_is_empty(dense_spot):
                                                        shading="lambert"))["psnr"] == float("inf")
 
 
+@pytest.mark.parametrize("method", ["deferred", "phong"])
+def test_an_edge_on_splat_with_the_low_pass_leaves_finite_pixels(method):
+    """A flat cut-out's splat seen almost exactly edge-on (a cartoon figure's vertices, the eye
+    in its plane) reaches two pixels only through the EWA low-pass, with weights of ~1e-20.
+    The normal sums there square to subnormals, whose fastmath reciprocal square root is
+    infinite: those pixels came out NaN (splatting_kernels._normalize)."""
+    normals = np.array([[0.0, 0.0, 1.0]])
+    axes = np.array([[[1.1249783, -9.688645, 0.0], [7.1429625, 0.82939124, 0.0]]])
+    cloud = surfel.PointCloud(np.array([[167.605051, 374.166324, 0.0]]), normals=normals,
+                              radii=np.linalg.norm(axes, axis=2).max(1), axes=axes)
+    camera = frame(np.array([174.5, 201.5, 0.0]), 266.60832695172894, azimuth=270.0, elevation=-20.0,
+                   size=(512, 512))
+    result = Renderer().render(cloud, camera, method, backend="cpu", shading="lambert", ewa_filter=True,
+                               supersample=1)
+    assert np.isfinite(result.color).all() and np.isfinite(result.alpha).all()
+    assert result.alpha.max() < 0.5  # edge-on: no pixel covered
+
+
 def test_level_of_detail_matches_gl(dense_spot):
     """--lod-error: the CPU draws the cut the Renderer selects, GL the one its vertex stage keeps."""
     camera = frame(dense_spot.center, dense_spot.bounding_radius, size=SIZE)
