@@ -335,9 +335,9 @@ def _normalize(acc, p, model, near, far, color_mode, table, index):
     (the colour mode's: the normalized rgb, the colour map's entry of the normalized
     encoded value, or the palette entry `index` of the winning category) shaded per pixel."""
     inv = np.float32(1.0) / acc[p, 3]
-    # the mean normal, not the sum: a pixel that only the faint edge of an edge-on splat reaches
-    # sums to ~1e-20, whose squares are subnormal, and fastmath's reciprocal square root of
-    # those is infinite (NaN colours where the GPU's sums flush to zero)
+    # the mean normal, not the sum: a pixel that only the faint low-pass of an edge-on splat
+    # reaches sums to ~1e-20, whose squares are subnormal, and fastmath's reciprocal square
+    # root of those is infinite: its colour came out NaN (the GPU's sums flush to zero there)
     sx, sy, sz = acc[p, 4] * inv, acc[p, 5] * inv, acc[p, 6] * inv
     length = math.sqrt(sx * sx + sy * sy + sz * sz)
     if length > 0:
