@@ -10,6 +10,11 @@
   meeting at sharp convex and concave creases of 90 and 135 degrees, 10,754 vertices,
   standing in for fandisk.
 - `ball_over_plate`: a sphere in front of a square plate, an occluding contour over a surface.
+- `puck`: a disc a fifth as thick as wide, coarsely tessellated (1,538 vertices): its flat
+  faces meet its rim at sharp 90 degree creases one or two vertices apart, as a coarse CAD
+  part's flanges do.
+- `plate_with_a_hole_over_a_plate`: a red plate with a round opening in front of a blue one:
+  an open border over a surface farther back.
 """
 
 from __future__ import annotations
@@ -70,6 +75,43 @@ def turned_part() -> PointCloud:
     t = np.radians(TILT)
     rotation = np.array([[1, 0, 0], [0, np.cos(t), -np.sin(t)], [0, np.sin(t), np.cos(t)]])
     return mesh_cloud(vertices @ rotation.T, np.asarray(mesh.faces), "turned part")
+
+
+def puck() -> PointCloud:
+    """The puck of the module docstring: the profile of a disc of radius 1 and thickness 0.2
+    resampled every 2 pi / 64 along its segments, revolved in 64 steps about +y."""
+    from trimesh.creation import revolve
+
+    sections = 64
+    spacing = 2 * np.pi / sections
+    corners = np.array([(0.0, 0.0), (1.0, 0.0), (1.0, 0.2), (0.0, 0.2)])
+    profile = [corners[0]]
+    for a, b in zip(corners[:-1], corners[1:], strict=True):
+        steps = int(np.ceil(np.linalg.norm(b - a) / spacing))
+        profile += [a + (b - a) * t for t in np.arange(1, steps + 1) / steps]
+    mesh = revolve(np.array(profile), sections=sections)
+    mesh.merge_vertices()
+    vertices = np.asarray(mesh.vertices)[:, [0, 2, 1]] * [1, 1, -1]  # a rotation: the axis along +y
+    return mesh_cloud(vertices, np.asarray(mesh.faces), "puck")
+
+
+def plate_with_a_hole_over_a_plate() -> PointCloud:
+    """Two 2 x 2 plates facing +z, grids of 41 x 41 vertices: a red one at z = 0 without the
+    triangles within 0.4 of its centre, and a blue one 0.3 behind it."""
+    n = 41
+    x, y = np.meshgrid(np.linspace(-1.0, 1.0, n), np.linspace(-1.0, 1.0, n))
+    grid = np.stack([x.ravel(), y.ravel(), np.zeros(n * n)], axis=1)
+    corner = np.arange(n * n).reshape(n, n)[:-1, :-1].ravel()
+    faces = np.concatenate([np.stack([corner, corner + 1, corner + n + 1], axis=1),
+                            np.stack([corner, corner + n + 1, corner + n], axis=1)])
+    open_faces = faces[np.linalg.norm(grid[faces].mean(axis=1)[:, :2], axis=1) > 0.4]
+    front = np.unique(open_faces)
+    renumber = np.full(n * n, -1)
+    renumber[front] = np.arange(len(front))
+    vertices = np.concatenate([grid[front], grid + [0.0, 0.0, -0.3]])
+    all_faces = np.concatenate([renumber[open_faces], faces + len(front)]).astype(np.int32)
+    colors = np.concatenate([np.tile([1.0, 0.0, 0.0], (len(front), 1)), np.tile([0.0, 0.0, 1.0], (n * n, 1))])
+    return mesh_cloud(vertices, all_faces, "plate with a hole over a plate").with_(colors=colors.astype(np.float32))
 
 
 def unit_sphere() -> PointCloud:

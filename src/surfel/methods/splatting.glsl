@@ -33,6 +33,8 @@
 #define BACK_SPLAT_WEIGHT (1.0 / 256.0)  // a back-facing splat's weight beside front-facing ones
 #define BACK_SPLAT_BEHIND 1.0  // radii a back-facing splat's visibility depth lies further back
 #define MAX_RIM_TILT 1.0  // a curved splat's field turns by at most this (tan 45 degrees) at its rim
+#define CREASE_BLEND 0.5  // splat radii an attribute fragment reaches past a clip line, fading
+#define CREASE_BLEND_DEPTH 2.0  // z_t's in front of the visible depth it may lie there
 #define FULL_FOOTPRINT_AXIS 0.5  // pixels of semi-major axis below which a splat's footprint is whole
 #define FAR_DEPTH 3.0e38  // the visibility target's clear value (gl/passes.py FAR): no surface
 
@@ -133,13 +135,7 @@ bool splat_setup(out vec2 lo, out vec2 hi, out bool crosses_near) {
 #ifdef CURVED_SPLATS
     // A curved splat reaches no farther along each axis than where its surface has turned by
     // MAX_RIM_TILT, its slope there then at most that (splatting.py)
-#ifdef NORMAL_FIELD
     vec2 bend = in_field.zw;  // shaped by the surface's field, shaded by the other (normal_field.py)
-#else
-    // lit by its splats' normals, a face's splats bent by the shading field put the rim's
-    // averaged normal on its outline, as a mesh's interpolated normals shade it
-    vec2 bend = in_field.xy;
-#endif
     vec2 reach = max(abs(bend) / MAX_RIM_TILT, 1.0);
     au /= reach.x;
     av /= reach.y;
@@ -368,18 +364,22 @@ float footprint_edge(vec2 frag, float splat_rho2) {
 #if defined(PASS_ATTRIBUTE) || defined(PASS_CATEGORY)
 // The attribute pass's fragment at window position `frag`, as its fragment shader, its
 // compute program and the category pass take it: false where it is dropped (outside the
-// filtered splat, cut by a clip line, or behind the visible surface); else its kernel weight
-// w, eye depth z and normal n (the normal field's with NORMAL_FIELD). The kernel texture has
-// one level, so textureLod (which compute programs need) reads what texture() would.
+// filtered splat, CREASE_BLEND past a clip line, or off the visible surface); else its kernel
+// weight w (fading past a clip line), eye depth z and normal n (the normal field's with
+// NORMAL_FIELD). The kernel texture has one level, so textureLod (which compute programs
+// need) reads what texture() would.
 bool attribute_fragment(vec2 frag, out float w, out float z, out vec3 n) {
     float clipped;
     vec2 uv;
     float rho2 = filter_distance(frag, splat_distance(frag, z, uv, clipped));
     w = 0.0;
     n = v_normal;
-    if (rho2 > 1.0 || clipped > 0.0) return false;
-    if (z > texelFetch(u_visibility, ivec2(frag), 0).r) return false;  // behind the visible surface
-    w = v_weight * textureLod(u_kernel, vec2(rho2, 0.5), 0.0).r;
+    if (rho2 > 1.0 || clipped > CREASE_BLEND) return false;
+    float visible = texelFetch(u_visibility, ivec2(frag), 0).r;
+    if (z > visible) return false;  // behind the visible surface
+    // past its clip line only where it meets the visible surface: across a crease (splatting.py)
+    if (clipped > 0.0 && z < visible - CREASE_BLEND_DEPTH * v_offset) return false;
+    w = v_weight * textureLod(u_kernel, vec2(rho2, 0.5), 0.0).r * min(1.0 - clipped / CREASE_BLEND, 1.0);
 #ifdef NORMAL_FIELD
     n = field_normal(v_normal + uv.x * v_field_u + uv.y * v_field_v, v_center);
 #endif

@@ -41,13 +41,12 @@ otherwise claim a pixel-wide band of the surface behind, drawn with their grazin
 describes, so a splat ends at the true contour -- while the shading keeps the blended splat
 normals, which fitted fields would make noisier on raw scans (issue 17: a coarse CAD part in
 an oblique view, 26.0 dB flat, 30.3 dB curved, 30.7 dB with the low-pass hiding nothing;
-phong 31.6 dB). Unlike `phong`'s, they are bent by the shading field (phong_alpha,
-phong_beta), rim included: a face's splats then bend down at its edge and leave its outline
-to the rim's averaged normal, as a mesh's interpolated normals shade it. Shaped by the
-surface's field instead (flat up to the edge), they lit the outline like the face: -0.3 to
--0.6 dB on CAD parts' vertices in some views (casting.obj, fandisk, rocker-arm, the turned
-part). A level-of-detail cut's splats are flat (rendering.py): fitting fields to every frame's
-cut would cost more than the frame.
+phong 31.6 dB). They were bent by the shading field, rim included, so that a face's splats
+bent down at its edge left its outline to the rim's normal; but then the outline withdrew up
+to half a pixel behind the mesh's (casting.obj: 0.1-0.19% holes in 13 of 48 oblique views
+at 512x512). Shaped as `phong`'s, a face stays whole up to its edge, and the crease blend
+(below) rounds its shading there. A level-of-detail cut's splats are flat (rendering.py):
+fitting fields to every frame's cut would cost more than the frame.
 
 `phong` -- Botsch, Spernat & Kobbelt 2004, "Phong splatting" (survey 2.1.4): elliptical
 splats (c_j, u_j, v_j) aligned with the principal curvature directions, the per-fragment
@@ -74,6 +73,22 @@ cells' covering ellipses, stay as they are for the flat splats of the other meth
 vertices of 13 models, two views each: `phong` median 34.1 -> 34.5 dB, `deferred` 33.1 ->
 33.5 dB, the CAD part's oblique view +1.1 and +1.3 dB; raw scans of them within 0.05 dB.
 A limit of 0.5 gained 1 dB but opened holes of 0.1-0.7% on coarse figures.)
+
+Crease blend (beyond the papers; all three methods): the clip lines end each face's splats
+at a crease, and the crease's own points are dropped (preprocess.sharp_features), so the
+faces meet with a hard step in shading where a mesh's interpolated normals round the edge
+over a triangle's width. In the attribute pass a fragment reaches CREASE_BLEND = 1/2 splat
+radius past its splat's clip lines, its weight fading to 0 there, so the faces' normals (or
+shaded colours) blend across the crease. It blends only where it lies within
+CREASE_BLEND_DEPTH = 2 z_t in front of the visibility depth, on the surface across the
+crease: past a border clip line, over an opening, it would float in front of what the
+opening shows (the bunny's base, seen from below: -2 dB without that test). The visibility
+pass keeps the exact clip lines, so outlines and coverage do not change. (14 models'
+vertices, 48 oblique views each at 512x512, median PSNR per model: `phong` fandisk +0.4 dB,
+casting.obj +0.2 dB, the rest within 0.1 dB; `gaussian` +0.2 and +0.16 dB, the rest within
+0.13 dB; `deferred`, with its splats shaped as `phong`'s, fandisk +0.6 dB, cheburashka +0.35
+dB, rocker-arm -0.15 dB, the rest -0.04 to +0.22 dB, and no view over 0.1% holes, where 15
+were.)
 
 Passes without the rasterizer (beyond the papers; splatting.glsl's COMPUTE_SHADER variants):
 with point sprites, the visibility and attribute passes run as compute programs, one

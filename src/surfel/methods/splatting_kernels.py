@@ -139,20 +139,13 @@ MAX_RIM_TILT = np.float32(1.0)  # splatting.glsl's: a curved splat's field turns
 
 
 @nb.njit(inline="always", fastmath=True, error_model="numpy")
-def _bend(e, surface):
-    """The slopes (alpha, beta) that shape a curved splat with extras e (splatting.glsl's bend):
-    the surface's (`surface`: the splats that a normal field shades), else the shading field's."""
-    return (e[ECURVE_ALPHA] if surface else e[EALPHA]), (e[ECURVE_BETA] if surface else e[EBETA])
-
-
-@nb.njit(inline="always", fastmath=True, error_model="numpy")
-def _reach(e, curved, surface):
+def _reach(e, curved):
     """splatting.glsl's reach of a curved splat with extras e: the divisors of its axes u and v
-    that end it where its surface has turned by MAX_RIM_TILT (1 where it turns less, or is flat)."""
+    that end it where its surface (the field that shapes it) has turned by MAX_RIM_TILT (1 where
+    it turns less, or is flat)."""
     one = np.float32(1.0)
-    bend_u, bend_v = _bend(e, surface)
-    return (max(abs(bend_u) / MAX_RIM_TILT, one) if curved else one,
-            max(abs(bend_v) / MAX_RIM_TILT, one) if curved else one)
+    return (max(abs(e[ECURVE_ALPHA]) / MAX_RIM_TILT, one) if curved else one,
+            max(abs(e[ECURVE_BETA]) / MAX_RIM_TILT, one) if curved else one)
 
 
 @nb.njit(inline="always", fastmath=True, error_model="numpy")
@@ -166,8 +159,7 @@ def _line_within_reach(a, b, c, reach_u, reach_v):
 
 
 @nb.njit(forceinline=True, fastmath=True, error_model="numpy")
-def _setup(p, e, m, radius_scale, lowpass2, depth_offset, ewa_filter, curved, surface, back_light, reach_u,
-           reach_v):
+def _setup(p, e, m, radius_scale, lowpass2, depth_offset, ewa_filter, curved, back_light, reach_u, reach_v):
     """The record of one splat from its staged inputs p (PACKED values) and extras e (EXTRAS
     values), without branches (the vertex stage of splatting.glsl): (record values MX..NZ, field
     values KU..EZ). `back_light`: a back-facing splat weighs BACK_SPLAT_WEIGHT (the methods
@@ -251,8 +243,7 @@ def _setup(p, e, m, radius_scale, lowpass2, depth_offset, ewa_filter, curved, su
     field = FLAT_FIELD
     if curved:
         alpha, beta = flip * e[EALPHA] / reach_u, flip * e[EBETA] / reach_v  # the shading's
-        bend_u, bend_v = _bend(e, surface)
-        bend_u, bend_v = flip * bend_u / reach_u, flip * bend_v / reach_v
+        bend_u, bend_v = flip * e[ECURVE_ALPHA] / reach_u, flip * e[ECURVE_BETA] / reach_v  # the surface's
         ilu, ilv = one / max(lu, tiny), one / max(lv, tiny)
         eux, euy, euz = ux * ilu, uy * ilu, uz * ilu
         evx, evy, evz = vx * ilv, vy * ilv, vz * ilv
@@ -292,7 +283,6 @@ def _setup_tile(table, ibox, count, ox, oy, m, radius_scale, lowpass2, depth_off
     None where the cloud has no clip lines, no normal field curves the splats, or none shades
     them (`rasterize_tiles`; then their rows are left alone)."""
     curved = field_src is not None
-    surface = normal_src is not None  # shaped by the surface's field: a normal field shades it
     scale = np.float32(1.0) / radius_scale
     cam = camera_scalars(m)
     for first in range(0, count, BLOCK):
@@ -301,8 +291,8 @@ def _setup_tile(table, ibox, count, ox, oy, m, radius_scale, lowpass2, depth_off
         for q in range(min(BLOCK, count - first)):
             j, jb = base + np.uint64(q), box_base + np.uint64(q)
             p, e = _staged(table, j)
-            reach_u, reach_v = _reach(e, curved, surface)
-            record, field = _setup(p, e, cam, radius_scale, lowpass2, depth_offset, ewa_filter, curved, surface,
+            reach_u, reach_v = _reach(e, curved)
+            record, field = _setup(p, e, cam, radius_scale, lowpass2, depth_offset, ewa_filter, curved,
                                    back_light, reach_u, reach_v)
             (table[j + ROW[MX]], table[j + ROW[MY]], table[j + ROW[W0]], table[j + ROW[WX]], table[j + ROW[WY]],
              table[j + ROW[Z0]], table[j + ROW[ZX]], table[j + ROW[ZY]], table[j + ROW[U0]], table[j + ROW[UX]],
@@ -442,8 +432,8 @@ def rasterize_tiles(packed, extras, box, index, tile_start, tile_count, order, t
             if clip_src is not None:  # only the extras this kernel reads
                 for col in range(EA0, EC1 + 1):
                     table[j + np.uint64((PACKED + col) * BLOCK)] = extras[col, i]
-            if field_src is not None:  # the surface's slopes too where a normal field shades (_bend)
-                for col in range(EALPHA, (ECURVE_BETA if normal_src is not None else EBETA) + 1):
+            if field_src is not None:  # the shading's slopes and the surface's, which shape it
+                for col in range(EALPHA, ECURVE_BETA + 1):
                     table[j + np.uint64((PACKED + col) * BLOCK)] = extras[col, i]
             for col in range(4):
                 ibox[jb + np.uint64(col * BLOCK)] = box[col, i]

@@ -83,6 +83,8 @@ KEPT_ROWS = 20
 KEPT = tuple(np.uint64(row * BLOCK) for row in range(KEPT_ROWS))
 MISS = np.float32(1e30)  # the squared kernel distance of a ray that misses the splat
 NO_CLIP = np.float32(-1e30)
+CREASE_BLEND = np.float32(0.5)  # splatting.glsl's: an attribute fragment's reach past a clip line
+CREASE_BLEND_DEPTH = np.float32(2.0)  # splatting.glsl's: z_t's in front of the visible depth it may lie there
 NO_LOWPASS = np.float32(2.0)  # added to the low-pass distance when the EWA filter is off: never <= 1
 INACTIVE_LINES = tuple(np.float32(c) for c in (0, 0, 1, 0, 0, 1))  # clip lines that cut nothing
 FLAT_FIELD = tuple(np.float32(0) for _ in range(19))  # no normal field
@@ -301,11 +303,16 @@ def attribute_fragment(s, c, f, clipping, curved, field_normals, dx, dy, params,
 @nb.njit(inline="always", fastmath=True, error_model="numpy")
 def attribute_output(s, f, hit_record, field_normals, nx, ny, nz):
     """The attribute-pass output before its depth test of the fragment whose `fragment`
-    results are `hit_record`: weight (0 when discarded), eye depth and normal: the splat's
-    (nx, ny, nz), or with `field_normals` Phong splatting's N(u, v) = n + u alpha e_u +
-    v beta e_v (eq. 8), unit and turned no further than edge-on (gl/common.glsl field_normal)."""
+    results are `hit_record`: weight (0 when discarded; negated past a clip line, where it
+    fades over CREASE_BLEND and blends only near the visible depth: `blends`), eye depth and
+    normal: the splat's (nx, ny, nz), or with `field_normals` Phong splatting's N(u, v) = n +
+    u alpha e_u + v beta e_v (eq. 8), unit and turned no further than edge-on (gl/common.glsl
+    field_normal)."""
     kept, kernel2, z, u, v, rho2, clipped, hit, iw = hit_record
-    w = s[16] * gaussian_weight(kernel2)
+    one = np.float32(1.0)
+    fade = min(one - clipped / CREASE_BLEND, one)
+    w = s[16] * gaussian_weight(kernel2) * fade * (one if clipped <= 0 else -one)
+    kept = kernel2 <= 1 and clipped <= CREASE_BLEND
     if field_normals:
         fux, fuy, fuz, fvx, fvy, fvz, ex, ey, ez = f[10], f[11], f[12], f[13], f[14], f[15], f[16], f[17], f[18]
         nx, ny, nz = nx + u * fux + v * fvx, ny + u * fuy + v * fvy, nz + u * fuz + v * fvz
@@ -314,6 +321,14 @@ def attribute_output(s, f, hit_record, field_normals, nx, ny, nz):
         inv = np.float32(1.0) / max(math.sqrt(nx * nx + ny * ny + nz * nz), np.float32(1e-30))
         nx, ny, nz = nx * inv, ny * inv, nz * inv
     return (w if kept else np.float32(0.0)), z, nx, ny, nz
+
+
+@nb.njit(inline="always", fastmath=True, error_model="numpy")
+def blends(w, z, visible, zt):
+    """Whether an attribute-pass fragment of `attribute_output` weight w and eye depth z blends
+    into a pixel of visibility depth `visible`: no farther than it, and past its splat's clip
+    line (w < 0) no more than CREASE_BLEND_DEPTH z_t in front of it (splatting.glsl)."""
+    return w != 0 and z <= visible and (w > 0 or z >= visible - CREASE_BLEND_DEPTH * zt)
 
 
 @nb.njit(inline="always", fastmath=True, error_model="numpy")
@@ -432,6 +447,7 @@ def attribute_tile(table, ibox, count, ox, oy, params, clip_src, field_src, norm
             x0, x1, y0, y1 = ibox[jb + TEMP[0]], ibox[jb + TEMP[1]], ibox[jb + TEMP[2]], ibox[jb + TEMP[3]]
             r, g, b = table[j + ROW[R]], table[j + ROW[G]], table[j + ROW[B]]
             nx, ny, nz = table[j + ROW[NX]], table[j + ROW[NY]], table[j + ROW[NZ]]
+            zt = table[j + ROW[ZT]]
             # only categorical modes use it: numba's floor is a call, about 6% of a deferred frame (bench)
             code = math.floor(r * np.float32(CODE_SCALE) + np.float32(0.5)) if levels > 0 else 0
             p = y0 * STRIDE + x0
@@ -440,7 +456,8 @@ def attribute_tile(table, ibox, count, ox, oy, params, clip_src, field_src, norm
                 pl = p + (lane >> 1) * STRIDE + (lane & 1)
                 row = k + np.uint64(lane * BLOCK)  # KEPT[lane]: a tuple indexed at run time is a switch
                 w, z = kept[row], kept[row + KEPT[4]]
-                if w > 0 and z <= zb[pl]:
+                if blends(w, z, zb[pl], zt):
+                    w = abs(w)
                     if levels > 0:
                         best[pl] = max(best[pl], category_pack(w, code, levels))
                     if field_normals:
@@ -457,7 +474,8 @@ def attribute_tile(table, ibox, count, ox, oy, params, clip_src, field_src, norm
                     w, z, fx, fy, fz = attribute_fragment(s, c, f, clipping, curved, field_normals,
                                                           np.float32(x + ox) + half - s[0], dy, params, nx, ny, nz)
                     pl = y * STRIDE + x
-                    if w > 0 and z <= zb[pl]:
+                    if blends(w, z, zb[pl], zt):
+                        w = abs(w)
                         if levels > 0:
                             best[pl] = max(best[pl], category_pack(w, code, levels))
                         blend(acc, pl, w, z, r, g, b, fx, fy, fz)
