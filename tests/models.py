@@ -98,19 +98,14 @@ def puck() -> PointCloud:
 def plate_with_a_hole_over_a_plate() -> PointCloud:
     """Two 2 x 2 plates facing +z, grids of 41 x 41 vertices: a red one at z = 0 without the
     triangles within 0.4 of its centre, and a blue one 0.3 behind it."""
-    n = 41
-    x, y = np.meshgrid(np.linspace(-1.0, 1.0, n), np.linspace(-1.0, 1.0, n))
-    grid = np.stack([x.ravel(), y.ravel(), np.zeros(n * n)], axis=1)
-    corner = np.arange(n * n).reshape(n, n)[:-1, :-1].ravel()
-    faces = np.concatenate([np.stack([corner, corner + 1, corner + n + 1], axis=1),
-                            np.stack([corner, corner + n + 1, corner + n], axis=1)])
+    grid, faces = plate(41, 1.0)
     open_faces = faces[np.linalg.norm(grid[faces].mean(axis=1)[:, :2], axis=1) > 0.4]
     front = np.unique(open_faces)
-    renumber = np.full(n * n, -1)
+    renumber = np.full(len(grid), -1)
     renumber[front] = np.arange(len(front))
     vertices = np.concatenate([grid[front], grid + [0.0, 0.0, -0.3]])
     all_faces = np.concatenate([renumber[open_faces], faces + len(front)]).astype(np.int32)
-    colors = np.concatenate([np.tile([1.0, 0.0, 0.0], (len(front), 1)), np.tile([0.0, 0.0, 1.0], (n * n, 1))])
+    colors = np.concatenate([np.tile([1.0, 0.0, 0.0], (len(front), 1)), np.tile([0.0, 0.0, 1.0], (len(grid), 1))])
     return mesh_cloud(vertices, all_faces, "plate with a hole over a plate").with_(colors=colors.astype(np.float32))
 
 
@@ -131,11 +126,17 @@ def ball_over_plate() -> PointCloud:
 
     ball = icosphere(subdivisions=4)
     ball_vertices = np.asarray(ball.vertices) * 0.5 + [0.1, 0.05, 0.6]
-    n = 81
-    x, y = np.meshgrid(np.linspace(-1.2, 1.2, n), np.linspace(-1.2, 1.2, n))
-    plate = np.stack([x.ravel(), y.ravel(), np.zeros(n * n)], axis=1)
-    corner = np.arange(n * n).reshape(n, n)[:-1, :-1].ravel()
-    plate_faces = np.concatenate([np.stack([corner, corner + 1, corner + n + 1], axis=1),
-                                  np.stack([corner, corner + n + 1, corner + n], axis=1)])
+    grid, plate_faces = plate(81, 1.2)
     faces = np.concatenate([np.asarray(ball.faces), plate_faces + len(ball_vertices)]).astype(np.int32)
-    return mesh_cloud(np.concatenate([ball_vertices, plate]), faces, "ball over a plate")
+    return mesh_cloud(np.concatenate([ball_vertices, grid]), faces, "ball over a plate")
+
+
+def plate(n: int, half: float) -> tuple[np.ndarray, np.ndarray]:
+    """A square plate at z = 0 facing +z from -half to half, a grid of n x n vertices in two
+    triangles a cell: (vertices (n², 3), faces (2 (n - 1)², 3))."""
+    x, y = np.meshgrid(np.linspace(-half, half, n), np.linspace(-half, half, n))
+    grid = np.stack([x.ravel(), y.ravel(), np.zeros(n * n)], axis=1)
+    corner = np.arange(n * n).reshape(n, n)[:-1, :-1].ravel()
+    faces = np.concatenate([np.stack([corner, corner + 1, corner + n + 1], axis=1),
+                            np.stack([corner, corner + n + 1, corner + n], axis=1)])
+    return grid, faces
