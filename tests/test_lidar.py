@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
+import models
 from conftest import requires_gl
 from surfel.camera import frame
 from surfel.cloud import PointCloud
@@ -162,15 +163,10 @@ def test_the_spacing_of_a_scan_grows_with_the_range_from_its_sensor():
 
 def _square_mesh(centre, turn_degrees: float, rows: int = 20) -> PointCloud:
     """A 2 x 2 square facing +z, turned about y by `turn_degrees` (its normal towards +x), at `centre`."""
-    u = np.linspace(-1.0, 1.0, rows + 1)
-    x, y = np.meshgrid(u, u)
+    grid, faces = models.plate(rows + 1, 1.0)
     cos, sin = math.cos(math.radians(turn_degrees)), math.sin(math.radians(turn_degrees))
     rotation = np.array([[cos, 0.0, sin], [0.0, 1.0, 0.0], [-sin, 0.0, cos]])
-    corners = np.stack([x.ravel(), y.ravel(), np.zeros(x.size)], 1) @ rotation.T + centre
-    first = (np.arange(rows)[:, None] * (rows + 1) + np.arange(rows)).ravel()
-    faces = np.concatenate([np.stack([first, first + 1, first + rows + 2], 1),
-                            np.stack([first, first + rows + 2, first + rows + 1], 1)])
-    return PointCloud(corners, faces=faces)
+    return PointCloud(grid @ rotation.T + centre, faces=faces)
 
 
 @requires_gl
