@@ -308,7 +308,7 @@ def _setup_tile(table, ibox, count, ox, oy, m, radius_scale, lowpass2, depth_off
                 (table[j + ROW[KU]], table[j + ROW[KV]], table[j + ROW[LU]], table[j + ROW[LV]],
                  table[j + ROW[A10]], table[j + ROW[A1X]], table[j + ROW[A1Y]], table[j + ROW[B10]],
                  table[j + ROW[B1X]], table[j + ROW[B1Y]]) = field[:CURVE_VALUES]
-            if field_src is not None and normal_src is not None:  # and its normals (`phong`)
+            if field_src is not None and normal_src is not None:  # and its normals (`phong`, `deferred`)
                 (table[j + ROW[FUX]], table[j + ROW[FUY]], table[j + ROW[FUZ]], table[j + ROW[FVX]],
                  table[j + ROW[FVY]], table[j + ROW[FVZ]], table[j + ROW[EX]], table[j + ROW[EY]],
                  table[j + ROW[EZ]]) = field[CURVE_VALUES:]
@@ -388,7 +388,8 @@ def rasterize_tiles(packed, extras, box, index, tile_start, tile_count, order, t
     (threads, 4 x that), temp (threads, TEMP_ROWS x BLOCK), kept (threads, table_size(largest
     tile, KEPT_ROWS)), zbuf, cover (threads, STRIDE²), accum (threads, STRIDE², LAYER).
     clip_src, field_src, normal_src: the extras where splats are clipped, where they are curved
-    by their normal fields, where they are shaded with them too (`phong`); else None, which
+    by their normal fields, where they are shaded with them too (`phong`, and `deferred` with
+    the surface's slopes in the shading's rows: pack_splats); else None, which
     compiles a kernel without that arithmetic, and stages only the extras it reads. The renderer
     clips where the cloud has clip lines, as the GPU's CLIP_LINES variant: clipping by inactive
     lines (which cut nothing) and staging rows that nothing reads made the `deferred` and `phong`
