@@ -112,10 +112,10 @@ def test_deferred_is_at_least_as_close_to_the_mesh_as_gaussian_in_an_oblique_vie
 
 
 @pytest.mark.parametrize("backend", ["gl", "cpu"])
-def test_deferred_shades_its_curved_splats_without_bands(backend):
+def test_deferred_lights_its_splats_normal_fields_without_bands(backend):
     """Issue 17.5: normals blended from each splat's one normal show a coarse surface's splats
     as bands (spot's body and legs striped, the paper's look, `--splat-normals`); each
-    fragment's normal taken from its curved splat's own surface (the default) follows the
+    fragment's normal taken from its splat's linear normal field (the default) follows the
     surface: +1.9 and +2.2 dB on spot from the front and the right."""
     import models
 
@@ -124,10 +124,10 @@ def test_deferred_shades_its_curved_splats_without_bands(backend):
     for view in ("front", "right"):
         cam = frame(mesh.center, mesh.bounding_radius, view=view, size=SIZE)
         ref = render(mesh, cam, "mesh", shading="lambert")
-        surface = compare_results(ref, render(cloud, cam, "deferred", shading="lambert", backend=backend))
+        fields = compare_results(ref, render(cloud, cam, "deferred", shading="lambert", backend=backend))
         splat = compare_results(ref, render(cloud, cam, "deferred", shading="lambert", backend=backend,
-                                            surface_normals=False))
-        assert surface["psnr"] > splat["psnr"] + 1.0, (view, surface["psnr"], splat["psnr"])
+                                            phong_normals=False))
+        assert fields["psnr"] > splat["psnr"] + 1.0, (view, fields["psnr"], splat["psnr"])
 
 
 def test_back_splats_do_not_brighten_a_closed_surfaces_silhouette():

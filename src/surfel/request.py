@@ -185,9 +185,9 @@ OPTIONS: dict[str, Option] = {o.name: o for o in [
            "deferred, off for gaussian and phong].", "params", flag="--ewa-filter/--no-ewa-filter"),
     Option("lowpass_radius", number, "Screen-space low-pass radius in pixels (blended splat methods).", "params",
            metavar="PX"),
-    Option("surface_normals", None, "deferred: shade each pixel with the normals of the curved splats there, or "
-           "with each splat's one normal as Botsch et al. 2005 do [default: surface].", "params",
-           flag="--surface-normals/--splat-normals"),
+    Option("phong_normals", None, "deferred: light each pixel with its splats' linear normal fields (Phong "
+           "splatting's), or with each splat's one normal as Botsch et al. 2005 do [default: normal fields].",
+           "params", flag="--phong-normals/--splat-normals"),
     Option("per_pixel_normalization", None, "object-space: divide by the accumulated weight per pixel (Botsch & "
            "Kobbelt 2003), or Ren et al.'s precomputed per-surfel weights [default: per-pixel].", "params",
            field="normalization", flag="--per-pixel-normalization/--per-surfel-normalization",
@@ -227,7 +227,7 @@ RENDER_COMMAND = ("input", "demo", "sensor", *OUTPUTS, "method", "backend", *CAM
 PAGE_COMMAND = ("input", "demo", "output", "method", *CAMERA, "shading", "color", "colormap", "color_range",
                 "classes", "returns", "edl_strength", "edl_radius", "background", "supersample", "lod_error",
                 "point_budget", "radius_scale", "depth_offset", "backface_culling", "ewa_filter", "lowpass_radius",
-                "surface_normals")
+                "phong_normals")
 PAGE_MAX_SUPERSAMPLE = 4
 SCAN = tuple(name for name, o in OPTIONS.items() if o.sets == "scan")
 TURNTABLE_COMMAND = ("input", "sensor", "output", "frames", "fps", "elevation", "size", "method", "backend", *RENDER)

@@ -20,7 +20,7 @@
 // than where its field has turned by MAX_RIM_TILT); NORMAL_FIELD (with
 // CURVED_SPLATS: Botsch, Spernat & Kobbelt 2004, Phong splatting: the blended normal is the
 // splat's linear normal field N(u, v) = n + u alpha u_j + v beta v_j, eq. 8, per fragment;
-// with SURFACE_NORMALS, `deferred`'s, the field that shapes the curved splat: its own normal);
+// `phong`'s, and `deferred`'s unless it blends one normal per splat as in its paper);
 // CLIP_LINES (splats cut at sharp features by the clip lines of surfel.preprocess).
 #include "common.glsl"
 #include "lod.glsl"
@@ -132,11 +132,7 @@ bool splat_setup(out vec2 lo, out vec2 hi, out bool crosses_near) {
     vec3 n = mat3(u_view) * in_normal;
     vec3 au = mat3(u_view) * in_axis_u * u_radius_scale;
     vec3 av = mat3(u_view) * in_axis_v * u_radius_scale;
-#ifdef SURFACE_NORMALS
-    vec2 field = in_field.zw;  // the curved splat's own normal (splatting.py)
-#else
     vec2 field = in_field.xy;
-#endif
 #ifdef CURVED_SPLATS
     // A curved splat reaches no farther along each axis than where its surface has turned by
     // MAX_RIM_TILT, its slope there then at most that (splatting.py)

@@ -40,17 +40,19 @@ otherwise claim a pixel-wide band of the surface behind, drawn with their grazin
 `phong`'s (below) -- the ray meets the surface their fitted normal field
 describes, so a splat ends at the true contour (issue 17: a coarse CAD part in an oblique
 view, 26.0 dB flat, 30.3 dB curved, 30.7 dB with the low-pass hiding nothing; phong 31.6 dB).
-Each fragment's normal is that curved splat's own, N(u, v) = n + u a û + v b v̂ with the
-slopes (a, b) of the surface's field that shapes it (`DeferredParams.surface_normals`, on by
-default; off, `--splat-normals`, each splat's one normal as in the paper). Blended with
-Gaussian weights, one normal per splat shows a coarse surface's splats as bands (the demo
-model's body and legs striped). Over the vertices of 14 models, 48 oblique views each at
-512x512: median PSNR per model spot 35.6 -> 36.8 dB, fandisk 31.3 -> 32.6, cheburashka
-36.7 -> 37.8, casting.obj 30.0 -> 30.8 (views below 28 dB: 8 -> 2), cow 28.2 -> 29.1, the
-bunny 37.6 -> 38.1, six others 0 to +0.4; rocker-arm 36.0 -> 34.6 and the teapot 29.8 ->
-28.8, whose fine features a field fitted over a few coarse neighbours turns too far. On raw
-scans of 9 of them (benchmarks/scan_fidelity.py --oblique) every model gains 0 to 0.6 dB,
-median 32.7 -> 33.0 dB. They were bent by the shading field, rim included, so that a face's splats
+Each fragment's normal is its splat's linear normal field, `phong`'s (below), evaluated
+where the ray meets the splat (`DeferredParams.phong_normals`, on by default; off,
+`--splat-normals`, each splat's one normal, which the paper blends). Blended with Gaussian
+weights, one normal per splat shows a coarse surface's splats as bands (the demo model's
+body and legs striped). Over the vertices of 14 models, 48 oblique views each at 512x512:
+median PSNR per model spot 35.6 -> 36.8 dB, fandisk 31.3 -> 33.9, cheburashka 36.7 -> 37.7,
+casting.obj 30.0 -> 31.6 (views below 28 dB: 8 -> 0), cow 28.2 -> 29.1, the bunny 37.6 ->
+38.1, six others -0.05 to +0.35; rocker-arm 36.0 -> 34.5 and the teapot 29.8 -> 28.9, whose
+fine features a field fitted over a few coarse neighbours turns too far. On raw scans of 9
+of them (benchmarks/scan_fidelity.py --oblique) every model gains 0 to 0.6 dB, median 32.7
+-> 33.0 dB. The splat's own surface field, which shapes it, lights it no better: the same
+on curved surfaces, 1.3 and 0.8 dB below on fandisk and casting.obj, whose rims it leaves
+out. The splats were bent by the shading field, rim included, so that a face's splats
 bent down at its edge left its outline to the rim's normal; but then the outline withdrew up
 to half a pixel behind the mesh's (casting.obj: 0.1-0.19% holes in 13 of 48 oblique views
 at 512x512). Shaped as `phong`'s, a face stays whole up to its edge, and the crease blend
@@ -203,7 +205,7 @@ class GaussianParams(SplatParams):
 @dataclass(frozen=True)
 class DeferredParams(SplatParams):
     ewa_filter: bool = True  # the paper's: minified textures do not alias (Fig. 10)
-    surface_normals: bool = True  # each fragment's normal is its curved splat's; False: the paper's constant one
+    phong_normals: bool = True  # each fragment's normal from its splat's normal field; False: one per splat
 
 
 @dataclass(frozen=True)
@@ -218,8 +220,7 @@ def render_gaussian(cloud, camera, options, params: GaussianParams, renderer):
 
 def render_deferred(cloud, camera, options, params: DeferredParams, renderer):
     return _render(cloud, camera, options, params, renderer, per_splat_shading=False, curved=True,
-                   normal_field=params.surface_normals, surface_normals=params.surface_normals,
-                   supersample=DEFAULT_SUPERSAMPLES["deferred"])
+                   normal_field=params.phong_normals, supersample=DEFAULT_SUPERSAMPLES["deferred"])
 
 
 def render_phong(cloud, camera, options, params: PhongParams, renderer):
@@ -228,7 +229,7 @@ def render_phong(cloud, camera, options, params: PhongParams, renderer):
 
 
 def _render(cloud, camera, options, params, renderer, *, per_splat_shading: bool, curved: bool = False,
-            normal_field: bool = False, surface_normals: bool = False, supersample: int):
+            normal_field: bool = False, supersample: int):
     ctx = get_context()
     # the default yields to the targets' side limit with the guard band a sprite pass may add
     ss = options.supersample or fitting_supersample(supersample, camera.width, camera.height,
@@ -245,7 +246,7 @@ def _render(cloud, camera, options, params, renderer, *, per_splat_shading: bool
     guard = GUARD if sprites and (categorical or not use_compute_passes(sprites, buffers, width * height)) else 0
     compute = use_compute_passes(sprites, buffers, (width + 2 * guard) * (height + 2 * guard))
     variant = {"PER_SPLAT_SHADING": per_splat_shading, "EWA_FILTER": ewa_filter, "CURVED_SPLATS": curved,
-               "NORMAL_FIELD": normal_field, "SURFACE_NORMALS": surface_normals,
+               "NORMAL_FIELD": normal_field,
                "POINT_SPRITES": sprites, "CLIP_LINES": "clip_lines" in cloud.attributes}
     # one albedo code for every splat: the compute pass's sums skip it (gl/passes.glsl UNIFORM_COLOR)
     uniform_color = splats.NO_COLOR if cloud.colors is None and not per_splat_shading else None

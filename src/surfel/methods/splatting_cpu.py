@@ -18,8 +18,7 @@ perspective u W = d.((c.n) u_j/|u_j|² - (c.u_j/|u_j|²) n), zero on the centre'
 fragment costs one division. `deferred` and `phong` move t to the root of the ray's quadratic
 with the curved splat h = -(k_u s_u² + k_v s_v²)/2 nearest the plane's hit; `phong`'s normal
 is the linear field N(u, v) = n + u alpha e_u + v beta e_v (eq. 8), turned no further than
-edge-on, `deferred`'s the same with the curved splat's own slopes (surface_normals; off, the
-splat's constant normal).
+edge-on, and so is `deferred`'s (phong_normals; off, the splat's own).
 
 The passes, as in splatting.glsl (r_lp the low-pass radius in pixels, z_t = depth_offset r):
 
@@ -89,14 +88,12 @@ DEPTH_CLAMP = 32.0  # splatting.glsl's: splat radii a plane's depth may stray fr
 BIN_CHUNKS_PER_THREAD = 4
 
 
-def pack_splats(cloud: PointCloud, extras: bool,
-                surface_normals: bool = False) -> tuple[np.ndarray, np.ndarray | None]:
+def pack_splats(cloud: PointCloud, extras: bool) -> tuple[np.ndarray, np.ndarray | None]:
     """A cloud's splats as the kernels read them, made once per cloud: (PACKED, N) float32
     (centre relative to the local origin, as the GPU path uploads it; unit normal, zero for a
     splat that faces the camera (preprocess.drawn_normals); the tangent axes; albedo, white
     without colours; the layer's thickness, 0 for none) and, with `extras`, (EXTRAS, N) of clip
-    lines (inactive where the cloud has none) and Phong normal-field slopes (0 where none): the
-    shading field's, or with `surface_normals` (`deferred`) the surface's in its place.
+    lines (inactive where the cloud has none) and Phong normal-field slopes (0 where none).
     One column per splat: the per-splat loop of bins.bound_splats then reads each value of
     consecutive splats from consecutive addresses (about 6% of a deferred frame, against rows).
     Row-major (N, PACKED) in Fortran order would store the same, but numba types an array of
@@ -114,8 +111,6 @@ def pack_splats(cloud: PointCloud, extras: bool,
     extra[t.EA0:t.EC1 + 1] = splat_clip_lines(cloud).reshape(-1, 6).T
     slopes = splat_slopes(cloud)  # the shading field's, then the surface's: EALPHA..ECURVE_BETA
     extra[t.EALPHA:t.ECURVE_BETA + 1] = 0.0 if slopes is None else slopes.T
-    if surface_normals:
-        extra[t.EALPHA:t.EBETA + 1] = extra[t.ECURVE_ALPHA:t.ECURVE_BETA + 1]
     return packed, extra
 
 
@@ -124,8 +119,8 @@ class CpuSplatBuffers:
     reuse (boxes, bins, each thread's tile table and scratch, the per-pixel flags of the last
     frame size), kept by the Renderer from frame to frame."""
 
-    def __init__(self, cloud: PointCloud, extras: bool, surface_normals: bool = False):
-        self.packed, self.extras = pack_splats(cloud, extras, surface_normals)
+    def __init__(self, cloud: PointCloud, extras: bool):
+        self.packed, self.extras = pack_splats(cloud, extras)
         count = len(cloud)
         self.box = np.empty((4, count), np.int32)  # a column per splat, as `packed`
         self.index = np.empty(count + count // 4 + 1, np.int32)
@@ -175,8 +170,7 @@ def render_gaussian_cpu(cloud, camera, options, params: GaussianParams, renderer
 
 def render_deferred_cpu(cloud, camera, options, params: DeferredParams, renderer):
     return _render_cpu(cloud, camera, options, params, renderer, per_splat_shading=False, curved=True,
-                       normal_field=params.surface_normals, surface_normals=params.surface_normals,
-                       supersample=DEFAULT_SUPERSAMPLES["deferred"])
+                       normal_field=params.phong_normals, supersample=DEFAULT_SUPERSAMPLES["deferred"])
 
 
 def render_phong_cpu(cloud, camera, options, params: PhongParams, renderer):
@@ -206,15 +200,14 @@ def _color_mode(options) -> tuple[int, np.ndarray, int]:
 
 
 def _render_cpu(cloud, camera, options, params, renderer, *, per_splat_shading: bool, curved: bool = False,
-                normal_field: bool = False, surface_normals: bool = False, supersample: int):
+                normal_field: bool = False, supersample: int):
     cloud = renderer.cached(cloud, "morton order", lambda: spatially_ordered(cloud))
     ss = options.supersample or fitting_supersample(supersample, camera.width, camera.height)
     target = target_camera(camera, ss)
     width, height = target.width, target.height
     check_cpu_samples(width, height)
     extras = "clip_lines" in cloud.attributes or curved
-    buffers = renderer.cached(cloud, ("cpu splat buffers", extras, surface_normals),
-                              lambda: CpuSplatBuffers(cloud, extras, surface_normals))
+    buffers = renderer.cached(cloud, ("cpu splat buffers", extras), lambda: CpuSplatBuffers(cloud, extras))
     buffers.frame(width, height)
     color_mode, palette, levels = _color_mode(options)
     categorical = color_mode == k.COLOR_CATEGORICAL

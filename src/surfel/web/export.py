@@ -195,8 +195,8 @@ def export_html(cloud, camera: Camera, output, *, method: str = DEFAULT_METHOD, 
                 "ewa_given": options.params is not None and params.ewa_filter != m.make_params().ewa_filter,
                 # each method's own default, which the page takes on switching (unless given)
                 "ewa_defaults": {name: get_method(name).make_params().ewa_filter for name in METHODS},
-                # deferred's shading normals (splatting.DeferredParams), also on switching to it
-                "surface_normals": bool(getattr(params, "surface_normals", DeferredParams.surface_normals)),
+                # deferred's normals (splatting.DeferredParams), also on switching to it
+                "phong_normals": bool(getattr(params, "phong_normals", DeferredParams.phong_normals)),
                 "shading": options.shading, "background": list(options.background),
                 "supersample": options.supersample or DEFAULT_SUPERSAMPLES[method],
                 "supersample_given": options.supersample is not None,

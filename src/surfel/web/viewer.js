@@ -346,8 +346,7 @@
     const t = allocate(w, h, guard);
     const variant = { PER_SPLAT_SHADING: method === "gaussian", EWA_FILTER: ewa, POINT_SPRITES: sprites,
                       CURVED_SPLATS: method !== "gaussian" && !!columns.field,
-                      NORMAL_FIELD: (method === "phong" || (method === "deferred" && S.surface_normals)) && !!columns.field,
-                      SURFACE_NORMALS: method === "deferred" && S.surface_normals && !!columns.field,
+                      NORMAL_FIELD: (method === "phong" || (method === "deferred" && S.phong_normals)) && !!columns.field,
                       CLIP_LINES: !!columns.clip };
     let pageMode = PAGE_MODE.rgb, range = [0, 1];
     if (mode.kind === "continuous") {
