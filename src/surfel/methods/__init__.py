@@ -35,8 +35,8 @@ class Method:
     elliptical: bool = False  # fitted elliptical splats when the cloud has no axes
     ellipses_over_given_radii: bool = True  # ... even when it has radii (else circles of them)
     normal_field: bool = False  # draws with Phong splatting's linear normal fields (fitted if missing)
-    # fits them for a level-of-detail cut too; without (deferred, whose fields only curve its
-    # splats), a cut's splats are flat: fitting every frame's cut would cost more than the frame
+    # fits them for a level-of-detail cut too; without (deferred), a cut's splats are flat and
+    # lit by one normal each: fitting every frame's cut would cost more than the frame
     fields_per_cut: bool = True
     dump_passes: tuple[str, ...] = ()  # the backends that can write their intermediate passes
     # --backend auto picks its CPU backend over a software GL rasterizer (llvmpipe): measured
@@ -96,7 +96,8 @@ METHODS: dict[str, Method] = {
                {"gl": "methods.splatting:render_gaussian", "cpu": "methods.splatting_cpu:render_gaussian_cpu"},
                "methods.splatting:GaussianParams", shader_lod=True, cpu_beats_software_gl=True,
                dump_passes=_GL_PASSES),
-        Method("deferred", "Botsch et al. 2005: deferred shading with the EWA filter approximation, curved splats",
+        Method("deferred", "Botsch et al. 2005: deferred shading with the EWA filter approximation, curved splats "
+               "lit by their normal fields",
                {"gl": "methods.splatting:render_deferred", "cpu": "methods.splatting_cpu:render_deferred_cpu"},
                "methods.splatting:DeferredParams", shader_lod=True, cpu_beats_software_gl=True,
                elliptical=True, ellipses_over_given_radii=False, normal_field=True, fields_per_cut=False,
@@ -118,11 +119,11 @@ METHODS: dict[str, Method] = {
     ]
 }
 
-# The method of every interface that names none: the closest to the mesh in the README's
-# quality tables (of vertices and of raw range scans, close and far views), smooth where splats
-# are magnified (flat splat normals blended, `deferred`'s, band there), and the passes of
-# `deferred`: interactive at one sample a pixel, at which the viewer and the page draw a moving
-# camera; a still image takes 2x2 (methods/splatting.py, "Samples").
+# The method of every interface that names none: of those that draw at interactive speed, the
+# closest to the mesh in the README's quality tables (of vertices and of raw range scans, close
+# and far views), smooth where splats are magnified, and the passes of `deferred`: interactive
+# at one sample a pixel, at which the viewer and the page draw a moving camera; a still image
+# takes 2x2 (methods/splatting.py, "Samples").
 DEFAULT_METHOD = "phong"
 
 
