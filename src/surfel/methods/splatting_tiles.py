@@ -193,8 +193,8 @@ def fragment(s, c, f, clipping, curved, dx, dy, params):
     and normal field f (splatting.glsl splat_distance and filter_distance), without branches:
     (kept, kernel distance², clamped eye depth, u, v, u² + v², clip excess, hit, 1/W). A ray
     that misses (parallel to the plane, or past the contour of a curved splat) has
-    u² + v² = MISS and the centre's depth; `kept` is the test of both passes (inside the filter
-    and the clip lines)."""
+    u² + v² = MISS and the centre's depth; `kept` is the visibility pass's test (inside the
+    filter and the clip lines; the attribute pass reaches CREASE_BLEND past the lines)."""
     mx, my, w0, wx, wy, z0, zx, zy, u0, ux, uy, v0, vx, vy, cz, radius, weight, zt, footprint = s
     inv_lowpass2, no_lowpass, depth_clamp = params
     one = np.float32(1.0)
@@ -308,11 +308,11 @@ def attribute_output(s, f, hit_record, field_normals, nx, ny, nz):
     normal: the splat's (nx, ny, nz), or with `field_normals` Phong splatting's N(u, v) = n +
     u alpha e_u + v beta e_v (eq. 8), unit and turned no further than edge-on (gl/common.glsl
     field_normal)."""
-    kept, kernel2, z, u, v, rho2, clipped, hit, iw = hit_record
+    _, kernel2, z, u, v, rho2, clipped, hit, iw = hit_record
     one = np.float32(1.0)
     fade = min(one - clipped / CREASE_BLEND, one)
     w = s[16] * gaussian_weight(kernel2) * fade * (one if clipped <= 0 else -one)
-    kept = kernel2 <= 1 and clipped <= CREASE_BLEND
+    kept = kernel2 <= 1 and clipped <= CREASE_BLEND  # the visibility pass's test, CREASE_BLEND wider
     if field_normals:
         fux, fuy, fuz, fvx, fvy, fvz, ex, ey, ez = f[10], f[11], f[12], f[13], f[14], f[15], f[16], f[17], f[18]
         nx, ny, nz = nx + u * fux + v * fvx, ny + u * fuy + v * fvy, nz + u * fuz + v * fvz
