@@ -12,7 +12,8 @@
 - `ball_over_plate`: a sphere in front of a square plate, an occluding contour over a surface.
 - `puck`: a disc a fifth as thick as wide, coarsely tessellated (1,538 vertices): its flat
   faces meet its rim at sharp 90 degree creases one or two vertices apart, as a coarse CAD
-  part's flanges do.
+  part's flanges do; made thinner than its sampling, a plate whose rim has no vertices
+  between its two faces' edges.
 - `plate_with_a_hole_over_a_plate`: a red plate with a round opening in front of a blue one:
   an open border over a surface farther back.
 """
@@ -77,14 +78,14 @@ def turned_part() -> PointCloud:
     return mesh_cloud(vertices @ rotation.T, np.asarray(mesh.faces), "turned part")
 
 
-def puck() -> PointCloud:
-    """The puck of the module docstring: the profile of a disc of radius 1 and thickness 0.2
+def puck(thickness: float = 0.2) -> PointCloud:
+    """The puck of the module docstring: the profile of a disc of radius 1 and `thickness`
     resampled every 2 pi / 64 along its segments, revolved in 64 steps about +y."""
     from trimesh.creation import revolve
 
     sections = 64
     spacing = 2 * np.pi / sections
-    corners = np.array([(0.0, 0.0), (1.0, 0.0), (1.0, 0.2), (0.0, 0.2)])
+    corners = np.array([(0.0, 0.0), (1.0, 0.0), (1.0, thickness), (0.0, thickness)])
     profile = [corners[0]]
     for a, b in zip(corners[:-1], corners[1:], strict=True):
         steps = int(np.ceil(np.linalg.norm(b - a) / spacing))

@@ -391,17 +391,41 @@ def _in_plane(points, normals, p, q, flat_sin2):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, inline="always")
-def _crease_candidates(points, normals, index, axes, i, p, features, candidates):  # pragma: no cover - compiled
+def _crease_candidates(points, normals, index, axes, i, p, features, layers, candidates):  # pragma: no cover - compiled
     """The crease half-planes of splat p that cut it, among its neighbours index[i], in its axes
     (u, v) = axes[i], as unit (a, b, c) rows of candidates, a rim's moved out by RIM_MARGIN of
-    the rim point's distance (cells.py); returns their number."""
+    the rim point's distance, a steep neighbour's turn no nearer than half-way to it (cells.py);
+    returns their number."""
     count = 0
     for j in range(index.shape[1]):
         q = index[i, j]
         facing = 0.0
+        height = 0.0
+        distance2 = 0.0
+        across = 0.0  # (q - p) . n_q
         for a in range(3):
+            offset = points[q, a] - points[p, a]
             facing += normals[q, a] * normals[p, a]
-        if facing >= features.sharp_cos or features.crease[q]:
+            height += offset * normals[p, a]
+            across += offset * normals[q, a]
+            distance2 += offset * offset
+        if features.crease[q]:
+            continue
+        # the surface turning sharply away below p (_cell_bounds' turn, on p's layer), where p
+        # lies below q's plane too: a convex edge or a thin part's rim, not another part of the
+        # surface below p (a tail under a rump)
+        turn = (not (facing < features.sharp_cos and features.flat[q]) and facing >= features.sheet_cos
+                and height < 0.0 and 2.0 * height * height > distance2 and across > 0.0
+                and 0.5 * abs(height + across) <= layers[p])
+        if turn:
+            la, lb, lc = _crease_half_plane(points, p, q, normals[q], axes[i], features.on_plane_sin2)
+            length = math.sqrt(la * la + lb * lb)
+            qu, qv = _frame_coordinates(points, axes[i], p, q)
+            lc = max(lc, 0.5 * (qu * la + qv * lb))
+            if length >= 1e-6 and lc < length:
+                count = _append_unit_line(candidates, count, la, lb, lc, length)
+            continue
+        if facing >= features.sharp_cos:
             continue
         # a curved neighbour in p's face's plane lies on the rim of that face: a bolt hole's, a
         # rounded outer edge's, where no second face makes crease points
@@ -467,18 +491,19 @@ def _nearest_creases(candidates, count, lines, i):  # pragma: no cover - compile
         used += 1
 
 
-def cell_clip_lines(points, normals, index, start, axes, features, outwards, reach, margin):
+def cell_clip_lines(points, normals, index, start, axes, features, layers, outwards, reach, margin):
     """CLIP_LINES clip lines (a, b, c) per splat, in its local coordinates (u, v) (1 on the rim):
-    the crease half-planes that end its cell and the border lines of its neighbours (`outwards`).
+    the crease and turn half-planes that end its cell (neighbours of another of the `layers`
+    aside) and the border lines of its neighbours (`outwards`).
     A dropped splat keeps nothing (u <= -2, -u <= -2)."""
     lines = np.empty((len(index), CLIP_LINES, 3), np.float32)
-    over_rows(_clip_rows, len(index), points, normals, index, start, axes, features, outwards, reach, margin, lines,
-              grain=CELL_BLOCK)
+    over_rows(_clip_rows, len(index), points, normals, index, start, axes, features, layers, outwards, reach, margin,
+              lines, grain=CELL_BLOCK)
     return lines
 
 
 @numba.njit(cache=True, nogil=True)
-def _clip_rows(first, stop, points, normals, index, start, axes, features, outwards, reach, margin,
+def _clip_rows(first, stop, points, normals, index, start, axes, features, layers, outwards, reach, margin,
                lines):  # pragma: no cover - compiled
     """Rows first:stop of `cell_clip_lines`."""
     candidates = np.empty((2 * index.shape[1], 3))  # one per call: an allocation per point costs as much
@@ -490,6 +515,6 @@ def _clip_rows(first, stop, points, normals, index, start, axes, features, outwa
             lines[i, line, 1] = 0.0 if dropped else INACTIVE_CLIP[1]
             lines[i, line, 2] = -2.0 if dropped else INACTIVE_CLIP[2]
         if not dropped:
-            count = _crease_candidates(points, normals, index, axes, i, p, features, candidates)
+            count = _crease_candidates(points, normals, index, axes, i, p, features, layers, candidates)
             count = _border_candidates(points, index, axes, i, p, outwards, reach, margin, candidates, count)
             _nearest_creases(candidates, count, lines, i)

@@ -19,9 +19,10 @@ FIELD_NEIGHBOURS), serves every estimation, in this order, each using the ones b
   6. axes: fitted ellipses (`cells.py`) or circular tangent frames of the radii (`frames.py`);
   7. the sampling bound on both (`spacing.py`), and the radii of the screen-facing splats
      (`structure.py`);
-  8. clip lines at the sharp features and at the borders of open surfaces (`borders.py`,
-     `cells.py`; a margin out where the normals were estimated on a noisy cloud, also when
-     `smooth` denoised it first), none on screen-facing splats;
+  8. clip lines at the sharp features, where the surface turns sharply away (a thin part's
+     rim), and at the borders of open surfaces (`borders.py`, `cells.py`; a margin out where
+     the normals were estimated on a noisy cloud, also when `smooth` denoised it first), none
+     on screen-facing splats;
   9. Phong splatting's normal fields (`normal_field.py`): the shading's and the curved
      surface's, flat on screen-facing splats;
 
@@ -234,7 +235,7 @@ def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np
                            else border_outwards(nbh, unit_normals, nbh.first(RADIUS_NEIGHBOURS), progress, thickness,
                                                 spacing))
         lines = clip_lines(nbh, unit_normals, axes, features, outwards, reach, progress,
-                           margin=NOISY_MARGIN if noisy else 0.0)
+                           margin=NOISY_MARGIN if noisy else 0.0, layers=thickness)
         if facing is not None:
             lines[facing] = INACTIVE_CLIP  # a disk facing the camera has no crease to end at
         attributes["clip_lines"] = nbh.unsort(lines)
