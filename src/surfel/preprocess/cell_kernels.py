@@ -54,11 +54,13 @@ def _crease_half_plane(points, p, q, normal_q, frame, on_plane_sin2):  # pragma:
     # a plane point lies at g(x, y) = side + x ga + y gb from q's plane; keep sign * g >= 0
     if side * side > on_plane_sin2 * distance2:
         sign = 1.0 if side > 0.0 else -1.0
-    else:  # p on the crease line cannot tell its sides apart: the side away from q
-        qx, qy = _frame_coordinates(points, frame, p, q)
-        at_q = side + qx * ga + qy * gb  # g where q projects into p's plane: that side goes
-        sign = -1.0 if at_q > 0.0 else 1.0
-    return -sign * ga, -sign * gb, sign * side
+        return -sign * ga, -sign * gb, sign * side
+    # p on the crease line cannot tell its sides apart: the side away from q, from p on (q's
+    # plane may pass p on that side, within ON_PLANE_SIN2, and would cut p's centre away)
+    qx, qy = _frame_coordinates(points, frame, p, q)
+    at_q = side + qx * ga + qy * gb  # g where q projects into p's plane: that side goes
+    sign = -1.0 if at_q > 0.0 else 1.0
+    return -sign * ga, -sign * gb, max(sign * side, 0.0)
 
 
 @numba.njit(cache=True, inline="always")
@@ -436,8 +438,11 @@ def _crease_candidates(points, normals, index, axes, i, p, features, layers, can
             continue  # in p's face: the same surface seen from behind
         la, lb, lc = _crease_half_plane(points, p, q, normals[q], axes[i], features.on_plane_sin2)
         length = math.sqrt(la * la + lb * lb)
+        qu, qv = _frame_coordinates(points, axes[i], p, q)
+        if not rim and height > 0.0 and la * qu + lb * qv <= lc:  # a concave crease beyond p: none (cells.py)
+            continue
         if rim:
-            lc += RIM_MARGIN * math.hypot(*_frame_coordinates(points, axes[i], p, q)) * length
+            lc += RIM_MARGIN * math.hypot(qu, qv) * length
         if length < 1e-6 or lc >= length:  # parallel planes, or the line misses the splat
             continue
         count = _append_unit_line(candidates, count, la, lb, lc, length)
