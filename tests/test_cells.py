@@ -308,7 +308,7 @@ def test_a_crease_line_through_the_splat_keeps_the_side_away_from_the_neighbour_
 def _panel_under_a_fillet() -> tuple[np.ndarray, np.ndarray]:
     """Columns 0.012 apart: a panel facing +z at v >= 0 (rows 0.012 apart), and from its last
     row v = 0 a fillet sampled every 0.001, rising at 53 degrees over -v and rolling over to
-    24 (a car's door panel below the fillet of its belt line). (positions, unit normals)."""
+    24 degrees (a car's door panel below the fillet of its belt line). (positions, unit normals)."""
     columns = np.arange(-0.06, 0.0601, 0.012)
     panel = [(u, v, 0.0) for u in columns for v in np.arange(0.0, 0.0601, 0.012)]
     fillet, fillet_normals = [], []
