@@ -388,8 +388,8 @@ def rasterize_tiles(packed, extras, box, index, tile_start, tile_count, order, t
     (threads, 4 x that), temp (threads, TEMP_ROWS x BLOCK), kept (threads, table_size(largest
     tile, KEPT_ROWS)), zbuf, cover (threads, STRIDE²), accum (threads, STRIDE², LAYER).
     clip_src, field_src, normal_src: the extras where splats are clipped, where they are curved
-    by their normal fields, where they are shaded with them too (`phong`, `deferred`); else None, which
-    compiles a kernel without that arithmetic, and stages only the extras it reads. The renderer
+    by their normal fields, where they are shaded with them too (`phong`, `deferred`); else
+    None, which compiles a kernel without that arithmetic, and stages only the extras it reads. The renderer
     clips where the cloud has clip lines, as the GPU's CLIP_LINES variant: clipping by inactive
     lines (which cut nothing) and staging rows that nothing reads made the `deferred` and `phong`
     frames of a curved cloud without clip lines a tenth longer (1M splats, `surfel bench`), which

@@ -30,8 +30,8 @@ A neighbour facing away in p's plane is the same surface seen from behind (a she
 from inside and out) and is fitted, its tilt's sign following its normal's.
 
 Two fields are fitted (attributes.FIELD_SLOPES): the one above, phong_alpha and phong_beta,
-shades the splats of `phong` and `deferred`; the second, curve_alpha and curve_beta, shapes the curved splats
-of `phong` and `deferred` (splatting.py) and leaves out the rims: the neighbours in p's plane
+shades the splats of `phong` and `deferred`; the second, curve_alpha and curve_beta, shapes
+their curved splats (splatting.py) and leaves out the rims: the neighbours in p's plane
 (within FLAT_SIN2) whose normals lie more than SHARP_ANGLE off, a face's edge vertices with
 normals averaged over the face and what meets it. A mesh's shading rounds its edges so, and so
 does the first field; but the face itself is flat up to its edge, and a splat bent down towards
