@@ -5,6 +5,9 @@ from __future__ import annotations
 import errno
 import json
 import os
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -255,6 +258,49 @@ def test_interrupted_build_leaves_no_output_and_resumes(built, tmp_path, monkeyp
     assert stats["resumed_partitions"] == 2 and not partial.exists()
     assert json.loads((out / "manifest.json").read_text())["nodes"] == \
         json.loads((reference / "manifest.json").read_text())["nodes"]
+
+
+KILLED_BUILD = """
+import os, signal, sys
+from surfel.lod import outofcore
+
+def killed(partial, counts, dtype, schema, geospatial, pool, progress):
+    print(*pool._processes, flush=True)  # the workers, started and warming up
+    os.kill(os.getpid(), signal.SIGKILL)  # as a job scheduler ends a job: no clean-up
+
+if __name__ == "__main__":
+    outofcore._build_partitions = killed
+    outofcore.build_outofcore(sys.argv[1], sys.argv[2], memory=int(sys.argv[3]), progress=False, workers=2)
+"""
+
+
+def test_a_killed_build_leaves_no_worker_behind(built, tmp_path):
+    """Killed outright, a build cannot stop its pool; its workers end themselves instead of
+    waiting on their queue for ever, each holding a partition's memory."""
+    script = tmp_path / "killed_build.py"
+    script.write_text(KILLED_BUILD)
+    memory = MEMORY_OVERHEAD + 2 * WORKER_OVERHEAD + 2 * 10_000 * BYTES_PER_POINT
+    output = tmp_path / "killed_build.out"
+    with output.open("w") as out:  # a file, not a pipe: a worker left behind would hold a pipe open
+        run = subprocess.run([sys.executable, script, built[0], tmp_path / "killed.lod", str(memory)],
+                             stdout=out, stderr=subprocess.STDOUT, timeout=300)
+    assert run.returncode == -9, output.read_text()
+    workers = [int(pid) for pid in output.read_text().split()]
+    assert len(workers) == 2
+
+    def running(pid: int) -> bool:
+        try:
+            return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+        except FileNotFoundError:
+            return False
+
+    deadline = time.monotonic() + 30
+    while any(running(pid) for pid in workers) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    alive = [pid for pid in workers if running(pid)]
+    for pid in alive:
+        os.kill(pid, 9)
+    assert not alive
 
 
 def test_a_file_system_without_fdatasync_gets_the_same_build(built, tmp_path, monkeypatch):

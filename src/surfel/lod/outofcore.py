@@ -40,7 +40,8 @@ in-memory build (where the halo reaches far enough: two hops of neighbours on an
 sampled surface). Inputs of PARALLEL_MIN_POINTS or more are built by a pool of w worker
 processes, one partition each at a time on one core, largest first. The workers start with
 the input's scan and load their numba kernels; the first build after an install compiles
-them, each worker its share (worker_warm_up.py).
+them, each worker its share (worker_warm_up.py). A worker ends itself once the building
+process has gone, however it went (`_exit_with_the_build`).
 
 Top levels: the partition roots become the leaves of a small tree built by the same merge
 rule (`build._merge_cells`, attributes by `build.aggregate_attributes` from the roots'), so
@@ -91,10 +92,11 @@ import math
 import os
 import re
 import shutil
+import threading
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from contextlib import ExitStack
-from multiprocessing import get_context
+from multiprocessing import get_context, parent_process
 from pathlib import Path
 
 import numba
@@ -322,9 +324,20 @@ def _start_worker(taken, done, needs: tuple[bool, bool, bool]) -> None:
     it loads its share of the kernels first, sharing their compiling with the other workers,
     and the others' before the first job that needs them (worker_warm_up.py: `taken` and
     `done` are its shared counter and events; `needs` are `warm_up_tasks`' arguments)."""
+    _exit_with_the_build()
     numba.set_num_threads(1)
     no_huge_pages()  # as the command line sets it; also when called from Python
     worker_warm_up.share(*warm_up_tasks(*needs), taken, done)
+
+
+def _exit_with_the_build() -> None:
+    """In a pool's worker: exit as soon as the building process has gone. Killed (a job
+    scheduler's SIGKILL, a plain SIGTERM) it cannot stop its pool, whose workers would wait on
+    their call queue for ever, each holding its last partition's memory. The parent's sentinel
+    (a pipe only it holds open) becomes readable when it exits."""
+    parent = parent_process()
+    if parent is not None:
+        threading.Thread(target=lambda: (parent.join(), os._exit(1)), daemon=True).start()
 
 
 def _warm_up_tree() -> None:
