@@ -350,6 +350,30 @@ def test_a_face_below_a_concave_fillet_keeps_its_side_of_the_crease():
         assert np.all(lines[centre, :, :2] @ local <= lines[centre, :, 2]) == kept, (offset, lines[centre])
 
 
+def test_a_face_below_a_concave_fillet_keeps_its_cell():
+    """The same panel and fillet: the last row's cell reaches half-way to the next row and to
+    its columns' neighbours, as on an open panel. The fillet's farther rows, whose planes turn
+    back across the panel, cut it too, and left a disk 0.7 times as wide, an ellipse 0.3
+    times as wide across the rows (holes along a car's door, beetle-alt.obj)."""
+    from surfel.preprocess.cells import RADIUS_MARGIN, RADIUS_NEIGHBOURS, covering_ellipses, covering_radii
+    from surfel.preprocess.neighbourhood import Neighbourhood
+    from surfel.preprocess.sharp_features import find_sharp_features
+
+    positions, normals = _panel_under_a_fillet()
+    nbh = Neighbourhood.build(positions, RADIUS_NEIGHBOURS, -1, False)
+    sorted_normals = nbh.sort(normals)
+    last_row = nbh.sort((positions[:, 1] == 0.0) & (positions[:, 2] == 0.0))
+    features = find_sharp_features(nbh, sorted_normals, RADIUS_NEIGHBOURS)
+    features = features._replace(flat=features.flat & ~last_row, crease=features.crease & ~last_row)
+    centre = int(np.argmin(np.linalg.norm(positions, axis=1)))
+    radius = nbh.unsort(covering_radii(nbh, sorted_normals, False, features=features))[centre]
+    semi_axes = np.linalg.norm(nbh.unsort(covering_ellipses(nbh, sorted_normals, False, features=features))[centre],
+                               axis=1)
+    half_row = 0.006  # rows and columns lie 0.012 apart
+    assert radius >= 0.999 * RADIUS_MARGIN * np.hypot(half_row, half_row)
+    assert semi_axes.min() >= 0.999 * RADIUS_MARGIN * half_row
+
+
 def test_a_tip_gets_a_small_splat_and_stays_covered():
     """The apex of a cone of half-angle 20 degrees (a horn, a hoof), sampled in rings as a mesh's
     vertices are: all its neighbours lie more than 45 degrees below its tangent plane. Its cell

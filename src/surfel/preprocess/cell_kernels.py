@@ -28,6 +28,8 @@ PARALLEL_COS = math.cos(math.radians(30.0))  # clip lines closer in direction ar
 CELL_BLOCK = 1024              # the fewest points per thread's piece of the cell kernels
 RIM_MARGIN = 0.5               # a face's clip line at a curved rim: beyond the rim point by this
                                # share of its distance from the splat's centre
+BEYOND_MARGIN = 0.1            # a concave crease lies beyond p when q projects on p's side of its
+                               # line by this share of q's distance (not just rounding: a right angle)
 SKIP_MARGIN = 1.0 + 1e-6       # a line this much farther than the farthest vertex (squared) misses the cell
 
 
@@ -119,6 +121,8 @@ def _cell_bounds(points, normals, index, frames, i, p, features, sheet_cos, laye
         turn = not crease and sheet_cos > -2.0 and z < 0 and z * z > planar
         if crease or turn:
             ca, cb, cc = _crease_half_plane(points, p, q, normals[q], frames[i], features.on_plane_sin2)
+            if crease and z > 0.0 and x * ca + y * cb <= cc - BEYOND_MARGIN * math.sqrt(planar * (ca * ca + cb * cb)):
+                continue  # a concave crease beyond p: none (cells.py)
             if ca * ca + cb * cb > 1e-12:  # not parallel planes (the far side of a sheet)
                 creases[crease_count, 0] = ca
                 creases[crease_count, 1] = cb
@@ -439,8 +443,8 @@ def _crease_candidates(points, normals, index, axes, i, p, features, layers, can
         la, lb, lc = _crease_half_plane(points, p, q, normals[q], axes[i], features.on_plane_sin2)
         length = math.sqrt(la * la + lb * lb)
         qu, qv = _frame_coordinates(points, axes[i], p, q)
-        if not rim and height > 0.0 and la * qu + lb * qv <= lc:  # a concave crease beyond p: none (cells.py)
-            continue
+        if not rim and height > 0.0 and la * qu + lb * qv <= lc - BEYOND_MARGIN * math.hypot(qu, qv) * length:
+            continue  # a concave crease beyond p: none (cells.py)
         if rim:
             lc += RIM_MARGIN * math.hypot(qu, qv) * length
         if length < 1e-6 or lc >= length:  # parallel planes, or the line misses the splat
