@@ -323,13 +323,10 @@ def _panel_under_a_fillet() -> tuple[np.ndarray, np.ndarray]:
     return np.array(panel + fillet), normals
 
 
-def test_a_face_below_a_concave_fillet_keeps_its_side_of_the_crease():
-    """The panel's last row, not flat itself (a curved door's), lies on the crease with the
-    fillet. The fillet's first rows cut its splats there, through their centres. Its farther
-    rows, rolled over, turn their planes back across the panel: their lines cut the panel's
-    side too, and the splat kept a sliver 3% of its radius wide, off its centre (holes along a
-    car's door, beetle-alt.obj)."""
-    from surfel.preprocess.cells import RADIUS_NEIGHBOURS, clip_lines
+def _panel_features():
+    """The panel and fillet's neighbourhood, sorted normals and sharp features, with the panel's
+    last row neither flat nor a crease (a curved door's), and the index of its middle point."""
+    from surfel.preprocess.cells import RADIUS_NEIGHBOURS
     from surfel.preprocess.neighbourhood import Neighbourhood
     from surfel.preprocess.sharp_features import find_sharp_features
 
@@ -339,10 +336,21 @@ def test_a_face_below_a_concave_fillet_keeps_its_side_of_the_crease():
     last_row = nbh.sort((positions[:, 1] == 0.0) & (positions[:, 2] == 0.0))
     features = find_sharp_features(nbh, sorted_normals, RADIUS_NEIGHBOURS)
     features = features._replace(flat=features.flat & ~last_row, crease=features.crease & ~last_row)
-    axes = tangent_frames(sorted_normals, np.full(len(positions), 0.006))
-    nothing = np.zeros(len(positions))
-    lines = nbh.unsort(clip_lines(nbh, sorted_normals, axes, features, np.zeros((len(positions), 3)), nothing, False))
-    centre = int(np.argmin(np.linalg.norm(positions, axis=1)))
+    return nbh, sorted_normals, features, int(np.argmin(np.linalg.norm(positions, axis=1)))
+
+
+def test_a_face_below_a_concave_fillet_keeps_its_side_of_the_crease():
+    """The panel's last row, not flat itself (a curved door's), lies on the crease with the
+    fillet. The fillet's first rows cut its splats there, through their centres. Its farther
+    rows, rolled over, turn their planes back across the panel: their lines cut the panel's
+    side too, and the splat kept a sliver 3% of its radius wide, off its centre (holes along a
+    car's door, beetle-alt.obj)."""
+    from surfel.preprocess.cells import clip_lines
+
+    nbh, sorted_normals, features, centre = _panel_features()
+    count = len(sorted_normals)
+    axes = tangent_frames(sorted_normals, np.full(count, 0.006))
+    lines = nbh.unsort(clip_lines(nbh, sorted_normals, axes, features, np.zeros((count, 3)), np.zeros(count), False))
     u_axis, v_axis = nbh.unsort(axes)[centre]
     for offset, kept in [((0.0, 0.0), True), ((0.0, 0.003), True), ((0.003, 0.005), True), ((0.0, -0.003), False)]:
         world = np.array([*offset, 0.0])
@@ -355,17 +363,9 @@ def test_a_face_below_a_concave_fillet_keeps_its_cell():
     its columns' neighbours, as on an open panel. The fillet's farther rows, whose planes turn
     back across the panel, cut it too, and left a disk 0.7 times as wide, an ellipse 0.3
     times as wide across the rows (holes along a car's door, beetle-alt.obj)."""
-    from surfel.preprocess.cells import RADIUS_MARGIN, RADIUS_NEIGHBOURS, covering_ellipses, covering_radii
-    from surfel.preprocess.neighbourhood import Neighbourhood
-    from surfel.preprocess.sharp_features import find_sharp_features
+    from surfel.preprocess.cells import RADIUS_MARGIN, covering_ellipses, covering_radii
 
-    positions, normals = _panel_under_a_fillet()
-    nbh = Neighbourhood.build(positions, RADIUS_NEIGHBOURS, -1, False)
-    sorted_normals = nbh.sort(normals)
-    last_row = nbh.sort((positions[:, 1] == 0.0) & (positions[:, 2] == 0.0))
-    features = find_sharp_features(nbh, sorted_normals, RADIUS_NEIGHBOURS)
-    features = features._replace(flat=features.flat & ~last_row, crease=features.crease & ~last_row)
-    centre = int(np.argmin(np.linalg.norm(positions, axis=1)))
+    nbh, sorted_normals, features, centre = _panel_features()
     radius = nbh.unsort(covering_radii(nbh, sorted_normals, False, features=features))[centre]
     semi_axes = np.linalg.norm(nbh.unsort(covering_ellipses(nbh, sorted_normals, False, features=features))[centre],
                                axis=1)
