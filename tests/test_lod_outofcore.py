@@ -290,9 +290,13 @@ def test_a_killed_build_leaves_no_worker_behind(built, tmp_path):
 
     def running(pid: int) -> bool:
         try:
-            return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
-        except FileNotFoundError:
+            os.kill(pid, 0)
+        except ProcessLookupError:
             return False
+        try:  # an exited worker that its new parent has not reaped yet is a zombie (Linux: state Z)
+            return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+        except FileNotFoundError:  # reaped meanwhile; without /proc, it exists
+            return not Path("/proc").is_dir()
 
     deadline = time.monotonic() + 30
     while any(running(pid) for pid in workers) and time.monotonic() < deadline:
