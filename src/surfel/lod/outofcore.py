@@ -352,9 +352,10 @@ def warm_up_tasks(bins: bool, normals: bool, geospatial: bool) -> tuple[list, di
     it calls} (that one is compiled first, not twice): the binning's if the workers bin
     (`binning.binned_by_workers`), the completion of partitions with or without `normals`.
 
-    From an empty cache they compile in 21, 4, 9, 9 and 16 s (a PLY with normals, on a 2-core
-    AMD EPYC: a worker's share is about 30 and 37 s); the completion reaches the kernels of the
-    borders last, when the other worker has them cached.
+    From an empty cache they compile in 12, 3, 3, 9 and 9 s (20M points with normals, on a
+    2-core AMD EPYC: each worker's share ends after about 21 s; one waits 6 s of it for the
+    search, while the main process scans the input on that core); the completion reaches the
+    kernels of the borders last, when the other worker has them cached.
     After a render (the demo) only the binning and the tree are left to compile, by one worker
     each."""
     completion = functools.partial(worker_warm_up.completion, normals, geospatial)
