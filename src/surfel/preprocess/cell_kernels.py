@@ -405,6 +405,8 @@ def _crease_candidates(points, normals, index, axes, i, p, features, layers, can
     count = 0
     for j in range(index.shape[1]):
         q = index[i, j]
+        if features.crease[q]:
+            continue
         facing = 0.0
         height = 0.0
         distance2 = 0.0
@@ -415,8 +417,6 @@ def _crease_candidates(points, normals, index, axes, i, p, features, layers, can
             height += offset * normals[p, a]
             across += offset * normals[q, a]
             distance2 += offset * offset
-        if features.crease[q]:
-            continue
         # the surface turning sharply away below p (_cell_bounds' turn, on p's layer), where p
         # lies below q's plane too: a convex edge or a thin part's rim, not another part of the
         # surface below p (a tail under a rump)
