@@ -678,6 +678,25 @@ def test_rows_far_apart_stay_covered_and_a_wire_stays_thin(along):
     assert np.median(thin.radii) < 0.75 * ROW_REACH * across  # 2.5 x 1.5 along: the median distance to 4 nearest
 
 
+def test_a_thin_part_sampled_in_rings_keeps_splats_no_wider_than_its_rings():
+    """A cylinder of radius 1 sampled as a coarse mesh's tail is: rings of 16 vertices, 6 apart,
+    so that each point's nearest neighbours all lie on its own ring and its cell is open along
+    the axis. The ellipse is fitted to the part of the cell the sampling bound leaves (cells.py):
+    fitted to the whole open cell, the aspect limit widened it around the ring to a quarter of
+    its length or more, and the bound kept that width, a splat standing out of the part's outline."""
+    around, gap = 16, 6.0
+    angles = 2 * np.pi * np.arange(around) / around
+    ring = np.stack([np.cos(angles), np.sin(angles), np.zeros(around)], 1)
+    points = np.concatenate([ring + [0, 0, gap * k] for k in range(6)])
+    prepared, _ = prepare(PointCloud(points, normals=np.tile(ring, (6, 1))), elliptical=True)
+    axes = prepared.axes.astype(np.float64)
+    tangent = np.tile(np.stack([-np.sin(angles), np.cos(angles), np.zeros(around)], 1), (6, 1))
+    reach_around = np.linalg.norm(np.einsum("nij,nj->ni", axes, tangent), axis=1)
+    chord = 2 * np.sin(np.pi / around)
+    assert reach_around.min() >= 0.5 * chord  # still covering the ring
+    assert np.median(reach_around) <= 0.5  # 0.62 fitted to the open cell; the next vertex lies 0.39 away
+
+
 def test_layer_thickness_separates_close_layers_and_nothing_else():
     """Two surfaces 0.3 apart, closer than a splat radius: each point's layer thickness is half
     the gap; where the body lies alone, and on single surfaces (noisy, curved, creased), none."""

@@ -330,26 +330,40 @@ def _radii_rows(first, stop, points, normals, index, start, frames, features, sh
         radius[i] = _covering_radius(cell, vertices)
 
 
-def cell_ellipses(points, normals, index, start, frames, features, sheet_cos, layers):
+def cell_ellipses(points, normals, index, start, frames, features, sheet_cos, layers, reach_bound):
     """The covering radius of each point's cell, and the semi-axes (m, 2) and direction
-    (m, 2: cos, sin in the frame) of its covering ellipse (zero semi-axes for degenerate cells)."""
+    (m, 2: cos, sin in the frame) of its covering ellipse (zero semi-axes for degenerate cells),
+    fitted to the part of the cell within reach_bound (N,) of the point (cells.py)."""
     m = len(index)
     radius = np.zeros(m)
     semi = np.zeros((m, 2))
     direction = np.zeros((m, 2))
     direction[:, 0] = 1.0
-    over_rows(_ellipse_rows, m, points, normals, index, start, frames, features, sheet_cos, layers, radius, semi,
-              direction, grain=CELL_BLOCK)
+    over_rows(_ellipse_rows, m, points, normals, index, start, frames, features, sheet_cos, layers, reach_bound,
+              radius, semi, direction, grain=CELL_BLOCK)
     return radius, semi, direction
 
 
+@numba.njit(cache=True, inline="always")
+def _clip_to_disc(polygon, spare, vertices, reach):  # pragma: no cover - compiled
+    """The polygon clipped to the regular CAP_SIDES-gon circumscribed about the circle of radius
+    `reach` (none of the disc cut off); returns (the buffer holding it, its number of vertices)."""
+    for c in range(CAP_SIDES):
+        angle = 2.0 * math.pi * c / CAP_SIDES
+        vertices = _clip(polygon, vertices, math.cos(angle), math.sin(angle), reach, spare)
+        polygon, spare = spare, polygon
+    return polygon, vertices
+
+
 @numba.njit(cache=True, nogil=True)
-def _ellipse_rows(first, stop, points, normals, index, start, frames, features, sheet_cos, layers, radius, semi,
-                  direction):  # pragma: no cover - compiled
+def _ellipse_rows(first, stop, points, normals, index, start, frames, features, sheet_cos, layers, reach_bound,
+                  radius, semi, direction):  # pragma: no cover - compiled
     """Rows first:stop of `cell_ellipses`."""
     k = index.shape[1]
     lines, creases, bounding = np.empty((k, 3)), np.empty((k, 3)), np.empty(k, np.int64)
-    polygon, spare = np.empty((CAP_SIDES + k + 1, 2)), np.empty((CAP_SIDES + k + 1, 2))
+    # each clip adds at most one vertex: k lines, then the disc's CAP_SIDES
+    rows = 2 * CAP_SIDES + k + 1
+    polygon, spare, extra = np.empty((rows, 2)), np.empty((rows, 2)), np.empty((rows, 2))
     for i in range(first, stop):
         p = start + i
         bisectors, count, reach = _cell_bounds(points, normals, index, frames, i, p, features, sheet_cos,
@@ -358,6 +372,8 @@ def _ellipse_rows(first, stop, points, normals, index, start, frames, features, 
             continue
         cell, vertices = _cell_polygon(lines, count, reach, polygon, spare)
         radius[i] = _covering_radius(cell, vertices)
+        if radius[i] > reach_bound[p]:
+            cell, vertices = _clip_to_disc(cell, extra, vertices, reach_bound[p])
         if vertices < 3:
             continue
         # Splats "aligned along the curvature" (survey 2.1.4), so that the normal field's two

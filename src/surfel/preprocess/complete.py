@@ -16,7 +16,8 @@ FIELD_NEIGHBOURS), serves every estimation, in this order, each using the ones b
   3. the sampling spacing (`spacing.py`), when radii or axes are estimated;
   4. sharp features (`sharp_features.py`), when both radii and axes are estimated;
   5. radii (`cells.py`): covering radii of the tangent-plane Voronoi cells;
-  6. axes: fitted ellipses (`cells.py`) or circular tangent frames of the radii (`frames.py`);
+  6. axes: fitted ellipses (`cells.py`; for points sampled from a surface, to the part of each
+     cell within the sampling bound) or circular tangent frames of the radii (`frames.py`);
   7. the sampling bound on both (`spacing.py`), and the radii of the screen-facing splats
      (`structure.py`);
   8. clip lines at the sharp features, where the surface turns sharply away (a thin part's
@@ -202,7 +203,14 @@ def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np
         report["radii"] = (f"estimated (Voronoi covering radius, k={RADIUS_NEIGHBOURS}, "
                            f"x{RADIUS_MARGIN}, mean {float(np.mean(radii)):.4g})")
     if axes is None and elliptical:
-        axes = covering_ellipses(nbh, unit_normals, progress, features, layers=thickness)
+        bound = None
+        # the cells of points sampled from a surface end at the bound (cells.py); a scan's, bounded
+        # by its acquisition's spacing (a sensor's, a survey's, a COPC level's), keep the whole cell
+        if spacing is not None and towards_sensor is None and reference_spacing is None and not cloud.geospatial:
+            lifted_spacing, _ = anisotropic_spacing(nbh, unit_normals, spacing,  # where the bound will be lifted
+                                                    np.flatnonzero(radii > BOUND_FACTOR * spacing))
+            bound = BOUND_FACTOR * lifted_spacing
+        axes = covering_ellipses(nbh, unit_normals, progress, features, layers=thickness, bound=bound)
         report["axes"] = f"fitted ellipses (k={RADIUS_NEIGHBOURS})"
     elif axes is None:
         axes = tangent_frames(normals, radii)
