@@ -106,14 +106,20 @@ def test_grid_queries_match_kd_tree(name, points, k, wide):
     ("cube", rng.random((3_000, 3))),
     ("lattice, ties everywhere", np.stack(np.meshgrid(np.arange(12), np.arange(12), np.arange(12)), -1).reshape(-1, 3)),
     ("coincident", np.zeros((200, 3))),
+    ("a line in order, the points beside each bounding it tightly", np.c_[np.arange(500), np.zeros((500, 2))]),
 ])
 def test_scanning_all_points_finds_the_kd_trees_neighbours(name, points):
     """The fallback for the few points the grid's shells leave unsettled (scan_all_nearest)
-    finds the k-d tree's distances, the point itself first, nearest first, no neighbour twice."""
+    finds the k-d tree's distances, the point itself first, nearest first, no neighbour twice,
+    equal distances in index order (whichever points bound its search)."""
     points = np.asarray(points, np.float64)
     rows = np.r_[0, np.arange(5, len(points), 97), len(points) - 1]
     index = scan_all_nearest(points, 40, rows)
     assert np.array_equal(index[:, 0], rows)
+    for row, p in zip(index, rows, strict=True):
+        others = np.delete(np.arange(len(points)), p)
+        distance2 = ((points[others] - points[p]) ** 2).sum(axis=1)
+        assert np.array_equal(row[1:], others[np.argsort(distance2, kind="stable")[:39]])
     found = np.linalg.norm(points[index] - points[rows][:, None], axis=2)
     expected, _ = cKDTree(points).query(points[rows], k=40)
     assert np.allclose(np.sort(found, axis=1), expected, rtol=0, atol=1e-12)

@@ -97,7 +97,7 @@ def _cell_bounds(points, normals, index, frames, i, p, features, sheet_cos, laye
     k = index.shape[1]
     bisectors = 0
     crease_count = 0
-    reach = 0.0
+    reach2 = 0.0
     for j in range(k):
         q = index[i, j]
         d0 = points[q, 0] - points[p, 0]
@@ -107,7 +107,7 @@ def _cell_bounds(points, normals, index, frames, i, p, features, sheet_cos, laye
         y = d0 * frames[i, 1, 0] + d1 * frames[i, 1, 1] + d2 * frames[i, 1, 2]
         z = d0 * normals[p, 0] + d1 * normals[p, 1] + d2 * normals[p, 2]
         planar = x * x + y * y
-        reach = max(reach, math.sqrt(planar + z * z))
+        reach2 = max(reach2, planar + z * z)
         facing = 0.0
         for a in range(3):
             facing += normals[q, a] * normals[p, a]
@@ -138,7 +138,7 @@ def _cell_bounds(points, normals, index, frames, i, p, features, sheet_cos, laye
     for c in range(crease_count):  # the creases cut after every bisector
         for a in range(3):
             lines[bisectors + c, a] = creases[c, a]
-    return bisectors, bisectors + crease_count, reach
+    return bisectors, bisectors + crease_count, math.sqrt(reach2)  # sqrt once: it is monotonic
 
 
 @numba.njit(cache=True, inline="always")
@@ -470,7 +470,7 @@ def _crease_candidates(points, normals, index, axes, i, p, features, layers, can
 
 
 @numba.njit(cache=True, inline="always")
-def _border_candidates(points, index, axes, i, p, outwards, reach, margin, candidates,
+def _border_candidates(points, index, axes, i, p, outwards, on_border, reach, margin, candidates,
                        count):  # pragma: no cover - compiled
     """Append the border half-planes that cut splat p as unit (a, b, c) rows of candidates in its
     axes (u, v) = axes[i]: for each neighbour q on a border (its own included), the side of the
@@ -479,6 +479,8 @@ def _border_candidates(points, index, axes, i, p, outwards, reach, margin, candi
     the new count."""
     for j in range(index.shape[1]):
         q = index[i, j]
+        if not on_border[q]:  # no outward direction, no line: most neighbours (a seventh of the pass)
+            continue
         wa = 0.0
         wb = 0.0
         inside = reach[q]
@@ -516,19 +518,19 @@ def _nearest_creases(candidates, count, lines, i):  # pragma: no cover - compile
         used += 1
 
 
-def cell_clip_lines(points, normals, index, start, axes, features, layers, outwards, reach, margin):
+def cell_clip_lines(points, normals, index, start, axes, features, layers, outwards, on_border, reach, margin):
     """CLIP_LINES clip lines (a, b, c) per splat, in its local coordinates (u, v) (1 on the rim):
     the crease and turn half-planes that end its cell (neighbours of another of the `layers`
-    aside) and the border lines of its neighbours (`outwards`).
+    aside) and the border lines of its neighbours (`outwards`, nonzero where `on_border`).
     A dropped splat keeps nothing (u <= -2, -u <= -2)."""
     lines = np.empty((len(index), CLIP_LINES, 3), np.float32)
-    over_rows(_clip_rows, len(index), points, normals, index, start, axes, features, layers, outwards, reach, margin,
-              lines, grain=CELL_BLOCK)
+    over_rows(_clip_rows, len(index), points, normals, index, start, axes, features, layers, outwards, on_border,
+              reach, margin, lines, grain=CELL_BLOCK)
     return lines
 
 
 @numba.njit(cache=True, nogil=True)
-def _clip_rows(first, stop, points, normals, index, start, axes, features, layers, outwards, reach, margin,
+def _clip_rows(first, stop, points, normals, index, start, axes, features, layers, outwards, on_border, reach, margin,
                lines):  # pragma: no cover - compiled
     """Rows first:stop of `cell_clip_lines`."""
     candidates = np.empty((2 * index.shape[1], 3))  # one per call: an allocation per point costs as much
@@ -541,5 +543,6 @@ def _clip_rows(first, stop, points, normals, index, start, axes, features, layer
             lines[i, line, 2] = -2.0 if dropped else INACTIVE_CLIP[2]
         if not dropped:
             count = _crease_candidates(points, normals, index, axes, i, p, features, layers, candidates)
-            count = _border_candidates(points, index, axes, i, p, outwards, reach, margin, candidates, count)
+            count = _border_candidates(points, index, axes, i, p, outwards, on_border, reach, margin, candidates,
+                                       count)
             _nearest_creases(candidates, count, lines, i)

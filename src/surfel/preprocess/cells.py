@@ -206,10 +206,11 @@ def clip_lines(nbh: Neighbourhood, normals: np.ndarray, axes: np.ndarray, featur
     index = nbh.first(k)
     normals = unit(normals)
     layers = np.full(len(normals), np.inf) if layers is None else np.asarray(layers, np.float64)
+    on_border = (outwards != 0.0).any(axis=1)
 
     def chunk(start: int, stop: int) -> np.ndarray:
-        return cell_clip_lines(nbh.points, normals, index[start:stop], start,
-                               np.asarray(axes[start:stop], np.float64), features, layers, outwards, reach, margin)
+        return cell_clip_lines(nbh.points, normals, index[start:stop], start, np.asarray(axes[start:stop], np.float64),
+                               features, layers, outwards, on_border, reach, margin)
 
     return map_chunks(chunk, len(nbh.points), progress, "sharp features")
 
