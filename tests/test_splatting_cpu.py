@@ -62,6 +62,22 @@ def test_cpu_matches_gl_on_dense_spot(dense_spot, method, view, shading):
     assert_agree(*both(dense_spot, camera, method, shading=shading))
 
 
+@pytest.mark.parametrize("method", METHODS)
+def test_large_splats_match_gl(method):
+    """Spot's 2,930 vertices at 192x192: boxes of 4-5 samples across (median; 8-10 at phong's
+    2x2 samples a pixel), whose samples beyond each top-left 2x2 make 2,351-4,252 further 2x2
+    blocks in the busiest tile, drawn in rounds of SPLIT_BLOCKS (splatting_tiles.draw_tile):
+    more than one round in nearly every tile."""
+    from surfel.methods.splatting_tiles import SPLIT_BLOCKS
+
+    assert SPLIT_BLOCKS < 2351
+    mesh = load(DATA / "spot.obj")
+    cloud = mesh.take(np.arange(len(mesh)))
+    for view in ("front", "right"):
+        camera = frame(cloud.center, cloud.bounding_radius, view=view, size=SIZE)
+        assert_agree(*both(cloud, camera, method, shading="lambert"))
+
+
 @pytest.mark.parametrize("method", ["deferred", "phong"])
 def test_clip_lines_and_normal_fields_match_gl(turned_part, method):
     """A CAD part: splats cut at its creases, and phong's curved splats with normal fields."""

@@ -146,6 +146,9 @@ class CpuSplatBuffers:
         self.accum = np.empty((threads, t.STRIDE * t.STRIDE, t.LAYER), np.float32)
         self.best = np.empty((threads, t.STRIDE * t.STRIDE), np.float32)
         self.temp = np.empty((threads, t.TEMP_ROWS * t.BLOCK), np.float32)
+        self.split = np.zeros((threads, t.table_size(t.SPLIT_BLOCKS)), np.float32)
+        self.split_box = np.zeros((threads, 4 * t.SPLIT_BLOCKS), np.int32)
+        self.split_kept = np.zeros((threads, t.table_size(t.SPLIT_BLOCKS, t.KEPT_ROWS)), np.float32)
         self.capacity = -1
 
     def bin(self) -> None:
@@ -237,8 +240,9 @@ def _render_cpu(cloud, camera, options, params, renderer, *, per_splat_shading: 
                       buffers.extras if normal_field else None,
                       model if per_splat else -1,
                       -1 if per_splat else model, color_mode, palette, levels, background, composite,
-                      buffers.tables, buffers.boxes, buffers.temp, buffers.kept, buffers.zbuf, buffers.cover,
-                      buffers.accum, buffers.best, buffers.present, color, alpha, depth, normals, indices)
+                      buffers.tables, buffers.boxes, buffers.temp, buffers.kept, buffers.split, buffers.split_box,
+                      buffers.split_kept, buffers.zbuf, buffers.cover, buffers.accum, buffers.best, buffers.present,
+                      color, alpha, depth, normals, indices)
     k.finish_surrounded(buffers.present, color, alpha, depth, normals, background, composite)
     stats = {"splats": len(cloud), "supersample": ss, "ewa_filter": params.ewa_filter}
     if composite:  # already over the background: the pinholes of its pixels filled (as from_samples does)

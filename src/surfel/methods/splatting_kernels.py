@@ -121,10 +121,9 @@ from .splatting_tiles import (
     B,
     G,
     R,
-    attribute_tile,
+    draw_tile,
     face_camera,
     table_slot,
-    visibility_tile,
 )
 
 COLOR_RGB, COLOR_CONTINUOUS, COLOR_CATEGORICAL = 0, 1, 2  # gl/colors.glsl's colour modes
@@ -379,14 +378,16 @@ def _write_empty(color, alpha, depth, normals, present, indices, y, x, backgroun
 def rasterize_tiles(packed, extras, box, index, tile_start, tile_count, order, tiles_x, width, height, m,
                     radius_scale, lowpass, depth_offset, depth_clamp, clip_src, field_src, normal_src,
                     per_splat_model, deferred_model, color_mode, palette, levels, background, composite, tables, boxes,
-                    temp, kept, zbuf, cover, accum, best, present, color, alpha, depth, normals, indices):
+                    temp, kept, split, split_box, split_kept, zbuf, cover, accum, best, present, color, alpha, depth,
+                    normals, indices):
     """Every tile of `order`, written into color (H, W, 3), alpha, depth (H, W) and normals
     (H, W, 3). `present` (H, W) uint8 gets, per pixel, the bit COVERED where a splat covers
     its centre and the bit UNDECIDED where `finish_surrounded` must still decide whether its
     neighbours in other tiles make it whole (the pixel then holds its raw colour and its own
     coverage). Each thread's scratch: tables (threads, table_size(largest tile)), boxes
     (threads, 4 x that), temp (threads, TEMP_ROWS x BLOCK), kept (threads, table_size(largest
-    tile, KEPT_ROWS)), zbuf, cover (threads, STRIDE²), accum (threads, STRIDE², LAYER).
+    tile, KEPT_ROWS)), split, split_box, split_kept (threads, those of SPLIT_BLOCKS splats), zbuf,
+    cover (threads, STRIDE²), accum (threads, STRIDE², LAYER).
     clip_src, field_src, normal_src: the extras where splats are clipped, where they are curved
     by their normal fields, where they are shaded with them too (`phong`, `deferred`); else
     None, which compiles a kernel without that arithmetic, and stages only the extras it reads. The renderer
@@ -454,9 +455,8 @@ def rasterize_tiles(packed, extras, box, index, tile_start, tile_count, order, t
         category = best[thread]
         if categorical:
             category[:] = -1
-        visibility_tile(table, ibox, count, ox, oy, params, clip_src, field_src, normal_src, tmp, store, zb, cov)
-        attribute_tile(table, ibox, count, ox, oy, params, clip_src, field_src, normal_src, store, zb, acc,
-                        levels if categorical else 0, category)
+        draw_tile(table, ibox, count, ox, oy, params, clip_src, field_src, normal_src, tmp, store, split[thread],
+                  split_box[thread], split_kept[thread], zb, cov, acc, levels if categorical else 0, category)
         # normalization and deferred shading, straight into the output
         for ly in range(th):
             y = oy + ly

@@ -10,19 +10,20 @@ block's splats loads and stores each row as a vector, with no aliasing check for
 to add. `visibility_tile` computes the 2x2 pixels at the top-left of each splat's box (all of
 a splat smaller than the low-pass, the common case of a dense cloud) for a whole block in one
 loop without branches, which the compiler turns into SIMD code: both passes' outputs from one
-intersection of each ray with the splat, the attribute pass's kept for `attribute_tile`.
-Each pass blends them into the tile one splat after another, and follows with the rest of a
-larger box pixel by pixel. Per-fragment arithmetic is float32 under fastmath, with error_model="numpy"
-(no division checks, which would keep the loops scalar); masked lanes select finite values,
-so no infinity or NaN is computed ("no depth yet" is the finite FAR). Helpers called inside
-the SIMD loops take scalars only: an array argument brings reference counting into the loop,
-which keeps it scalar. So do a loop inside them (LLVM vectorizes innermost loops), a call, and
-a tuple indexed by a loop variable (numba makes it a switch); tests/test_splatting_cpu.py
-checks that the compiled loops use packed instructions. The helpers are inlined: the small ones
-by numba (inline="always"), the per-fragment ones a loop calls several times (`both_outputs`,
-`visibility_fragment`, `attribute_fragment`, and splatting_kernels._setup) by LLVM
-(forceinline=True), which leaves the same SIMD code; numba's own inlining of them made
-`rasterize_tiles` take 58 s to compile instead of 37 (`deferred`'s signature, of four).
+intersection of each ray with the splat, the attribute pass's kept for `attribute_tile`. Each
+pass blends them into the tile one splat after another. The rest of a larger box comes in
+further 2x2 blocks, copies of the splat's record drawn by the same loops (`draw_tile`), so
+that no fragment is computed outside them. Per-fragment arithmetic is float32 under fastmath,
+with error_model="numpy" (no division checks, which would keep the loops scalar); masked lanes
+select finite values, so no infinity or NaN is computed ("no depth yet" is the finite FAR).
+Helpers called inside the SIMD loops take scalars only: an array argument brings reference
+counting into the loop, which keeps it scalar. So do a loop inside them (LLVM vectorizes
+innermost loops), a call, and a tuple indexed by a loop variable (numba makes it a switch);
+tests/test_splatting_cpu.py checks that the compiled loops use packed instructions. The
+helpers are inlined: the small ones by numba (inline="always"), the per-fragment ones a loop
+calls several times (`both_outputs` and splatting_kernels._setup) by LLVM (forceinline=True),
+which leaves the same SIMD code; numba's own inlining of them made `rasterize_tiles` take 58 s
+to compile instead of 37 (`deferred`'s signature, of four).
 
 A categorical colour mode keeps per pixel the packed (weight level, palette index) of the
 heaviest fragment (colors.category_pack, MAX as the GPU's PASS_CATEGORY blending).
@@ -81,6 +82,10 @@ TEMP = tuple(np.uint64(row * BLOCK) for row in range(TEMP_ROWS))
 # depth and 3 normal components.
 KEPT_ROWS = 20
 KEPT = tuple(np.uint64(row * BLOCK) for row in range(KEPT_ROWS))
+# The pixels of a box beyond its top-left 2x2 come as further 2x2 blocks, each a copy of its
+# splat's record in a second table of SPLIT_BLOCKS slots, drawn by the same SIMD loops
+# (`draw_tile`).
+SPLIT_BLOCKS = 4 * BLOCK
 MISS = np.float32(1e30)  # the squared kernel distance of a ray that misses the splat
 NO_CLIP = np.float32(-1e30)
 CREASE_BLEND = np.float32(0.5)  # splatting.glsl's: an attribute fragment's reach past a clip line
@@ -232,13 +237,6 @@ def fragment(s, c, f, clipping, curved, dx, dy, params):
     return kept, kernel2, z, u, v, rho2, clipped, hit, iw
 
 
-@nb.njit(forceinline=True, fastmath=True, error_model="numpy")
-def visibility_fragment(s, c, f, clipping, curved, dx, dy, params):
-    """A fragment's visibility-pass output (`visibility_output`)."""
-    return visibility_output(s, c, f, fragment(s, c, f, clipping, curved, dx, dy, params), clipping, curved, dx, dy,
-                             params)
-
-
 @nb.njit(inline="always", fastmath=True, error_model="numpy")
 def visibility_output(s, c, f, hit_record, clipping, curved, dx, dy, params):
     """The visibility-pass output (splatting.glsl PASS_VISIBILITY) of the fragment whose
@@ -292,12 +290,6 @@ def gaussian_weight(kernel2):
     for k in range(8, -1, -1):
         acc = acc * s + EXP_POLY[k]
     return acc
-
-
-@nb.njit(forceinline=True, fastmath=True, error_model="numpy")
-def attribute_fragment(s, c, f, clipping, curved, field_normals, dx, dy, params, nx, ny, nz):
-    """A fragment's attribute-pass output (`attribute_output`)."""
-    return attribute_output(s, f, fragment(s, c, f, clipping, curved, dx, dy, params), field_normals, nx, ny, nz)
 
 
 @nb.njit(inline="always", fastmath=True, error_model="numpy")
@@ -360,11 +352,11 @@ def both_outputs(s, c, f, clipping, curved, field_normals, dx, dy, params, nx, n
 
 @nb.njit(fastmath=True, error_model="numpy")
 def visibility_tile(table, ibox, count, ox, oy, params, clip_src, field_src, normal_src, tmp, kept, zb, cov):
-    """The visibility pass of a tile's `count` splats into zb (MIN of depth + z_t) and cov (MAX of
-    coverage): per table block, the 2x2 blocks at the top-left of the boxes in one SIMD loop,
-    blended one splat after another (a block's splats may overlap), then the rest of the larger
-    boxes pixel by pixel. The same loop keeps the 2x2 blocks' attribute outputs in `kept`
-    (table_size(count, KEPT_ROWS)) for `attribute_tile`: the two passes meet the same rays."""
+    """The visibility pass of the 2x2 blocks at the top-left of a table's `count` boxes into zb
+    (MIN of depth + z_t) and cov (MAX of coverage): per table block, in one SIMD loop, then
+    blended one splat after another (a block's splats may overlap). The same loop keeps their
+    attribute outputs in `kept` (table_size(count, KEPT_ROWS)) for `attribute_tile`: the two
+    passes meet the same rays. `draw_tile` draws the rest of the larger boxes."""
     clipping, curved = clip_src is not None, field_src is not None
     field_normals = curved and normal_src is not None
     half, one = np.float32(0.5), np.float32(1.0)
@@ -402,41 +394,24 @@ def visibility_tile(table, ibox, count, ox, oy, params, clip_src, field_src, nor
         for q in range(size):
             uq = np.uint64(q)
             jb = box_base + uq
-            x0, x1, y0, y1 = ibox[jb + TEMP[0]], ibox[jb + TEMP[1]], ibox[jb + TEMP[2]], ibox[jb + TEMP[3]]
-            p = y0 * STRIDE + x0
+            p = ibox[jb + TEMP[2]] * STRIDE + ibox[jb + TEMP[0]]
             for lane in range(4):
                 pl = p + (lane >> 1) * STRIDE + (lane & 1)
                 row = np.uint64(lane * BLOCK)  # TEMP[lane]: a tuple indexed at run time is a switch
                 zb[pl] = min(zb[pl], tmp[row + uq])
                 cov[pl] = max(cov[pl], tmp[row + TEMP[4] + uq])
-            if x1 - x0 < 2 and y1 - y0 < 2:
-                continue
-            j = base + uq
-            s = splat_geometry(table, j)
-            c, f = splat_extras(table, clip_src, field_src, j)
-            for y in range(y0, y1 + 1):
-                dy = np.float32(y + oy) + half - s[1]
-                for x in range(x0 + 2 if y < y0 + 2 else x0, x1 + 1):
-                    z, cover = visibility_fragment(s, c, f, clipping, curved, np.float32(x + ox) + half - s[0], dy,
-                                                   params)
-                    pl = y * STRIDE + x
-                    zb[pl] = min(zb[pl], z)
-                    cov[pl] = max(cov[pl], cover)
 
 
 @nb.njit(fastmath=True, error_model="numpy")
-def attribute_tile(table, ibox, count, ox, oy, params, clip_src, field_src, normal_src, kept, zb, acc, levels,
-                   best):
-    """The attribute pass of a tile's `count` splats: the weighted sums of the fragments no
-    farther than zb into acc, block by block as `visibility_tile`, whose `kept` outputs of the
-    2x2 blocks it blends; curved splats with `field_src`, shaded with their normal fields too
-    with `normal_src` (Phong splatting; None: the splat's own normal, `deferred`). With
+def attribute_tile(table, ibox, count, field_src, normal_src, kept, zb, acc, levels, best):
+    """The attribute pass of the 2x2 blocks of `visibility_tile`: the weighted sums of the
+    fragments no farther than zb into acc, from its `kept` outputs; shaded with their splats'
+    normal fields with `field_src` and `normal_src` (Phong splatting; else the splat's own
+    normal, `deferred`). With
     `levels` > 0 (a categorical colour mode, whose splats carry their palette index k as
     k / CODE_SCALE in red), `best` keeps per pixel the MAX of category_pack(w, k): the heaviest
     splat's category (splatting.glsl PASS_CATEGORY), never a blend."""
-    clipping, curved = clip_src is not None, field_src is not None
-    field_normals = curved and normal_src is not None
-    half = np.float32(0.5)
+    field_normals = field_src is not None and normal_src is not None
     for first in range(0, count, BLOCK):
         size = min(BLOCK, count - first)
         base, box_base = table_slot(first, TABLE_ROWS), table_slot(first, 4)
@@ -444,13 +419,12 @@ def attribute_tile(table, ibox, count, ox, oy, params, clip_src, field_src, norm
         for q in range(size):
             uq = np.uint64(q)
             j, jb = base + uq, box_base + uq
-            x0, x1, y0, y1 = ibox[jb + TEMP[0]], ibox[jb + TEMP[1]], ibox[jb + TEMP[2]], ibox[jb + TEMP[3]]
             r, g, b = table[j + ROW[R]], table[j + ROW[G]], table[j + ROW[B]]
             nx, ny, nz = table[j + ROW[NX]], table[j + ROW[NY]], table[j + ROW[NZ]]
             zt = table[j + ROW[ZT]]
             # only categorical modes use it: numba's floor is a call, about 6% of a deferred frame (bench)
             code = math.floor(r * np.float32(CODE_SCALE) + np.float32(0.5)) if levels > 0 else 0
-            p = y0 * STRIDE + x0
+            p = ibox[jb + TEMP[2]] * STRIDE + ibox[jb + TEMP[0]]
             k = kept_base + uq
             for lane in range(4):
                 pl = p + (lane >> 1) * STRIDE + (lane & 1)
@@ -464,18 +438,67 @@ def attribute_tile(table, ibox, count, ox, oy, params, clip_src, field_src, norm
                         blend(acc, pl, w, z, r, g, b, kept[row + KEPT[8]], kept[row + KEPT[12]], kept[row + KEPT[16]])
                     else:
                         blend(acc, pl, w, z, r, g, b, nx, ny, nz)
-            if x1 - x0 < 2 and y1 - y0 < 2:
-                continue
-            s = splat_geometry(table, j)
-            c, f = splat_extras(table, clip_src, field_src, j)
-            for y in range(y0, y1 + 1):
-                dy = np.float32(y + oy) + half - s[1]
-                for x in range(x0 + 2 if y < y0 + 2 else x0, x1 + 1):
-                    w, z, fx, fy, fz = attribute_fragment(s, c, f, clipping, curved, field_normals,
-                                                          np.float32(x + ox) + half - s[0], dy, params, nx, ny, nz)
-                    pl = y * STRIDE + x
-                    if blends(w, z, zb[pl], zt):
-                        w = abs(w)
-                        if levels > 0:
-                            best[pl] = max(best[pl], category_pack(w, code, levels))
-                        blend(acc, pl, w, z, r, g, b, fx, fy, fz)
+
+
+@nb.njit(fastmath=True, error_model="numpy")
+def split_boxes(table, ibox, count, clip_src, field_src, slot, block, split, split_box):
+    """The 2x2 blocks of the boxes of a table's splats beyond the first (the top-left one,
+    which `visibility_tile` draws), from splat `slot`'s block `block` on: each a copy of its
+    splat's record (the rows that the passes read) in the table `split`, with the block as its
+    box in `split_box`, SPLIT_BLOCKS at most. (blocks made, slot and block to go on from)."""
+    made = 0
+    while slot < count and made < SPLIT_BLOCKS:
+        j, jb = table_slot(slot, TABLE_ROWS), table_slot(slot, 4)
+        x0, x1, y0, y1 = ibox[jb + TEMP[0]], ibox[jb + TEMP[1]], ibox[jb + TEMP[2]], ibox[jb + TEMP[3]]
+        across = (x1 - x0) // 2 + 1  # 2x2 blocks along a row of the box
+        blocks = across * ((y1 - y0) // 2 + 1)
+        while block < blocks and made < SPLIT_BLOCKS:
+            k, kb = table_slot(made, TABLE_ROWS), table_slot(made, 4)
+            for row in range(MX, NZ + 1):
+                split[k + np.uint64(row * BLOCK)] = table[j + np.uint64(row * BLOCK)]
+            if clip_src is not None:
+                for row in range(C0A, C1C + 1):
+                    split[k + np.uint64(row * BLOCK)] = table[j + np.uint64(row * BLOCK)]
+            if field_src is not None:
+                for row in range(KU, EZ + 1):
+                    split[k + np.uint64(row * BLOCK)] = table[j + np.uint64(row * BLOCK)]
+            bx, by = x0 + 2 * (block % across), y0 + 2 * (block // across)
+            split_box[kb + TEMP[0]], split_box[kb + TEMP[1]] = bx, min(bx + 1, x1)
+            split_box[kb + TEMP[2]], split_box[kb + TEMP[3]] = by, min(by + 1, y1)
+            made += 1
+            block += 1
+        if block >= blocks:
+            slot, block = slot + 1, 1
+    return made, slot, block
+
+
+@nb.njit(fastmath=True, error_model="numpy")
+def draw_tile(table, ibox, count, ox, oy, params, clip_src, field_src, normal_src, tmp, kept, split, split_box,
+              split_kept, zb, cov, acc, levels, best):
+    """Both passes of a tile's `count` set-up splats: the visibility pass of every 2x2 block of
+    their boxes, then their attribute pass. The top-left blocks come straight from the table;
+    the rest of the larger boxes from copies of their splats' records (`split_boxes`), so that
+    every fragment is computed in the SIMD loops (pixel by pixel, a `deferred` frame of the
+    bunny's 35k vertices at 1024x1024 took 77-84 ms instead of 45, `surfel bench`). When the
+    copies take more than one round of SPLIT_BLOCKS, the attribute pass makes them again and
+    recomputes their visibility outputs, which leaves zb and cov as they are (the MIN and MAX
+    of the same values)."""
+    visibility_tile(table, ibox, count, ox, oy, params, clip_src, field_src, normal_src, tmp, kept, zb, cov)
+    rounds, drawn, slot, block = 0, 0, 0, 1
+    while slot < count:
+        made, slot, block = split_boxes(table, ibox, count, clip_src, field_src, slot, block, split, split_box)
+        if made > 0:
+            visibility_tile(split, split_box, made, ox, oy, params, clip_src, field_src, normal_src, tmp, split_kept,
+                            zb, cov)
+            rounds, drawn = rounds + 1, made
+    attribute_tile(table, ibox, count, field_src, normal_src, kept, zb, acc, levels, best)
+    if rounds == 1:
+        attribute_tile(split, split_box, drawn, field_src, normal_src, split_kept, zb, acc, levels, best)
+    elif rounds > 1:
+        slot, block = 0, 1
+        while slot < count:
+            made, slot, block = split_boxes(table, ibox, count, clip_src, field_src, slot, block, split, split_box)
+            if made > 0:
+                visibility_tile(split, split_box, made, ox, oy, params, clip_src, field_src, normal_src, tmp,
+                                split_kept, zb, cov)
+                attribute_tile(split, split_box, made, field_src, normal_src, split_kept, zb, acc, levels, best)
