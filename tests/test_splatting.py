@@ -224,6 +224,35 @@ def test_phong_and_deferred_splats_are_curved_to_the_surface():
 
 
 @pytest.mark.parametrize("backend", ["gl", "cpu"])
+def test_the_normal_fields_turn_as_far_as_radius_scale_draws_the_splats(backend):
+    """The slopes are the fields' tilts at the fitted rim: a splat drawn 1.6 times as large
+    turns its field 1.6 times as much at its rim, so the normals of 800 samples of a sphere
+    stay as close to the sphere's as at radius_scale 1. Taken as they are, they were flattened
+    to 16 times the angle (`phong`, `deferred`), or 2.7 times (`ewa`, whose flat splats blend
+    more of their neighbours' planes as they grow)."""
+    from surfel.preprocess import complete
+
+    rng = np.random.default_rng(3)
+    p = rng.normal(size=(800, 3))
+    p /= np.linalg.norm(p, axis=1, keepdims=True)
+    sphere = complete(PointCloud(p, normals=p), normal_field=True)[0]
+    cam = frame(np.zeros(3), 1.0, size=(256, 256), zoom=0.7)
+    _, rays = cam.rays()
+    centre = (cam.view_matrix() @ [0.0, 0.0, 0.0, 1.0])[:3]
+    b = rays @ centre
+    disc = b * b - (centre @ centre - 1)
+    true_normals = rays * (b - np.sqrt(np.maximum(disc, 0)))[..., None] - centre
+    for method, growth in (("phong", 1.3), ("deferred", 1.3), ("ewa", 2.0)):
+        angles = []
+        for radius_scale in (1.0, 1.6):
+            result = render(sphere, cam, method, backend=backend, shading="lambert", radius_scale=radius_scale)
+            whole = (result.alpha > 0.99) & (disc > 0)
+            cos = np.einsum("ij,ij->i", result.normals[whole], true_normals[whole])
+            angles.append(np.degrees(np.arccos(np.clip(cos, -1, 1))).mean())
+        assert angles[1] < growth * angles[0], (method, angles)
+
+
+@pytest.mark.parametrize("backend", ["gl", "cpu"])
 def test_ewa_low_pass_does_not_spill_across_an_occluding_contour(backend):
     """Where a sphere's outline lies over a plate, its edge-on splats' low-pass fragments
     filter but must not claim the plate's pixels beside it (a dark band, drawn with the

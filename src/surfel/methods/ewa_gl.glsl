@@ -126,8 +126,9 @@ void main() {
     v_color = in_color;
     v_normal = n;
     v_inv_j = abs(det_j) > 1e-12 ? vec4(j11, -j10, -j01, j00) / det_j : vec4(0.0);
-    v_field_u = flip * in_field.x * u / max(length(u), 1e-30);
-    v_field_v = flip * in_field.y * v / max(length(v), 1e-30);
+    // the field's tilts at the drawn rim, u_radius_scale times as far as the fitted one
+    v_field_u = flip * u_radius_scale * in_field.x * u / max(length(u), 1e-30);
+    v_field_v = flip * u_radius_scale * in_field.y * v / max(length(v), 1e-30);
     v_eye = e;
 #endif
     // The quad spans the box's pixels edge to edge, so exactly their centres are rasterized.

@@ -204,8 +204,10 @@ def setup_splats(positions, origin, view, normals, colors, axes, clip_lines, fie
             e[I00], e[I01], e[I10], e[I11] = j11 * inv, -j01 * inv, -j10 * inv, j00 * inv
         else:
             e[I00], e[I01], e[I10], e[I11] = 0, 0, 0, 0
-        alpha = flip * fields[i * field_step, 0] / max(math.sqrt(ux * ux + uy * uy + uz * uz), np.float32(1e-30))
-        beta = flip * fields[i * field_step, 1] / max(math.sqrt(vx * vx + vy * vy + vz * vz), np.float32(1e-30))
+        # the field's tilts at the drawn rim, radius_scale times as far as the fitted one
+        turn = flip * radius_scale
+        alpha = turn * fields[i * field_step, 0] / max(math.sqrt(ux * ux + uy * uy + uz * uz), np.float32(1e-30))
+        beta = turn * fields[i * field_step, 1] / max(math.sqrt(vx * vx + vy * vy + vz * vz), np.float32(1e-30))
         e[FUX], e[FUY], e[FUZ] = alpha * ux, alpha * uy, alpha * uz
         e[FVX], e[FVY], e[FVZ] = beta * vx, beta * vy, beta * vz
         # the direction to the eye, for the field's normals (_field_normal)

@@ -132,11 +132,13 @@ bool splat_setup(out vec2 lo, out vec2 hi, out bool crosses_near) {
     vec3 n = mat3(u_view) * in_normal;
     vec3 au = mat3(u_view) * in_axis_u * u_radius_scale;
     vec3 av = mat3(u_view) * in_axis_v * u_radius_scale;
-    vec2 field = in_field.xy;
+    // the slopes are the fields' tilts at the fitted rim; the scaled splat's rim lies
+    // u_radius_scale times as far, where they have turned as much more (splatting.py)
+    vec2 field = in_field.xy * u_radius_scale;
 #ifdef CURVED_SPLATS
     // A curved splat reaches no farther along each axis than where its surface has turned by
     // MAX_RIM_TILT, its slope there then at most that (splatting.py)
-    vec2 bend = in_field.zw;  // shaped by the surface's field, shaded by the other (normal_field.py)
+    vec2 bend = in_field.zw * u_radius_scale;  // shaped by the surface's field, shaded by the other (normal_field.py)
     vec2 reach = max(abs(bend) / MAX_RIM_TILT, 1.0);
     au /= reach.x;
     av /= reach.y;

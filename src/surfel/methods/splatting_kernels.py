@@ -138,13 +138,13 @@ MAX_RIM_TILT = np.float32(1.0)  # splatting.glsl's: a curved splat's field turns
 
 
 @nb.njit(inline="always", fastmath=True, error_model="numpy")
-def _reach(e, curved):
-    """splatting.glsl's reach of a curved splat with extras e: the divisors of its axes u and v
-    that end it where its surface (the field that shapes it) has turned by MAX_RIM_TILT (1 where
-    it turns less, or is flat)."""
+def _reach(e, curved, radius_scale):
+    """splatting.glsl's reach of a curved splat with extras e, drawn radius_scale times its
+    size: the divisors of its axes u and v that end it where its surface (the field that shapes
+    it) has turned by MAX_RIM_TILT (1 where it turns less, or is flat)."""
     one = np.float32(1.0)
-    return (max(abs(e[ECURVE_ALPHA]) / MAX_RIM_TILT, one) if curved else one,
-            max(abs(e[ECURVE_BETA]) / MAX_RIM_TILT, one) if curved else one)
+    return (max(abs(e[ECURVE_ALPHA]) * radius_scale / MAX_RIM_TILT, one) if curved else one,
+            max(abs(e[ECURVE_BETA]) * radius_scale / MAX_RIM_TILT, one) if curved else one)
 
 
 @nb.njit(inline="always", fastmath=True, error_model="numpy")
@@ -241,8 +241,10 @@ def _setup(p, e, m, radius_scale, lowpass2, depth_offset, ewa_filter, curved, ba
               depth, max(lu, lv), weight, zt, footprint, p[PR], p[PG], p[PB], nx, ny, nz)
     field = FLAT_FIELD
     if curved:
-        alpha, beta = flip * e[EALPHA] / reach_u, flip * e[EBETA] / reach_v  # the shading's
-        bend_u, bend_v = flip * e[ECURVE_ALPHA] / reach_u, flip * e[ECURVE_BETA] / reach_v  # the surface's
+        # the fields' tilts at the drawn rim, radius_scale times as far as the fitted one
+        turn_u, turn_v = flip * radius_scale / reach_u, flip * radius_scale / reach_v
+        alpha, beta = e[EALPHA] * turn_u, e[EBETA] * turn_v  # the shading's
+        bend_u, bend_v = e[ECURVE_ALPHA] * turn_u, e[ECURVE_BETA] * turn_v  # the surface's
         ilu, ilv = one / max(lu, tiny), one / max(lv, tiny)
         eux, euy, euz = ux * ilu, uy * ilu, uz * ilu
         evx, evy, evz = vx * ilv, vy * ilv, vz * ilv
@@ -290,7 +292,7 @@ def _setup_tile(table, ibox, count, ox, oy, m, radius_scale, lowpass2, depth_off
         for q in range(min(BLOCK, count - first)):
             j, jb = base + np.uint64(q), box_base + np.uint64(q)
             p, e = _staged(table, j)
-            reach_u, reach_v = _reach(e, curved)
+            reach_u, reach_v = _reach(e, curved, radius_scale)
             record, field = _setup(p, e, cam, radius_scale, lowpass2, depth_offset, ewa_filter, curved,
                                    back_light, reach_u, reach_v)
             (table[j + ROW[MX]], table[j + ROW[MY]], table[j + ROW[W0]], table[j + ROW[WX]], table[j + ROW[WY]],
