@@ -56,6 +56,21 @@ def test_a_pinhole_of_two_samples_is_filled_in_two_rounds():
     assert depth[5, 5] < 3.3 and depth[5, 6] < 3.3
 
 
+def test_the_second_round_fills_a_sample_with_seven_neighbours_in_front():
+    """Three samples deepening along a row: the first is a pinhole (its deeper neighbour the
+    only one behind it); the second has the first in front, too far for its spread, until the
+    first is filled; then it has seven neighbours in front, the third behind."""
+    shaded, coverage, depth, normals = plane()
+    base = depth.copy()
+    depth[5, 5] += 0.5
+    depth[5, 6] += 0.6
+    depth[5, 7] += 0.7
+    _, _, depth, _, _, filled = fill_pinholes(shaded, coverage, depth, normals)
+    assert filled == 2
+    assert depth[5, 5] < 3.3 and depth[5, 6] < 3.3
+    assert depth[5, 7] == np.float32(base[5, 7] + 0.7)  # a third round's
+
+
 def unchanged(shaded, coverage, depth, normals) -> bool:
     before = [a.copy() for a in (shaded, coverage, depth, normals)]
     *after, _, filled = fill_pinholes(shaded, coverage, depth, normals)

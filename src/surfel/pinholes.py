@@ -139,10 +139,15 @@ def _find_near(filled_ys, filled_xs, depth, coverage, found):
 @numba.njit(cache=True, nogil=True)
 def _near_rows(first, stop, filled_ys, filled_xs, depth, coverage, hole):  # pragma: no cover - compiled
     """hole[k, c]: whether the sample c (of the 3 x 3 around filled sample k) is a pinhole, for
-    k in first:stop."""
+    k in first:stop. Counted first, as in `_find_rows` (the 10k pinholes of a 1M-splat bunny at
+    1024 x 1024: 1.9 -> 1.3 ms on one thread)."""
+    h, w = depth.shape
     for k in range(first, stop):
         for c in range(9):
-            hole[k, c] = _is_pinhole(depth, coverage, filled_ys[k] + c // 3 - 1, filled_xs[k] + c % 3 - 1)
+            y, x = filled_ys[k] + c // 3 - 1, filled_xs[k] + c % 3 - 1
+            inner = 0 < y < h - 1 and 0 < x < w - 1
+            hole[k, c] = inner and _front_count(depth, coverage, y, x) >= MIN_FRONT and _is_pinhole(
+                depth, coverage, y, x)
 
 
 @numba.njit(cache=True)
