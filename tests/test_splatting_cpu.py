@@ -78,6 +78,21 @@ def test_large_splats_match_gl(method):
         assert_agree(*both(cloud, camera, method, shading="lambert"))
 
 
+@pytest.mark.parametrize("method", METHODS)
+def test_rows_the_same_for_every_splat_are_written_once_and_draw_the_same(dense_spot, method):
+    """Packed rows that every splat shares (here green and blue, and the layers' thickness)
+    are written into each thread's table once instead of being staged for every tile
+    (splatting_cpu.CpuSplatBuffers): the picture is the GL program's, in those colours."""
+    red = np.random.default_rng(2).random(len(dense_spot))
+    colors = np.column_stack([red, np.full_like(red, 0.5), np.full_like(red, 0.9)]).astype(np.float32)
+    cloud = dense_spot.with_(colors=colors)
+    camera = frame(cloud.center, cloud.bounding_radius, view="front", size=SIZE)
+    cpu, gl = both(cloud, camera, method, shading="none")
+    assert_agree(cpu, gl)
+    inside = cpu.alpha > 0.99
+    np.testing.assert_allclose(cpu.color[inside][:, 1:], np.broadcast_to((0.5, 0.9), (inside.sum(), 2)), atol=0.01)
+
+
 @pytest.mark.parametrize("method", ["deferred", "phong"])
 def test_clip_lines_and_normal_fields_match_gl(turned_part, method):
     """A CAD part: splats cut at its creases, and phong's curved splats with normal fields."""

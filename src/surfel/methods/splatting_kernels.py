@@ -377,13 +377,15 @@ def _write_empty(color, alpha, depth, normals, present, indices, y, x, backgroun
 
 
 @nb.njit(parallel=True, fastmath=True, error_model="numpy", cache=True)
-def rasterize_tiles(packed, extras, box, index, tile_start, tile_count, order, tiles_x, width, height, m,
+def rasterize_tiles(packed, staged_rows, extras, box, index, tile_start, tile_count, order, tiles_x, width, height, m,
                     radius_scale, lowpass, depth_offset, depth_clamp, clip_src, field_src, normal_src,
                     per_splat_model, deferred_model, color_mode, palette, levels, background, composite, tables, boxes,
                     temp, kept, split, split_box, split_kept, zbuf, cover, accum, best, present, color, alpha, depth,
                     normals, indices):
     """Every tile of `order`, written into color (H, W, 3), alpha, depth (H, W) and normals
-    (H, W, 3). `present` (H, W) uint8 gets, per pixel, the bit COVERED where a splat covers
+    (H, W, 3). Of the packed rows only `staged_rows` are copied into the tables: the others,
+    the same for every splat (no colours, no layers), each thread's table holds already
+    (CpuSplatBuffers). `present` (H, W) uint8 gets, per pixel, the bit COVERED where a splat covers
     its centre and the bit UNDECIDED where `finish_surrounded` must still decide whether its
     neighbours in other tiles make it whole (the pixel then holds its raw colour and its own
     coverage). Each thread's scratch: tables (threads, table_size(largest tile)), boxes
@@ -430,7 +432,8 @@ def rasterize_tiles(packed, extras, box, index, tile_start, tile_count, order, t
         for slot in range(count):
             i = index[start + slot]
             j, jb = table_slot(slot, TABLE_ROWS), table_slot(slot, 4)
-            for col in range(PACKED):
+            for row in range(staged_rows.shape[0]):
+                col = staged_rows[row]
                 table[j + np.uint64(col * BLOCK)] = packed[col, i]
             if clip_src is not None:  # only the extras this kernel reads
                 for col in range(EA0, EC1 + 1):
