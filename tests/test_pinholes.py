@@ -71,6 +71,24 @@ def test_the_second_round_fills_a_sample_with_seven_neighbours_in_front():
     assert depth[5, 7] == np.float32(base[5, 7] + 0.7)  # a third round's
 
 
+def test_a_hole_of_a_pixel_in_a_supersampled_render_is_filled_and_a_groove_is_not():
+    """2 x 2 samples a pixel: a hole of 2 x 2 samples has no sample that 7 neighbours
+    surround, so only the samples a pixel apart find it; a groove two samples wide, seen along
+    its line, is left alone at either step."""
+    shaded, coverage, depth, normals = plane()
+    expected = depth.copy()
+    depth[4:6, 6:8] += 0.5
+    assert fill_pinholes(*(a.copy() for a in (shaded, coverage, depth, normals)))[5] == 0
+    _, _, filled_depth, _, _, filled = fill_pinholes(shaded, coverage, depth, normals, pixel=2)
+    assert filled == 4
+    np.testing.assert_allclose(filled_depth[4:6, 6:8], expected[4:6, 6:8], rtol=1e-6)
+    shaded, coverage, depth, normals = plane(slope_x=0, slope_y=0)
+    depth[5:7, :] += 0.4
+    before = depth.copy()
+    _, _, depth, _, _, filled = fill_pinholes(shaded, coverage, depth, normals, pixel=2)
+    assert filled == 0 and np.array_equal(depth, before)
+
+
 def unchanged(shaded, coverage, depth, normals) -> bool:
     before = [a.copy() for a in (shaded, coverage, depth, normals)]
     *after, _, filled = fill_pinholes(shaded, coverage, depth, normals)

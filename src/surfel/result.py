@@ -133,7 +133,7 @@ class RenderResult:
         background = options.background
         if pinholes:
             shaded, coverage, depth, normals, indices, filled = fill_pinholes(shaded, coverage, depth, normals,
-                                                                              indices)
+                                                                              indices, pixel=s)
             stats = dict(stats, pinholes=filled)
         if options.edl:
             term = eye_dome_lighting(np.where(coverage > 0, depth, np.inf), options.edl_radius * s,

@@ -1,9 +1,10 @@
 // One round of surfel/pinholes.py in the page (its docstring states the rule and the fill):
 // G-buffer in, G-buffer out (shaded rgb + coverage, eye normal + palette index, eye depth),
-// each sample that at least 7 of its 8 neighbours hide from behind filled from those in
-// front. The page runs two rounds between its normalization pass and display.glsl, as
-// RenderResult.from_samples does before eye-dome lighting. Neighbours in the order of the
-// Python module's rows (top row first: +y in the texture), so ties fall alike.
+// each sample that at least 7 of its 8 neighbours u_step samples away hide from behind
+// filled from those in front. The page runs two rounds at a step of one sample between its
+// normalization pass and display.glsl, and when it supersamples two more at a step of a
+// pixel, as RenderResult.from_samples does before eye-dome lighting. Neighbours in the order
+// of the Python module's rows (top row first: +y in the texture), so ties fall alike.
 
 #ifdef VERTEX_SHADER
 #include "full_screen.glsl"
@@ -17,6 +18,7 @@ uniform sampler2D u_shaded;    // shaded rgb, coverage
 uniform sampler2D u_gnormal;   // eye normal, palette index
 uniform sampler2D u_gdepth;    // eye depth (0: empty)
 uniform int u_categorical;
+uniform int u_step;            // samples between a sample and its neighbours
 layout(location = 0) out vec4 out_shaded;
 layout(location = 1) out vec4 out_normal;
 layout(location = 2) out vec4 out_depth;
@@ -29,12 +31,12 @@ float sample_depth(ivec2 texel) {
 }
 
 bool is_pinhole(ivec2 texel, float z) {
-    ivec2 last = textureSize(u_gdepth, 0) - 1;
-    if (texel.x == 0 || texel.y == 0 || texel.x == last.x || texel.y == last.y) return false;
+    ivec2 last = textureSize(u_gdepth, 0) - u_step;
+    if (any(lessThan(texel, ivec2(u_step))) || any(greaterThan(texel, last))) return false;
     int behind = 0;
     float near = EMPTY, far = -EMPTY;
     for (int i = 0; i < 8; ++i) {
-        float q = sample_depth(texel + NEIGHBOURS[i]);
+        float q = sample_depth(texel + u_step * NEIGHBOURS[i]);
         if (q < z) {
             near = min(near, q);
             far = max(far, q);
@@ -55,12 +57,12 @@ void main() {
     if (u_categorical != 0) {  // a copy of the first front neighbour showing the most common category
         int best_votes = 0;
         for (int i = 0; i < 8; ++i) {
-            ivec2 q = texel + NEIGHBOURS[i];
+            ivec2 q = texel + u_step * NEIGHBOURS[i];
             if (sample_depth(q) >= z) continue;
             float category = texelFetch(u_gnormal, q, 0).w;
             int votes = 0;
             for (int j = 0; j < 8; ++j) {
-                ivec2 r = texel + NEIGHBOURS[j];
+                ivec2 r = texel + u_step * NEIGHBOURS[j];
                 if (sample_depth(r) < z && texelFetch(u_gnormal, r, 0).w == category) ++votes;
             }
             if (votes > best_votes) {
@@ -76,7 +78,7 @@ void main() {
     vec3 normal = vec3(0.0);
     float depth = 0.0, count = 0.0;
     for (int i = 0; i < 8; ++i) {
-        ivec2 q = texel + NEIGHBOURS[i];
+        ivec2 q = texel + u_step * NEIGHBOURS[i];
         if (sample_depth(q) >= z) continue;
         shaded += texelFetch(u_shaded, q, 0);
         normal += texelFetch(u_gnormal, q, 0).xyz;

@@ -408,13 +408,17 @@
     bindTexture(UNIT.accumColor, t.acc[0]); bindTexture(UNIT.accumNormal, t.acc[1]);
     setUniforms(program("splat", { ...variant, PASS_NORMALIZE: true }), common);
     gl.drawArrays(gl.TRIANGLES, 0, 3);
-    // pinholes (surfel.pinholes): two rounds, into the spare G-buffer and back
-    for (const [from, into] of [[t.gbuf, t.spareFbo], [t.spare, t.gFbo]]) {
-      gl.bindFramebuffer(gl.FRAMEBUFFER, into);
-      bindTexture(UNIT.shaded, from[0]); bindTexture(UNIT.gnormal, from[1]); bindTexture(UNIT.gdepth, from[2]);
-      setUniforms(program("pinholes", {}), { u_shaded: UNIT.shaded, u_gnormal: UNIT.gnormal, u_gdepth: UNIT.gdepth,
-                                             u_categorical: categorical ? 1 : 0 });
-      gl.drawArrays(gl.TRIANGLES, 0, 3);
+    // pinholes (surfel.pinholes): two rounds, into the spare G-buffer and back; supersampled, two
+    // more between the samples a pixel apart
+    for (const step of factor > 1 ? [1, Math.round(factor)] : [1]) {
+      for (const [from, into] of [[t.gbuf, t.spareFbo], [t.spare, t.gFbo]]) {
+        gl.bindFramebuffer(gl.FRAMEBUFFER, into);
+        bindTexture(UNIT.shaded, from[0]); bindTexture(UNIT.gnormal, from[1]); bindTexture(UNIT.gdepth, from[2]);
+        setUniforms(program("pinholes", {}), { u_shaded: UNIT.shaded, u_gnormal: UNIT.gnormal,
+                                               u_gdepth: UNIT.gdepth, u_categorical: categorical ? 1 : 0,
+                                               u_step: step });
+        gl.drawArrays(gl.TRIANGLES, 0, 3);
+      }
     }
     // the canvas: supersamples filtered, categories coloured, eye-dome lighting, background
     gl.bindFramebuffer(gl.FRAMEBUFFER, null);
