@@ -20,7 +20,8 @@ LAYERS = [
     ("methods", ["methods", "mls"]),
     ("rendering", ["rendering", "metrics"]),
     ("request", ["request"]),
-    ("interfaces", ["cli", "batch", "viewer", "turntable", "bench", "web", "widget", "adapters", "scan", ""]),
+    ("interfaces", ["cli", "compile_notice", "batch", "viewer", "turntable", "bench", "web", "widget", "adapters",
+                    "scan", ""]),
 ]
 
 

@@ -11,6 +11,7 @@ import sys
 
 import click
 
+from .compile_notice import compile_notice
 from .errors import SurfelError
 from .methods import DEFAULT_METHOD
 from .pages import no_huge_pages
@@ -92,6 +93,7 @@ def main():
       surfel bench --methods points,deferred --points 1000000 --size 1024x1024
     """
     no_huge_pages()
+    click.get_current_context().with_resource(compile_notice(sys.stderr))
 
 
 @main.command(context_settings=CONTEXT)

@@ -1,0 +1,52 @@
+"""One line on a terminal when surfel's numba kernels compile: the first run after installing.
+
+numba compiles a kernel the first time it meets new argument types and keeps the machine code
+in its cache on disk (`cache=True`), so the first render after installing compiles for about
+a minute on 2 cores (the README's first-run numbers) with nothing to show meanwhile. numba's
+event API broadcasts "numba:compile" only when a kernel is compiled, not when it is loaded
+from the cache: the first such event of a surfel kernel prints NOTICE, once. Only on a
+terminal, so that a pipeline's logs stay as they were.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import threading
+
+from numba.core import event
+
+NOTICE = ("surfel: compiling its numba kernels, once after installing (about a minute); "
+          "later runs load them from numba's cache")
+
+
+class CompileNotice(event.Listener):
+    """Prints NOTICE to `stream` when the first surfel kernel starts compiling."""
+
+    def __init__(self, stream):
+        self.stream = stream
+        self.shown = False
+        self._lock = threading.Lock()  # kernels may first be called from several threads
+
+    def on_start(self, ev) -> None:
+        function = getattr(ev.data["dispatcher"], "py_func", None)
+        if not getattr(function, "__module__", "").startswith("surfel."):
+            return
+        with self._lock:
+            if self.shown:
+                return
+            self.shown = True
+        print(NOTICE, file=self.stream, flush=True)
+
+    def on_end(self, ev) -> None:
+        pass
+
+
+@contextlib.contextmanager
+def compile_notice(stream):
+    """Within the context, NOTICE on `stream`, if it is a terminal, when the first surfel
+    kernel compiles; yields the listener, or None when `stream` is no terminal."""
+    if not stream.isatty():
+        yield None
+        return
+    with event.install_listener("numba:compile", CompileNotice(stream)) as listener:
+        yield listener
