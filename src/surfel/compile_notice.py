@@ -1,4 +1,5 @@
-"""One line on a terminal when surfel's numba kernels compile: the first run after installing.
+"""One line on a terminal when surfel's numba kernels compile: the first run after installing,
+or the first of a kind of render (a method, a backend) that needs kernels not compiled yet.
 
 numba compiles a kernel the first time it meets new argument types and keeps the machine code
 in its cache on disk (`cache=True`), so the first render after installing compiles for about
@@ -15,8 +16,8 @@ import threading
 
 from numba.core import event
 
-NOTICE = ("surfel: compiling its numba kernels, once after installing (about a minute); "
-          "later runs load them from numba's cache")
+NOTICE = ("surfel: compiling numba kernels the first time they are needed (up to a minute); "
+          "they are cached for later runs")
 
 
 class CompileNotice(event.Listener):
