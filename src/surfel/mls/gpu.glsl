@@ -24,6 +24,10 @@
 #define SUPPORT 2.5
 #define FAR 3.0e38
 #define MISS 1.0e38
+// The last of the fixed projection steps keeps its hit only within this many local widths of
+// its fit: the CPU tracer iterates until its tolerance (raytrace.TOLERANCE), and a ray that
+// passes a coarse part's surface in the air between its rings settles nowhere
+#define LAST_HEIGHT 0.1
 #define RETRY_GAP 0.5  // a later candidate lies this many of its sampling's kernel widths beyond a failed one
 
 uniform mat4 u_view_inv;        // eye to local world
@@ -36,6 +40,7 @@ uniform float u_edge_cos;       // extent test: a sheet's samples have normals w
 uniform float u_edge_lateral;   // ... and lie within this many local widths of the line from r along `away`
 uniform float u_ridge;          // regularisation of a singular quadratic fit, in units of sum w (surface.RIDGE)
 uniform float u_min_neighbours; // facing samples a fit needs in its support (surface.MIN_NEIGHBOURS)
+uniform float u_tolerance;      // converged: r within this many local widths of its fit (raytrace.TOLERANCE)
 uniform bool u_last;            // the last iteration: apply the half-disc and extent tests to its fit
 uniform bool u_update_reference;  // the fit's normal becomes the next reference normal
 uniform bool u_retry;           // a later candidate: the nearest beyond the one that failed
@@ -190,7 +195,8 @@ void local_ray(out vec3 o, out vec3 d) {
     d = mat3(u_view_inv) * de;
 }
 
-uniform sampler2D u_state;      // r: current ray parameter t (>= MISS: no surface), g: last step / l
+uniform sampler2D u_state;      // r: current ray parameter t (>= MISS: no surface), g: last step / l,
+                                // b: the current point's height over the last fit (FAR: none yet)
 uniform sampler2D u_reference;  // the reference normal n_r of the pixel's next fit
 
 Quadratic point_quadratic(int i) {
@@ -219,6 +225,7 @@ bool current_hit(out vec3 r, out float t) {
 layout(location = 0) out vec4 out_t;
 layout(location = 1) out vec4 out_reference;
 layout(location = 2) out vec4 out_first;  // t, kept for PASS_RETRY
+layout(location = 3) out vec4 out_bracket;  // no iterate above or below the surface yet (PASS_SOLVE)
 void main() {
     vec3 o, d;
     local_ray(o, d);
@@ -240,8 +247,9 @@ void main() {
     // In units of the width the sample's density gives, h_scale m_i: a kernel widened across a
     // gap (widths.py) spans more than a thin part's thickness
     if (u_retry && t <= failed + RETRY_GAP * points[3 * i + 2].w) discard;
-    out_t = vec4(t, 0.0, 0.0, 0.0);
+    out_t = vec4(t, 0.0, FAR, 0.0);
     out_first = out_t;
+    out_bracket = vec4(-1.0, 0.0, -1.0, 0.0);
     out_reference = vec4(points[3 * i + 2].xyz, 0.0);
     gl_FragDepth = window_depth(vec3(0.0, 0.0, -t));  // nearest wins; the passes' depth test
 }
@@ -375,13 +383,18 @@ uniform sampler2D u_m5;
 uniform sampler2D u_m6;
 uniform sampler2D u_color;  // w rgb of the means pass
 uniform sampler2D u_weight; // (w x, w) of the means pass
-layout(location = 0) out vec4 out_state;      // new t (MISS if the fit failed), |step| / l
+// (t, height) of the last iterates above and below their fits (t < 0: none): raytrace.trace_ray's
+// false position, which keeps a grazing ray from overshooting the surface further each step
+uniform sampler2D u_bracket;
+layout(location = 0) out vec4 out_state;      // new t (MISS if the fit failed), |step| / l, height
 layout(location = 1) out vec4 out_reference;  // reference normal of the next fit
 layout(location = 2) out vec4 out_normal;     // local world normal of the surface at the new point
 layout(location = 3) out vec4 out_albedo;     // weighted mean colour of the neighbours
+layout(location = 4) out vec4 out_bracket;
 
 void main() {
     out_state = vec4(FAR, 0.0, 0.0, 0.0);
+    out_bracket = vec4(-1.0, 0.0, -1.0, 0.0);
     out_reference = vec4(0.0);
     out_normal = vec4(0.0);
     out_albedo = vec4(0.0);
@@ -451,14 +464,39 @@ void main() {
     g.l = n.w;
     tangent_frame(g.n, g.e1, g.e2);
     g.c = float[6](float(b[0]), float(b[1]), float(b[2]), float(b[3]), float(b[4]), float(b[5]));
+    // r's height over its fit, kept on the side it lies (raytrace.trace_ray: the Illinois weight
+    // halves an end kept twice)
+    vec3 rl = (r - g.q) / g.l;
+    float u = dot(rl, g.e1), v = dot(rl, g.e2);
+    float height = g.l * (dot(rl, g.n) - (g.c[0] + g.c[1] * u + g.c[2] * v + g.c[3] * u * u + g.c[4] * u * v
+                                         + g.c[5] * v * v));
+    float last = texelFetch(u_state, pix, 0).b;
+    vec4 bracket = texelFetch(u_bracket, pix, 0);  // t above, its height, t below, its height
+    // converged (the CPU tracer stops there): the bracket, now stale, is left alone
+    bool converged = abs(height) < u_tolerance * g.l;
+    if (!converged && height > 0.0) {
+        if (last > 0.0) bracket.w *= 0.5;
+        bracket.xy = vec2(t, height);
+    } else if (!converged) {
+        if (last <= 0.0) bracket.y *= 0.5;
+        bracket.zw = vec2(t, height);
+    }
+    bool stalled = abs(height) >= abs(last);
     // the ray meets the new quadratic near r (raytrace.trace_ray's window), solved from r
     vec3 o, d;
     local_ray(o, d);
     float dt, window = SUPPORT * g.l;
-    if (!ray_quadratic(g, r, d, max(-window, -t), window, dt)) return;
+    bool met = ray_quadratic(g, r, d, max(-window, -t), window, dt);
+    float next = met ? t + dt : -1.0;
+    if (!converged && bracket.x >= 0.0 && bracket.z >= 0.0 && (!met || stalled)
+            && !(min(bracket.x, bracket.z) < next && next < max(bracket.x, bracket.z)))
+        next = bracket.x + (bracket.z - bracket.x) * bracket.y / (bracket.y - bracket.w);  // false position
+    if (next < 0.0 || (u_last && abs(height) > LAST_HEIGHT * g.l)) return;
+    dt = next - t;
     vec3 x = r + dt * d;
     vec4 weight = texelFetch(u_weight, pix, 0);
-    out_state = vec4(t + dt, length(dt * d) / g.l, 0.0, 0.0);
+    out_state = vec4(next, length(dt * d) / g.l, height, 0.0);
+    out_bracket = bracket;
     gl_FragDepth = window_depth(vec3(0.0, 0.0, -(t + dt)));
     out_normal = vec4(quadratic_normal(g, x), 1.0);
     out_reference = u_update_reference ? out_normal : texelFetch(u_reference, pix, 0);

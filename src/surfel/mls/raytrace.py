@@ -78,6 +78,7 @@ from .surface import (
 )
 
 DEFAULT_SUPERSAMPLE = 2  # rays per pixel side, box filtered like every method
+TOLERANCE = 1e-3  # a projection has converged within this fraction of the local kernel width
 QUEUE = 4096  # entries of a ray's traversal queue (nodes and spheres not yet visited)
 SKY = np.array([0.55, 0.7, 0.95])
 GROUND = np.array([0.25, 0.22, 0.2])
@@ -85,7 +86,7 @@ GROUND = np.array([0.25, 0.22, 0.2])
 
 @dataclass(frozen=True)
 class MlsParams(MlsKernel):
-    tolerance: float = setting(1e-3, positive)  # eps, as a fraction of the local kernel width
+    tolerance: float = setting(TOLERANCE, positive)  # eps, as a fraction of the local kernel width
     max_iterations: int = setting(8, at_least(1))  # fits per candidate sphere before giving up on it
     shadows: bool = False  # a shadow ray to the key light
     reflect: bool = False  # one mirror bounce
