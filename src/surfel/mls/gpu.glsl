@@ -60,6 +60,11 @@ struct Quadratic {
     float l;             // the fit's local kernel width
 };
 
+// g(u, v), in units of l
+float quadratic_value(Quadratic g, float u, float v) {
+    return g.c[0] + g.c[1] * u + g.c[2] * v + g.c[3] * u * u + g.c[4] * u * v + g.c[5] * v * v;
+}
+
 // Smallest t in [lo, hi] where o + t d meets the quadratic (polynomial.poly_ray); the
 // caller puts o near the surface so the coefficients stay small in float32.
 bool ray_quadratic(Quadratic g, vec3 o, vec3 d, float lo, float hi, out float t) {
@@ -70,7 +75,7 @@ bool ray_quadratic(Quadratic g, vec3 o, vec3 d, float lo, float hi, out float t)
     float qa = g.c[3] * du * du + g.c[4] * du * dv + g.c[5] * dv * dv;
     float qb = g.c[1] * du + g.c[2] * dv + 2.0 * g.c[3] * u0 * du + g.c[4] * (u0 * dv + v0 * du)
              + 2.0 * g.c[5] * v0 * dv - df;
-    float qc = g.c[0] + g.c[1] * u0 + g.c[2] * v0 + g.c[3] * u0 * u0 + g.c[4] * u0 * v0 + g.c[5] * v0 * v0 - f0;
+    float qc = quadratic_value(g, u0, v0) - f0;
     if (abs(qa) * (hi - lo) < 1e-6 * abs(qb)) {
         if (qb == 0.0) return false;
         t = -qc / qb;
@@ -467,19 +472,19 @@ void main() {
     // r's height over its fit, kept on the side it lies (raytrace.trace_ray: the Illinois weight
     // halves an end kept twice)
     vec3 rl = (r - g.q) / g.l;
-    float u = dot(rl, g.e1), v = dot(rl, g.e2);
-    float height = g.l * (dot(rl, g.n) - (g.c[0] + g.c[1] * u + g.c[2] * v + g.c[3] * u * u + g.c[4] * u * v
-                                         + g.c[5] * v * v));
+    float height = g.l * (dot(rl, g.n) - quadratic_value(g, dot(rl, g.e1), dot(rl, g.e2)));
     float last = texelFetch(u_state, pix, 0).b;
     vec4 bracket = texelFetch(u_bracket, pix, 0);  // t above, its height, t below, its height
     // converged (the CPU tracer stops there): the bracket, now stale, is left alone
     bool converged = abs(height) < u_tolerance * g.l;
-    if (!converged && height > 0.0) {
-        if (last > 0.0) bracket.w *= 0.5;
-        bracket.xy = vec2(t, height);
-    } else if (!converged) {
-        if (last <= 0.0) bracket.y *= 0.5;
-        bracket.zw = vec2(t, height);
+    if (!converged) {
+        if (height > 0.0) {
+            if (last > 0.0) bracket.w *= 0.5;
+            bracket.xy = vec2(t, height);
+        } else {
+            if (last <= 0.0) bracket.y *= 0.5;
+            bracket.zw = vec2(t, height);
+        }
     }
     bool stalled = abs(height) >= abs(last);
     // the ray meets the new quadratic near r (raytrace.trace_ray's window), solved from r
