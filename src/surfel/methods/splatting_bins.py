@@ -96,9 +96,10 @@ def bound_block(packed, extras, cam, radius_scale, lowpass, backface, width, hei
     """bound_splats' boxes of splats first..last-1, without branches (a SIMD loop)."""
     ortho, near = cam[16], cam[17]
     one = np.float32(1.0)
-    for i in range(first, last):
+    for index in range(first, last):
         # the packed column read element by element: a column view would bring reference counting,
-        # an atomic shared by every thread, into the loop
+        # an atomic shared by every thread, into the loop; unsigned, as no wraparound test is needed
+        i = np.uint64(index)
         ex, ey, ez = eye_space(cam, packed[PX, i], packed[PY, i], packed[PZ, i])
         nx, ny, nz = rotate(cam, packed[PNX, i], packed[PNY, i], packed[PNZ, i])
         ux, uy, uz = rotate(cam, packed[PUX, i] * radius_scale, packed[PUY, i] * radius_scale,
@@ -133,7 +134,7 @@ def bound_block(packed, extras, cam, radius_scale, lowpass, backface, width, hei
         x0, x1 = (0 if whole else x0), (width - 1 if whole else x1)
         y0, y1 = (0 if whole else y0), (height - 1 if whole else y1)
         empty = culled | (x0 > x1) | (y0 > y1)
-        slot = i - first
+        slot = index - first
         bounds[slot] = 1 if empty else x0
         bounds[slot + BOUND_BLOCK] = 0 if empty else x1
         bounds[slot + 2 * BOUND_BLOCK] = 1 if empty else y0

@@ -430,19 +430,20 @@ def rasterize_tiles(packed, staged_rows, extras, box, index, tile_start, tile_co
         # stage the tile's splats: one packed column each, its extras and its box
         start = tile_start[t]
         for slot in range(count):
-            i = index[start + slot]
+            # unsigned indices: numba tests a signed one for wraparound, which keeps loads scalar
+            i = np.uint64(index[start + slot])
             j, jb = table_slot(slot, TABLE_ROWS), table_slot(slot, 4)
             for row in range(staged_rows.shape[0]):
-                col = staged_rows[row]
-                table[j + np.uint64(col * BLOCK)] = packed[col, i]
+                col = np.uint64(staged_rows[row])
+                table[j + col * np.uint64(BLOCK)] = packed[col, i]
             if clip_src is not None:  # only the extras this kernel reads
                 for col in range(EA0, EC1 + 1):
-                    table[j + np.uint64((PACKED + col) * BLOCK)] = extras[col, i]
+                    table[j + np.uint64((PACKED + col) * BLOCK)] = extras[np.uint64(col), i]
             if field_src is not None:  # the shading's slopes and the surface's, which shape it
                 for col in range(EALPHA, ECURVE_BETA + 1):
-                    table[j + np.uint64((PACKED + col) * BLOCK)] = extras[col, i]
+                    table[j + np.uint64((PACKED + col) * BLOCK)] = extras[np.uint64(col), i]
             for col in range(4):
-                ibox[jb + np.uint64(col * BLOCK)] = box[col, i]
+                ibox[jb + np.uint64(col * BLOCK)] = box[np.uint64(col), i]
         _setup_tile(table, ibox, count, ox, oy, m, radius_scale, lowpass2, depth_offset, ewa_filter, clip_src,
                     field_src, normal_src, per_splat_model < 0)
         if per_splat_model >= 0:  # Botsch & Kobbelt 2003: each splat's colour shaded, then blended
@@ -467,7 +468,7 @@ def rasterize_tiles(packed, staged_rows, extras, box, index, tile_start, tile_co
             y = oy + ly
             for lx in range(tw):
                 x = ox + lx
-                p = ly * STRIDE + lx
+                p = np.uint64(ly * STRIDE + lx)  # unsigned: no wraparound test
                 if acc[p, 3] <= 0:
                     _write_empty(color, alpha, depth, normals, present, indices, y, x, background, composite,
                                  categorical)

@@ -396,7 +396,7 @@ def visibility_tile(table, ibox, count, ox, oy, params, clip_src, field_src, nor
             jb = box_base + uq
             p = ibox[jb + TEMP[2]] * STRIDE + ibox[jb + TEMP[0]]
             for lane in range(4):
-                pl = p + (lane >> 1) * STRIDE + (lane & 1)
+                pl = np.uint64(p + (lane >> 1) * STRIDE + (lane & 1))  # unsigned: no wraparound test
                 row = np.uint64(lane * BLOCK)  # TEMP[lane]: a tuple indexed at run time is a switch
                 zb[pl] = min(zb[pl], tmp[row + uq])
                 cov[pl] = max(cov[pl], tmp[row + TEMP[4] + uq])
@@ -427,7 +427,7 @@ def attribute_tile(table, ibox, count, field_src, normal_src, kept, zb, acc, lev
             p = ibox[jb + TEMP[2]] * STRIDE + ibox[jb + TEMP[0]]
             k = kept_base + uq
             for lane in range(4):
-                pl = p + (lane >> 1) * STRIDE + (lane & 1)
+                pl = np.uint64(p + (lane >> 1) * STRIDE + (lane & 1))  # unsigned: no wraparound test
                 row = k + np.uint64(lane * BLOCK)  # KEPT[lane]: a tuple indexed at run time is a switch
                 w, z = kept[row], kept[row + KEPT[4]]
                 if blends(w, z, zb[pl], zt):
