@@ -45,11 +45,12 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from .threads import over_rows
+from .threads import IMAGE_GRAIN, over_rows
 
 MIN_FRONT = 7  # of the 8 neighbours: the eighth may be the other half of a two-sample pinhole
 ROUNDS = 2
 RELATIVE_TOLERANCE = 1e-5
+PINHOLE_GRAIN = 4096  # the fewest pinholes of a thread's piece (threads.IMAGE_GRAIN: why)
 
 _NEIGHBOURS = ((-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1))
 
@@ -97,11 +98,11 @@ def _find(depth, coverage, found, step):
     rows that have any (np.nonzero's scan of every sample took as long as finding them)."""
     h = depth.shape[0]
     counts = np.empty(h, np.int64)
-    over_rows(_find_rows, h, depth, coverage, found, counts, step, grain=16)
+    over_rows(_find_rows, h, depth, coverage, found, counts, step, grain=IMAGE_GRAIN)
     starts = np.zeros(h + 1, np.int64)
     np.cumsum(counts, out=starts[1:])
     ys, xs = np.empty(starts[-1], np.int64), np.empty(starts[-1], np.int64)
-    over_rows(_gather_rows, h, found, counts, starts, ys, xs, grain=16)
+    over_rows(_gather_rows, h, found, counts, starts, ys, xs, grain=IMAGE_GRAIN)
     return ys, xs
 
 
@@ -149,7 +150,7 @@ def _find_near(filled_ys, filled_xs, depth, coverage, found, step):
     twice. A pinhole lies at least `step` samples inside the image's border, so the samples
     around one are all inside it."""
     hole = np.empty((len(filled_ys), 9), np.bool_)
-    over_rows(_near_rows, len(filled_ys), filled_ys, filled_xs, depth, coverage, hole, step, grain=256)
+    over_rows(_near_rows, len(filled_ys), filled_ys, filled_xs, depth, coverage, hole, step, grain=PINHOLE_GRAIN)
     return _mark_once(filled_ys, filled_xs, hole, found, step)
 
 
@@ -189,7 +190,7 @@ def _fill(ys, xs, shaded, coverage, depth, normals, indices, categorical, step):
     values = np.zeros((len(ys), 8), np.float32)  # colour, coverage, depth, normal
     labels = np.empty(len(ys), np.int32)
     over_rows(_fill_values, len(ys), ys, xs, shaded, coverage, depth, normals, indices, categorical, step, values,
-              labels, grain=256)
+              labels, grain=PINHOLE_GRAIN)
     _write_values(ys, xs, values, labels, shaded, coverage, depth, normals, indices, categorical)
 
 

@@ -26,6 +26,9 @@ from concurrent.futures import ThreadPoolExecutor, wait
 import numba
 
 PIECES_PER_THREAD = 8  # pieces per thread: a thread that draws slow rows leaves the rest to the others
+# the fewest rows of a piece of a pass over a frame's image: a piece costs a numba dispatch and a
+# pool round trip (50-100 us), which at 16 pieces outweighed a 1024 x 1024 frame's pinhole passes
+IMAGE_GRAIN = 256
 
 _pools: dict[tuple[int, int], ThreadPoolExecutor] = {}  # (process, threads): a fork gets its own
 _pools_lock = threading.Lock()

@@ -32,7 +32,7 @@ import numpy as np
 
 from ..colors import continuous_pixel
 from ..shading import shade_pixel
-from ..threads import over_rows
+from ..threads import IMAGE_GRAIN, over_rows
 from .ewa_kernels import FAR, TILE, layer_offset
 from .splatting_bins import camera_scalars, eye_space, rotate, to_pixels
 from .splatting_tiles import (
@@ -507,19 +507,25 @@ def rasterize_tiles(packed, staged_rows, extras, box, index, tile_start, tile_co
 def finish_surrounded(present, color, alpha, depth, normals, background, composite):
     """The pixels `rasterize_tiles` left undecided: whole where splats cover all four
     neighbours' centres, else their own coverage; then written as every other pixel."""
-    over_rows(_finish_rows, present.shape[0], present, color, alpha, depth, normals, background, composite, grain=64)
+    over_rows(_finish_rows, present.shape[0], present, color, alpha, depth, normals, background, composite,
+              grain=IMAGE_GRAIN)
 
 
 @nb.njit(cache=True, nogil=True)
 def _finish_rows(first, stop, present, color, alpha, depth, normals, background, composite):  # pragma: no cover
-    """Rows first:stop of `finish_surrounded`."""
+    """Rows first:stop of `finish_surrounded`. Only a pixel on the border of its tile has a
+    neighbour in another tile, so only those are read: whole rows at the tiles' top and bottom,
+    the first and last column of each tile in the others."""
     height, width = present.shape
     for y in range(first, stop):
-        for x in range(width):
-            if not present[y, x] & UNDECIDED:
-                continue
-            whole = (present[y, min(x + 1, width - 1)] & COVERED and present[y, max(x - 1, 0)] & COVERED
-                     and present[min(y + 1, height - 1), x] & COVERED and present[max(y - 1, 0), x] & COVERED)
-            a = np.float32(1.0) if whole else alpha[y, x]
-            _write(color, alpha, depth, normals, y, x, color[y, x, 0], color[y, x, 1], color[y, x, 2], a,
-                   depth[y, x], normals[y, x, 0], normals[y, x, 1], normals[y, x, 2], background, composite)
+        whole_row = y % TILE == 0 or y % TILE == TILE - 1
+        x = 0
+        while x < width:
+            if present[y, x] & UNDECIDED:
+                whole = (present[y, min(x + 1, width - 1)] & COVERED and present[y, max(x - 1, 0)] & COVERED
+                         and present[min(y + 1, height - 1), x] & COVERED and present[max(y - 1, 0), x] & COVERED)
+                a = np.float32(1.0) if whole else alpha[y, x]
+                _write(color, alpha, depth, normals, y, x, color[y, x, 0], color[y, x, 1], color[y, x, 2], a,
+                       depth[y, x], normals[y, x, 0], normals[y, x, 1], normals[y, x, 2], background, composite)
+            # from a tile's first column to its last, from its last to the next tile's first
+            x += TILE - 1 if not whole_row and x % TILE == 0 else 1
