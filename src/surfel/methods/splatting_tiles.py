@@ -350,6 +350,13 @@ def both_outputs(s, c, f, clipping, curved, field_normals, dx, dy, params, nx, n
     return (z if inside else FAR), (cover if inside else zero), (w if inside else zero), depth, fx, fy, fz
 
 
+@nb.njit(inline="always")
+def lane_pixel(ibox, jb, lane):
+    """The tile scratch's pixel of lane 0..3 (left to right, then down) of the 2x2 block at the
+    top-left of box jb; unsigned: no wraparound test."""
+    return np.uint64((ibox[jb + TEMP[2]] + (lane >> 1)) * STRIDE + ibox[jb + TEMP[0]] + (lane & 1))
+
+
 @nb.njit(fastmath=True, error_model="numpy")
 def visibility_tile(table, ibox, count, ox, oy, params, clip_src, field_src, normal_src, tmp, kept, zb, cov):
     """The visibility pass of the 2x2 blocks at the top-left of a table's `count` boxes into zb
@@ -394,9 +401,8 @@ def visibility_tile(table, ibox, count, ox, oy, params, clip_src, field_src, nor
         for q in range(size):
             uq = np.uint64(q)
             jb = box_base + uq
-            p = ibox[jb + TEMP[2]] * STRIDE + ibox[jb + TEMP[0]]
             for lane in range(4):
-                pl = np.uint64(p + (lane >> 1) * STRIDE + (lane & 1))  # unsigned: no wraparound test
+                pl = lane_pixel(ibox, jb, lane)
                 row = np.uint64(lane * BLOCK)  # TEMP[lane]: a tuple indexed at run time is a switch
                 zb[pl] = min(zb[pl], tmp[row + uq])
                 cov[pl] = max(cov[pl], tmp[row + TEMP[4] + uq])
@@ -424,10 +430,9 @@ def attribute_tile(table, ibox, count, field_src, normal_src, kept, zb, acc, lev
             zt = table[j + ROW[ZT]]
             # only categorical modes use it: numba's floor is a call, about 6% of a deferred frame (bench)
             code = math.floor(r * np.float32(CODE_SCALE) + np.float32(0.5)) if levels > 0 else 0
-            p = ibox[jb + TEMP[2]] * STRIDE + ibox[jb + TEMP[0]]
             k = kept_base + uq
             for lane in range(4):
-                pl = np.uint64(p + (lane >> 1) * STRIDE + (lane & 1))  # unsigned: no wraparound test
+                pl = lane_pixel(ibox, jb, lane)
                 row = k + np.uint64(lane * BLOCK)  # KEPT[lane]: a tuple indexed at run time is a switch
                 w, z = kept[row], kept[row + KEPT[4]]
                 if blends(w, z, zb[pl], zt):
