@@ -423,8 +423,9 @@ def section_firstrun(ctx: Context) -> str:
     first, _ = peak_run(ctx, argv, shown, "from an empty NUMBA_CACHE_DIR, then again", {"NUMBA_CACHE_DIR": str(cache)})
     later, _ = peak_run(ctx, argv, shown, None, {"NUMBA_CACHE_DIR": str(cache)})
     return (f"The first render after installing compiles surfel's numba kernels, once (numba keeps them on disk; "
-            f"a terminal is told so): `surfel render --demo` takes {first:.0f} s from an empty numba cache, "
-            f"{later:.1f} s once they are cached.")
+            f"a terminal is told so). A CPU render compiles the method's kernels in a second process while it "
+            f"compiles the preprocessing's (`compile_ahead.py`): `surfel render --demo` takes {first:.0f} s from an "
+            f"empty numba cache, {later:.1f} s once they are cached.")
 
 
 # ---------------------------------------------------------------------------------------------

@@ -18,7 +18,7 @@ LAYERS = [
     ("appearance", ["shading", "colors", "edl", "pinholes", "options", "result"]),
     ("gl", ["gl"]),
     ("methods", ["methods", "mls"]),
-    ("rendering", ["rendering", "metrics"]),
+    ("rendering", ["rendering", "compile_ahead", "compile_ahead_worker", "metrics"]),
     ("request", ["request"]),
     ("interfaces", ["cli", "compile_notice", "batch", "viewer", "turntable", "bench", "web", "widget", "adapters",
                     "scan", ""]),

@@ -253,7 +253,8 @@ class Worker:
 
     def __init__(self):
         self.thread = ThreadPoolExecutor(max_workers=1, thread_name_prefix="surfel-render")
-        self.renderer = Renderer()
+        # the workers fill the cores: a helper compiling ahead would only compete with them
+        self.renderer = Renderer(compile_ahead=False)
         self.inputs: OrderedDict[tuple, PointCloud] = OrderedDict()
 
     def render(self, request: RenderRequest) -> tuple[RenderResult, bool]:

@@ -36,6 +36,7 @@ import numpy as np
 from . import colors
 from .camera import Camera, frame
 from .cloud import PointCloud, render_unit
+from .compile_ahead import CompileAhead, render_spec
 from .errors import SurfelError
 from .methods import DEFAULT_METHOD, get_method
 from .options import RenderOptions
@@ -112,7 +113,11 @@ def split_options(method: str, values: dict, options: RenderOptions | None = Non
 class Renderer:
     """Renders clouds and keeps what one frame leaves for the next (see the module docstring)."""
 
-    def __init__(self):
+    def __init__(self, *, compile_ahead: bool = True):
+        """compile_ahead: on the first CPU render after installing, compile the method's kernels
+        in a helper process while the cloud is completed (compile_ahead.py); off where every
+        core already renders (the batch's workers)."""
+        self.compile_ahead = compile_ahead
         self._per_cloud: weakref.WeakKeyDictionary[PointCloud, dict] = weakref.WeakKeyDictionary()
         self._programs: dict = {}
         self._targets: tuple | None = None  # (size key, gl.passes.SplatTargets)
@@ -314,25 +319,29 @@ class Renderer:
         backend, backend_choice = choose_backend(method, backend, dump_passes=options.dump_passes is not None)
         cloud, options = self.appearance(cloud, options)
         selected = len(cloud)
-        cloud, estimated = self.complete(cloud, needs_radii=m.needs_radii, elliptical=m.fits_ellipses(cloud),
-                                         normal_field=m.normal_field, smooth=options.smooth)
-        if options.lod_error is not None:
-            from .lod import as_sequential, lod_subset
+        with self._compile_ahead(cloud, camera, method, backend, options, params) as ahead:
+            with ahead.watching():
+                cloud, estimated = self.complete(cloud, needs_radii=m.needs_radii,
+                                                 elliptical=m.fits_ellipses(cloud), normal_field=m.normal_field,
+                                                 smooth=options.smooth)
+            if options.lod_error is not None:
+                from .lod import as_sequential, lod_subset
 
-            cloud = self.cached(cloud, "sequential point tree", lambda: as_sequential(cloud))
-            if backend != "gl" or not m.shader_lod:  # no vertex stage runs the test: select on the CPU
-                seq, epsilon = cloud, options.lod_error
-                view = (camera.world_to_eye.tobytes(), camera.pixel_scale(), camera.ortho_height, float(epsilon))
-                cloud = self.cached(seq, "lod subset", lambda: lod_subset(seq, camera, epsilon), version=view)
-        cloud = self.colored(cloud, options.coloring)
-        # clip planes around the splats themselves, not only their centres (methods without
-        # splats have no radius_scale)
-        reach = cloud.max_splat_radius * getattr(params, "radius_scale", 1.0)
-        camera = camera.fit_clip_planes(cloud.center, cloud.bounding_radius + reach)
-        function = m.function(backend)
-        start = time.perf_counter()
-        result = function(cloud, camera, options, params, self)
-        ms = (time.perf_counter() - start) * 1000
+                cloud = self.cached(cloud, "sequential point tree", lambda: as_sequential(cloud))
+                if backend != "gl" or not m.shader_lod:  # no vertex stage runs the test: select on the CPU
+                    seq, epsilon = cloud, options.lod_error
+                    view = (camera.world_to_eye.tobytes(), camera.pixel_scale(), camera.ortho_height, float(epsilon))
+                    cloud = self.cached(seq, "lod subset", lambda: lod_subset(seq, camera, epsilon), version=view)
+            cloud = self.colored(cloud, options.coloring)
+            # clip planes around the splats themselves, not only their centres (methods without
+            # splats have no radius_scale)
+            reach = cloud.max_splat_radius * getattr(params, "radius_scale", 1.0)
+            camera = camera.fit_clip_planes(cloud.center, cloud.bounding_radius + reach)
+            function = m.function(backend)
+            ahead.wait()
+            start = time.perf_counter()
+            result = function(cloud, camera, options, params, self)
+            ms = (time.perf_counter() - start) * 1000
         if backend == "gl":
             from .gl.context import renderer_string
 
@@ -351,6 +360,17 @@ class Renderer:
             stats["estimated"] = estimated
         result.stats = stats
         return result
+
+    def _compile_ahead(self, cloud: PointCloud, camera: Camera, method: str, backend: str, options: RenderOptions,
+                       params) -> CompileAhead:
+        """What compiles the method's CPU kernels in a helper process if this render's completion
+        starts compiling (compile_ahead.py); nothing for the GL backend, or when switched off."""
+        if backend != "cpu" or not self.compile_ahead:
+            return CompileAhead(None)
+        # the completion estimates clip lines wherever it estimates radii and axes
+        clip = "clip_lines" in cloud.attributes or (cloud.radii is None and cloud.axes is None)
+        return CompileAhead(render_spec(method, params, clip=clip, width=camera.width, height=camera.height,
+                                        shading=options.shading, supersample=options.supersample))
 
     def _render_at_unit_scale(self, cloud: PointCloud, camera: Camera, method: str, unit: float, *,
                               backend: str | None, options: RenderOptions, params) -> RenderResult:
