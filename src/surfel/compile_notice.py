@@ -3,7 +3,8 @@ or the first of a kind of render (a method, a backend) that needs kernels not co
 
 numba compiles a kernel the first time it meets new argument types and keeps the machine code
 in its cache on disk (`cache=True`), so the first render after installing compiles for about
-a minute on 2 cores (the README's first-run numbers) with nothing to show meanwhile. numba's
+40 s on 2 cores (the README's first-run numbers; compile_ahead.py keeps both busy) with nothing
+to show meanwhile. numba's
 event API broadcasts "numba:compile" only when a kernel is compiled, not when it is loaded
 from the cache: the first such event of a surfel kernel prints NOTICE, once. Only on a
 terminal, so that a pipeline's logs stay as they were.
