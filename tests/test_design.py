@@ -11,7 +11,8 @@ MAX_LINES = 600
 
 # Lowest first; a module may import from its own layer and those below it.
 LAYERS = [
-    ("core", ["errors", "files", "attributes", "cloud", "camera", "data", "parsers", "threads", "pages"]),
+    ("core", ["errors", "files", "attributes", "cloud", "camera", "data", "parsers", "threads", "pages",
+              "compile_events"]),
     ("io", ["io"]),
     ("preprocess", ["preprocess"]),
     ("lod", ["lod"]),

@@ -8,7 +8,7 @@ rasterizing, pinholes, the box filter), one after the other on one core: `surfel
 --demo` took 59-63 s on 2 cores of an AMD EPYC VM, 26 s of it before the method's kernels.
 
 `CompileAhead` watches numba's "numba:compile" events (broadcast when a kernel is compiled,
-not when it is loaded from the cache) while the cloud is completed. When the first
+not when it is loaded from the cache: compile_events.py) while the cloud is completed. When the first
 preprocessing kernel starts compiling, the cache is cold, and a helper process
 (`python -m surfel.compile_ahead_worker SPEC`) renders a small synthetic cloud with the same
 method on the CPU, with the argument types the real render will pass (its clip lines, its
@@ -25,9 +25,8 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
-import threading
 
-from numba.core import event
+from .compile_events import FirstCompile
 
 WORKER_MODULE = "surfel.compile_ahead_worker"
 WAIT_LIMIT = 600.0  # seconds this process waits for the helper before compiling on its own
@@ -46,15 +45,14 @@ def render_spec(method: str, params, *, clip: bool, width: int, height: int, sha
         return None
 
 
-class CompileAhead(event.Listener):
-    """Starts the helper for `spec` (render_spec's) at the first compiling of a preprocessing
-    kernel while `watching`; `wait` then waits for it (module docstring)."""
+class CompileAhead(FirstCompile):
+    """Starts the helper for `spec` (render_spec's; None: never) at the first compiling of a
+    preprocessing kernel while `watching`; `wait` then waits for it (module docstring)."""
 
     def __init__(self, spec: str | None):
+        super().__init__(TRIGGER_PREFIX)
         self.spec = spec
         self.helper: subprocess.Popen | None = None
-        self._lock = threading.Lock()  # kernels may first be called from several threads
-        self._started = False
 
     def __enter__(self) -> CompileAhead:
         return self
@@ -62,27 +60,15 @@ class CompileAhead(event.Listener):
     def __exit__(self, *exc) -> None:
         self.close()
 
-    def watching(self):
-        """A context within which the first preprocessing kernel's compiling starts the helper."""
-        return event.install_listener("numba:compile", self)
-
-    def on_start(self, ev) -> None:
-        function = getattr(ev.data["dispatcher"], "py_func", None)
-        if self.spec is None or not getattr(function, "__module__", "").startswith(TRIGGER_PREFIX):
+    def first(self) -> None:
+        if self.spec is None:
             return
-        with self._lock:
-            if self._started:
-                return
-            self._started = True
         try:
             self.helper = subprocess.Popen([sys.executable, "-m", WORKER_MODULE, self.spec],
                                            stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
                                            stderr=subprocess.DEVNULL)
         except OSError:  # no interpreter to start (an embedded Python): compile here, as before
             self.helper = None
-
-    def on_end(self, ev) -> None:
-        pass
 
     def wait(self) -> None:
         """Wait for the helper, if one started (killed past WAIT_LIMIT)."""

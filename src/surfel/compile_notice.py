@@ -6,41 +6,29 @@ in its cache on disk (`cache=True`), so the first render after installing compil
 40 s on 2 cores (the README's first-run numbers; compile_ahead.py keeps both busy) with nothing
 to show meanwhile. numba's
 event API broadcasts "numba:compile" only when a kernel is compiled, not when it is loaded
-from the cache: the first such event of a surfel kernel prints NOTICE, once. Only on a
+from the cache: the first such event of a surfel kernel (compile_events.py) prints NOTICE, once. Only on a
 terminal, so that a pipeline's logs stay as they were.
 """
 
 from __future__ import annotations
 
 import contextlib
-import threading
 
-from numba.core import event
+from .compile_events import FirstCompile
 
 NOTICE = ("surfel: compiling numba kernels the first time they are needed (up to a minute); "
           "they are cached for later runs")
 
 
-class CompileNotice(event.Listener):
+class CompileNotice(FirstCompile):
     """Prints NOTICE to `stream` when the first surfel kernel starts compiling."""
 
     def __init__(self, stream):
+        super().__init__("surfel.")
         self.stream = stream
-        self.shown = False
-        self._lock = threading.Lock()  # kernels may first be called from several threads
 
-    def on_start(self, ev) -> None:
-        function = getattr(ev.data["dispatcher"], "py_func", None)
-        if not getattr(function, "__module__", "").startswith("surfel."):
-            return
-        with self._lock:
-            if self.shown:
-                return
-            self.shown = True
+    def first(self) -> None:
         print(NOTICE, file=self.stream, flush=True)
-
-    def on_end(self, ev) -> None:
-        pass
 
 
 @contextlib.contextmanager
@@ -50,5 +38,5 @@ def compile_notice(stream):
     if not stream.isatty():
         yield None
         return
-    with event.install_listener("numba:compile", CompileNotice(stream)) as listener:
+    with CompileNotice(stream).watching() as listener:
         yield listener
