@@ -3,6 +3,7 @@
 import os
 import subprocess
 import sys
+import time
 
 import pytest
 
@@ -34,3 +35,29 @@ def test_a_command_turns_them_off():
     command = "from surfel.cli import main; main(['methods'], standalone_mode=False)"
     assert _thp_enabled(command).splitlines()[-1] == "0"
     assert _thp_enabled("import surfel.cli").splitlines()[-1] == "1"  # importing it changes nothing
+
+
+def _open_descriptors() -> set[str]:
+    return set(os.listdir("/proc/self/fd"))
+
+
+def test_drop_when_written_lets_the_writer_go_on_and_closes_what_it_kept(tmp_path):
+    """The file is renamed and closed at once, its content intact; the background thread
+    closes the descriptor it kept once the pages are dropped (none left open)."""
+    from surfel.pages import drop_when_written
+
+    data = os.urandom(1 << 22)
+    before = _open_descriptors()
+    for index in range(3):
+        path = tmp_path / f"written-{index}.bin"
+        with open(path, "wb") as file:
+            file.write(data)
+            file.flush()
+            drop_when_written(file)
+        path.rename(tmp_path / f"renamed-{index}.bin")
+    deadline = time.monotonic() + 30
+    while _open_descriptors() - before and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not _open_descriptors() - before
+    for index in range(3):
+        assert (tmp_path / f"renamed-{index}.bin").read_bytes() == data

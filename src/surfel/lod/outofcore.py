@@ -73,8 +73,9 @@ Layout of NAME.lod/ (format "surfel-lod-dir", version 1):
     top/*.npy          the top-tree nodes (absent with one partition), likewise
 
 Files: everything is written into NAME.partial/; a finished partition is a directory
-renamed into place, its arrays written through to the disk and dropped from the page cache
-(where the OS can: posix_fadvise), so that the next partition's writes reuse those pages:
+renamed into place, its arrays dropped from the page cache once the disk has them (where the
+OS can: pages.drop_when_written, while the worker goes on), so that the next partition's
+writes reuse those pages:
 the build's page cache stays about one partition per worker instead of the whole output, and
 fresh pages cost far more than reused ones where memory is lent by a hypervisor (20M points
 on 2 cores of a VM: the writes took 14.4 s of the workers' time, 13.2 of it in the kernel;
@@ -85,7 +86,6 @@ reuses its binning and finished partitions when the input is unchanged.
 
 from __future__ import annotations
 
-import contextlib
 import functools
 import json
 import math
@@ -106,7 +106,7 @@ from ..attributes import Schema
 from ..cloud import PointCloud
 from ..errors import SurfelError
 from ..files import write_atomically, write_json
-from ..pages import keep_freed_memory, no_huge_pages
+from ..pages import drop_when_written, keep_freed_memory, no_huge_pages
 from ..preprocess import INACTIVE_CLIP
 from . import binning, worker_warm_up
 from .binning import bin_input, piece_files, progress_bar, record_dtype
@@ -439,16 +439,11 @@ def _build_partition(partial: Path, name: str, dtype: np.dtype, schema: Schema, 
 
 
 def _save_array(path: Path, value: np.ndarray) -> None:
-    """`value` as .npy, written through to the disk and dropped from the page cache (module
-    docstring)."""
+    """`value` as .npy, dropped from the page cache once the disk has it (module docstring)."""
     def write(file) -> None:
         np.save(file, value, allow_pickle=False)
-        if hasattr(os, "posix_fadvise"):
-            file.flush()
-            # only a saving: a file system without these (some FUSE mounts) writes as before
-            with contextlib.suppress(OSError):
-                os.fdatasync(file.fileno())
-                os.posix_fadvise(file.fileno(), 0, 0, os.POSIX_FADV_DONTNEED)
+        file.flush()
+        drop_when_written(file)
 
     write_atomically(path, write)
 
