@@ -2,6 +2,7 @@
 
 import subprocess
 import sys
+import warnings
 
 import numpy as np
 import pytest
@@ -275,6 +276,20 @@ def test_quantized_splats_decode_to_the_cloud_they_came_from():
     local = np.stack([(world * u).sum(1) / (u * u).sum(1), (world * v).sum(1) / (v * v).sum(1)], axis=1)
     assert np.allclose((local * clip[:, 0, :2]).sum(axis=1), 0.7 * 0.6 + 0.5 * 0.8, atol=2e-3)
     assert np.allclose(clip[:, 1], [0.0, 0.0, 1.0])  # an inactive line stays inactive
+
+
+def test_coincident_points_keep_their_splat_size():
+    """A cloud whose box has no extent (one point, or all in one place) packs its semi-axes in
+    the splat's own unit: finite half floats that decode to its radius, not infinities."""
+    normals = np.tile([0.0, 0.0, 1.0], (3, 1))
+    axes = np.tile([[[0.5, 0.0, 0.0], [0.0, 0.25, 0.0]]], (3, 1, 1))
+    cloud = PointCloud(np.full((3, 3), 7.0), normals=normals, axes=axes, radii=np.full(3, 0.5))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # an overflow in the float16 cast warns
+        layout, blob = pack_cloud(cloud, {})
+    c = layout["columns"]["radii"]
+    radii = np.frombuffer(blob, "<f2", c["bytes"] // 2, c["offset"]).reshape(3, 2).astype(np.float64)
+    assert np.allclose(radii * layout["length_unit"], [[0.5, 0.25]] * 3, rtol=1e-3)
 
 
 def test_bad_options_end_in_one_line_and_write_nothing(tmp_path):

@@ -5,9 +5,11 @@ a position is off by at most half a step, extent / 131070. Normals: octahedral (
 2010, "On floating-point normal vectors"; Cigolle et al. 2014, "A survey of efficient
 representations for independent unit vectors"), n -> (x, y) / (|x| + |y| + |z|) with the
 lower hemisphere folded over the diagonals, 16 bits per component. Ellipses (axis_u, axis_v):
-the semi-axis lengths as half floats in units of the bounding box's longest side (11 bits of
-precision whatever the data's units), and axis_u's angle phi in the tangent frame (t1, t2) of
-the decoded normal (Duff et al. 2017, "Building an orthonormal basis, revisited"):
+the semi-axis lengths as half floats in units of the bounding box's longest side or the
+largest splat's radius, whichever is longer (11 bits of precision whatever the data's units,
+and in range even for coincident points, whose box has no extent), and axis_u's angle phi in
+the tangent frame (t1, t2) of the decoded normal (Duff et al. 2017, "Building an orthonormal
+basis, revisited"):
 
     s = sign(n_z), a = -1 / (s + n_z), b = n_x n_y a
     t1 = (1 + s n_x^2 a, s b, -s n_x),   t2 = (b, s + n_y^2 a, -n_y)
@@ -100,7 +102,7 @@ def pack_cloud(cloud: PointCloud, values: dict[str, np.ndarray]) -> tuple[dict, 
     v = cloud.axes[:, 1].astype(np.float64)
     phi = np.arctan2(np.einsum("ij,ij->i", u, t2), np.einsum("ij,ij->i", u, t1))
     columns["angle"] = np.round(np.mod(phi / (2 * np.pi), 1.0) * 65535).astype(np.uint16)
-    unit = float(size.max())
+    unit = float(max((hi - lo).max(), cloud.max_splat_radius, 1e-30))
     lengths = np.stack([np.linalg.norm(u, axis=1), np.linalg.norm(v, axis=1)], axis=1)
     facing = facing_mask(cloud)
     if facing is not None:  # the flag of a splat that faces the camera: a negative first radius
