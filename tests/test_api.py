@@ -94,6 +94,20 @@ def test_derived_clouds_check_new_values_but_not_kept_ones(monkeypatch):
         cloud.take(slice(0, 10)).with_(radii=np.zeros(10))
 
 
+def test_colours_in_eight_bits_are_taken_as_0_to_255():
+    """uint8 colours (trimesh's vertex colours, an image's pixels) are divided by 255; float
+    colours outside [0, 1], and wider integers, are refused in one line that says both forms."""
+    from surfel.errors import InputError
+
+    eight = np.array([[0, 128, 255], [255, 0, 51]], np.uint8)
+    cloud = surfel.PointCloud(np.eye(2, 3), colors=eight)
+    np.testing.assert_allclose(cloud.colors, eight / 255.0, atol=1e-7)
+    assert cloud.colors.dtype == np.float32
+    for wrong in (eight.astype(np.float32), eight.astype(np.uint16)):
+        with pytest.raises(InputError, match=r"colors must lie in \[0, 1\] \(or be uint8, 0 to 255\)"):
+            surfel.PointCloud(np.eye(2, 3), colors=wrong)
+
+
 def test_take_keeps_every_per_point_attribute():
     rng = np.random.default_rng(1)
     n = 20

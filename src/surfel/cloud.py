@@ -134,7 +134,8 @@ class PointCloud:
 
     positions : (N, 3) float64
     normals   : (N, 3) float32 unit vectors, or None
-    colors    : (N, 3) float32 RGB in [0, 1], or None (renders white)
+    colors    : (N, 3) float32 RGB in [0, 1] (uint8 0 to 255 is divided by 255), or None
+                (renders white)
     radii     : (N,) float32 splat radius in world units, or None
     axes      : (N, 2, 3) float32 tangent axes u, v of an elliptical splat, each scaled to
                 its ellipse semi-axis length (a circular splat has |u| = |v| = radius), or None
@@ -225,9 +226,12 @@ class PointCloud:
                     raise InputError(src, f"{int(zero.sum())} points have zero-length normals")
                 normals = normals.copy()
                 normals[off] = (normals[off] / length[:, None]).astype(np.float32)
-        colors = per_point("colors", self.colors, (3,))
-        if colors is not None and not known(self.colors, colors) and (colors.min() < 0 or colors.max() > 1):
-            raise InputError(src, "colors must lie in [0, 1]")
+        given_colors = self.colors
+        if given_colors is not None and np.asarray(given_colors).dtype == np.uint8:  # as images and meshes hold them
+            given_colors = np.asarray(given_colors, np.float32) / np.float32(255)
+        colors = per_point("colors", given_colors, (3,))
+        if colors is not None and not known(given_colors, colors) and (colors.min() < 0 or colors.max() > 1):
+            raise InputError(src, "colors must lie in [0, 1] (or be uint8, 0 to 255)")
         radii = per_point("radii", self.radii, ())
         if radii is not None and not known(self.radii, radii) and not (radii > 0).all():
             raise InputError(src, f"{int((radii <= 0).sum())} points have non-positive radii")
