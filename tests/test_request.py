@@ -36,6 +36,8 @@ def test_lod_error_must_be_positive_on_every_input(tmp_path, source, value):
     (["--fov", "0"], "--fov"), (["--fov", "180"], "--fov"), (["--ortho", "0"], "--ortho"),
     (["--azimuth", "inf"], "--azimuth"), (["--elevation", "nan"], "--elevation"), (["--zoom", "0"], "--zoom"),
     (["--size", "0x10"], "--size"), (["--eye", "1,2"], "--eye"), (["--up", "0,0,0"], "--up"),
+    (["--eye", "1,1,1", "--target", "1,1,1"], "--eye"),  # a camera on its target looks nowhere
+    (["--eye", "0,0,3", "--target", "0,0,0", "--up", "0,0,-1"], "--up"),  # up along the line of sight
 ])
 def test_camera_values_that_cannot_be_honoured(tmp_path, flags, named):
     assert_refused(invoke("render", "--demo", "-o", tmp_path / "x.png", *flags), named)

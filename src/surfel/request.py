@@ -26,6 +26,8 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
+import numpy as np
+
 from .camera import VIEWS, Camera, OpenCvCamera, frame
 from .colors import NAMED
 from .errors import SurfelError
@@ -404,11 +406,24 @@ class CameraSpec:
                 raise SurfelError(f"{where}{exc}") from None
         return cls(**values)
 
+    def check_eye(self, target: np.ndarray) -> None:
+        """Refuse an --eye that looks nowhere: on its target, or along the --up given."""
+        sight = target - np.asarray(self.eye, np.float64)
+        reach = float(np.linalg.norm(sight))
+        if not reach > 1e-12 * max(float(np.abs(target).max()), 1.0):
+            raise SurfelError(f"--eye: the camera stands on its target {target.tolist()}; move it or the --target")
+        if self.up is not None:
+            up = np.asarray(self.up, np.float64)
+            if np.linalg.norm(np.cross(sight / reach, up / np.linalg.norm(up))) < 1e-9:
+                raise SurfelError("--up: parallel to the line of sight from --eye to the target; choose another up")
+
     def camera(self, cloud) -> Camera:
         """The camera for `cloud` (a PointCloud or a LodSource: its bounds frame the view)."""
         if self.opencv is not None:
             c = self.opencv
             return Camera.from_opencv(c.K, c.R, c.t, self.size).fit_clip_planes(cloud.center, cloud.bounding_radius)
+        if self.eye is not None:
+            self.check_eye(np.asarray(cloud.center if self.target is None else self.target, np.float64))
         return frame(cloud.center, cloud.bounding_radius, view=self.view, azimuth=self.azimuth,
                      elevation=self.elevation, up=self.up, geospatial=cloud.geospatial, fov=self.fov,
                      size=self.size, eye=self.eye, target=self.target, ortho_height=self.ortho, zoom=self.zoom,
