@@ -10,7 +10,13 @@ import pytest
 from conftest import requires_gl
 from models import SPOT
 from surfel.io import load
-from surfel.viewer import ViewState
+from surfel.viewer import HELP, ViewState
+
+
+def test_the_help_shows_the_mouse_and_the_keys():
+    """The help drawn over the frames is the docstring's key table, not another paragraph."""
+    assert HELP[0].startswith("mouse:") and any("h: help" in line for line in HELP)
+    assert any(line.startswith("1-9") for line in HELP) and len(HELP) == 6
 
 
 def test_keys_change_the_view_state():

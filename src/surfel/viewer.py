@@ -47,7 +47,10 @@ MOVING_LOD_FACTOR = 4.0  # a moving frame's LOD error / the still frame's (when 
 MOTION_FRAME_MS = 150.0  # a moving frame: coarser detail until it takes no longer (7 frames a second)
 MAX_MOTION_ERROR = 8.0  # pixels: coarser cuts turn a canopy into blobs
 MOTION_SETTLE_S = 0.25  # the camera counts as stopped after this long without a drag or a wheel step
-HELP = [line.strip() for line in __doc__.split("\n\n")[2].splitlines() if line.strip()]
+# the key table of the docstring, shown over the frames (found by its first line, so that a
+# paragraph added above it does not take its place)
+HELP = next([line.strip() for line in paragraph.splitlines() if line.strip()]
+            for paragraph in __doc__.split("\n\n") if paragraph.lstrip().startswith("mouse:"))
 VERTEX = """#version 330
 out vec2 uv;
 void main() {
