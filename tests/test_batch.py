@@ -186,3 +186,16 @@ def test_batch_without_dask_says_how_to_install_it(monkeypatch):
     monkeypatch.setitem(sys.modules, "distributed", None)  # makes `import distributed` fail
     with pytest.raises(SurfelError, match=r"surfel\[distributed\]"):
         batch.run_batch([])
+
+
+def test_the_summary_counts_in_words():
+    """One job, one input load: singular; several: plural."""
+    from surfel.batch import Summary
+
+    summary = Summary("a cluster", jobs=3, done=3, workers={
+        "w1": {"jobs": [0, 2], "failed": 0, "loads": 2, "seconds": 0.5, "render_ms": 100.0},
+        "w2": {"jobs": [1], "failed": 0, "loads": 1, "seconds": 0.4, "render_ms": 90.0}})
+    lines = summary.text().splitlines()
+    assert lines[0].startswith("3 of 3 jobs done")
+    assert lines[1].startswith("  w1: 2 jobs (0 failed), 2 input loads,")
+    assert lines[2].startswith("  w2: 1 job (0 failed), 1 input load,")

@@ -103,13 +103,18 @@ class Summary:
                 "workers": {w: {**row, "jobs": sorted(row["jobs"])} for w, row in sorted(self.workers.items())}}
 
     def text(self) -> str:
-        lines = [f"{self.done} of {self.jobs} jobs done in {self.seconds:.1f} s on {self.cluster}"]
+        lines = [f"{self.done} of {_count(self.jobs, 'job')} done in {self.seconds:.1f} s on {self.cluster}"]
         for worker, row in sorted(self.workers.items()):
-            lines.append(f"  {worker}: {len(row['jobs'])} jobs ({row['failed']} failed), {row['loads']} input loads, "
-                         f"{row['seconds']:.1f} s busy, {row['render_ms'] / 1000:.1f} s rendering")
+            lines.append(f"  {worker}: {_count(len(row['jobs']), 'job')} ({row['failed']} failed), "
+                         f"{_count(row['loads'], 'input load')}, {row['seconds']:.1f} s busy, "
+                         f"{row['render_ms'] / 1000:.1f} s rendering")
         for i, failure in sorted(self.failed.items()):
             lines += [f"  job {i} failed: {failure['error']}", f"    rerun alone: {failure['command']}"]
         return "\n".join(lines)
+
+
+def _count(n: int, noun: str) -> str:
+    return f"{n} {noun}" if n == 1 else f"{n} {noun}s"
 
 
 # ---------------------------------------------------------------------------------------------
