@@ -202,3 +202,14 @@ def test_the_default_method_where_none_is_named(tmp_path):
     assert page_request({"demo": True, "output": str(tmp_path / "x.html")}).method == DEFAULT_METHOD
     listed = invoke("methods").output.splitlines()
     assert [line.split()[0] for line in listed if line.endswith("(the default)")] == [DEFAULT_METHOD]
+
+
+def test_a_folder_of_tiles_is_sent_to_lod_build(tmp_path):
+    """A folder that is no .lod hierarchy is one cloud only to `lod build`: render, info and
+    export-html say so in one line naming it."""
+    folder = tmp_path / "tiles"
+    folder.mkdir()
+    for command in (["render", folder, "-o", tmp_path / "x.png"], ["info", folder],
+                    ["export-html", folder, "-o", tmp_path / "x.html"]):
+        assert_refused(invoke(*command), "tiles: a folder", "surfel lod build")
+    assert not (tmp_path / "x.png").exists() and not (tmp_path / "x.html").exists()

@@ -26,6 +26,7 @@ from .request import (
     TURNTABLE_ELEVATION,
     TURNTABLE_SIZE,
     VIEW_SIZE,
+    refuse_folder,
 )
 
 CONTEXT = {"help_option_names": ["-h", "--help"], "max_content_width": 100}
@@ -190,6 +191,7 @@ def info(input, as_json):
                   **(source.describe() if hasattr(source, "describe") else {}),
                   "opengl": renderer_string() if gl_available() else None}
     else:
+        refuse_folder(input)
         cloud = load(input)
         lo, hi = cloud.bounds
         estimate = [name for name in ("normals", "radii", "axes") if getattr(cloud, name) is None]

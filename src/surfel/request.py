@@ -491,7 +491,17 @@ def open_input(path, sensor: tuple[float, float, float] | None = None):
     from .io import load
     from .lod.source import open_source, with_sensor
 
-    return with_sensor(open_source(path) or load(path), sensor)
+    source = open_source(path)
+    if source is None:
+        refuse_folder(path)
+    return with_sensor(source or load(path), sensor)
+
+
+def refuse_folder(path) -> None:
+    """A folder that is no .lod hierarchy: its tiles are one cloud only to `lod build`."""
+    if os.path.isdir(path):
+        raise SurfelError(f"{path}: a folder, not a point file or .lod hierarchy (`surfel lod build {path} "
+                          "-o NAME.lod` builds one hierarchy of the tiles in a folder)")
 
 
 def method_and_backend(parsed: dict, where: str = "") -> tuple[str, str | None]:
