@@ -138,6 +138,15 @@ def test_an_output_named_for_another_format_is_refused(tmp_path):
         assert not target.exists()
 
 
+def test_compare_refuses_the_mesh_method_in_one_line(tmp_path):
+    """compare draws the method on the mesh's vertices: 'mesh', which draws faces, is refused
+    naming --method, not by saying that a mesh with faces has none."""
+    proc = run("compare", SPOT, "--method", "mesh", "-o", tmp_path / "side.png")
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2 and len(lines) == 1 and lines[0].startswith("surfel: error: --method:"), proc.stderr
+    assert "vertices" in lines[0] and not (tmp_path / "side.png").exists()
+
+
 def test_unknown_method_is_a_clear_error(tmp_path):
     proc = run("render", "--demo", "-o", tmp_path / "x.png", "--method", "nope")
     assert proc.returncode == 2 and "unknown method" in proc.stderr

@@ -13,7 +13,7 @@ import click
 
 from .compile_notice import compile_notice
 from .errors import SurfelError
-from .methods import DEFAULT_METHOD
+from .methods import DEFAULT_METHOD, get_method
 from .pages import no_huge_pages
 from .request import (
     CAMERA,
@@ -235,6 +235,9 @@ def compare(mesh, output, as_json, every, **values):
     from .request import parse_render
 
     request = parse_render({**values, "input": mesh}, require_output=False)
+    if get_method(request.method).needs_mesh:
+        raise SurfelError(f"--method: compare draws the method on {mesh}'s vertices, and {request.method!r} "
+                          "draws faces; choose a point method")
     output = output or f"compare-{request.method}.png"
     check_output(output, "--output", (".png",))
     cloud = load(mesh)
