@@ -1,5 +1,8 @@
 """The Python API as a notebook user meets it, adapters, and the turntable."""
 
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 
@@ -139,3 +142,13 @@ def test_take_picks_what_numpy_indexing_picks(index):
     np.testing.assert_array_equal(taken.normals, cloud.normals[index])
     np.testing.assert_array_equal(taken.attributes["clip_lines"], cloud.attributes["clip_lines"][index])
     np.testing.assert_array_equal(taken.attributes["intensity"], cloud.attributes["intensity"][index])
+
+
+def test_adapters_come_with_the_package():
+    """The README's `surfel.adapters` works after `import surfel` alone (a fresh interpreter:
+    in this one another test may have imported the module already)."""
+    code = ("import numpy as np, surfel\n"
+            "back = surfel.adapters.from_numpy(**surfel.adapters.to_numpy(surfel.PointCloud(np.eye(3))))\n"
+            "print(len(back))")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert proc.returncode == 0 and proc.stdout.strip() == "3", proc.stderr

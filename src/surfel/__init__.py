@@ -7,6 +7,7 @@
     tile = surfel.render(surfel.load("tile.laz"), color="classification", classes=(2, 6))
 """
 
+from . import adapters  # surfel.adapters: Open3D, trimesh, PyVista and numpy, each imported when used
 from .cloud import PointCloud
 from .errors import InputError, SurfelError
 from .io import load, write_ply
@@ -14,7 +15,7 @@ from .methods import DEFAULT_METHOD
 from .rendering import Renderer, default_camera, render
 
 __all__ = ["PointCloud", "InputError", "SurfelError", "Renderer", "load", "write_ply", "render", "default_camera",
-           "show"]
+           "show", "adapters"]
 __version__ = "0.1.0"
 
 
