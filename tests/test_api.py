@@ -1,5 +1,6 @@
 """The Python API as a notebook user meets it, adapters, and the turntable."""
 
+import os
 import subprocess
 import sys
 
@@ -152,3 +153,15 @@ def test_adapters_come_with_the_package():
             "print(len(back))")
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert proc.returncode == 0 and proc.stdout.strip() == "3", proc.stderr
+
+
+def test_show_without_a_display_says_so_and_returns_the_image():
+    """Outside a notebook on a machine without a display, `show` warns in one line and returns
+    the render, instead of running an image viewer that cannot open."""
+    code = ("import numpy as np, surfel\n"
+            "r = surfel.show(surfel.PointCloud(np.random.default_rng(0).normal(size=(200, 3))), size=(32, 32))\n"
+            "print(type(r).__name__, r.color.shape)")
+    env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
+    assert proc.returncode == 0 and proc.stdout.strip() == "RenderResult (32, 32, 3)", proc.stderr
+    assert "no display" in proc.stderr and "xdg-open" not in proc.stderr

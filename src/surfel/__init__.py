@@ -29,6 +29,10 @@ def show(cloud, method: str = DEFAULT_METHOD, size=(512, 512), *, interactive: b
     camera (options: those of `render`, color="classification" for instance), displayed
     inline in a notebook, else in the image viewer; returned as a RenderResult.
     """
+    import os
+    import sys
+    import warnings
+
     from .widget import make_view, widget_frontend
 
     if interactive is None:
@@ -45,6 +49,11 @@ def show(cloud, method: str = DEFAULT_METHOD, size=(512, 512), *, interactive: b
             return result
     except ImportError:
         pass
+    if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+        # PIL's viewer would run xdg-open, which fails noisily on a headless machine
+        warnings.warn("surfel.show: no display to show the image on; the result is returned "
+                      "(result.save('image.png') writes it)", stacklevel=2)
+        return result
     from PIL import Image
 
     Image.fromarray(result.rgba8(), "RGBA").show()
