@@ -165,3 +165,21 @@ def test_show_without_a_display_says_so_and_returns_the_image():
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
     assert proc.returncode == 0 and proc.stdout.strip() == "RenderResult (32, 32, 3)", proc.stderr
     assert "no display" in proc.stderr and "xdg-open" not in proc.stderr
+
+
+def test_api_misuse_is_one_clear_error(tmp_path):
+    """A size that is no pair of whole numbers, a camera that is no Camera, and a save whose
+    last file cannot be written: each refused by name, and the save writes none of its files."""
+    from surfel.errors import SurfelError
+
+    cloud = surfel.PointCloud(np.random.default_rng(0).normal(size=(300, 3)))
+    for size in ("64x64", (64.5, 64), (64,)):
+        with pytest.raises(SurfelError, match=r"image size must be two whole numbers \(width, height\)"):
+            surfel.render(cloud, size=size)
+    assert surfel.render(cloud, size=(np.int64(16), 16.0)).color.shape == (16, 16, 3)
+    with pytest.raises(TypeError, match="camera must be a surfel Camera"):
+        surfel.render(cloud, camera="front")
+    result = surfel.render(cloud, size=(16, 16))
+    with pytest.raises(SurfelError, match="no such directory"):
+        result.save(tmp_path / "x.png", depth=tmp_path / "missing" / "d.npy")
+    assert not (tmp_path / "x.png").exists()

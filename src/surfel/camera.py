@@ -37,6 +37,18 @@ def _unit(v) -> np.ndarray:
     return v / n
 
 
+def image_size(size) -> tuple[int, int]:
+    """(width, height) as ints, or a one-line SurfelError for anything else (a "WxH" string,
+    a fraction of a pixel)."""
+    try:
+        w, h = size
+        if isinstance(w, str) or isinstance(h, str) or int(w) != w or int(h) != h:
+            raise ValueError
+    except (TypeError, ValueError):
+        raise SurfelError(f"image size must be two whole numbers (width, height), got {size!r}") from None
+    return int(w), int(h)
+
+
 def look_at(eye, target, up) -> np.ndarray:
     """The OpenGL world-to-eye matrix (gluLookAt), float64."""
     eye = np.asarray(eye, np.float64)
@@ -70,7 +82,7 @@ class Camera:
     def look_at(cls, eye, target, up=(0, 1, 0), *, fov: float = 30.0, size=(1024, 1024),
                 ortho_height: float | None = None, near: float = 0.01, far: float = 100.0) -> Camera:
         """A look-at camera with vertical field of view `fov` degrees and `size` = (W, H)."""
-        w, h = (int(size[0]), int(size[1]))
+        w, h = image_size(size)
         if w <= 0 or h <= 0:
             raise SurfelError(f"image size must be positive, got {w}x{h}")
         if not 0 < fov < 180:

@@ -291,6 +291,9 @@ class Renderer:
         Options as a RenderOptions (its `params` the method's parameter dataclass, None for the
         defaults), and/or as keywords: RenderOptions fields and the
         method's parameters (`surfel.render(cloud, method="phong", radius_scale=1.2)`)."""
+        if camera is not None and not isinstance(camera, Camera):
+            raise TypeError(f"camera must be a surfel Camera (surfel.camera.frame, Camera.look_at or "
+                            f"Camera.from_opencv), got {type(camera).__name__}")
         m = get_method(method)
         backend = None if backend == "auto" else backend
         options = split_options(method, values, options)

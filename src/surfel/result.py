@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import io
+import os
 from dataclasses import dataclass, field
 
 import numba
 import numpy as np
 
 from .edl import eye_dome_lighting
-from .files import write_atomically, write_json
+from .files import check_output, write_atomically, write_json
 from .pinholes import fill_pinholes
 
 
@@ -172,7 +173,11 @@ class RenderResult:
         return self.png_bytes()
 
     def save(self, png=None, *, depth=None, normals=None, stats=None) -> None:
-        """Write the requested files, each atomically (never a half-written file)."""
+        """Write the requested files, each atomically (never a half-written file), after checking
+        every location (a set written whole or not at all)."""
+        for path, label in ((png, "png"), (depth, "depth"), (normals, "normals"), (stats, "stats")):
+            if path is not None:
+                check_output(os.fspath(path), label)
         if png is not None:
             write_atomically(png, self.png_bytes())
         if depth is not None:
