@@ -380,6 +380,10 @@ def test_bad_inputs_are_one_line_errors(tmp_path):
     (keep / "a.txt").write_text("not a hierarchy")
     refused = runner.invoke(main, ["lod", "build", str(truncated), "-o", str(keep)])
     assert refused.exit_code == 2 and (keep / "a.txt").exists()
+    # an output named for no hierarchy format: an archive under that name would not read back
+    named = runner.invoke(main, ["lod", "build", str(truncated), "-o", str(tmp_path / "tree.txt")])
+    assert named.exit_code == 2 and "NAME.lod.npz" in named.output and len(named.output.strip().splitlines()) == 1
+    assert not (tmp_path / "tree.txt").exists()
     with pytest.raises(InputError):
         LazyHierarchy(tmp_path)
 

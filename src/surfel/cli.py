@@ -411,6 +411,9 @@ def lod_build(input, output, stats, memory, resume):
         raise click.UsageError("--resume applies to out-of-core builds (-o NAME.lod)")
     from .lod import build_command
 
+    if not output.lower().endswith(".npz"):  # the in-memory build writes an archive, whatever the name
+        raise SurfelError(f"{output}: --output must be named NAME.lod.npz (in memory), NAME.lod (a directory, "
+                          "out of core) or NAME.copc.laz")
     check_output(output, "--output")
     result = build_command(input, output, stats)
     click.echo(f"{output}: {result['points']} points, {result['nodes']} nodes in {result['ms']:.0f} ms "
