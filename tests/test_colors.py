@@ -298,8 +298,13 @@ def test_defaults_follow_the_data_and_are_reported(tmp_path, autzen):
     assert stats["shading"] == "edl" and stats["color"] == "elevation" and len(stats["color_range"]) == 2
     with_normals = autzen.with_(normals=np.tile([0.0, 0.0, 1.0], (len(autzen), 1)))
     assert surfel.render(with_normals, camera).stats["shading"] == "phong"  # surfaces keep surface shading
+    # the tile with the normals surfel estimated for it (as `surfel prepare` writes them) is the same raw tile
+    from surfel.preprocess import complete
+
+    prepared, _ = complete(autzen)
+    assert prepared.normals is not None and surfel.render(prepared, camera).stats["shading"] == "edl"
     help_text = " ".join(run("render", "--help").stdout.split())
-    assert "edl for geospatial clouds without normals, else phong" in help_text
+    assert "edl for geospatial clouds without normals of their own, else phong" in help_text
     assert "else elevation for geospatial clouds" in help_text and "2nd to 98th percentile" in help_text
 
 

@@ -11,8 +11,9 @@ edl     : eye-dome lighting (surfel.edl): the unlit albedo times a screen-space 
           term is applied to the samples of every method (result.RenderResult.from_samples).
 
 The default (`default_for`) depends on the data: edl for a geospatial cloud without normals
-(a raw LiDAR tile, whose estimated normals are those of a neighbourhood that is often not a
-surface), else phong.
+of its own (a raw LiDAR tile, whose estimated normals are those of a neighbourhood that is often
+not a surface; or such a tile after `surfel prepare` or `lod build` wrote those estimates, which
+the screen_facing attribute marks: only the estimation writes it), else phong.
 
 `shade` works on arrays; `shade_pixel` is the same for one pixel inside a numba kernel.
 """
@@ -29,7 +30,7 @@ MODEL_IDS = {"lambert": 0, "phong": 1, "none": 2, "normals": 3, "depth": 4}
 DEFAULT = "phong"
 EDL = "edl"
 PER_PIXEL = {EDL: "none"}  # what a model shades per pixel, where that is another model
-DEFAULT_HELP = "edl for geospatial clouds without normals, else phong"
+DEFAULT_HELP = "edl for geospatial clouds without normals of their own, else phong"
 
 KEY_LIGHT = np.array([-0.4, 0.6, 0.8]) / np.linalg.norm([-0.4, 0.6, 0.8])
 _HALFWAY = (KEY_LIGHT + [0, 0, 1]) / np.linalg.norm(KEY_LIGHT + [0, 0, 1])
@@ -37,7 +38,8 @@ _HALFWAY = (KEY_LIGHT + [0, 0, 1]) / np.linalg.norm(KEY_LIGHT + [0, 0, 1])
 
 def default_for(cloud) -> str:
     """The shading of a cloud rendered without --shading (module docstring)."""
-    return EDL if cloud.geospatial and getattr(cloud, "normals", None) is None else DEFAULT
+    estimated = getattr(cloud, "normals", None) is None or "screen_facing" in getattr(cloud, "attributes", {})
+    return EDL if cloud.geospatial and estimated else DEFAULT
 
 
 def check_model(model: str) -> int:
