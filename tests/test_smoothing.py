@@ -98,3 +98,18 @@ def test_prepare_smooth_command(tmp_path):
     assert error < 0.5 * np.abs(np.linalg.norm(noisy, axis=1) - 1).mean()
     assert smoothed.normals is not None and smoothed.radii is not None
     assert "smooth: MLS projection" in result.output
+
+
+def test_points_without_a_tangent_plane_stay_where_they_are():
+    """A tile's ground is denoised; the scattered returns of a crown above it (no tangent plane,
+    drawn facing the camera) are not gathered onto a surface they do not have."""
+    rng = np.random.default_rng(4)
+    ground = np.c_[rng.uniform(0, 20, (6000, 2)), rng.normal(0, 0.05, 6000)]
+    crown = rng.normal([10, 10, 8], 1.5, (3000, 3))
+    cloud = PointCloud(np.vstack([ground, crown]), geospatial=True)
+    smoothed, report = prepare(cloud, smooth=True)
+    facing = smoothed.attributes["screen_facing"] > 0.5
+    moved = np.linalg.norm(smoothed.positions - cloud.positions, axis=1)
+    assert facing[6000:].mean() > 0.9 and facing[:6000].mean() < 0.05  # the crown, not the ground
+    assert np.all(moved[6000:][facing[6000:]] == 0)
+    assert np.abs(smoothed.positions[:6000, 2]).mean() < 0.5 * np.abs(ground[:, 2]).mean()

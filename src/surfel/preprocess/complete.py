@@ -86,6 +86,8 @@ def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np
 
     smooth: first move the positions onto the MLS surface of the points (`smoothing.py`),
     guided by the given normals, else by normals estimated as below, then estimate from them.
+    Points with no tangent plane (screen_facing, given or estimated: vegetation) stay where they
+    are; projecting a canopy's scattered returns gathered them into blobs.
 
     normals: estimated if None: towards the sensor (`sensor` (3,), else the cloud's own
     `sensors`) if known; otherwise propagated, each part facing up (+Z) for geospatial clouds
@@ -134,14 +136,22 @@ def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np
     # normals estimated on a noisy cloud (a raw scan): its borders get a margin (borders.py); a
     # raw scan keeps it once denoised, since its samples lost at grazing angles stay lost
     noisy = False
+    located = cloud if sensor is None else cloud.with_(sensors=np.asarray(sensor, np.float64).reshape(1, 3))
     if smooth:
+        # points with no tangent plane (vegetation, structure.py) have no surface to be moved onto
+        planeless = nbh.sort(cloud.attributes["screen_facing"] > 0.5) if "screen_facing" in cloud.attributes \
+            else None
         if normals is not None:
             guide = normals
         elif given["axes"] is not None:
             guide = from_axes
         else:
-            guide, _, _, noisy = oriented_normals(nbh, k_normals, towards, progress, select, up)
+            guide, _, eigenvalues, noisy = oriented_normals(nbh, k_normals, towards, progress, select, up)
+            if planeless is None:
+                planeless = screen_facing(eigenvalues, raw_scan=scans_surroundings(located))
         moved = smoothed_points(nbh, guide, progress)
+        if planeless is not None:
+            moved[planeless] = nbh.points[planeless]
         positions = cloud.positions + nbh.unsort(moved - nbh.points)
         report["smooth"] = (f"MLS projection (k={SMOOTH_NEIGHBOURS}), mean move "
                             f"{float(np.mean(np.linalg.norm(moved - nbh.points, axis=1))):.4g}")
@@ -159,7 +169,6 @@ def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np
         noisy = noisy or noisy_now
         report["normals"] = f"estimated (PCA, {scale}, {how})"
         report["ambiguous_normals"] = int(ambiguous.sum())
-        located = cloud if sensor is None else cloud.with_(sensors=np.asarray(sensor, np.float64).reshape(1, 3))
         facing = screen_facing(eigenvalues, raw_scan=scans_surroundings(located))
         attributes["screen_facing"] = nbh.unsort(facing.astype(np.float32))
         report["screen_facing"] = int(facing.sum())
