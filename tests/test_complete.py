@@ -6,7 +6,7 @@ import numpy as np
 
 from samples import sphere
 from surfel.cloud import PointCloud
-from surfel.preprocess import complete, prepare
+from surfel.preprocess import complete, completes_with_clip_lines, prepare
 
 
 def test_prepare_fills_exactly_what_is_missing():
@@ -92,3 +92,21 @@ def test_renderer_remembers_completions_per_cloud():
         for name in ("normals", "radii", "axes"):
             assert np.array_equal(getattr(first, name), getattr(pure, name))
         assert first.attributes.keys() == pure.attributes.keys()
+
+
+def test_whether_complete_adds_clip_lines_is_known_before_it_runs():
+    """`completes_with_clip_lines` (what compile_ahead.py asks before completing) says what
+    `complete` then does, for each mix of what a cloud brings and what a method needs."""
+    rng = np.random.default_rng(5)
+    points = rng.normal(size=(400, 3))
+    points /= np.linalg.norm(points, axis=1, keepdims=True)
+    radii = np.full(400, 0.15)
+    clouds = [PointCloud(points), PointCloud(points, normals=points),
+              PointCloud(points, normals=points, radii=radii),
+              complete(PointCloud(points))[0]]  # clip lines given
+    for cloud in clouds:
+        for needs_radii, normal_field, smooth in ((True, False, False), (False, False, False), (True, True, False),
+                                                  (True, False, True)):
+            flags = dict(needs_radii=needs_radii, normal_field=normal_field, smooth=smooth)
+            completed, _ = complete(cloud, **flags)
+            assert completes_with_clip_lines(cloud, **flags) == ("clip_lines" in completed.attributes), flags

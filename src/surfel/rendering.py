@@ -322,7 +322,7 @@ class Renderer:
         backend, backend_choice = choose_backend(method, backend, dump_passes=options.dump_passes is not None)
         cloud, options = self.appearance(cloud, options)
         selected = len(cloud)
-        with self._compile_ahead(cloud, camera, method, backend, options, params) as ahead:
+        with self._compile_ahead(cloud, camera, m, backend, options, params) as ahead:
             with ahead.watching():
                 cloud, estimated = self.complete(cloud, needs_radii=m.needs_radii,
                                                  elliptical=m.fits_ellipses(cloud), normal_field=m.normal_field,
@@ -364,15 +364,17 @@ class Renderer:
         result.stats = stats
         return result
 
-    def _compile_ahead(self, cloud: PointCloud, camera: Camera, method: str, backend: str, options: RenderOptions,
+    def _compile_ahead(self, cloud: PointCloud, camera: Camera, m, backend: str, options: RenderOptions,
                        params) -> CompileAhead:
         """What compiles the method's CPU kernels in a helper process if this render's completion
         starts compiling (compile_ahead.py); nothing for the GL backend, or when switched off."""
         if backend != "cpu" or not self.compile_ahead:
             return CompileAhead(None)
-        # the completion estimates clip lines wherever it estimates radii and axes
-        clip = "clip_lines" in cloud.attributes or (cloud.radii is None and cloud.axes is None)
-        return CompileAhead(render_spec(method, params, clip=clip, width=camera.width, height=camera.height,
+        from .preprocess import completes_with_clip_lines
+
+        clip = completes_with_clip_lines(cloud, needs_radii=m.needs_radii, normal_field=m.normal_field,
+                                         smooth=options.smooth)
+        return CompileAhead(render_spec(m.name, params, clip=clip, width=camera.width, height=camera.height,
                                         shading=options.shading, supersample=options.supersample))
 
     def _render_at_unit_scale(self, cloud: PointCloud, camera: Camera, method: str, unit: float, *,

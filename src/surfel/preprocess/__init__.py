@@ -32,13 +32,13 @@ chunks. Every public function takes and returns arrays in the input's order.
 
 from .cell_kernels import CLIP_LINES, INACTIVE_CLIP
 from .cells import clipped_away, estimate_radii, fit_ellipses
-from .complete import complete, prepare
+from .complete import complete, completes_with_clip_lines, prepare
 from .frames import tangent_frames
 from .normal_field import fit_normal_field, has_normal_field, splat_slopes
 from .normals import estimate_normals
 from .structure import drawn_normals, facing_mask
 from .thickness import splat_thickness
 
-__all__ = ["CLIP_LINES", "INACTIVE_CLIP", "clipped_away", "complete", "drawn_normals", "estimate_normals",
-           "estimate_radii", "facing_mask", "fit_ellipses", "fit_normal_field", "has_normal_field", "prepare",
-           "splat_slopes", "splat_thickness", "tangent_frames"]
+__all__ = ["CLIP_LINES", "INACTIVE_CLIP", "clipped_away", "complete", "completes_with_clip_lines", "drawn_normals",
+           "estimate_normals", "estimate_radii", "facing_mask", "fit_ellipses", "fit_normal_field", "has_normal_field",
+           "prepare", "splat_slopes", "splat_thickness", "tangent_frames"]

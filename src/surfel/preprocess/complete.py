@@ -70,12 +70,31 @@ def complete(cloud: PointCloud, *, needs_radii: bool = True, elliptical: bool = 
     axes alike whichever was missing, so that one completed cloud serves every method.
     `reference_spacing`, `smooth`: as `prepare`'s (smooth: always prepared).
     """
-    missing = cloud.normals is None or (needs_radii and (cloud.radii is None or cloud.axes is None))
-    missing = missing or (normal_field and "phong_alpha" not in cloud.attributes)
-    if not missing and not smooth:
+    if not _prepares(cloud, needs_radii, normal_field, smooth):
         return cloud, {}
     return prepare(cloud, elliptical=elliptical, normal_field=normal_field, progress=progress,
                    reference_spacing=reference_spacing, smooth=smooth)
+
+
+def completes_with_clip_lines(cloud: PointCloud, *, needs_radii: bool = True, normal_field: bool = False,
+                              smooth: bool = False) -> bool:
+    """Whether `complete` with these flags leaves `cloud` with clip lines (given, or estimated
+    with its radii and axes), known before completing it (compile_ahead.py asks: the kernels
+    take clip lines or None)."""
+    return "clip_lines" in cloud.attributes or (_prepares(cloud, needs_radii, normal_field, smooth)
+                                                and _estimates_splats(cloud))
+
+
+def _prepares(cloud: PointCloud, needs_radii: bool, normal_field: bool, smooth: bool) -> bool:
+    """`complete`'s policy: prepare a cloud that lacks what the method needs, or is to be smoothed."""
+    missing = cloud.normals is None or (needs_radii and (cloud.radii is None or cloud.axes is None))
+    return smooth or missing or (normal_field and "phong_alpha" not in cloud.attributes)
+
+
+def _estimates_splats(cloud: PointCloud) -> bool:
+    """Whether `prepare` estimates the splats of `cloud` (neither radii nor axes given), and so
+    ends them at creases and borders (with sharp_features)."""
+    return cloud.radii is None and cloud.axes is None
 
 
 def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np.ndarray | None = None,
@@ -205,7 +224,7 @@ def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np
             reference=None if reference_spacing is None else nbh.sort(reference_spacing),
             surface=None if drawn_facing is None else ~drawn_facing, progress=progress)
     features = None
-    if sharp_features and radii is None and axes is None:
+    if sharp_features and _estimates_splats(cloud):
         features = find_sharp_features(nbh, unit_normals, RADIUS_NEIGHBOURS)
     if radii is None:
         radii = estimated["radii"] = covering_radii(nbh, unit_normals, progress, features, layers=thickness)
