@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from surfel.preprocess.grid_knn import k_nearest, sorted_k_nearest, stable_order
+from surfel.cloud import stable_order
+from surfel.preprocess.grid_knn import k_nearest, sorted_k_nearest
 from surfel.preprocess.neighbourhood import Neighbourhood
 from surfel.preprocess.unsettled import scan_all_nearest
 

@@ -61,6 +61,19 @@ def corners(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.array([column.min() for column in columns]), np.array([column.max() for column in columns])
 
 
+def stable_order(keys: np.ndarray) -> np.ndarray:
+    """np.argsort(keys, kind="stable") of non-negative int64 keys, an order of magnitude
+    faster where each key and its index fit in 63 bits together (the keys of occupied cells
+    span far fewer than 63 bits): the plain sort of key << b | index, b the bits of an index,
+    is the stable order, unpacked from its low bits."""
+    bits = max(len(keys) - 1, 1).bit_length()
+    if len(keys) == 0 or int(keys.max()).bit_length() + bits > 63:
+        return np.argsort(keys, kind="stable")
+    packed = (keys << bits) | np.arange(len(keys), dtype=np.int64)
+    packed.sort()
+    return packed & ((1 << bits) - 1)
+
+
 def take_rows(values: np.ndarray, index) -> np.ndarray:
     """values[index] along the first axis (index: integers, a mask or a slice). Integer
     indices go through np.take, which gathers the rows of an (N, 3) array about three times

@@ -50,7 +50,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from ..cloud import corners, take_rows
+from ..cloud import corners, stable_order, take_rows
 from ..threads import over_rows
 from .unsettled import unsettled_nearest
 
@@ -540,19 +540,6 @@ class Grid:
         if self.dense:
             return np.empty((len(rows), k), np.int32), np.full(len(rows), -1, np.int64)
         return grid_within(self.points, self.starts, self.run_keys, self.slots, self.lo, self.h, k, rows)
-
-
-def stable_order(keys: np.ndarray) -> np.ndarray:
-    """np.argsort(keys, kind="stable") of non-negative int64 keys, an order of magnitude
-    faster where each key and its index fit in 63 bits together (the keys of occupied cells
-    span far fewer than 63 bits): the plain sort of key << b | index, b the bits of an index,
-    is the stable order, unpacked from its low bits."""
-    bits = max(len(keys) - 1, 1).bit_length()
-    if len(keys) == 0 or int(keys.max()).bit_length() + bits > 63:
-        return np.argsort(keys, kind="stable")
-    packed = (keys << bits) | np.arange(len(keys), dtype=np.int64)
-    packed.sort()
-    return packed & ((1 << bits) - 1)
 
 
 def sorted_k_nearest(points: np.ndarray, k: int, workers: int = -1) -> tuple[np.ndarray, np.ndarray, Grid]:
