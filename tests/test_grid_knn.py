@@ -152,6 +152,22 @@ def test_stable_order_is_numpys():
     assert np.array_equal(stable_order(np.array([5], np.int64)), [0])
 
 
+def test_ranked_candidates_are_the_stable_sorts_first():
+    """Placing offered candidates by rank keeps the `take` nearest in a stable sort's order (ties
+    in the order offered, as inserting them one by one did), whatever lands in the scratch entry."""
+    from surfel.preprocess.grid_knn import _ranked
+
+    for near, take in ((24, 15), (15, 15), (40, 15), (7, 3), (1, 0), (0, 0)):
+        distances = rng.integers(0, 6, near).astype(np.float64)  # many ties
+        candidates = rng.permutation(1000)[:near]
+        best_d, best_i = np.full(take + 2, -1.0), np.full(take + 2, -1, np.int64)
+        _ranked(distances, candidates, near, take, best_d, best_i)
+        expected = np.argsort(distances, kind="stable")[:take]
+        assert np.array_equal(best_d[1:take + 1], distances[expected])
+        assert np.array_equal(best_i[1:take + 1], candidates[expected])
+        assert best_d[0] == -1.0  # the point itself's entry is left alone
+
+
 def test_cell_table_finds_every_occupied_cell_and_no_other():
     """The hash table of the occupied cells gives each key's run, and -1 for keys of empty
     cells (here the keys between and around the occupied ones)."""
