@@ -31,7 +31,10 @@ while the one before is processed (`streaming.read_ahead`):
    cell / sqrt(m), at most HALO_MAX_CELLS cells. With w > 1 workers a binary PLY input is
    binned by them, each a contiguous run of its chunks (binning.py's pieces).
 
-Each partition is then loaded with its halo, completed (radii and tangent axes estimated as
+Each partition is then loaded with its halo, each sorted by Morton code (`_in_morton_order`:
+the completion and the tree then gather from nearby rows instead of the input's order, and
+the tree's own sort of those codes finds them sorted: the 20M-point build 5% faster, its
+output byte-identical), completed (radii and tangent axes estimated as
 for any cloud, `preprocess.complete`; normals from the input when it has them), stripped of
 its halo, built (`build_lod`), sequentialised (`to_sequential_cloud`) and written as raw .npy
 arrays in sequential order. With the halo, the neighbour queries of points at a partition
@@ -400,6 +403,7 @@ def _build_partition(partial: Path, name: str, dtype: np.dtype, schema: Schema, 
     count = sum(len(piece) for piece in own)
     records = np.concatenate(own + [np.fromfile(file, dtype) for file in files["halo"]])
     del own
+    records = _in_morton_order(records, count)
     cloud = PointCloud(records["p"], normals=records["n"] if "n" in dtype.names else None,
                        colors=records["c"] if "c" in dtype.names else None, geospatial=geospatial,
                        attributes={spec.name: records[f"a{i}"] for i, spec in enumerate(schema.values())},
@@ -436,6 +440,13 @@ def _build_partition(partial: Path, name: str, dtype: np.dtype, schema: Schema, 
     os.replace(work, final)
     for file in files["bin"] + files["halo"]:
         file.unlink(missing_ok=True)
+
+
+def _in_morton_order(records: np.ndarray, count: int) -> np.ndarray:
+    """The partition's own records[:count], then its halo's, each sorted by Morton code."""
+    order = [np.argsort(morton_codes(np.ascontiguousarray(part["p"]))) + start
+             for start, part in ((0, records[:count]), (count, records[count:])) if len(part)]
+    return binning._gather(records, np.concatenate(order)).view(records.dtype)
 
 
 def _save_array(path: Path, value: np.ndarray) -> None:
