@@ -330,6 +330,9 @@ def _start_worker(taken, done, needs: tuple[bool, bool, bool]) -> None:
     _exit_with_the_build()
     numba.set_num_threads(1)
     no_huge_pages()  # as the command line sets it; also when called from Python
+    # each chunk binned and each partition built reuses the pages of the one before (binning
+    # two halves of a 20M-point input at once: 1.2 s each instead of 1.3-1.45 s)
+    keep_freed_memory()
     worker_warm_up.share(*warm_up_tasks(*needs), taken, done)
 
 
@@ -369,12 +372,9 @@ def warm_up_tasks(bins: bool, normals: bool, geospatial: bool) -> tuple[list, di
 
 
 def _build_partition_in_worker(*args) -> None:
-    """`_build_partition` in a pool's worker, which keeps the memory it frees from then on,
-    once it has the kernels of the other workers' warm-up tasks (the tree's: before the tree)."""
+    """`_build_partition` in a pool's worker, once it has the kernels of the other workers'
+    warm-up tasks (the tree's: before the tree)."""
     worker_warm_up.finish(but=_warm_up_tree)
-    # from the first partition on, not for binning, whose big zeroed chunks fresh mappings
-    # give without a memset: a partition reuses the pages of the one before
-    keep_freed_memory()
     _build_partition(*args)
 
 
