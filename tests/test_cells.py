@@ -175,6 +175,16 @@ def test_cloud_bounds_are_the_corners():
     assert np.array_equal(lo, positions.min(axis=0)) and np.array_equal(hi, positions.max(axis=0))
 
 
+def test_any_per_row_is_numpys():
+    from surfel.cloud import any_per_row
+
+    rng = np.random.default_rng(5)
+    for columns in (1, 2, 3, 16):
+        mask = rng.random((5_000, columns)) > 0.9
+        assert np.array_equal(any_per_row(mask), mask.any(axis=1))
+    assert any_per_row(np.zeros((0, 3), bool)).shape == (0,)
+
+
 def test_ellipse_axes_are_tangent_and_right_handed():
     p = sphere(5_000)
     axes = fit_ellipses(p, p).astype(np.float64)

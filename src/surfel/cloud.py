@@ -61,6 +61,15 @@ def corners(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.array([column.min() for column in columns]), np.array([column.max() for column in columns])
 
 
+def any_per_row(mask: np.ndarray) -> np.ndarray:
+    """mask.any(axis=1) of a boolean (N, m) array, column by column: numpy reduces each short
+    row on its own, several times slower (20 ms against 3 for 1.4M rows of 3)."""
+    rows = mask[:, 0].copy()
+    for column in range(1, mask.shape[1]):
+        rows |= mask[:, column]
+    return rows
+
+
 def stable_order(keys: np.ndarray) -> np.ndarray:
     """np.argsort(keys, kind="stable") of non-negative int64 keys, an order of magnitude
     faster where each key and its index fit in 63 bits together (the keys of occupied cells

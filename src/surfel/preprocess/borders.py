@@ -75,6 +75,7 @@ import math
 import numba
 import numpy as np
 
+from ..cloud import any_per_row
 from ..threads import over_rows
 from .chunked import map_chunks
 from .frames import orthonormal_basis
@@ -388,7 +389,7 @@ def border_outwards(nbh: Neighbourhood, normals: np.ndarray, index: np.ndarray, 
                                                                       orthonormal_basis(normals[start:stop]),
                                                                       SHEET_COS, FLAT_SIN2, layers, closing2),
                                  n, progress, "borders")
-    candidates = np.flatnonzero(outwards.any(axis=1))
+    candidates = np.flatnonzero(any_per_row(outwards != 0.0))
     if len(candidates) and n > index.shape[1]:
         # most candidates are settled by the neighbours certainly among their BORDER_CONFIRM
         # nearest (those of the grid cells around them), without querying those nearest
@@ -411,5 +412,5 @@ def border_outwards(nbh: Neighbourhood, normals: np.ndarray, index: np.ndarray, 
             short = rest[confirmed & (reached < closing2[rest]) & np.isfinite(closing2[rest])]
             beyond = _sheet_beyond(nbh, normals, short, outwards[short], closing2, np.asarray(spacing, np.float64))
             outwards[short[beyond]] = 0.0
-    reach[~outwards.any(axis=1)] = 0.0
+    reach[~any_per_row(outwards != 0.0)] = 0.0
     return outwards, reach

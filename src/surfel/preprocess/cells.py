@@ -119,7 +119,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..cloud import PointCloud
+from ..cloud import PointCloud, any_per_row
 from .cell_kernels import cell_clip_lines, cell_ellipses, cell_radii
 from .chunked import map_chunks
 from .frames import ellipse_axes, orthonormal_basis, unit
@@ -206,7 +206,7 @@ def clip_lines(nbh: Neighbourhood, normals: np.ndarray, axes: np.ndarray, featur
     index = nbh.first(k)
     normals = unit(normals)
     layers = np.full(len(normals), np.inf) if layers is None else np.asarray(layers, np.float64)
-    on_border = (outwards != 0.0).any(axis=1)
+    on_border = any_per_row(outwards != 0.0)
 
     def chunk(start: int, stop: int) -> np.ndarray:
         return cell_clip_lines(nbh.points, normals, index[start:stop], start, np.asarray(axes[start:stop], np.float64),
@@ -220,7 +220,7 @@ def clipped_away(cloud: PointCloud) -> np.ndarray:
     lines = cloud.attributes.get("clip_lines")
     if lines is None:
         return np.zeros(len(cloud), bool)
-    return (lines[:, :, 2] < -1).any(axis=1)
+    return any_per_row(lines[:, :, 2] < -1)
 
 
 def estimate_radii(positions: np.ndarray, k: int = RADIUS_NEIGHBOURS, normals: np.ndarray | None = None,
