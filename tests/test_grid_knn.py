@@ -146,6 +146,9 @@ def test_stable_order_is_numpys():
     and so is its fallback for keys too wide to pack."""
     keys = rng.integers(0, 1 << 20, 100_000) // 7
     assert np.array_equal(stable_order(keys), np.argsort(keys, kind="stable"))
+    runs = np.sort(keys)
+    runs[::50] = rng.integers(0, 1 << 20, len(runs[::50])) // 7  # mostly in order: merged, not partitioned
+    assert np.array_equal(stable_order(runs), np.argsort(runs, kind="stable"))
     wide = rng.integers(0, 1 << 62, 1_000) | (1 << 61)
     wide[::3] = wide[0]
     assert np.array_equal(stable_order(wide), np.argsort(wide, kind="stable"))

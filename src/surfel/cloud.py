@@ -73,13 +73,16 @@ def any_per_row(mask: np.ndarray) -> np.ndarray:
 def stable_order(keys: np.ndarray) -> np.ndarray:
     """np.argsort(keys, kind="stable") of non-negative int64 keys, an order of magnitude
     faster where each key and its index fit in 63 bits together (the keys of occupied cells
-    span far fewer than 63 bits): the plain sort of key << b | index, b the bits of an index,
-    is the stable order, unpacked from its low bits."""
+    span far fewer than 63 bits): the sort of the distinct key << b | index, b the bits of an
+    index, is the stable order, unpacked from its low bits."""
     bits = max(len(keys) - 1, 1).bit_length()
     if len(keys) == 0 or int(keys.max()).bit_length() + bits > 63:
         return np.argsort(keys, kind="stable")
     packed = (keys << bits) | np.arange(len(keys), dtype=np.int64)
-    packed.sort()
+    # keys mostly in order (points sorted by Morton code, as the out-of-core build's partitions
+    # are, or in a scanner's order): timsort merges their runs, three times as fast as
+    # quicksort; in no order, 15% slower than it
+    packed.sort(kind="stable" if np.count_nonzero(keys[1:] < keys[:-1]) < len(keys) // 4 else "quicksort")
     return packed & ((1 << bits) - 1)
 
 
