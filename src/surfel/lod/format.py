@@ -43,7 +43,7 @@ from ..cloud import PointCloud
 from ..errors import InputError
 from ..files import write_atomically, write_json
 from ..io.npz import cloud_arrays, read_npz
-from .build import LodTree, build_lod
+from .build import LodTree, build_lod, morton_codes
 from .sequential import is_sequential, r_max_bucket, to_sequential_cloud
 
 FORMAT_VERSION = 1
@@ -86,7 +86,11 @@ def build_command(in_path: str | os.PathLike, out_path: str | os.PathLike,
     from ..io import load
     from ..preprocess import complete
 
-    cloud, estimated = complete(load(in_path))
+    cloud = load(in_path)
+    # in Morton order, the completion and the tree gather from nearby rows (the tree's order
+    # does not depend on the input's); the input's order is not kept alive beside it
+    cloud = cloud.take(np.argsort(morton_codes(cloud.positions)))
+    cloud, estimated = complete(cloud)
     points = len(cloud)
     start = time.perf_counter()
     warm_up()
