@@ -68,7 +68,7 @@ import numpy as np
 from tqdm import tqdm
 
 from ..attributes import CATEGORICAL
-from ..cloud import PointCloud, corners, read_only
+from ..cloud import PointCloud, corners, read_only, stable_order
 from ..preprocess import CLIP_LINES, INACTIVE_CLIP, clipped_away
 from ..threads import over_rows
 
@@ -170,6 +170,17 @@ def morton_codes(positions: np.ndarray) -> np.ndarray:
     lo, hi = corners(positions)
     extent = max(float((hi - lo).max()), 1e-300)
     return _morton_codes(positions, lo, ((1 << MORTON_BITS) - 1) / extent)
+
+
+def morton_order(positions: np.ndarray) -> np.ndarray:
+    """An order of positions (N, 3) by Morton code (`morton_codes`) but for the codes' last b
+    bits (b: those of a row index): their top 63 - b bits and each row's index sorted as one
+    int64 (`stable_order`), faster than an argsort of the codes, rows apart by less keeping
+    their order. In it, the completion and the tree gather from nearby rows, and `build_lod`
+    finds its codes nearly sorted."""
+    codes = morton_codes(positions)
+    bits = max(len(codes) - 1, 1).bit_length()
+    return stable_order((codes >> np.uint64(bits)).astype(np.int64))
 
 
 def _absent(shape: tuple[int, ...]) -> np.ndarray:
@@ -408,7 +419,7 @@ def build_lod(cloud: PointCloud, *, progress: bool | None = None) -> LodTree:
     n = len(kept)
     capacity = 2 * n - 1  # every inner node has >= 2 children
     codes = morton_codes(cloud.positions[kept])
-    order = np.argsort(codes)
+    order = stable_order(codes.view(np.int64))  # timsort: codes nearly in order (`morton_order`) in one pass
     point_index = kept[order]
     active_codes = codes[order]
     del codes

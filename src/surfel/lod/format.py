@@ -43,7 +43,7 @@ from ..cloud import PointCloud
 from ..errors import InputError
 from ..files import write_atomically, write_json
 from ..io.npz import cloud_arrays, read_npz
-from .build import LodTree, build_lod, morton_codes
+from .build import LodTree, build_lod, morton_order
 from .sequential import is_sequential, r_max_bucket, to_sequential_cloud
 
 FORMAT_VERSION = 1
@@ -89,7 +89,7 @@ def build_command(in_path: str | os.PathLike, out_path: str | os.PathLike,
     cloud = load(in_path)
     # in Morton order, the completion and the tree gather from nearby rows (the tree's order
     # does not depend on the input's); the input's order is not kept alive beside it
-    cloud = cloud.take(np.argsort(morton_codes(cloud.positions)))
+    cloud = cloud.take(morton_order(cloud.positions))
     cloud, estimated = complete(cloud)
     points = len(cloud)
     start = time.perf_counter()
