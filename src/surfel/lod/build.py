@@ -419,7 +419,7 @@ def build_lod(cloud: PointCloud, *, progress: bool | None = None) -> LodTree:
     n = len(kept)
     capacity = 2 * n - 1  # every inner node has >= 2 children
     codes = morton_codes(cloud.positions[kept])
-    order = stable_order(codes.view(np.int64))  # timsort: codes nearly in order (`morton_order`) in one pass
+    order = np.argsort(codes, kind="stable")  # timsort: codes nearly in order (`morton_order`) in one pass
     point_index = kept[order]
     active_codes = codes[order]
     del codes
