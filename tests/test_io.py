@@ -18,6 +18,7 @@ from models import DATA, SPOT, turned_part
 from surfel.cloud import PointCloud
 from surfel.errors import InputError, SurfelError
 from surfel.io import area_weighted_vertex_normals, load, write_ply
+from surfel.lod.streaming import open_inputs
 
 _PACK = {"char": "b", "uchar": "B", "short": "h", "ushort": "H", "int": "i", "uint": "I",
          "float": "f", "double": "d", "int8": "b", "uint8": "B", "int32": "i", "uint32": "I",
@@ -196,6 +197,41 @@ def test_ply_faces_polygons_and_unreferenced_vertices(tmp_path, fmt, list_name):
     assert len(cloud) == 5
     assert cloud.faces.tolist() == [[0, 1, 2], [0, 2, 3], [1, 4, 2]]
     np.testing.assert_allclose(cloud.normals, np.tile([0, 0, 1], (5, 1)), atol=1e-7)
+
+
+@pytest.mark.parametrize("fmt", ["ascii", "binary_little_endian", "binary_big_endian"])
+@pytest.mark.parametrize("strips", [
+    [[3, 0, 4, 1, -1, 4, 1, 5, 2]],  # -1 ends a strip
+    [[3, 0, 4, 1], [4, 1, 5, 2]],  # so does the end of a list: 1 and 4 make no triangle with the next list
+    [[3, 0, 4, 1, 1, 4, 4, 1, 5, 2]],  # stitched by repeated corners, whose triangles have no area
+])
+def test_ply_triangle_strips(tmp_path, fmt, strips):
+    # a 2 x 1 grid of quads in the plane z = 0 (vertex 6 unused); every triangle counter-clockwise
+    vertices = [(0, 0, 0), (1, 0, 0), (2, 0, 0), (0, 1, 0), (1, 1, 0), (2, 1, 0), (9, 9, 9)]
+    xyz = [("x", "float"), ("y", "float"), ("z", "float")]
+    ply_file(tmp_path / "s.ply", fmt, [("vertex", xyz, vertices),
+                                       ("tristrips", [("vertex_indices", "list", "int", "int")],
+                                        [(strip,) for strip in strips])])
+    cloud = load(tmp_path / "s.ply")
+    assert len(cloud) == 6
+    assert cloud.faces.tolist() == [[3, 0, 4], [4, 0, 1], [4, 1, 5], [5, 1, 2]]
+    np.testing.assert_allclose(cloud.normals, np.tile([0, 0, 1], (6, 1)), atol=1e-7)
+    # the out-of-core build reads a mesh whole, as `load` does, not its vertices in chunks
+    assert [source.kind for source in open_inputs(tmp_path / "s.ply")] == ["whole"]
+
+
+def test_ply_triangle_strips_and_faces_together_and_bad_strip_indices(tmp_path):
+    xyz = [("x", "float"), ("y", "float"), ("z", "float")]
+    vertices = [(0, 0, 0), (1, 0, 0), (0, 1, 0), (1, 1, 0), (0, 0, 1)]
+    strip = ("tristrips", [("vertex_indices", "list", "int", "int")], [([0, 1, 2, 3],)])
+    ply_file(tmp_path / "both.ply", "ascii", [("vertex", xyz, vertices), strip,
+                                              ("face", [("vertex_indices", "list", "uchar", "int")], [([0, 4, 1],)])])
+    assert load(tmp_path / "both.ply").faces.tolist() == [[0, 4, 1], [0, 1, 2], [2, 1, 3]]
+    for bad in ([0, 1, 5], [0, -2, 1]):
+        ply_file(tmp_path / "bad.ply", "binary_little_endian",
+                 [("vertex", xyz, vertices), ("tristrips", [("vertex_indices", "list", "int", "int")], [(bad,)])])
+        error = raises_input_error(tmp_path / "bad.ply")
+        assert "bad.ply" in str(error) and "1 triangle strip corners refer to vertices that do not exist" in str(error)
 
 
 @pytest.mark.parametrize("fmt", ["ascii", "binary_little_endian"])

@@ -2,7 +2,7 @@
 
 `load` picks a reader by file extension (case-insensitive) or by an explicit `format`:
 
-- ``.ply``: `surfel.io.ply` (ascii and binary, points or meshes)
+- ``.ply``: `surfel.io.ply` (ascii and binary, points or meshes; written by `surfel.io.ply_write`)
 - ``.obj``: `surfel.io.obj` (meshes, or bare vertex lists)
 - ``.las``, ``.laz``: `surfel.io.las` (LiDAR; the cloud is marked geospatial)
 - ``.e57``: `surfel.io.e57` (terrestrial scans, merged by their poses; geospatial)
@@ -28,7 +28,8 @@ from .las import read_las
 from .mesh import area_weighted_vertex_normals
 from .npz import read_npz
 from .obj import read_obj
-from .ply import read_ply, write_ply
+from .ply import read_ply
+from .ply_write import write_ply
 from .text import read_text
 
 __all__ = ["load", "write_ply", "area_weighted_vertex_normals", "FORMATS"]

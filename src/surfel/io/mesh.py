@@ -1,4 +1,5 @@
-"""Turning mesh inputs into points: polygon triangulation, referenced vertices, vertex normals.
+"""Turning mesh inputs into points: polygons and triangle strips made triangles, referenced
+vertices, vertex normals.
 
 The rendering contract says a mesh yields its referenced vertices as points, with
 area-weighted vertex normals from the faces; the OBJ and PLY readers share these steps.
@@ -21,7 +22,7 @@ def triangles_from_polygons(counts: np.ndarray, indices: np.ndarray, vertex_coun
     with fewer than 3 vertices, or an index outside [0, vertex_count), raises InputError.
     """
     counts = np.asarray(counts, dtype=np.int64)
-    indices = np.asarray(indices, dtype=np.int64)
+    indices = _whole(indices, path)
     if len(counts) and counts.min() < 3:
         raise InputError(path, f"{int((counts < 3).sum())} faces have fewer than 3 vertices")
     outside = (indices < 0) | (indices >= vertex_count)
@@ -35,6 +36,44 @@ def triangles_from_polygons(counts: np.ndarray, indices: np.ndarray, vertex_coun
     first = np.repeat(np.cumsum(counts) - counts, fan)
     step = ragged_arange(fan) + 1
     return np.stack([indices[first], indices[first + step], indices[first + step + 1]], axis=1)
+
+
+def triangles_from_strips(indices: np.ndarray, vertex_count: int, path: str) -> np.ndarray:
+    """(F, 3) int64 triangles from triangle strips given as one list of vertex indices in which
+    -1 ends a strip (the PLY ``tristrips`` element of Stanford's and VCG's scans; a strip also
+    ends where one of the element's lists does, which the caller marks with a -1).
+
+    Strip a0 a1 a2 a3 ... makes (a0, a1, a2), (a2, a1, a3), (a2, a3, a4), ...: every second
+    triangle's first two corners swapped, so that all wind as the first does. Triangles with a
+    repeated corner (how strips are stitched together) are dropped. An index below -1 or at or
+    beyond vertex_count raises InputError."""
+    indices = _whole(indices, path)
+    outside = (indices < -1) | (indices >= vertex_count)
+    if outside.any():
+        raise InputError(path, f"{int(outside.sum())} triangle strip corners refer to vertices that do not "
+                               f"exist (the file has {vertex_count})")
+    if len(indices) < 3:
+        return np.empty((0, 3), np.int64)
+    a, b, c = indices[:-2], indices[1:-1], indices[2:]
+    # each corner's place in its strip: its index less that of the strip's first corner
+    breaks = np.flatnonzero(indices < 0)
+    strip_first = np.zeros(len(indices), np.int64)
+    strip_first[breaks[breaks + 1 < len(indices)] + 1] = breaks[breaks + 1 < len(indices)] + 1
+    place = np.arange(len(indices)) - np.maximum.accumulate(strip_first)
+    odd = (place[:-2] % 2 == 1)
+    keep = (a >= 0) & (b >= 0) & (c >= 0) & (a != b) & (b != c) & (a != c)
+    first, second = np.where(odd, b, a), np.where(odd, a, b)
+    return np.stack([first[keep], second[keep], c[keep]], axis=1)
+
+
+def _whole(indices: np.ndarray, path: str) -> np.ndarray:
+    """Vertex indices as int64; float-typed ones (a PLY's ascii body, or a float list) must be
+    whole numbers."""
+    indices = np.asarray(indices)
+    if indices.dtype.kind == "f" and not (np.isfinite(indices) & (indices == np.round(indices))
+                                          & (np.abs(indices) < 2.0 ** 62)).all():
+        raise InputError(path, "face indices are not integers")
+    return indices.astype(np.int64)
 
 
 def referenced_vertices(faces: np.ndarray, vertex_count: int) -> tuple[np.ndarray, np.ndarray]:

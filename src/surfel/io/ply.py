@@ -1,7 +1,5 @@
-"""PLY point clouds and meshes: `read_ply` and `write_ply`.
+"""Reading PLY point clouds and meshes: `read_ply`.
 
-Reading
--------
 Bodies in ascii, binary_little_endian and binary_big_endian. The ``vertex`` element gives
 the points; its properties, by name:
 
@@ -23,9 +21,11 @@ the points; its properties, by name:
 
 A ``face`` element with a list property ``vertex_indices`` (or ``vertex_index``) makes the
 file a mesh: polygons are fan-triangulated, only the vertices the faces reference are kept,
-and vertex normals are area-weighted from the faces unless the file has its own. Other
-elements (edges, materials, ...) are skipped. A ``comment surfel_geospatial`` header line
-marks the cloud geospatial (up axis +Z); each ``comment surfel_sensor X Y Z`` line is one of
+and vertex normals are area-weighted from the faces unless the file has its own. So does a
+``tristrips`` element (Stanford's and VCG's scans, as the Igea statue): its lists are
+triangle strips, -1 ending each. Other elements (edges, materials, ...) are skipped. A
+``comment surfel_geospatial`` header line marks the cloud geospatial (up axis +Z); each
+``comment surfel_sensor X Y Z`` line is one of
 the cloud's `sensors`, in order (the integer attribute ``scan`` says whose each point is).
 
 Elements are decoded whole, with no per-point Python loop: binary ones through numpy
@@ -36,33 +36,23 @@ only be found record by record, by the compiled walks of `ply_records`. Every si
 claims is checked against what the file holds before anything is decoded, so a lying header
 cannot cause a large allocation.
 
-Writing
--------
-`write_ply` writes x y z (double), nx ny nz (float), red green blue (uchar), radius,
-ux uy uz vx vy vz (float), each only when the cloud has it, and every attribute in the PLY
-type of its dtype (bool as uchar; 64-bit integers, which PLY lacks, as double when every
-value is exact there), an (N,) array as NAME, an (N, k) one as NAME_0 .. NAME_{k-1}, higher
-ranks flattened likewise, each declared by a surfel_attribute comment; and the faces as
-``vertex_indices`` lists of 3 ints. The geospatial flag becomes a surfel_geospatial comment,
-each sensor position a surfel_sensor comment.
+`write_ply` (ply_write.py) writes what this reads.
 """
 
 from __future__ import annotations
 
 import mmap
-import os
 import re
 from dataclasses import dataclass, field
-from typing import BinaryIO, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 
 from ..attributes import KINDS, AttributeSpec, canonical_names
 from ..cloud import PointCloud, file_normals
-from ..errors import InputError, SurfelError
-from ..files import write_atomically
+from ..errors import InputError
 from ._parse import numbers_by_line, ragged_arange
-from .mesh import mesh_normals, referenced_vertices, triangles_from_polygons
+from .mesh import mesh_normals, referenced_vertices, triangles_from_polygons, triangles_from_strips
 from .ply_records import NEGATIVE, RecordLayout, gather_records, walk_records
 
 _TYPES = {
@@ -71,15 +61,9 @@ _TYPES = {
     "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
     "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
 }
-_TYPE_NAMES = {"i1": "char", "u1": "uchar", "i2": "short", "u2": "ushort", "i4": "int", "u4": "uint",
-               "f4": "float", "f8": "double"}
-# The PLY type an attribute of each numpy type is written as (PLY has no bool, 64-bit integer
-# or half float; those are declared with their own dtype and converted back on reading).
-_WRITTEN_AS = {"b1": "u1", "i1": "i1", "u1": "u1", "i2": "i2", "u2": "u2", "i4": "i4", "u4": "u4",
-               "i8": "f8", "u8": "f8", "f2": "f4", "f4": "f4", "f8": "f8"}
-_EXACT_IN_DOUBLE = 2 ** 53
 _FORMATS = {"ascii": "ascii", "binary_little_endian": "<", "binary_big_endian": ">"}
 _FACE_LISTS = ("vertex_indices", "vertex_index")
+MESH_ELEMENTS = ("face", "tristrips")  # polygons; triangle strips
 _ATTRIBUTE_COMMENT = "surfel_attribute"
 _EXTRA_COMMENT = "surfel_extra"  # older writers' NAME [D1 ...]: float32, continuous
 _GEOSPATIAL_COMMENT = "surfel_geospatial"
@@ -149,7 +133,7 @@ def read_ply(path: str) -> PointCloud:
         # still hold such views when an error propagates.
         data = mmap.mmap(file.fileno(), 0, access=mmap.ACCESS_READ)
     header = parse_header(data, path)
-    wanted = {"vertex", "face"} & {element.name for element in header.elements}
+    wanted = {"vertex", *MESH_ELEMENTS} & {element.name for element in header.elements}
     if header.format == "ascii":
         found = _read_ascii(data, header, wanted, path)
     else:
@@ -257,7 +241,7 @@ def _read_binary(data: mmap.mmap, header: Header, wanted: set[str], path: str) -
         if wanted <= found.keys():
             break
         kept = next((name for name in _FACE_LISTS if name in element.properties), None) \
-            if element.name == "face" else None
+            if element.name in MESH_ELEMENTS else None
         columns, offset = _binary_element(data, offset, element, header.format, kept, path)
         if element.name in wanted:
             found[element.name] = columns
@@ -434,13 +418,8 @@ def _cloud(header: Header, found: dict[str, _Columns], path: str) -> PointCloud:
     layout = vertex_layout(header, path)
     attributes = vertex_attributes(layout, columns, n, path)
 
-    faces = None
-    face_columns = found.get("face", {})
-    lists = [column for name in _FACE_LISTS if isinstance(column := face_columns.get(name), _List)]
-    if lists and len(lists[0].lengths):
-        indices = lists[0]
-        items = _integers(indices.items, path)
-        faces = triangles_from_polygons(indices.lengths, items, n, path)
+    faces = _faces(found, n, path)
+    if faces is not None:
         keep, faces = referenced_vertices(faces, n)
         if len(keep) < n:
             positions = positions[keep]
@@ -454,6 +433,23 @@ def _cloud(header: Header, found: dict[str, _Columns], path: str) -> PointCloud:
                       kinds={a.spec.name: a.spec.kind for a in layout if a.stated},
                       geospatial=header.geospatial, source=path,
                       sensors=np.array(header.sensors) if header.sensors else None)
+
+
+def _faces(found: dict[str, _Columns], n: int, path: str) -> np.ndarray | None:
+    """The triangles of the face and tristrips elements, or None where the file has neither."""
+    triangles = []
+    for element in MESH_ELEMENTS:
+        columns = found.get(element, {})
+        lists = [column for name in _FACE_LISTS if isinstance(column := columns.get(name), _List)]
+        if not lists or not len(lists[0].lengths):
+            continue
+        items = lists[0].items
+        if element == "face":
+            triangles.append(triangles_from_polygons(lists[0].lengths, items, n, path))
+        else:  # each list one or more strips: a -1 after each list ends its last
+            ends = np.cumsum(lists[0].lengths)
+            triangles.append(triangles_from_strips(np.insert(items, ends, -1), n, path))
+    return np.concatenate(triangles) if triangles else None
 
 
 def vertex_layout(header: Header, path: str) -> list[VertexAttribute]:
@@ -500,94 +496,3 @@ def color_scale(code: str) -> float:
     if code[0] == "f":
         return 1.0
     return 65535.0 if code[1] == "2" else 255.0
-
-
-def _integers(values: np.ndarray, path: str) -> np.ndarray:
-    """Face indices as int64; float-typed ones (ascii, or a float list) must be whole numbers."""
-    if values.dtype.kind == "f" and not (np.isfinite(values) & (values == np.round(values))
-                                         & (np.abs(values) < 2.0 ** 62)).all():
-        raise InputError(path, "PLY face indices are not integers")
-    return values.astype(np.int64)
-
-
-# --- writing ----------------------------------------------------------------------------
-
-def write_ply(cloud: PointCloud, path: str | os.PathLike, *, binary: bool = True) -> None:
-    """Write `cloud` as PLY (binary little-endian by default), atomically.
-
-    Everything the cloud holds is written (see the module docstring), so `read_ply` gives it
-    back: positions bit-exact, attributes exact in their own dtype and kind, colours quantised
-    to 8 bits. The file appears complete or not at all: it is written to a temporary file
-    beside it and renamed. Raises SurfelError, naming the file, for an attribute that cannot be
-    a PLY property (its name, or 64-bit integers beyond 2^53) and when the file cannot be
-    written.
-    """
-    n = len(cloud)
-    columns: list[tuple[str, str, np.ndarray]] = [
-        (name, "f8", cloud.positions[:, k]) for k, name in enumerate(_POSITION)]
-    if cloud.normals is not None:
-        columns += [(name, "f4", cloud.normals[:, k]) for k, name in enumerate(_NORMAL)]
-    if cloud.colors is not None:
-        rgb = np.round(cloud.colors * 255).astype(np.uint8)
-        columns += [(name, "u1", rgb[:, k]) for k, name in enumerate(_COLOR)]
-    if cloud.radii is not None:
-        columns.append(("radius", "f4", cloud.radii))
-    if cloud.axes is not None:
-        flat_axes = cloud.axes.reshape(n, 6)
-        columns += [(name, "f4", flat_axes[:, k]) for k, name in enumerate(_AXES)]
-    comments = ["written by surfel"]
-    if cloud.geospatial:
-        comments.append(_GEOSPATIAL_COMMENT)
-    comments += [f"{_SENSOR_COMMENT} {x:.17g} {y:.17g} {z:.17g}" for x, y, z in
-                 (() if cloud.sensors is None else cloud.sensors)]
-    for spec in cloud.schema.values():
-        name, value = spec.name, cloud.attributes[spec.name]
-        if not re.fullmatch(r"[!-~]+", name) or name in _RESERVED:
-            raise SurfelError(f"{path}: attribute {name!r} cannot be a PLY property name")
-        code = _WRITTEN_AS[value.dtype.kind + str(value.dtype.itemsize)]
-        if value.dtype.kind in "iu" and value.dtype.itemsize == 8 and value.size and \
-                max(-int(value.min()), int(value.max())) > _EXACT_IN_DOUBLE:
-            raise SurfelError(f"{path}: attribute {name!r} holds 64-bit integers that PLY cannot store exactly")
-        comments.append(" ".join([_ATTRIBUTE_COMMENT, name, spec.dtype.name, spec.kind, *map(str, spec.shape)]))
-        if not spec.shape:
-            columns.append((name, code, value))
-        else:
-            flat = value.reshape(n, -1)
-            columns += [(f"{name}_{i}", code, flat[:, i]) for i in range(flat.shape[1])]
-    names = [name for name, _, _ in columns]
-    if len(set(names)) != len(names):
-        raise SurfelError(f"{path}: attribute names give duplicate PLY property names")
-
-    faces = cloud.faces if cloud.faces is not None and len(cloud.faces) else None
-    lines = ["ply", f"format {'binary_little_endian' if binary else 'ascii'} 1.0"]
-    lines += [f"comment {comment}" for comment in comments]
-    lines.append(f"element vertex {n}")
-    lines += [f"property {_TYPE_NAMES[code]} {name}" for name, code, _ in columns]
-    if faces is not None:
-        lines += [f"element face {len(faces)}", "property list uchar int vertex_indices"]
-    lines.append("end_header")
-    header = ("\n".join(lines) + "\n").encode("ascii")
-
-    def write_body(file: BinaryIO) -> None:
-        file.write(header)
-        if binary:
-            records = np.empty(n, dtype=[(name, "<" + code) for name, code, _ in columns])
-            for name, _, values in columns:
-                records[name] = values
-            records.tofile(file)
-            if faces is not None:
-                face_records = np.empty(len(faces), dtype=[("n", "u1"), ("v", "<i4", (3,))])
-                face_records["n"] = 3
-                face_records["v"] = faces
-                face_records.tofile(file)
-        else:
-            # 17 significant digits read back to the same double, 9 to the same float.
-            formats = {"f8": "%.17g", "f4": "%.9g", **dict.fromkeys(("i1", "u1", "i2", "u2", "i4", "u4"), "%d")}
-            table = np.column_stack([values.astype(np.float64) for _, _, values in columns])
-            np.savetxt(file, table, fmt=[formats[code] for _, code, _ in columns])
-            if faces is not None:
-                np.savetxt(file, np.column_stack([np.full(len(faces), 3), faces]), fmt="%d")
-
-    write_atomically(path, write_body)
-
-

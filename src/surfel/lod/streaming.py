@@ -226,7 +226,7 @@ def checked(path: str, positions: np.ndarray, normals: np.ndarray | None, colors
 
 
 def open_ply(path: str) -> StreamInput:
-    from ..io.ply import color_scale, parse_header, record_fields, vertex_layout
+    from ..io.ply import MESH_ELEMENTS, color_scale, parse_header, record_fields, vertex_layout
 
     with open(path, "rb") as file:
         head = file.read(1 << 16)  # headers are small; parse only this much
@@ -248,7 +248,7 @@ def open_ply(path: str) -> StreamInput:
         offset += element.count * dtype.itemsize
     else:
         raise InputError(path, "PLY has no vertex element")
-    if any(e.name == "face" and e.count for e in header.elements):
+    if any(e.name in MESH_ELEMENTS and e.count for e in header.elements):
         return whole(path)  # a mesh: its referenced vertices are the points
     names = set(element.properties)
     if not {"x", "y", "z"} <= names:
