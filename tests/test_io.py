@@ -334,6 +334,104 @@ def test_obj_points_only_and_255_colours(tmp_path):
     assert load(tmp_path / "w.obj").colors is None
 
 
+# --- STL --------------------------------------------------------------------------------
+
+def _binary_stl(path: Path, triangles, header: bytes = b"binary STL by hand") -> Path:
+    body = b"".join(struct.pack("<12fH", 0, 0, 0, *np.ravel(t), 0) for t in triangles)
+    path.write_bytes(header.ljust(80, b" ") + struct.pack("<I", len(triangles)) + body)
+    return path
+
+
+def _ascii_stl(path: Path, triangles) -> Path:
+    facets = ["  facet normal 0 0 0\n    outer loop\n" + "".join(f"      vertex {x!r} {y!r} {z!r}\n" for x, y, z in t)
+              + "    endloop\n  endfacet\n" for t in triangles]
+    path.write_text("solid hand\n" + "".join(facets) + "endsolid hand\n")
+    return path
+
+
+# a unit square in z = 0 as two counter-clockwise triangles; -0.0 and 0.0 are one position
+SQUARE = [[(0.0, 0.0, 0.0), (1.0, 0.0, 0.0), (1.0, 1.0, 0.0)], [(-0.0, 0.0, 0.0), (1.0, 1.0, 0.0), (0.0, 1.0, 0.0)]]
+
+
+@pytest.mark.parametrize("kind", ["binary", "binary with a 'solid' header", "ascii"])
+def test_stl_corners_become_shared_vertices(tmp_path, kind):
+    if kind == "ascii":
+        path = _ascii_stl(tmp_path / "s.stl", SQUARE)
+    else:
+        path = _binary_stl(tmp_path / "s.stl", SQUARE, b"solid square" if "solid" in kind else b"hand")
+    cloud = load(path)
+    assert cloud.positions.tolist() == [[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]]  # in order of first use
+    assert cloud.faces.tolist() == [[0, 1, 2], [0, 2, 3]]
+    np.testing.assert_allclose(cloud.normals, np.tile([0, 0, 1], (4, 1)))
+
+
+def test_stl_of_a_mesh_gives_the_points_of_its_obj(tmp_path):
+    mesh = load(SPOT)
+    path = _binary_stl(tmp_path / "spot.stl", mesh.positions[mesh.faces])
+    cloud = load(path)
+    assert len(cloud) == len(mesh) and len(cloud.faces) == len(mesh.faces)
+    order, expected = np.lexsort(cloud.positions.T), np.lexsort(mesh.positions.astype(np.float32).T)
+    np.testing.assert_array_equal(cloud.positions[order], mesh.positions.astype(np.float32)[expected])
+    np.testing.assert_allclose(cloud.normals[order], mesh.normals[expected], atol=1e-5)
+
+
+@pytest.mark.parametrize("content, message", [
+    (lambda p: _binary_stl(p, SQUARE).write_bytes(p.read_bytes()[:-10]),
+     "binary STL size mismatch: 2 triangles need 184 bytes, the file has 174"),
+    (lambda p: p.write_bytes(b"\x00" * 40), "not an STL file: 40 bytes, shorter than a binary STL's header"),
+    (lambda p: _binary_stl(p, []), "STL file has no triangles"),
+    (lambda p: p.write_text("solid x\nfacet normal 0 0 1\nouter loop\nvertex 0 0 0\nvertex 1 0\n"
+                            "vertex 1 1 0\nendloop\nendfacet\nendsolid\n"),
+     "1 ASCII STL vertex lines do not hold 3 coordinates"),
+    (lambda p: p.write_text("solid x\nvertex 0 0 0\nvertex 1 0 0\nendsolid\n"),
+     "ASCII STL has 2 vertex lines, not 3 for each facet"),
+])
+def test_stl_bad_files(tmp_path, content, message):
+    path = tmp_path / "bad.stl"
+    content(path)
+    assert message in str(raises_input_error(path))
+
+
+# --- OFF --------------------------------------------------------------------------------
+
+def test_off_mesh_with_comments_quads_and_unreferenced_vertices(tmp_path):
+    (tmp_path / "q.off").write_text(
+        "OFF\n# a quad and a triangle; vertex 5 unused\n6 2 0\n\n0 0 0\n1 0 0\n1 1 0\n0 1 0\n2 0 0\n"
+        "9 9 9 # far\n4 0 1 2 3\n3 1 4 2 255 0 0\n")
+    cloud = load(tmp_path / "q.off")
+    assert len(cloud) == 5 and cloud.colors is None
+    assert cloud.faces.tolist() == [[0, 1, 2], [0, 2, 3], [1, 4, 2]]
+    np.testing.assert_allclose(cloud.normals, np.tile([0, 0, 1], (5, 1)), atol=1e-7)
+
+
+def test_off_variants(tmp_path):
+    # ModelNet writes the counts on the keyword's line
+    (tmp_path / "m.off").write_text("OFF3 1 0\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n")
+    assert load(tmp_path / "m.off").faces.tolist() == [[0, 1, 2]]
+    # colours (0..255 with alpha) and the file's own normals, kept; no faces: a point set
+    (tmp_path / "c.off").write_text("CNOFF\n2 0 0\n0 0 0 1 0 0 255 0 0 255\n1 0 0 0 1 0 0 51 255 255\n")
+    cloud = load(tmp_path / "c.off")
+    assert cloud.faces is None and cloud.positions.tolist() == [[0, 0, 0], [1, 0, 0]]
+    np.testing.assert_allclose(cloud.normals, [[1, 0, 0], [0, 1, 0]])
+    np.testing.assert_allclose(cloud.colors, [[1, 0, 0], [0, 0.2, 1]])
+
+
+@pytest.mark.parametrize("text, message", [
+    ("PLY\n1 0 0\n0 0 0\n", "not an OFF file: it begins with 'PLY', not OFF, COFF, NOFF or CNOFF"),
+    ("OFF\n4 1 0\n0 0 0\n1 0 0\n",
+     "OFF file is truncated: its header counts 4 + 1 vertex and face lines, and 2 follow it"),
+    ("OFF\n", "OFF file lacks its vertex and face counts"),
+    ("OFF\n2.5 0 0\n0 0 0\n", "OFF counts 2.5 0 are not whole numbers"),
+    ("OFF\n3 1 0\n0 0 0\n1 0 0\n0 1 0\n3 0 1 3\n", "1 face corners refer to vertices that do not exist"),
+    ("OFF\n3 1 0\n0 0 0\n1 0 0\n0 1 0\n4 0 1 2\n", "an OFF face line does not hold as many indices"),
+    ("NOFF\n1 0 0\n0 0 0\n", "1 OFF vertex lines hold fewer than 6 numbers"),
+    ("OFF BINARY\n", "binary OFF is not supported"),
+])
+def test_off_bad_files(tmp_path, text, message):
+    (tmp_path / "bad.off").write_text(text)
+    assert message in str(raises_input_error(tmp_path / "bad.off"))
+
+
 # --- LAS / LAZ --------------------------------------------------------------------------
 
 def test_laz_autzen():

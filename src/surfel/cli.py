@@ -100,7 +100,7 @@ def main():
 @main.command(context_settings=CONTEXT)
 @table_options(*RENDER_COMMAND)
 def render(**values):
-    """Render INPUT (PLY, OBJ, LAS/LAZ, XYZ/PTS/TXT, NPZ, a .lod hierarchy, COPC) to a PNG.
+    """Render INPUT (PLY, OBJ, STL, OFF, LAS/LAZ, E57, XYZ/PTS/TXT, NPZ, a .lod hierarchy, COPC) to a PNG.
 
     A .lod directory (`surfel lod build -o NAME.lod`) or a COPC file (NAME.copc.laz) is read
     lazily: only the nodes the view selects at --lod-error (default 1 pixel) are loaded, at

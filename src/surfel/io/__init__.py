@@ -4,6 +4,8 @@
 
 - ``.ply``: `surfel.io.ply` (ascii and binary, points or meshes; written by `surfel.io.ply_write`)
 - ``.obj``: `surfel.io.obj` (meshes, or bare vertex lists)
+- ``.stl``: `surfel.io.stl` (binary and ASCII meshes)
+- ``.off``: `surfel.io.off` (text meshes and point sets)
 - ``.las``, ``.laz``: `surfel.io.las` (LiDAR; the cloud is marked geospatial)
 - ``.e57``: `surfel.io.e57` (terrestrial scans, merged by their poses; geospatial)
 - ``.xyz``, ``.pts``, ``.txt``: `surfel.io.text` (one point per line)
@@ -28,14 +30,17 @@ from .las import read_las
 from .mesh import area_weighted_vertex_normals
 from .npz import read_npz
 from .obj import read_obj
+from .off import read_off
 from .ply import read_ply
 from .ply_write import write_ply
+from .stl import read_stl
 from .text import read_text
 
 __all__ = ["load", "write_ply", "area_weighted_vertex_normals", "FORMATS"]
 
 _READERS: dict[str, Callable[[str], PointCloud]] = {
-    "ply": read_ply, "obj": read_obj, "las": read_las, "laz": read_las, "e57": read_e57,
+    "ply": read_ply, "obj": read_obj, "stl": read_stl, "off": read_off,
+    "las": read_las, "laz": read_las, "e57": read_e57,
     "xyz": read_text, "pts": read_text, "txt": read_text, "npz": read_npz,
 }
 FORMATS = tuple(_READERS)  # the accepted extensions and `format` names
