@@ -63,10 +63,50 @@ def test_cpu_matches_gl_on_dense_spot(dense_spot, method, view, shading):
 
 
 @pytest.mark.parametrize("method", METHODS)
+def test_the_far_side_of_a_closed_surface_is_passed_by_and_the_picture_kept(method):
+    """A tile draws the splats facing the camera first and passes by those behind them that
+    could change no pixel (splatting_kernels._hidden): on a sphere seen from outside, more than
+    half of the far half, whatever the method, and the picture stays the GL program's, which
+    draws every splat."""
+    from models import unit_sphere
+
+    sphere = unit_sphere()
+    for view in ("front", "iso"):
+        camera = frame(sphere.center, sphere.bounding_radius, view=view, size=SIZE)
+        cpu, gl = both(sphere, camera, method, shading="lambert")
+        assert cpu.stats["hidden_in_tiles"] > 0.25 * len(sphere)  # of about half facing away
+        assert_agree(cpu, gl)
+
+
+def test_a_splat_is_hidden_only_where_it_can_change_no_pixel():
+    """splatting_kernels._hidden on a 2x2 box: every pixel in front of the splat's nearest
+    depth, with a coverage of 1, or of at least a half with its four neighbours' too (the
+    pixel is whole whatever the splat adds); never at the tile's edge with less than 1."""
+    from surfel.methods.splatting_kernels import _hidden
+    from surfel.methods.splatting_tiles import STRIDE
+
+    def hidden(x, y, nearest=2.0, changes=()):
+        zb, cov = np.ones(STRIDE * STRIDE, np.float32), np.ones(STRIDE * STRIDE, np.float32)
+        for (px, py), depth, coverage in changes:
+            zb[py * STRIDE + px], cov[py * STRIDE + px] = depth, coverage
+        box = np.array([[x], [x + 1], [y], [y + 1]], np.int32)
+        return _hidden(box, 0, 0, 0, 32, 32, np.float32(nearest), zb, cov)
+
+    assert hidden(10, 20)
+    assert not hidden(10, 20, 1.0)  # the splat's fragments may reach the visible depth
+    assert not hidden(10, 20, changes=[((11, 21), 2.0, 1.0)])
+    assert hidden(10, 20, changes=[((11, 21), 1.0, 0.7)])  # surrounded: whole whatever it adds
+    assert not hidden(10, 20, changes=[((11, 21), 1.0, 0.7), ((12, 21), 1.0, 0.4)])
+    assert not hidden(10, 20, changes=[((10, 20), 1.0, 0.4)])  # it could make the pixel covered
+    assert hidden(30, 20) and not hidden(30, 20, changes=[((31, 20), 1.0, 0.9)])  # a neighbour in another tile
+    assert hidden(30, 20, changes=[((31, 20), 1.0, 1.0), ((30, 21), 1.0, 0.9)])
+
+
+@pytest.mark.parametrize("method", METHODS)
 def test_large_splats_match_gl(method):
     """Spot's 2,930 vertices at 192x192: boxes of 4-5 samples across (median; 8-10 at phong's
     2x2 samples a pixel), whose samples beyond each top-left 2x2 make 2,351-4,252 further 2x2
-    blocks in the busiest tile, drawn in rounds of SPLIT_BLOCKS (splatting_tiles.draw_tile):
+    blocks in the busiest tile, drawn in rounds of SPLIT_BLOCKS (splatting_tiles.visible_splats):
     more than one round in nearly every tile."""
     from surfel.methods.splatting_tiles import SPLIT_BLOCKS
 
@@ -371,12 +411,13 @@ def test_the_hot_loops_compile_to_simd():
                np.zeros(t.STRIDE ** 2, np.float32), np.zeros(t.STRIDE ** 2, np.float32)]
     params = (np.float32(1.0), np.float32(0.0), np.float32(32.0))
     extras = np.zeros((t.EXTRAS, count), np.float32)
-    assert _packed_float_ops(t.visibility_tile, table, boxes, count, 0, 0, params, extras, extras, None,
+    assert _packed_float_ops(t.visibility_tile, table, boxes, 0, count, 0, 0, params, extras, extras, None,
                              *scratch) >= 32
     packed = np.zeros((t.PACKED, count), np.float32)
     camera = tuple(np.float32(v) for v in (1, 0, 0, 0, 1, 0, 0, 0, 1, 0, 0, -5, 500, 500, 256, 256, 0, 0.1, 100))
-    assert _packed_float_ops(bins.bound_block, packed, extras, camera, np.float32(1.0), np.float32(1.0), False, 512,
-                             512, np.zeros(4 * bins.BOUND_BLOCK, np.int32), 0, count) >= 16
+    assert _packed_float_ops(bins.bound_block, packed, extras, camera, np.float32(1.0), np.float32(1.0), False,
+                             np.float32(32.0), 512, 512, np.zeros(4 * bins.BOUND_BLOCK, np.int32),
+                             np.zeros(count, np.float32), 0, count) >= 16
 
 
 @pytest.mark.parametrize("threads", [1, 2, 3, 8])

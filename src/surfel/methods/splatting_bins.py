@@ -24,6 +24,8 @@ import numpy as np
 from .splatting_tiles import EC0, EC1, PNX, PNY, PNZ, PUX, PUY, PUZ, PVX, PVY, PVZ, PX, PY, PZ, TILE_BITS, face_camera
 
 BOUND_BLOCK = 1024  # splats whose boxes bound_splats computes before counting them (in cache)
+FRONT = np.float32(-1e30)  # bound_splats' nearest depth of a splat facing the camera: none lies in front of it
+NEAREST_SHRINK, EXTENT_MARGIN = np.float32(1.0 - 1e-6), np.float32(1.01)
 
 
 @nb.njit(inline="always", fastmath=True, error_model="numpy")
@@ -58,12 +60,17 @@ def camera_scalars(m):
 
 
 @nb.njit(parallel=True, fastmath=True, error_model="numpy", cache=True)
-def bound_splats(packed, extras, m, radius_scale, lowpass, backface, width, height, box, tiles_x, counts, scratch):
+def bound_splats(packed, extras, m, radius_scale, lowpass, backface, depth_clamp, width, height, box, nearest, tiles_x,
+                 counts, scratch):
     """Each splat's pixel box in `box` (4, N) int32, as the GPU's quad (splatting.glsl): the
     pixel centres inside the projected corners of the disk's bounding square and, with the EWA
     filter, the low-pass disk of `lowpass` pixels around the projected centre (x0, x1, y0, y1
     inclusive; x0 > x1 marks a culled splat). A splat with a corner behind the near plane gets
-    the whole image. m: the frame's camera (splatting_cpu._camera). In the same pass, binning's
+    the whole image. `nearest` (N,) float32: for a splat seen from its back, an eye depth that
+    none of its fragments lies in front of (its centre's, less `depth_clamp` times its larger
+    semi-axis: the clamp of splatting_tiles.fragment), which lets a tile pass it by where the
+    splats facing the camera cover its box in front of that (splatting_kernels.rasterize_tiles);
+    FRONT for the others. m: the frame's camera (splatting_cpu._camera). In the same pass, binning's
     count: counts (chunks, tiles) gets how many splats of each chunk of the cloud (one thread
     each) meet each TILE x TILE tile. scratch (chunks, 4 BOUND_BLOCK) int32: each chunk's boxes
     of BOUND_BLOCK splats, computed in one SIMD loop before they are counted."""
@@ -78,7 +85,8 @@ def bound_splats(packed, extras, m, radius_scale, lowpass, backface, width, heig
         end = min(chunk * step + step, n)
         for first in range(chunk * step, end, BOUND_BLOCK):
             last = min(first + BOUND_BLOCK, end)
-            bound_block(packed, extras, cam, radius_scale, lowpass, backface, width, height, bounds, first, last)
+            bound_block(packed, extras, cam, radius_scale, lowpass, backface, depth_clamp, width, height, bounds,
+                        nearest, first, last)
             for i in range(first, last):
                 slot = i - first
                 x0, x1 = bounds[slot], bounds[slot + BOUND_BLOCK]
@@ -92,8 +100,9 @@ def bound_splats(packed, extras, m, radius_scale, lowpass, backface, width, heig
 
 
 @nb.njit(fastmath=True, error_model="numpy")
-def bound_block(packed, extras, cam, radius_scale, lowpass, backface, width, height, bounds, first, last):
-    """bound_splats' boxes of splats first..last-1, without branches (a SIMD loop)."""
+def bound_block(packed, extras, cam, radius_scale, lowpass, backface, depth_clamp, width, height, bounds, nearest,
+                first, last):
+    """bound_splats' boxes and nearest depths of splats first..last-1, without branches (a SIMD loop)."""
     ortho, near = cam[16], cam[17]
     one = np.float32(1.0)
     for index in range(first, last):
@@ -109,9 +118,12 @@ def bound_block(packed, extras, cam, radius_scale, lowpass, backface, width, hei
         nx, ny, nz, ux, uy, uz, vx, vy, vz = face_camera(ex, ey, ez, nx, ny, nz, ux, uy, uz, vx, vy, vz, ortho)
         depth = -ez
         perspective = ortho <= 0
-        reach = math.sqrt(ux * ux + uy * uy + uz * uz) + math.sqrt(vx * vx + vy * vy + vz * vz)
-        culled = (backface & ((nz if ortho > 0 else -(nx * ex + ny * ey + nz * ez)) < 0)) \
-            | (perspective & (depth + reach < near))  # facing away, or wholly behind the near plane
+        lu, lv = math.sqrt(ux * ux + uy * uy + uz * uz), math.sqrt(vx * vx + vy * vy + vz * vz)
+        reach = lu + lv
+        away = (nz if ortho > 0 else -(nx * ex + ny * ey + nz * ez)) < 0
+        culled = (backface & away) | (perspective & (depth + reach < near))  # or wholly behind the near plane
+        # the margins cover the rounding of the same arithmetic in splatting_kernels._setup
+        nearest[i] = depth * NEAREST_SHRINK - EXTENT_MARGIN * depth_clamp * max(lu, lv) if away else FRONT
         if extras is not None:  # cut away whole (a point on a crease)
             culled |= (extras[EC0, i] < -1) | (extras[EC1, i] < -1)
         whole = perspective & (depth - abs(uz) - abs(vz) < near)  # a corner behind it: the whole image

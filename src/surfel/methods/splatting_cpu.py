@@ -54,7 +54,9 @@ Speed (issue 18): the cloud is drawn in Morton order (made once per cloud by the
 a tile's splats lie together in memory; splats are binned into TILE x TILE screen tiles by
 all threads, and tiles are rasterized in parallel, dealt to the threads by their splats
 (ewa.balanced_tile_order), each in its thread's cache-sized scratch, normalized and shaded in
-place; the splat table, bins and scratch are kept by the Renderer from frame to frame
+place; a tile draws the splats facing the camera first and passes by those seen from their
+backs that they hide (splatting_kernels.rasterize_tiles; the stats' `hidden_in_tiles` counts
+them); the splat table, bins and scratch are kept by the Renderer from frame to frame
 (`CpuSplatBuffers`); per-fragment arithmetic is float32 under fastmath.
 """
 
@@ -129,6 +131,7 @@ class CpuSplatBuffers:
         self.staged_rows = np.array([row for row in range(t.PACKED) if row not in self.constant_rows], np.int64)
         count = len(cloud)
         self.box = np.empty((4, count), np.int32)  # a column per splat, as `packed`
+        self.nearest = np.empty(count, np.float32)
         self.index = np.empty(count + count // 4 + 1, np.int32)
         self.capacity = -1  # no tables yet: the first frame makes them, even with every tile empty
         self.size = None
@@ -146,6 +149,7 @@ class CpuSplatBuffers:
         self.bounds = np.empty((threads * BIN_CHUNKS_PER_THREAD, 4 * bins.BOUND_BLOCK), np.int32)
         self.tile_start = np.empty(tiles, np.int64)
         self.tile_count = np.empty(tiles, np.int64)
+        self.tile_drawn = np.empty(tiles, np.int64)
         self.present = np.empty((height, width), np.uint8)
         self.zbuf = np.empty((threads, t.STRIDE * t.STRIDE), np.float32)
         self.cover = np.empty((threads, t.STRIDE * t.STRIDE), np.float32)
@@ -231,8 +235,8 @@ def _render_cpu(cloud, camera, options, params, renderer, *, per_splat_shading: 
     m = _camera(target, cloud.local_origin)
     clip = buffers.extras if "clip_lines" in cloud.attributes else None  # the kernels' CLIP_LINES
     bins.bound_splats(buffers.packed, clip, m, np.float32(params.radius_scale), lowpass,
-                      params.backface_culling, width, height, buffers.box, buffers.tiles_x, buffers.counts,
-                      buffers.bounds)
+                      params.backface_culling, np.float32(DEPTH_CLAMP), width, height, buffers.box, buffers.nearest,
+                      buffers.tiles_x, buffers.counts, buffers.bounds)
     buffers.bin()
     # one sample a pixel and no screen-space pass after it: the kernels write the final image
     composite = ss == 1 and not options.edl
@@ -242,8 +246,9 @@ def _render_cpu(cloud, camera, options, params, renderer, *, per_splat_shading: 
     normals = np.empty((height, width, 3), np.float32)
     indices = np.empty((height, width) if categorical else (1, 1), np.int32)
     background = np.asarray(options.background, np.float32)
-    k.rasterize_tiles(buffers.packed, buffers.staged_rows, buffers.extras, buffers.box, buffers.index,
-                      buffers.tile_start, buffers.tile_count, buffers.order, buffers.tiles_x, width, height, m,
+    k.rasterize_tiles(buffers.packed, buffers.staged_rows, buffers.extras, buffers.box, buffers.nearest, buffers.index,
+                      buffers.tile_start, buffers.tile_count, buffers.tile_drawn, buffers.order, buffers.tiles_x, width,
+                      height, m,
                       np.float32(params.radius_scale), lowpass, np.float32(params.depth_offset),
                       np.float32(DEPTH_CLAMP), clip, buffers.extras if curved else None,
                       buffers.extras if normal_field else None,
@@ -253,7 +258,9 @@ def _render_cpu(cloud, camera, options, params, renderer, *, per_splat_shading: 
                       buffers.split_kept, buffers.zbuf, buffers.cover, buffers.accum, buffers.best, buffers.present,
                       color, alpha, depth, normals, indices)
     k.finish_surrounded(buffers.present, color, alpha, depth, normals, background, composite)
-    stats = {"splats": len(cloud), "supersample": ss, "ewa_filter": params.ewa_filter}
+    # tile-splat pairs that splats facing the camera hid (splatting_kernels.rasterize_tiles)
+    hidden = int(buffers.tile_count.sum() - buffers.tile_drawn.sum())
+    stats = {"splats": len(cloud), "supersample": ss, "ewa_filter": params.ewa_filter, "hidden_in_tiles": hidden}
     if composite:  # already over the background: the pinholes of its pixels filled (as from_samples does)
         color, alpha, depth, normals, _, filled = fill_pinholes(color, alpha, depth, normals,
                                                                 indices if categorical else None)
