@@ -805,6 +805,10 @@ def _ply_files(draw) -> tuple:
                 draw(st.sampled_from(["int", "uint", "uchar", "short", "float"])))
         polygons = st.lists(st.integers(0, n), min_size=draw(st.sampled_from([3, 2, 0])), max_size=5)
         elements.append(("face", [face], [(draw(polygons),) for _ in range(draw(st.integers(0, 4)))]))
+    if draw(st.integers(0, 3)) == 0:  # triangle strips, -1 ending each
+        strips = st.lists(st.integers(-1, n), max_size=8)
+        elements.append(("tristrips", [("vertex_indices", "list", "int", draw(st.sampled_from(["int", "short"])))],
+                         [(draw(strips),) for _ in range(draw(st.integers(0, 2)))]))
     if draw(st.booleans()):
         other = ("other", [("name", "list", "uchar", "char"), ("w", draw(st.sampled_from(_SCALAR_TYPES)))],
                  [(draw(st.lists(_values("char"), max_size=3)), 1) for _ in range(draw(st.integers(0, 3)))])
@@ -856,6 +860,42 @@ def test_ply_fuzz_loads_or_raises_input_error(tmp_path, spec, damage, where, val
     elif damage == "lie":  # digits prepended to an element's real count: a far bigger claim
         element = spec[1][value % len(spec[1])][0].encode()
         data = data.replace(b"element %s " % element, b"element %s %d" % (element, value), 1)
+    path.write_bytes(data)
+    try:
+        cloud = load(path)
+    except InputError as error:
+        assert path.name in str(error)
+    else:
+        assert isinstance(cloud, PointCloud) and len(cloud) > 0
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(kind=st.sampled_from(["binary.stl", "ascii.stl", "off"]),
+       corners=st.lists(st.tuples(*[st.floats(-4, 4, width=32)] * 3), min_size=3, max_size=12),
+       damage=st.sampled_from(["none", "flip", "cut", "lie"]),
+       where=st.lists(st.integers(0, 10**6), min_size=1, max_size=3), value=st.integers(0, 2**40))
+def test_stl_and_off_fuzz_load_or_raise_input_error(tmp_path, kind, corners, damage, where, value):
+    triangles = [corners[k:k + 3] for k in range(0, len(corners) - 2, 3)]
+    path = tmp_path / f"fuzz.{kind.rsplit('.', 1)[-1]}"
+    if kind == "binary.stl":
+        _binary_stl(path, triangles)
+    elif kind == "ascii.stl":
+        _ascii_stl(path, triangles)
+    else:
+        lines = [f"{x!r} {y!r} {z!r}" for x, y, z in corners]
+        lines += [f"3 {k} {k + 1} {k + 2}" for k in range(0, 3 * len(triangles), 3)]
+        path.write_text(f"OFF\n{len(corners)} {len(triangles)} 0\n" + "\n".join(lines) + "\n")
+    data = path.read_bytes()
+    if damage == "flip":
+        damaged = bytearray(data)
+        for position in where:
+            damaged[position % len(data)] = value % 256
+        data = bytes(damaged)
+    elif damage == "cut":
+        data = data[:where[0] % len(data)]
+    elif damage == "lie":  # a far bigger count than the file holds
+        data = data[:80] + struct.pack("<I", value % 2**32) + data[84:] if kind == "binary.stl" else \
+            data.replace(b"\n", b"\n%d" % value, 1)
     path.write_bytes(data)
     try:
         cloud = load(path)

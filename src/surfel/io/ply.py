@@ -449,6 +449,7 @@ def _faces(found: dict[str, _Columns], n: int, path: str) -> np.ndarray | None:
         else:  # each list one or more strips: a -1 after each list ends its last
             ends = np.cumsum(lists[0].lengths)
             triangles.append(triangles_from_strips(np.insert(items, ends, -1), n, path))
+    triangles = [t for t in triangles if len(t)]  # strips may make none (all stitching)
     return np.concatenate(triangles) if triangles else None
 
 

@@ -70,17 +70,21 @@ def bound_splats(packed, extras, m, radius_scale, lowpass, backface, depth_clamp
     none of its fragments lies in front of (its centre's, less `depth_clamp` times its larger
     semi-axis: the clamp of splatting_tiles.fragment), which lets a tile pass it by where the
     splats facing the camera cover its box in front of that (splatting_kernels.rasterize_tiles);
-    FRONT for the others. m: the frame's camera (splatting_cpu._camera). In the same pass, binning's
-    count: counts (chunks, tiles) gets how many splats of each chunk of the cloud (one thread
-    each) meet each TILE x TILE tile. scratch (chunks, 4 BOUND_BLOCK) int32: each chunk's boxes
-    of BOUND_BLOCK splats, computed in one SIMD loop before they are counted."""
+    FRONT for the others. None: every splat counts as facing the camera (the tiles' lists in
+    draw order). m: the frame's camera (splatting_cpu._camera). In the same pass, binning's
+    count: counts (2 chunks, tiles) gets how many splats of each chunk of the cloud (one thread
+    each) meet each TILE x TILE tile, those facing the camera in row `chunk`, the others in row
+    chunks + chunk (so that a tile's list holds the first before the others). scratch (chunks,
+    5 BOUND_BLOCK) int32: each chunk's boxes of BOUND_BLOCK splats and whether they face away,
+    computed in one SIMD loop before they are counted."""
     n = packed.shape[1]
     cam = camera_scalars(m)
-    chunks = counts.shape[0]
+    chunks = counts.shape[0] // 2
     step = (n + chunks - 1) // chunks
     for chunk in nb.prange(chunks):
-        row = counts[chunk]
-        row[:] = 0
+        front_row, back_row = counts[chunk], counts[chunks + chunk]
+        front_row[:] = 0
+        back_row[:] = 0
         bounds = scratch[chunk]
         end = min(chunk * step + step, n)
         for first in range(chunk * step, end, BOUND_BLOCK):
@@ -94,6 +98,10 @@ def bound_splats(packed, extras, m, radius_scale, lowpass, backface, depth_clamp
                 box[0, i], box[1, i], box[2, i], box[3, i] = x0, x1, y0, y1
                 if x0 > x1:
                     continue
+                row = front_row
+                if nearest is not None:  # compiled apart where None
+                    if bounds[slot + 4 * BOUND_BLOCK]:
+                        row = back_row
                 for ty in range(y0 >> TILE_BITS, (y1 >> TILE_BITS) + 1):
                     for tx in range(x0 >> TILE_BITS, (x1 >> TILE_BITS) + 1):
                         row[ty * tiles_x + tx] += 1
@@ -123,7 +131,9 @@ def bound_block(packed, extras, cam, radius_scale, lowpass, backface, depth_clam
         away = (nz if ortho > 0 else -(nx * ex + ny * ey + nz * ez)) < 0
         culled = (backface & away) | (perspective & (depth + reach < near))  # or wholly behind the near plane
         # the margins cover the rounding of the same arithmetic in splatting_kernels._setup
-        nearest[i] = depth * NEAREST_SHRINK - EXTENT_MARGIN * depth_clamp * max(lu, lv) if away else FRONT
+        if nearest is not None:
+            nearest[i] = depth * NEAREST_SHRINK - EXTENT_MARGIN * depth_clamp * max(lu, lv) if away else FRONT
+            bounds[index - first + 4 * BOUND_BLOCK] = 1 if away else 0
         if extras is not None:  # cut away whole (a point on a crease)
             culled |= (extras[EC0, i] < -1) | (extras[EC1, i] < -1)
         whole = perspective & (depth - abs(uz) - abs(vz) < near)  # a corner behind it: the whole image
@@ -154,18 +164,21 @@ def bound_block(packed, extras, cam, radius_scale, lowpass, backface, depth_clam
 
 
 @nb.njit(cache=True)
-def tile_offsets(counts, tile_start, tile_count):
-    """Binning's prefix sum, tile-major and chunk-minor so that each tile's splats stay in draw
-    order: counts (chunks, tiles) becomes each chunk's first place in the index list of each
-    tile, tile t's list being index[tile_start[t]:tile_start[t] + tile_count[t]]. Returns
-    (tile-splat pairs, largest tile count)."""
-    chunks, tiles = counts.shape
+def tile_offsets(counts, tile_start, tile_count, tile_front):
+    """Binning's prefix sum, tile-major and row-minor so that each tile's splats stay in draw
+    order, those facing the camera first: counts (2 chunks, tiles), from bound_splats, becomes
+    each row's first place in the index list of each tile, tile t's list being
+    index[tile_start[t]:tile_start[t] + tile_count[t]], its first tile_front[t] facing the
+    camera. Returns (tile-splat pairs, largest tile count)."""
+    rows, tiles = counts.shape
     total, largest = 0, 0
     for t in range(tiles):
         tile_start[t] = total
-        for chunk in range(chunks):
-            count = counts[chunk, t]
-            counts[chunk, t] = total
+        for row in range(rows):
+            if row == rows // 2:
+                tile_front[t] = total - tile_start[t]
+            count = counts[row, t]
+            counts[row, t] = total
             total += count
         tile_count[t] = total - tile_start[t]
         largest = max(largest, tile_count[t])
@@ -173,17 +186,21 @@ def tile_offsets(counts, tile_start, tile_count):
 
 
 @nb.njit(parallel=True, cache=True)
-def place_splats(box, tiles_x, places, index):
+def place_splats(box, nearest, tiles_x, places, index):
     """Binning's scatter: each chunk's splats (one thread each) into the index lists of the
-    tiles they meet, from `places` (chunks, tiles), which tile_offsets made."""
+    tiles they meet, from `places` (2 chunks, tiles), which tile_offsets made; `nearest`
+    (bound_splats') tells those facing the camera, or None as there."""
     n = box.shape[1]
-    chunks = places.shape[0]
+    chunks = places.shape[0] // 2
     step = (n + chunks - 1) // chunks
     for chunk in nb.prange(chunks):
-        row = places[chunk]
         for i in range(chunk * step, min(chunk * step + step, n)):
             if box[0, i] > box[1, i]:
                 continue
+            row = places[chunk]
+            if nearest is not None:  # compiled apart where None
+                if nearest[i] != FRONT:
+                    row = places[chunks + chunk]
             tx0, tx1 = box[0, i] >> TILE_BITS, box[1, i] >> TILE_BITS
             for ty in range(box[2, i] >> TILE_BITS, (box[3, i] >> TILE_BITS) + 1):
                 for tx in range(tx0, tx1 + 1):

@@ -39,7 +39,7 @@ from ..colors import continuous_pixel
 from ..shading import shade_pixel
 from ..threads import IMAGE_GRAIN, over_rows
 from .ewa_kernels import FAR, TILE, layer_offset
-from .splatting_bins import FRONT, camera_scalars, eye_space, rotate, to_pixels
+from .splatting_bins import camera_scalars, eye_space, rotate, to_pixels
 from .splatting_tiles import (
     A1X,
     A1Y,
@@ -424,16 +424,17 @@ def _write_empty(color, alpha, depth, normals, present, indices, y, x, backgroun
 
 
 @nb.njit(parallel=True, fastmath=True, error_model="numpy", cache=True)
-def rasterize_tiles(packed, staged_rows, extras, box, nearest, index, tile_start, tile_count, tile_drawn, order,
+def rasterize_tiles(packed, staged_rows, extras, box, nearest, index, tile_start, tile_count, tile_front, tile_drawn,
+                    order,
                     tiles_x, width, height, m,
                     radius_scale, lowpass, depth_offset, depth_clamp, clip_src, field_src, normal_src,
                     per_splat_model, deferred_model, color_mode, palette, levels, background, composite, tables, boxes,
                     temp, kept, split, split_box, split_kept, zbuf, cover, accum, best, present, color, alpha, depth,
                     normals, indices):
     """Every tile of `order`, written into color (H, W, 3), alpha, depth (H, W) and normals
-    (H, W, 3). A tile draws the splats that face the camera first (bins.bound_splats' `nearest`
-    FRONT), then those of the others that `_hidden` cannot rule out; tile_drawn (tiles,) gets
-    how many it drew. The attribute pass then sums them in that order, not the index list's,
+    (H, W, 3). A tile draws the splats that face the camera first (the first tile_front[t] of
+    its list, bins.tile_offsets), then those of the others that `_hidden` cannot rule out;
+    tile_drawn (tiles,) gets how many it drew. The attribute pass then sums them in that order, not the index list's,
     which moves its sums by float rounding only. Of the packed rows only `staged_rows` are
     copied into the tables: the others, the same for every splat (no colours, no layers), each
     thread's table holds already (CpuSplatBuffers). `present` (H, W) uint8 gets, per pixel, the
@@ -489,21 +490,19 @@ def rasterize_tiles(packed, staged_rows, extras, box, nearest, index, tile_start
         # First the splats that face the camera: where they cover a box in front of a back
         # splat's `nearest`, none of its fragments passes either pass, and it is never staged
         # (the far side of a closed surface, about half of the splats).
-        start = tile_start[t]
-        front = 0
-        for slot in range(count):
-            i = np.uint64(index[start + slot])  # unsigned: numba tests a signed one for wraparound
-            if nearest[i] == FRONT:
-                _stage(table, ibox, front, i, packed, staged_rows, extras, box, clip_src, field_src)
-                front += 1
+        start, front = tile_start[t], tile_front[t]
+        for slot in range(front):
+            # unsigned indices: numba tests a signed one for wraparound, which keeps loads scalar
+            _stage(table, ibox, slot, np.uint64(index[start + slot]), packed, staged_rows, extras, box, clip_src,
+                   field_src)
         _setup_tile(table, ibox, 0, front, ox, oy, m, radius_scale, lowpass2, depth_offset, ewa_filter, clip_src,
                     field_src, normal_src, per_splat_model < 0)
         rounds, drawn = visible_splats(table, ibox, 0, front, ox, oy, params, clip_src, field_src, normal_src, tmp,
                                        store, sp, sb, sk, zb, cov)
         staged = front
-        for slot in range(count):
+        for slot in range(front, count):
             i = np.uint64(index[start + slot])
-            if nearest[i] != FRONT and not _hidden(box, i, ox, oy, tw, th, nearest[i], zb, cov):
+            if not _hidden(box, i, ox, oy, tw, th, nearest[i], zb, cov):
                 _stage(table, ibox, staged, i, packed, staged_rows, extras, box, clip_src, field_src)
                 staged += 1
         if staged > front:
