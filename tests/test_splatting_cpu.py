@@ -411,7 +411,7 @@ def test_the_hot_loops_compile_to_simd():
                np.zeros(t.STRIDE ** 2, np.float32), np.zeros(t.STRIDE ** 2, np.float32)]
     params = (np.float32(1.0), np.float32(0.0), np.float32(32.0))
     extras = np.zeros((t.EXTRAS, count), np.float32)
-    assert _packed_float_ops(t.visibility_tile, table, boxes, 0, count, 0, 0, params, extras, extras, None,
+    assert _packed_float_ops(t.visibility_tile, table, boxes, count, 0, 0, params, extras, extras, None,
                              *scratch) >= 32
     packed = np.zeros((t.PACKED, count), np.float32)
     camera = tuple(np.float32(v) for v in (1, 0, 0, 0, 1, 0, 0, 0, 1, 0, 0, -5, 500, 500, 256, 256, 0, 0.1, 100))

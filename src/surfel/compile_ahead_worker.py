@@ -22,7 +22,6 @@ from .preprocess import CLIP_LINES, INACTIVE_CLIP, tangent_frames
 from .rendering import Renderer
 
 SPHERE_POINTS = 512
-FAR_AWAY = 1000.0  # how many times farther than framed the second render's camera stands
 
 
 def synthetic_cloud(clip: bool) -> PointCloud:
@@ -39,16 +38,11 @@ def synthetic_cloud(clip: bool) -> PointCloud:
 
 
 def compile_for(spec: dict) -> None:
-    """Render the synthetic cloud as `spec` describes the real render: framed, and from far
-    enough that its splats are smaller than a pixel, as the CPU splatting kernels differ between
-    the two (splatting_cpu.HIDE_FROM_RADIUS)."""
+    """Render the synthetic cloud as `spec` describes the real render."""
     width, height = spec["size"]
-    cloud = synthetic_cloud(spec["clip"])
     with Renderer(compile_ahead=False) as renderer:  # nothing to compile ahead of: it is the helper
-        for zoom in (1.0, FAR_AWAY):
-            renderer.render(cloud, frame(np.zeros(3), 1.0, size=(width, height), zoom=zoom), spec["method"],
-                            backend="cpu", shading=spec["shading"], supersample=spec["supersample"],
-                            **spec["params"])
+        renderer.render(synthetic_cloud(spec["clip"]), frame(np.zeros(3), 1.0, size=(width, height)), spec["method"],
+                        backend="cpu", shading=spec["shading"], supersample=spec["supersample"], **spec["params"])
 
 
 if __name__ == "__main__":

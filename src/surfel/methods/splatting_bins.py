@@ -60,8 +60,8 @@ def camera_scalars(m):
 
 
 @nb.njit(parallel=True, fastmath=True, error_model="numpy", cache=True)
-def bound_splats(packed, extras, m, radius_scale, lowpass, backface, depth_clamp, width, height, box, nearest, tiles_x,
-                 counts, scratch):
+def bound_splats(packed, extras, m, radius_scale, lowpass, backface, depth_clamp, width, height, box, hiding, nearest,
+                 tiles_x, counts, scratch):
     """Each splat's pixel box in `box` (4, N) int32, as the GPU's quad (splatting.glsl): the
     pixel centres inside the projected corners of the disk's bounding square and, with the EWA
     filter, the low-pass disk of `lowpass` pixels around the projected centre (x0, x1, y0, y1
@@ -70,13 +70,13 @@ def bound_splats(packed, extras, m, radius_scale, lowpass, backface, depth_clamp
     none of its fragments lies in front of (its centre's, less `depth_clamp` times its larger
     semi-axis: the clamp of splatting_tiles.fragment), which lets a tile pass it by where the
     splats facing the camera cover its box in front of that (splatting_kernels.rasterize_tiles);
-    FRONT for the others. None: every splat counts as facing the camera (the tiles' lists in
-    draw order). m: the frame's camera (splatting_cpu._camera). In the same pass, binning's
-    count: counts (2 chunks, tiles) gets how many splats of each chunk of the cloud (one thread
-    each) meet each TILE x TILE tile, those facing the camera in row `chunk`, the others in row
-    chunks + chunk (so that a tile's list holds the first before the others). scratch (chunks,
-    5 BOUND_BLOCK) int32: each chunk's boxes of BOUND_BLOCK splats and whether they face away,
-    computed in one SIMD loop before they are counted."""
+    FRONT for the others. With `hiding` False every splat counts as facing the camera in the
+    tiles' lists, which then keep the draw order. m: the frame's camera (splatting_cpu._camera).
+    In the same pass, binning's count: counts (2 chunks, tiles) gets how many splats of each
+    chunk of the cloud (one thread each) meet each TILE x TILE tile, those facing the camera in
+    row `chunk`, the others in row chunks + chunk (so that a tile's list holds the first before
+    the others). scratch (chunks, 5 BOUND_BLOCK) int32: each chunk's boxes of BOUND_BLOCK splats
+    and whether they face away, computed in one SIMD loop before they are counted."""
     n = packed.shape[1]
     cam = camera_scalars(m)
     chunks = counts.shape[0] // 2
@@ -98,10 +98,7 @@ def bound_splats(packed, extras, m, radius_scale, lowpass, backface, depth_clamp
                 box[0, i], box[1, i], box[2, i], box[3, i] = x0, x1, y0, y1
                 if x0 > x1:
                     continue
-                row = front_row
-                if nearest is not None:  # compiled apart where None
-                    if bounds[slot + 4 * BOUND_BLOCK]:
-                        row = back_row
+                row = back_row if hiding and bounds[slot + 4 * BOUND_BLOCK] else front_row
                 for ty in range(y0 >> TILE_BITS, (y1 >> TILE_BITS) + 1):
                     for tx in range(x0 >> TILE_BITS, (x1 >> TILE_BITS) + 1):
                         row[ty * tiles_x + tx] += 1
@@ -131,9 +128,8 @@ def bound_block(packed, extras, cam, radius_scale, lowpass, backface, depth_clam
         away = (nz if ortho > 0 else -(nx * ex + ny * ey + nz * ez)) < 0
         culled = (backface & away) | (perspective & (depth + reach < near))  # or wholly behind the near plane
         # the margins cover the rounding of the same arithmetic in splatting_kernels._setup
-        if nearest is not None:
-            nearest[i] = depth * NEAREST_SHRINK - EXTENT_MARGIN * depth_clamp * max(lu, lv) if away else FRONT
-            bounds[index - first + 4 * BOUND_BLOCK] = 1 if away else 0
+        nearest[i] = depth * NEAREST_SHRINK - EXTENT_MARGIN * depth_clamp * max(lu, lv) if away else FRONT
+        bounds[index - first + 4 * BOUND_BLOCK] = 1 if away else 0
         if extras is not None:  # cut away whole (a point on a crease)
             culled |= (extras[EC0, i] < -1) | (extras[EC1, i] < -1)
         whole = perspective & (depth - abs(uz) - abs(vz) < near)  # a corner behind it: the whole image
@@ -186,10 +182,10 @@ def tile_offsets(counts, tile_start, tile_count, tile_front):
 
 
 @nb.njit(parallel=True, cache=True)
-def place_splats(box, nearest, tiles_x, places, index):
+def place_splats(box, hiding, nearest, tiles_x, places, index):
     """Binning's scatter: each chunk's splats (one thread each) into the index lists of the
-    tiles they meet, from `places` (2 chunks, tiles), which tile_offsets made; `nearest`
-    (bound_splats') tells those facing the camera, or None as there."""
+    tiles they meet, from `places` (2 chunks, tiles), which tile_offsets made; `hiding` and
+    `nearest` as bound_splats had them."""
     n = box.shape[1]
     chunks = places.shape[0] // 2
     step = (n + chunks - 1) // chunks
@@ -197,10 +193,7 @@ def place_splats(box, nearest, tiles_x, places, index):
         for i in range(chunk * step, min(chunk * step + step, n)):
             if box[0, i] > box[1, i]:
                 continue
-            row = places[chunk]
-            if nearest is not None:  # compiled apart where None
-                if nearest[i] != FRONT:
-                    row = places[chunks + chunk]
+            row = places[chunks + chunk] if hiding and nearest[i] != FRONT else places[chunk]
             tx0, tx1 = box[0, i] >> TILE_BITS, box[1, i] >> TILE_BITS
             for ty in range(box[2, i] >> TILE_BITS, (box[3, i] >> TILE_BITS) + 1):
                 for tx in range(tx0, tx1 + 1):

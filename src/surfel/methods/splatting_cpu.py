@@ -187,16 +187,17 @@ class CpuSplatBuffers:
         pairs, largest = bins.tile_offsets(self.counts, self.tile_start, self.tile_count, self.tile_front)
         if pairs > len(self.index):  # more tile overlaps than ever before
             self.index = np.empty(pairs + pairs // 4, np.int32)
-        bins.place_splats(self.box, self.nearest if hiding else None, self.tiles_x, self.counts, self.index)
+        bins.place_splats(self.box, hiding, self.nearest, self.tiles_x, self.counts, self.index)
         self.order = balanced_tile_order(self.tile_count, self.threads)
         if largest > self.capacity:
             self.capacity = largest + largest // 4
-            self.tables = np.zeros((self.threads, t.table_size(self.capacity)), np.float32)
-            blocks = self.tables.reshape(self.threads, -1, t.TABLE_ROWS, t.BLOCK)
+            # two a thread: for the splats facing the camera, and the others (splatting_kernels.rasterize_tiles)
+            self.tables = np.zeros((2 * self.threads, t.table_size(self.capacity)), np.float32)
+            blocks = self.tables.reshape(2 * self.threads, -1, t.TABLE_ROWS, t.BLOCK)
             for row, value in self.constant_rows.items():
                 blocks[:, :, row] = value
-            self.boxes = np.zeros((self.threads, 4 * t.table_size(self.capacity) // t.TABLE_ROWS), np.int32)
-            self.kept = np.zeros((self.threads, t.table_size(self.capacity, t.KEPT_ROWS)), np.float32)
+            self.boxes = np.zeros((2 * self.threads, 4 * t.table_size(self.capacity) // t.TABLE_ROWS), np.int32)
+            self.kept = np.zeros((2 * self.threads, t.table_size(self.capacity, t.KEPT_ROWS)), np.float32)
 
 
 def render_gaussian_cpu(cloud, camera, options, params: GaussianParams, renderer):
@@ -256,8 +257,8 @@ def _render_cpu(cloud, camera, options, params, renderer, *, per_splat_shading: 
     clip = buffers.extras if "clip_lines" in cloud.attributes else None  # the kernels' CLIP_LINES
     hiding = buffers.hides(target, cloud.center, params.radius_scale)
     bins.bound_splats(buffers.packed, clip, m, np.float32(params.radius_scale), lowpass,
-                      params.backface_culling, np.float32(DEPTH_CLAMP), width, height, buffers.box,
-                      buffers.nearest if hiding else None, buffers.tiles_x, buffers.counts, buffers.bounds)
+                      params.backface_culling, np.float32(DEPTH_CLAMP), width, height, buffers.box, hiding,
+                      buffers.nearest, buffers.tiles_x, buffers.counts, buffers.bounds)
     buffers.bin(hiding)
     # one sample a pixel and no screen-space pass after it: the kernels write the final image
     composite = ss == 1 and not options.edl

@@ -321,22 +321,19 @@ def _hidden(box, i, ox, oy, tw, th, nearest, zb, cov):
 
 
 @nb.njit(fastmath=True, error_model="numpy")
-def _setup_tile(table, ibox, begin, count, ox, oy, m, radius_scale, lowpass2, depth_offset, ewa_filter, clip_src,
+def _setup_tile(table, ibox, count, ox, oy, m, radius_scale, lowpass2, depth_offset, ewa_filter, clip_src,
                 field_src, normal_src, back_light):
-    """The records of a tile's staged splats begin..count-1, block by block (SIMD), with each
-    box made tile-local and clipped to the tile. `clip_src`, `field_src`, `normal_src`: the
-    extras, or None where the cloud has no clip lines, no normal field curves the splats, or
-    none shades them (`rasterize_tiles`; then their rows are left alone)."""
+    """The records of a tile's `count` staged splats, block by block (SIMD), with each box made
+    tile-local and clipped to the tile. `clip_src`, `field_src`, `normal_src`: the extras, or
+    None where the cloud has no clip lines, no normal field curves the splats, or none shades
+    them (`rasterize_tiles`; then their rows are left alone)."""
     curved = field_src is not None
     scale = np.float32(1.0) / radius_scale
     cam = camera_scalars(m)
-    first = begin
-    while first < count:
-        size = min(BLOCK - (first & (BLOCK - 1)), count - first)  # to the end of first's block
+    for first in range(0, count, BLOCK):
         base = table_slot(first, TABLE_ROWS)
         box_base = table_slot(first, 4)
-        first += size
-        for q in range(size):
+        for q in range(min(BLOCK, count - first)):
             j, jb = base + np.uint64(q), box_base + np.uint64(q)
             p, e = _staged(table, j)
             reach_u, reach_v = _reach(e, curved, radius_scale)
@@ -433,16 +430,17 @@ def rasterize_tiles(packed, staged_rows, extras, box, nearest, index, tile_start
                     normals, indices):
     """Every tile of `order`, written into color (H, W, 3), alpha, depth (H, W) and normals
     (H, W, 3). A tile draws the splats that face the camera first (the first tile_front[t] of
-    its list, bins.tile_offsets), then those of the others that `_hidden` cannot rule out;
-    tile_drawn (tiles,) gets how many it drew. The attribute pass then sums them in that order, not the index list's,
-    which moves its sums by float rounding only. Of the packed rows only `staged_rows` are
-    copied into the tables: the others, the same for every splat (no colours, no layers), each
-    thread's table holds already (CpuSplatBuffers). `present` (H, W) uint8 gets, per pixel, the
-    bit COVERED where a splat covers its centre and the bit UNDECIDED where `finish_surrounded`
-    must still decide whether its neighbours in other tiles make it whole (the pixel then holds
-    its raw colour and its own coverage). Each thread's scratch: tables (threads, table_size(largest tile)), boxes
-    (threads, 4 x that), temp (threads, TEMP_ROWS x BLOCK), kept (threads, table_size(largest
-    tile, KEPT_ROWS)), split, split_box, split_kept (threads, those of SPLIT_BLOCKS splats), zbuf,
+    its list, bins.tile_offsets), then, in a second table, those of the others that `_hidden`
+    cannot rule out; tile_drawn (tiles,) gets how many it drew. Its attribute pass sums the
+    second table's first, which moves the sums by float rounding only. Of the packed rows only
+    `staged_rows` are copied into the tables: the others, the same for every splat (no
+    colours, no layers), each table holds already (CpuSplatBuffers). `present` (H, W) uint8
+    gets, per pixel, the bit COVERED where a splat covers its centre and the bit UNDECIDED
+    where `finish_surrounded` must still decide whether its neighbours in other tiles make it
+    whole (the pixel then holds its raw colour and its own coverage). Each thread's scratch:
+    tables (2 threads, table_size(largest tile)), boxes (2 threads, 4 x that), temp (threads,
+    TEMP_ROWS x BLOCK), kept (2 threads, table_size(largest tile, KEPT_ROWS)), split,
+    split_box, split_kept (threads, those of SPLIT_BLOCKS splats), zbuf,
     cover (threads, STRIDE²), accum (threads, STRIDE², LAYER).
     clip_src, field_src, normal_src: the extras where splats are clipped, where they are curved
     by their normal fields, where they are shaded with them too (`phong`, `deferred`); else
@@ -463,6 +461,7 @@ def rasterize_tiles(packed, staged_rows, extras, box, nearest, index, tile_start
     ewa_filter = lowpass > 0
     params = (np.float32(1.0) / max(lowpass2, np.float32(1e-30)), zero if ewa_filter else NO_LOWPASS, depth_clamp)
     categorical = color_mode == COLOR_CATEGORICAL
+    threads = zbuf.shape[0]
     for k in nb.prange(order.shape[0]):
         t = order[k]
         if t < 0:  # padding (ewa.balanced_tile_order)
@@ -478,8 +477,7 @@ def rasterize_tiles(packed, staged_rows, extras, box, nearest, index, tile_start
                                  categorical)
             continue
         thread = nb.get_thread_id()
-        table, ibox, tmp, store = tables[thread], boxes[thread], temp[thread], kept[thread]
-        zb, cov, acc = zbuf[thread], cover[thread], accum[thread]
+        tmp, zb, cov, acc = temp[thread], zbuf[thread], cover[thread], accum[thread]
         sp, sb, sk = split[thread], split_box[thread], split_kept[thread]
         zb[:] = FAR
         cov[:] = 0
@@ -487,42 +485,49 @@ def rasterize_tiles(packed, staged_rows, extras, box, nearest, index, tile_start
         category = best[thread]
         if categorical:
             category[:] = -1
-        # First the splats that face the camera: where they cover a box in front of a back
-        # splat's `nearest`, none of its fragments passes either pass, and it is never staged
-        # (the far side of a closed surface, about half of the splats).
+        # Phase 0 draws the splats that face the camera (the first tile_front[t] of the list);
+        # phase 1, into a second table, the others that `_hidden` cannot rule out: where the
+        # first cover a back splat's box in front of its `nearest`, none of its fragments passes
+        # either pass, and it is never staged (the far side of a closed surface). A loop over
+        # the phases, not two copies of its body: LLVM inlined the set-up and the visibility
+        # pass at each call site, which took 20 s more to compile.
         start, front = tile_start[t], tile_front[t]
-        for slot in range(front):
-            # unsigned indices: numba tests a signed one for wraparound, which keeps loads scalar
-            _stage(table, ibox, slot, np.uint64(index[start + slot]), packed, staged_rows, extras, box, clip_src,
-                   field_src)
-        _setup_tile(table, ibox, 0, front, ox, oy, m, radius_scale, lowpass2, depth_offset, ewa_filter, clip_src,
-                    field_src, normal_src, per_splat_model < 0)
-        rounds, drawn = visible_splats(table, ibox, 0, front, ox, oy, params, clip_src, field_src, normal_src, tmp,
-                                       store, sp, sb, sk, zb, cov)
-        staged = front
-        for slot in range(front, count):
-            i = np.uint64(index[start + slot])
-            if not _hidden(box, i, ox, oy, tw, th, nearest[i], zb, cov):
-                _stage(table, ibox, staged, i, packed, staged_rows, extras, box, clip_src, field_src)
-                staged += 1
-        if staged > front:
-            _setup_tile(table, ibox, front, staged, ox, oy, m, radius_scale, lowpass2, depth_offset, ewa_filter,
-                        clip_src, field_src, normal_src, per_splat_model < 0)
-            back_rounds, back_drawn = visible_splats(table, ibox, front, staged, ox, oy, params, clip_src, field_src,
-                                                     normal_src, tmp, store, sp, sb, sk, zb, cov)
-            rounds, drawn = rounds + back_rounds, (back_drawn if back_rounds > 0 else drawn)
-        tile_drawn[t] = staged
-        if per_splat_model >= 0:  # Botsch & Kobbelt 2003: each splat's colour shaded, then blended
-            for slot in range(staged):
-                j = table_slot(slot, TABLE_ROWS)
-                r, g, b = table[j + ROW[R]], table[j + ROW[G]], table[j + ROW[B]]
-                if color_mode == COLOR_CONTINUOUS:  # gl/colors.glsl splat_albedo
-                    r, g, b = continuous_pixel(r, g, palette)
-                table[j + ROW[R]], table[j + ROW[G]], table[j + ROW[B]] = shade_pixel(
-                    per_splat_model, r, g, b, table[j + ROW[NX]], table[j + ROW[NY]], table[j + ROW[NZ]],
-                    table[j + ROW[CZ]], near, far)
-        attributes_of_splats(table, ibox, staged, rounds, drawn, ox, oy, params, clip_src, field_src, normal_src, tmp,
-                             store, sp, sb, sk, zb, cov, acc, levels if categorical else 0, category)
+        staged = (0, 0)
+        splits = (0, 0, 0, 0)  # each phase's rounds of copies, and copies in its last round
+        for phase in range(2):
+            own = phase * threads + thread  # a row of a 2D array: C-contiguous as the split table, one signature
+            table, ibox, store = tables[own], boxes[own], kept[own]
+            drawn = np.int64(0)  # not the literal 0: numba would compile the callees a second time for it
+            for slot in range(0 if phase == 0 else front, front if phase == 0 else count):
+                # unsigned indices: numba tests a signed one for wraparound, which keeps loads scalar
+                i = np.uint64(index[start + slot])
+                if phase == 0 or not _hidden(box, i, ox, oy, tw, th, nearest[i], zb, cov):
+                    _stage(table, ibox, drawn, i, packed, staged_rows, extras, box, clip_src, field_src)
+                    drawn += 1
+            _setup_tile(table, ibox, drawn, ox, oy, m, radius_scale, lowpass2, depth_offset, ewa_filter, clip_src,
+                        field_src, normal_src, per_splat_model < 0)
+            if per_splat_model >= 0:  # Botsch & Kobbelt 2003: each splat's colour shaded, then blended
+                for slot in range(drawn):
+                    j = table_slot(slot, TABLE_ROWS)
+                    r, g, b = table[j + ROW[R]], table[j + ROW[G]], table[j + ROW[B]]
+                    if color_mode == COLOR_CONTINUOUS:  # gl/colors.glsl splat_albedo
+                        r, g, b = continuous_pixel(r, g, palette)
+                    table[j + ROW[R]], table[j + ROW[G]], table[j + ROW[B]] = shade_pixel(
+                        per_splat_model, r, g, b, table[j + ROW[NX]], table[j + ROW[NY]], table[j + ROW[NZ]],
+                        table[j + ROW[CZ]], near, far)
+            rounds, copies = visible_splats(table, ibox, drawn, ox, oy, params, clip_src, field_src, normal_src, tmp,
+                                            store, sp, sb, sk, zb, cov)
+            staged = (drawn, staged[1]) if phase == 0 else (staged[0], drawn)
+            splits = (rounds, copies, 0, 0) if phase == 0 else (splits[0], splits[1], rounds, copies)
+        tile_drawn[t] = staged[0] + staged[1]
+        # the attribute pass, back splats first: `split` still holds the last copies made, the
+        # back splats' where they made any (rounds 2 makes the front splats' again)
+        for phase in range(1, -1, -1):
+            rounds = splits[2] if phase == 1 else (2 if splits[0] > 0 and splits[2] > 0 else splits[0])
+            own = phase * threads + thread
+            attributes_of_splats(tables[own], boxes[own], staged[phase], rounds, splits[2 * phase + 1], ox, oy,
+                                 params, clip_src, field_src, normal_src, tmp, kept[own], sp, sb, sk, zb, cov, acc,
+                                 levels if categorical else 0, category)
         # normalization and deferred shading, straight into the output
         for ly in range(th):
             y = oy + ly

@@ -358,19 +358,17 @@ def lane_pixel(ibox, jb, lane):
 
 
 @nb.njit(fastmath=True, error_model="numpy")
-def visibility_tile(table, ibox, begin, count, ox, oy, params, clip_src, field_src, normal_src, tmp, kept, zb, cov):
-    """The visibility pass of the 2x2 blocks at the top-left of the boxes of a table's slots
-    begin..count-1 into zb (MIN of depth + z_t) and cov (MAX of coverage): per table block, in
-    one SIMD loop, then blended one splat after another (a block's splats may overlap). The same
-    loop keeps their attribute outputs in `kept` (table_size(count, KEPT_ROWS)) for
-    `attribute_tile`: the two passes meet the same rays. `visible_splats` draws the rest of the
-    larger boxes."""
+def visibility_tile(table, ibox, count, ox, oy, params, clip_src, field_src, normal_src, tmp, kept, zb, cov):
+    """The visibility pass of the 2x2 blocks at the top-left of a table's `count` boxes into zb
+    (MIN of depth + z_t) and cov (MAX of coverage): per table block, in one SIMD loop, then
+    blended one splat after another (a block's splats may overlap). The same loop keeps their
+    attribute outputs in `kept` (table_size(count, KEPT_ROWS)) for `attribute_tile`: the two
+    passes meet the same rays. `visible_splats` draws the rest of the larger boxes."""
     clipping, curved = clip_src is not None, field_src is not None
     field_normals = curved and normal_src is not None
     half, one = np.float32(0.5), np.float32(1.0)
-    first = begin
-    while first < count:
-        size = min(BLOCK - (first & (BLOCK - 1)), count - first)  # to the end of first's block
+    for first in range(0, count, BLOCK):
+        size = min(BLOCK, count - first)
         base, box_base = table_slot(first, TABLE_ROWS), table_slot(first, 4)
         kept_base = table_slot(first, KEPT_ROWS)
         for q in range(size):
@@ -408,7 +406,6 @@ def visibility_tile(table, ibox, begin, count, ox, oy, params, clip_src, field_s
                 row = np.uint64(lane * BLOCK)  # TEMP[lane]: a tuple indexed at run time is a switch
                 zb[pl] = min(zb[pl], tmp[row + uq])
                 cov[pl] = max(cov[pl], tmp[row + TEMP[4] + uq])
-        first += size
 
 
 @nb.njit(fastmath=True, error_model="numpy")
@@ -481,20 +478,20 @@ def split_boxes(table, ibox, count, clip_src, field_src, slot, block, split, spl
 
 
 @nb.njit(fastmath=True, error_model="numpy")
-def visible_splats(table, ibox, begin, count, ox, oy, params, clip_src, field_src, normal_src, tmp, kept, split,
+def visible_splats(table, ibox, count, ox, oy, params, clip_src, field_src, normal_src, tmp, kept, split,
                    split_box, split_kept, zb, cov):
-    """The visibility pass of a table's set-up splats begin..count-1, every 2x2 block of their
-    boxes: the top-left blocks straight from the table, the rest of the larger boxes from copies
-    of their splats' records (`split_boxes`), so that every fragment is computed in the SIMD
-    loops (pixel by pixel, a `deferred` frame of the bunny's 35k vertices at 1024x1024 took 77-84
-    ms instead of 45, `surfel bench`). Returns (rounds of SPLIT_BLOCKS copies, copies in the last
+    """The visibility pass of a table's `count` set-up splats, every 2x2 block of their boxes:
+    the top-left blocks straight from the table, the rest of the larger boxes from copies of
+    their splats' records (`split_boxes`), so that every fragment is computed in the SIMD loops
+    (pixel by pixel, a `deferred` frame of the bunny's 35k vertices at 1024x1024 took 77-84 ms
+    instead of 45, `surfel bench`). Returns (rounds of SPLIT_BLOCKS copies, copies in the last
     round), for `attributes_of_splats`."""
-    visibility_tile(table, ibox, begin, count, ox, oy, params, clip_src, field_src, normal_src, tmp, kept, zb, cov)
-    rounds, drawn, slot, block = 0, 0, begin, 1
+    visibility_tile(table, ibox, count, ox, oy, params, clip_src, field_src, normal_src, tmp, kept, zb, cov)
+    rounds, drawn, slot, block = 0, 0, 0, 1
     while slot < count:
         made, slot, block = split_boxes(table, ibox, count, clip_src, field_src, slot, block, split, split_box)
         if made > 0:
-            visibility_tile(split, split_box, 0, made, ox, oy, params, clip_src, field_src, normal_src, tmp,
+            visibility_tile(split, split_box, made, ox, oy, params, clip_src, field_src, normal_src, tmp,
                             split_kept, zb, cov)
             rounds, drawn = rounds + 1, made
     return rounds, drawn
@@ -503,11 +500,11 @@ def visible_splats(table, ibox, begin, count, ox, oy, params, clip_src, field_sr
 @nb.njit(fastmath=True, error_model="numpy")
 def attributes_of_splats(table, ibox, count, rounds, drawn, ox, oy, params, clip_src, field_src, normal_src, tmp,
                          kept, split, split_box, split_kept, zb, cov, acc, levels, best):
-    """The attribute pass of a table's `count` splats, after `visible_splats` drew them all:
-    from their kept outputs, and their copies' (`rounds` and `drawn`: what visible_splats
-    returned, summed over its calls). Where the copies took more than the one round still in
-    `split`, they are made again and their visibility outputs recomputed, which leaves zb and
-    cov as they are (the MIN and MAX of the same values)."""
+    """The attribute pass of a table's `count` splats, after `visible_splats` drew them: from
+    their kept outputs, and their copies' (`rounds` and `drawn`: what visible_splats returned).
+    Where the copies took more than one round, or `split` no longer holds them (rounds 2), they
+    are made again and their visibility outputs recomputed, which leaves zb and cov as they are
+    (the MIN and MAX of the same values)."""
     attribute_tile(table, ibox, count, field_src, normal_src, kept, zb, acc, levels, best)
     if rounds == 1:
         attribute_tile(split, split_box, drawn, field_src, normal_src, split_kept, zb, acc, levels, best)
@@ -516,6 +513,6 @@ def attributes_of_splats(table, ibox, count, rounds, drawn, ox, oy, params, clip
         while slot < count:
             made, slot, block = split_boxes(table, ibox, count, clip_src, field_src, slot, block, split, split_box)
             if made > 0:
-                visibility_tile(split, split_box, 0, made, ox, oy, params, clip_src, field_src, normal_src, tmp,
+                visibility_tile(split, split_box, made, ox, oy, params, clip_src, field_src, normal_src, tmp,
                                 split_kept, zb, cov)
                 attribute_tile(split, split_box, made, field_src, normal_src, split_kept, zb, acc, levels, best)
