@@ -34,7 +34,7 @@ def read_stl(path: str) -> PointCloud:
     data = Path(path).read_bytes()
     count = int(np.frombuffer(data, "<u4", 1, _HEADER)[0]) if len(data) >= _HEADER + 4 else -1
     binary_size = _HEADER + 4 + count * _TRIANGLE.itemsize
-    if len(data) == binary_size:
+    if count >= 0 and len(data) == binary_size:
         corners = np.frombuffer(data, _TRIANGLE, count, _HEADER + 4)["corners"].reshape(-1, 3)
     elif data.lstrip()[:5].lower() == b"solid":
         corners = _ascii_corners(data, path)
