@@ -87,11 +87,12 @@ from .ewa_kernels import TILE
 from .splatting import DEFAULT_SUPERSAMPLES, DeferredParams, GaussianParams, PhongParams
 
 DEPTH_CLAMP = 32.0  # splatting.glsl's: splat radii a plane's depth may stray from its centre's
-# Back splats are passed by (splatting_kernels.rasterize_tiles) where the cloud's median splat
-# reaches at least this many samples across at its centre's depth. Smaller splats leave samples
-# their front neighbours' disks miss, which lets few back splats be passed by (the bench's 1M
-# replicated bunny splats, 0.7 pixels: one in seven), and the test and the ordering cost more
-# than that saves (69 against 67 ms a frame); the tiles then draw their lists in order.
+# Back splats are passed by (splatting_kernels.rasterize_tiles) where the larger semi-axis of
+# the cloud's median splat spans at least this many samples at the cloud's centre. Smaller
+# splats leave samples their front neighbours' disks miss, which lets few back splats be passed
+# by (the bench's 1M replicated bunny splats, 0.7 samples: one in seven), and the test and the
+# reordering cost more than that saves (the bench's frame 3-5% slower); the tiles then draw
+# their lists in order. The sphere of tests/test_splatting_cpu.py, at 1.3 samples: 58%.
 HIDE_FROM_RADIUS = 1.0
 BIN_CHUNKS_PER_THREAD = 4
 
@@ -129,12 +130,12 @@ class CpuSplatBuffers:
 
     def __init__(self, cloud: PointCloud, extras: bool):
         self.packed, self.extras = pack_splats(cloud, extras)
-        # a colour or the layers' thickness that every splat shares (a cloud without colours or
-        # layers) is written into the tables once, not staged for each tile (a 1M-splat bunny's
-        # staging: 20 rows -> 16); only those rows are compared, a new LOD cut's buffers included
         # the median splat's larger semi-axis (a strided sample), which `hides` projects per frame
         axes = self.packed[t.PUX:t.PVZ + 1, ::max(len(cloud) // 4096, 1)].reshape(2, 3, -1)
         self.median_radius = float(np.median(np.linalg.norm(axes, axis=1).max(axis=0))) if len(cloud) else 0.0
+        # a colour or the layers' thickness that every splat shares (a cloud without colours or
+        # layers) is written into the tables once, not staged for each tile (a 1M-splat bunny's
+        # staging: 20 rows -> 16); only those rows are compared, a new LOD cut's buffers included
         self.constant_rows = {row: float(self.packed[row, 0]) for row in (t.PR, t.PG, t.PB, t.PT)
                               if len(cloud) and np.all(self.packed[row] == self.packed[row, 0])}
         self.staged_rows = np.array([row for row in range(t.PACKED) if row not in self.constant_rows], np.int64)
@@ -154,7 +155,8 @@ class CpuSplatBuffers:
         self.size, self.threads = (width, height), threads
         self.tiles_x, self.tiles_y = -(-width // TILE), -(-height // TILE)
         tiles = self.tiles_x * self.tiles_y
-        self.counts = np.empty((2 * threads * BIN_CHUNKS_PER_THREAD, tiles), np.int64)  # facing the camera, not
+        # per chunk, a row for its splats facing the camera and one for the others (bins.bound_splats)
+        self.counts = np.empty((2 * threads * BIN_CHUNKS_PER_THREAD, tiles), np.int64)
         self.bounds = np.empty((threads * BIN_CHUNKS_PER_THREAD, 5 * bins.BOUND_BLOCK), np.int32)
         self.tile_start = np.empty(tiles, np.int64)
         self.tile_count = np.empty(tiles, np.int64)
@@ -172,8 +174,8 @@ class CpuSplatBuffers:
         self.capacity = -1
 
     def hides(self, camera, center, radius_scale: float) -> bool:
-        """Whether this frame passes by hidden back splats: the median splat, at the cloud's
-        centre, reaches HIDE_FROM_RADIUS samples of `camera` (the frame's target)."""
+        """Whether this frame passes by hidden back splats: the median splat's larger semi-axis,
+        at the cloud's centre, spans HIDE_FROM_RADIUS samples of `camera` (the frame's target)."""
         scale = ortho_scale(camera)
         if not scale:
             view = camera.view_matrix(np.zeros(3))

@@ -5,18 +5,18 @@ states the equations; splatting.glsl is the GPU program they reproduce).
    the list of the splats that meet it, in draw order.
 2. `rasterize_tiles` (parallel over tiles): each tile owns its pixels, so threads never write
    the same memory. A tile copies its splats' packed inputs (one column of 16 values each) into its
-   thread's table (splatting_tiles.py), those facing the camera first; then, in that table:
+   thread's tables (splatting_tiles.py), those facing the camera into one, the others into a
+   second; then, table by table:
    - setup (`_setup_tile`, SIMD over a table block): what the vertex shader computes, once per
      splat: the eye-space splat, its back-face flip, the EWA weight, and the coefficients
      that make every per-pixel quantity of the fragment shader a ratio of affine functions of
      the pixel offset (dx, dy) from the splat's projected centre;
-   - the visibility pass (MIN of depth + z_t, MAX of coverage) of the splats facing the
-     camera; then the splats seen from their backs are copied and drawn only where it leaves
-     them a pixel to change (`_hidden`): on a closed surface the far side is passed by, which
-     the depth test would discard fragment by fragment (the bunny's 35k splats at 1024x1024,
-     `deferred`: 26-29 ms a frame against 32-35);
-   - the visibility pass of those, and the attribute pass (sums of w rgb, w, w n, w z of the
-     fragments not behind it) of all, splatting_tiles.py;
+   - the visibility pass (MIN of depth + z_t, MAX of coverage), splatting_tiles.py: first of
+     the splats facing the camera; then of those seen from their backs, which are copied only
+     where they leave a pixel to change (`_hidden`): on a closed surface the far side is
+     passed by, which the depth test would discard fragment by fragment (the bunny's 35k
+     splats at 1024x1024, `deferred`: about 28 ms a frame against 33);
+   - the attribute pass (sums of w rgb, w, w n, w z of the fragments not behind it), of both;
    - normalization, the colour mode and deferred shading straight into the output images.
 3. `finish_surrounded` (parallel over rows): whether a pixel is `surrounded` needs its four
    neighbours; a tile decides it for its own pixels and leaves to this pass the few on its
@@ -422,12 +422,10 @@ def _write_empty(color, alpha, depth, normals, present, indices, y, x, backgroun
 
 @nb.njit(parallel=True, fastmath=True, error_model="numpy", cache=True)
 def rasterize_tiles(packed, staged_rows, extras, box, nearest, index, tile_start, tile_count, tile_front, tile_drawn,
-                    order,
-                    tiles_x, width, height, m,
-                    radius_scale, lowpass, depth_offset, depth_clamp, clip_src, field_src, normal_src,
-                    per_splat_model, deferred_model, color_mode, palette, levels, background, composite, tables, boxes,
-                    temp, kept, split, split_box, split_kept, zbuf, cover, accum, best, present, color, alpha, depth,
-                    normals, indices):
+                    order, tiles_x, width, height, m, radius_scale, lowpass, depth_offset, depth_clamp, clip_src,
+                    field_src, normal_src, per_splat_model, deferred_model, color_mode, palette, levels, background,
+                    composite, tables, boxes, temp, kept, split, split_box, split_kept, zbuf, cover, accum, best,
+                    present, color, alpha, depth, normals, indices):
     """Every tile of `order`, written into color (H, W, 3), alpha, depth (H, W) and normals
     (H, W, 3). A tile draws the splats that face the camera first (the first tile_front[t] of
     its list, bins.tile_offsets), then, in a second table, those of the others that `_hidden`
