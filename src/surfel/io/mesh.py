@@ -76,17 +76,16 @@ def _whole(indices: np.ndarray, path: str) -> np.ndarray:
     return indices.astype(np.int64)
 
 
-def merged_vertices(positions: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Vertices at one position made one (exact equality, -0 and +0 alike), as formats that
-    store each triangle's corners apart (STL) or split vertices at texture seams (glTF) need
-    for their faces to share vertices: (the first vertex of each position, in the order of
-    first use; the faces re-indexed to them)."""
+def merged_vertices(positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Positions that are equal made one vertex (exact equality, -0 and +0 alike), as a format
+    that stores each triangle's corners apart (STL) needs for its triangles to share vertices:
+    (the first of each position, in the order of first use; each position's vertex)."""
     positions = np.asarray(positions, np.float64) + 0.0  # -0.0 becomes 0.0, equal as bytes in np.unique
     _, first, inverse = np.unique(positions, axis=0, return_index=True, return_inverse=True)
     order = np.argsort(first)
     rank = np.empty_like(order)
     rank[order] = np.arange(len(order))
-    return first[order], rank[inverse.reshape(-1)][np.asarray(faces, np.int64)]
+    return first[order], rank[inverse.reshape(-1)]
 
 
 def referenced_vertices(faces: np.ndarray, vertex_count: int) -> tuple[np.ndarray, np.ndarray]:

@@ -28,6 +28,7 @@ from .mesh import mesh_normals, referenced_vertices, triangles_from_polygons
 
 _KEYWORD = re.compile(rb"\s*(C?)(N?)OFF(?=\s|\d)")
 _COMMENT = re.compile(rb"#[^\n]*")
+_BINARY = re.compile(rb"\s*BINARY\b")
 
 
 def read_off(path: str) -> PointCloud:
@@ -35,14 +36,15 @@ def read_off(path: str) -> PointCloud:
     text = Path(path).read_bytes()
     if b"\n" not in text:
         text = text.replace(b"\r", b"\n")
-    text = _COMMENT.sub(b"", text)
+    if b"#" in text:
+        text = _COMMENT.sub(b"", text)
     keyword = _KEYWORD.match(text)
     if keyword is None:
         first = text.split(maxsplit=1)[:1]
         what = repr(first[0][:20].decode("latin-1")) if first else "nothing"
         raise InputError(path, f"not an OFF file: it begins with {what}, not OFF, COFF, NOFF or CNOFF")
     colored, with_normals = bool(keyword.group(1)), bool(keyword.group(2))
-    if text[keyword.end():].split(maxsplit=1)[:1] == [b"BINARY"]:
+    if _BINARY.match(text, keyword.end()):
         raise InputError(path, "binary OFF is not supported; write it as text")
     numbers = numbers_by_line(text[keyword.end():], np.float64, path)
     per_line = numbers.per_line[numbers.per_line > 0]  # one record per non-blank line

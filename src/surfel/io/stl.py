@@ -26,6 +26,7 @@ from .mesh import merged_vertices, mesh_normals
 
 _HEADER = 80
 _TRIANGLE = np.dtype([("normal", "<f4", (3,)), ("corners", "<f4", (3, 3)), ("attribute", "<u2")])
+_SOLID = re.compile(rb"\s*solid", re.IGNORECASE)  # an ASCII STL's first word (matched without copying the file)
 _VERTEX_LINE = re.compile(rb"^[ \t]*vertex[ \t]+([^\n]*)", re.MULTILINE)
 
 
@@ -36,7 +37,7 @@ def read_stl(path: str) -> PointCloud:
     binary_size = _HEADER + 4 + count * _TRIANGLE.itemsize
     if count >= 0 and len(data) == binary_size:
         corners = np.frombuffer(data, _TRIANGLE, count, _HEADER + 4)["corners"].reshape(-1, 3)
-    elif data.lstrip()[:5].lower() == b"solid":
+    elif _SOLID.match(data):
         corners = _ascii_corners(data, path)
     elif count < 0:
         raise InputError(path, f"not an STL file: {len(data)} bytes, shorter than a binary STL's header")
@@ -45,8 +46,8 @@ def read_stl(path: str) -> PointCloud:
                                f"the file has {len(data)}")
     if not len(corners):
         raise InputError(path, "STL file has no triangles")
-    keep, faces = merged_vertices(corners, np.arange(len(corners)).reshape(-1, 3))
-    positions = corners[keep].astype(np.float64)
+    keep, vertex = merged_vertices(corners)
+    positions, faces = corners[keep].astype(np.float64), vertex.reshape(-1, 3)
     return PointCloud(positions=positions, normals=mesh_normals(positions, faces), faces=faces, source=path)
 
 
