@@ -419,24 +419,27 @@ def test_compute_passes_agree_with_the_rasterized_ones(method, monkeypatch):
         assert compare_results(rasterized, computed)["psnr"] >= 45
 
 
-def test_compute_passes_read_the_splats_in_storage_ranges_of_any_size(monkeypatch):
-    """A cloud larger than one storage block is read in ranges (gl/splats.py compute_chunks);
-    where they split changes nothing: the minima and the integer sums do not depend on order."""
+def test_compute_passes_read_the_splats_in_chunks_of_any_size(monkeypatch):
+    """A cloud larger than one chunk is read chunk by chunk, each from its own texture (gl/splats.py
+    compute_chunks), the last row of each partly filled; where the chunks split changes nothing:
+    the minima and the integer sums do not depend on order."""
     import models
     from surfel.gl import splats
-    from surfel.methods import splatting
+    from surfel.rendering import Renderer
 
     cloud = models.turned_part().with_(faces=None)
     camera = frame(cloud.center, cloud.bounding_radius, azimuth=30, elevation=20, size=SIZE)
-    whole = render(cloud, camera, "deferred", backend="gl", shading="lambert")
-    with monkeypatch.context() as patch:
-        patch.setattr(splatting, "use_compute_passes", lambda sprites, buffers, target_pixels: True)
-        patch.setattr(splats, "max_storage_bytes", lambda: 3 * splats.COMPUTE_GROUP * splats.FLOATS * 4 + 100)
-        ranges = render(cloud, camera, "deferred", backend="gl", shading="lambert")
-    assert whole.stats["visibility"] == ranges.stats["visibility"] == "compute"
-    assert len(cloud) > 10 * 3 * splats.COMPUTE_GROUP
+    with Renderer() as renderer:
+        whole = renderer.render(cloud, camera, "deferred", backend="gl", shading="lambert")
+    chunk = 3 * splats.TEXTURE_ROW + 2 * splats.COMPUTE_GROUP + 1
+    with monkeypatch.context() as patch, Renderer() as renderer:
+        patch.setattr(splats, "CHUNK", chunk)
+        chunked = renderer.render(cloud, camera, "deferred", backend="gl", shading="lambert")
+        assert [count for _, count in renderer.splat_buffers(cloud).texels()][:-1] == [chunk] * (len(cloud) // chunk)
+    assert whole.stats["visibility"] == chunked.stats["visibility"] == "compute"
+    assert len(cloud) > 3 * chunk
     for buffer in ("color", "alpha", "depth", "normals"):
-        assert np.array_equal(getattr(whole, buffer), getattr(ranges, buffer)), buffer
+        assert np.array_equal(getattr(whole, buffer), getattr(chunked, buffer)), buffer
 
 
 @pytest.mark.parametrize("method", ["deferred", "phong"])

@@ -1,5 +1,5 @@
 // The per-splat vertex attributes packed by gl/splats.py (one vertex, or one instance, a splat).
-// A compute shader reads the same packed buffer as a storage buffer: load_splat_lod(i), then
+// A compute shader reads the same packed rows from a texture: load_splat_lod(i), then
 // load_splat(i), set them.
 #ifdef COMPUTE_SHADER
 #define SPLAT_INPUT
@@ -18,32 +18,40 @@ SPLAT_INPUT vec3 in_clip1;
 SPLAT_INPUT float in_thickness;  // its layer's thickness, z_t's cap (preprocess/thickness.py); 0: none
 
 #ifdef COMPUTE_SHADER
-// The packed rows of gl/splats.py `pack`: SPLAT_FLOATS floats a splat, in the order above.
-layout(std430, binding = 0) readonly buffer PackedSplats { float packed_splats[]; };
+// The packed rows of gl/splats.py `pack`, in the order above, as a compute program reads them:
+// SPLAT_TEXELS RGBA32F texels a splat, SPLAT_ROW splats a texture row (gl/splats.py
+// SplatBuffers.texels). llvmpipe loads a storage buffer's floats one lane at a time, each
+// with its bounds test; a texel fetch loads a lane's four floats at once, which took the
+// per-splat set-up of bench's frame (1M splats) from about half of each compute pass to a
+// fifth. GPUs read either through their caches.
+uniform sampler2D u_splats;
+vec4 splat_t0, splat_t4, splat_t5;  // the texels load_splat_lod reads, for load_splat
 
-vec3 packed_vec3(int at) {
-    return vec3(packed_splats[at], packed_splats[at + 1], packed_splats[at + 2]);
+vec4 splat_texel(int i, int k) {
+    return texelFetch(u_splats, ivec2((i % SPLAT_ROW) * SPLAT_TEXELS + k, i / SPLAT_ROW), 0);
 }
 
 // Splat i's centre and level-of-detail values: all that its level-of-detail test reads, so
-// that the splats a cut leaves out cost no more loads (llvmpipe's, one lane at a time, are
-// most of a culled invocation's time).
+// that the splats a cut leaves out cost no more fetches.
 void load_splat_lod(int i) {
-    int at = i * SPLAT_FLOATS;
-    in_center = packed_vec3(at);
-    in_lod = packed_vec3(at + 19);
+    splat_t0 = splat_texel(i, 0);
+    splat_t4 = splat_texel(i, 4);
+    splat_t5 = splat_texel(i, 5);
+    in_center = splat_t0.xyz;
+    in_lod = vec3(splat_t4.w, splat_t5.xy);
 }
 
 // The rest of splat i, after load_splat_lod.
 void load_splat(int i) {
-    int at = i * SPLAT_FLOATS;
-    in_normal = packed_vec3(at + 3);
-    in_color = packed_vec3(at + 6);
-    in_axis_u = packed_vec3(at + 9);
-    in_axis_v = packed_vec3(at + 12);
-    in_field = vec4(packed_splats[at + 15], packed_splats[at + 16], packed_splats[at + 17], packed_splats[at + 18]);
-    in_clip0 = packed_vec3(at + 22);
-    in_clip1 = packed_vec3(at + 25);
-    in_thickness = packed_splats[at + 28];
+    vec4 t1 = splat_texel(i, 1), t2 = splat_texel(i, 2), t3 = splat_texel(i, 3);
+    vec4 t6 = splat_texel(i, 6), t7 = splat_texel(i, 7);
+    in_normal = vec3(splat_t0.w, t1.xy);
+    in_color = vec3(t1.zw, t2.x);
+    in_axis_u = t2.yzw;
+    in_axis_v = t3.xyz;
+    in_field = vec4(t3.w, splat_t4.xyz);
+    in_clip0 = vec3(splat_t5.zw, t6.x);
+    in_clip1 = t6.yzw;
+    in_thickness = t7.x;
 }
 #endif

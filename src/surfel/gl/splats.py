@@ -15,8 +15,9 @@ Every splat method reads the same layout (see splat_common.glsl):
     in_thickness (1) its layer's thickness, the cap of z_t (preprocess/thickness.py); 0 for none
 Clouds larger than CHUNK points are drawn one chunk at a time so 10M+ points fit in memory;
 a cloud's buffers are kept (by `rendering.Renderer`) so benchmarks measure drawing, not uploading.
-Compute programs read the same packed rows as storage buffers (splat_attributes.glsl
-load_splat); `compute_chunks` binds them.
+Compute programs read the same packed rows from RGBA32F textures, made from a kept chunk the
+first time one runs (`SplatBuffers.texels`, splat_attributes.glsl load_splat); `compute_chunks`
+binds them.
 """
 
 from __future__ import annotations
@@ -29,13 +30,16 @@ from ..cloud import PointCloud
 from ..preprocess import INACTIVE_CLIP, drawn_normals, splat_slopes, splat_thickness
 from .context import get_context
 from .program import set_uniforms
+from .uniforms import SPLATS_UNIT
 
 CHUNK = 2_000_000
 ATTRIBUTES = ("in_center", "in_normal", "in_color", "in_axis_u", "in_axis_v", "in_field", "in_lod",
               "in_clip0", "in_clip1", "in_thickness")
 WIDTHS = (3, 3, 3, 3, 3, 4, 3, 3, 3, 1)
 LOD_EXTRAS = ("lod_emin", "lod_emax", "lod_dparent")
-FLOATS = sum(WIDTHS)  # splat_attributes.glsl SPLAT_FLOATS
+FLOATS = sum(WIDTHS)
+TEXELS = -(-FLOATS // 4)  # RGBA texels a splat in the compute programs' textures (splat_attributes.glsl)
+TEXTURE_ROW = 512  # splats a row of those textures: 4096 texels wide, CHUNK splats 3907 rows high
 COMPUTE_GROUP = 64    # the local size of splatting.glsl's compute programs
 CACHE_LIMIT_BYTES = 2_000_000_000
 NO_COLOR = 1.0  # the albedo code packed for every splat of a cloud without colours
@@ -75,10 +79,26 @@ class SplatBuffers:
         self.cloud = weakref.ref(cloud)  # not a strong reference: the owner caches these per cloud
         self.count = len(cloud)
         self.kept = None
+        self.textures = None
         if self.count * FLOATS * 4 <= CACHE_LIMIT_BYTES:
             ctx = get_context()
             self.kept = [(ctx.buffer(pack(cloud, start, min(start + CHUNK, self.count))),
                           min(start + CHUNK, self.count) - start) for start in range(0, self.count, CHUNK)]
+
+    def texels(self) -> list:
+        """The kept chunks' rows as (texture, count): TEXELS texels a splat, TEXTURE_ROW splats
+        a row; made on the first call (only compute programs read them)."""
+        if self.textures is None:
+            ctx = get_context()
+            self.textures = []
+            for start in range(0, self.count, CHUNK):
+                rows = pack(self.cloud(), start, min(start + CHUNK, self.count))
+                padded = np.zeros((-(-len(rows) // TEXTURE_ROW) * TEXTURE_ROW, 4 * TEXELS), np.float32)
+                padded[:len(rows), :FLOATS] = rows
+                texture = ctx.texture((TEXTURE_ROW * TEXELS, len(padded) // TEXTURE_ROW), 4, padded, dtype="f4")
+                texture.filter = (ctx.NEAREST, ctx.NEAREST)
+                self.textures.append((texture, len(rows)))
+        return self.textures
 
     def chunks(self):
         """Yield (vbo, count) pairs covering the cloud."""
@@ -94,7 +114,7 @@ class SplatBuffers:
             vbo.release()
 
     def release(self) -> None:
-        for vbo, _ in self.kept or ():
+        for vbo, _ in (self.kept or []) + (self.textures or []):
             vbo.release()
 
 
@@ -138,29 +158,24 @@ def draw(ctx, buffers: SplatBuffers, program, mode, *, instanced: bool, count: i
 
 
 def max_storage_bytes() -> int:
-    """The largest storage buffer range a shader may read (GL_MAX_SHADER_STORAGE_BLOCK_SIZE:
+    """The largest storage buffer range a shader may use (GL_MAX_SHADER_STORAGE_BLOCK_SIZE:
     128 MiB on llvmpipe, GPUs' at least that)."""
     return int(get_context().info["GL_MAX_SHADER_STORAGE_BLOCK_SIZE"])
 
 
 def compute_chunks(buffers: SplatBuffers, program, count: int | None = None):
-    """Yield the number of splats of each range of the kept chunks holding the first `count`
-    splats (all by default), each range's rows bound as storage buffer 0 and `program`'s
-    u_splat_count set; the caller runs `program` over `compute_groups(splats)` work groups.
-    A range fits the largest storage block and starts at a multiple of COMPUTE_GROUP splats
-    (FLOATS x 4 x 64 bytes: a multiple of 256, the largest offset alignment OpenGL allows)."""
-    row = FLOATS * 4
-    most = max(max_storage_bytes() // row // COMPUTE_GROUP * COMPUTE_GROUP, COMPUTE_GROUP)
+    """Yield the number of splats of each kept chunk holding the first `count` splats (all by
+    default), its texture (`SplatBuffers.texels`) bound at SPLATS_UNIT and `program`'s
+    u_splat_count set; the caller runs `program` over `compute_groups(splats)` work groups."""
     remaining = buffers.count if count is None else count
-    for vbo, chunk in buffers.kept:
-        for start in range(0, chunk, most):
-            splats = min(chunk - start, most, remaining)
-            remaining -= splats
-            if splats <= 0:
-                return
-            vbo.bind_to_storage_buffer(0, offset=start * row, size=splats * row)
-            set_uniforms(program, u_splat_count=splats)
-            yield splats
+    for texture, chunk in buffers.texels():
+        splats = min(chunk, remaining)
+        remaining -= splats
+        if splats <= 0:
+            return
+        texture.use(SPLATS_UNIT)
+        set_uniforms(program, u_splats=SPLATS_UNIT, u_splat_count=splats)
+        yield splats
 
 
 def compute_groups(splats: int) -> int:

@@ -9,7 +9,8 @@ from ..colors import NEUTRAL
 from ..shading import MODEL_IDS
 from .program import set_uniforms
 
-COLOR_TABLE_UNIT = 14  # texture units above those any method's passes use
+SPLATS_UNIT = 13  # texture units above those any method's passes use: the compute programs' splats (splats.py)
+COLOR_TABLE_UNIT = 14
 CATEGORY_UNIT = 15
 COLOR_MODES = {"rgb": 0, "continuous": 1, "categorical": 2}
 

@@ -268,8 +268,8 @@ def _render(cloud, camera, options, params, renderer, *, per_splat_shading: bool
         for name, defines in (("visibility", {"PASS_VISIBILITY": True}),
                               ("attribute", {"PASS_ATTRIBUTE": True, **sums}),
                               ("resolve visibility", {"PASS_RESOLVE": True})):
-            programs[name] = renderer.program(SHADER, {**defines, "SPLAT_FLOATS": splats.FLOATS, **variant},
-                                              compute=True)
+            layout = {"SPLAT_TEXELS": splats.TEXELS, "SPLAT_ROW": splats.TEXTURE_ROW}
+            programs[name] = renderer.program(SHADER, {**defines, **layout, **variant}, compute=True)
     for program in programs.values():
         apply_common(program, camera, cloud.local_origin, ss, options,
                      u_radius_scale=params.radius_scale, u_depth_offset=params.depth_offset,
