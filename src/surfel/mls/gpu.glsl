@@ -115,7 +115,12 @@ void tangent_frame(vec3 n, out vec3 e1, out vec3 e2) {
 // ---------------------------------------------------------------------------------------------
 #ifdef VERTEX_SHADER
 #ifdef DISC
-flat out int v_index;
+// The point's rows (and in PASS_INTERSECT its polynomial's), read once a vertex: llvmpipe loads
+// a storage buffer one lane at a time, and its fragment shaders read flat varyings as constants
+flat out vec4 v_point[3];
+#ifdef PASS_INTERSECT
+flat out vec4 v_poly[6];
+#endif
 // Whether no pixel of the image-space box [lo, hi] (y down) has a failed candidate: at the
 // mip level where the box spans at most 2 x 2 texels, their means are all zero. On a retry
 // this drops the quads of all but the few points near such pixels before rasterization.
@@ -136,11 +141,13 @@ bool nothing_to_retry(vec2 lo, vec2 hi) {
 // for an eye-space centre (a, z) the tangent lines give a/z ratios (a z -+ R sqrt(a^2 + z^2 - R^2)) / (z^2 - R^2).
 void main() {
     int i = gl_InstanceID;
-    v_index = i;
-    vec4 ph = points[3 * i];
+    v_point = vec4[3](points[3 * i], points[3 * i + 1], points[3 * i + 2]);
+    vec4 ph = v_point[0];
 #ifdef PASS_INTERSECT
-    float radius = u_domain * points[3 * i + 1].w;
-    if (polys[6 * i].w == 0.0) { gl_Position = vec4(2.0, 2.0, 2.0, 1.0); return; }  // failed fit
+    float radius = u_domain * v_point[1].w;
+    v_poly = vec4[6](polys[6 * i], polys[6 * i + 1], polys[6 * i + 2], polys[6 * i + 3], polys[6 * i + 4],
+                     polys[6 * i + 5]);
+    if (v_poly[0].w == 0.0) { gl_Position = vec4(2.0, 2.0, 2.0, 1.0); return; }  // failed fit
 #else
     float radius = SUPPORT * ph.w;
 #endif
@@ -186,7 +193,10 @@ void main() {  // full-screen triangle
 // ---------------------------------------------------------------------------------------------
 #ifdef FRAGMENT_SHADER
 #ifdef DISC
-flat in int v_index;
+flat in vec4 v_point[3];  // the point's rows: (p_i, h_i), (colour, s_i), (n_i, h_scale m_i)
+#endif
+#ifdef PASS_INTERSECT
+flat in vec4 v_poly[6];  // its polynomial's
 #endif
 #if defined(PASS_MEANS) || defined(PASS_SYSTEM)
 layout(early_fragment_tests) in;  // the depth test culls before shading (no depth is written)
@@ -204,17 +214,19 @@ uniform sampler2D u_state;      // r: current ray parameter t (>= MISS: no surfa
                                 // b: the current point's height over the last fit (FAR: none yet)
 uniform sampler2D u_reference;  // the reference normal n_r of the pixel's next fit
 
-Quadratic point_quadratic(int i) {
+#ifdef PASS_INTERSECT
+Quadratic point_quadratic() {
     Quadratic g;
-    g.q = polys[6 * i].xyz;
-    g.n = polys[6 * i + 1].xyz;
-    g.e1 = polys[6 * i + 2].xyz;
-    g.e2 = polys[6 * i + 3].xyz;
-    vec4 a = polys[6 * i + 4], b = polys[6 * i + 5];
+    g.q = v_poly[0].xyz;
+    g.n = v_poly[1].xyz;
+    g.e1 = v_poly[2].xyz;
+    g.e2 = v_poly[3].xyz;
+    vec4 a = v_poly[4], b = v_poly[5];
     g.c = float[6](a.x, a.y, a.z, a.w, b.x, b.y);
     g.l = b.z;
     return g;
 }
+#endif
 
 // The current hit r of the fragment's pixel; false where the pixel has no surface.
 bool current_hit(out vec3 r, out float t) {
@@ -234,11 +246,10 @@ layout(location = 3) out vec4 out_bracket;  // no iterate above or below the sur
 void main() {
     vec3 o, d;
     local_ray(o, d);
-    int i = v_index;
     float failed = u_retry ? texelFetch(u_failed, ivec2(gl_FragCoord.xy), 0).r : -FAR;
     if (failed >= MISS) discard;  // a later candidate: only where the earlier one failed
-    vec3 oc = o - points[3 * i].xyz;
-    float radius = u_domain * points[3 * i + 1].w;
+    vec3 oc = o - v_point[0].xyz;
+    float radius = u_domain * v_point[1].w;
     float a = dot(d, d), b = dot(oc, d), c = dot(oc, oc) - radius * radius;
     float disc = b * b - a * c;
     if (disc < 0.0) discard;
@@ -246,29 +257,29 @@ void main() {
     if (t_out < 0.0) discard;
     float dt;
     // solved from the sphere entry so the quadratic's coefficients stay small
-    if (!ray_quadratic(point_quadratic(i), o + t_in * d, d, 0.0, t_out - t_in, dt)) discard;
+    if (!ray_quadratic(point_quadratic(), o + t_in * d, d, 0.0, t_out - t_in, dt)) discard;
     float t = t_in + dt;
     // beyond the failed candidate's sheet: its other samples meet the ray at nearly its t.
     // In units of the width the sample's density gives, h_scale m_i: a kernel widened across a
     // gap (widths.py) spans more than a thin part's thickness
-    if (u_retry && t <= failed + RETRY_GAP * points[3 * i + 2].w) discard;
+    if (u_retry && t <= failed + RETRY_GAP * v_point[2].w) discard;
     out_t = vec4(t, 0.0, FAR, 0.0);
     out_first = out_t;
     out_bracket = vec4(-1.0, 0.0, -1.0, 0.0);
-    out_reference = vec4(points[3 * i + 2].xyz, 0.0);
+    out_reference = vec4(v_point[2].xyz, 0.0);
     gl_FragDepth = window_depth(vec3(0.0, 0.0, -t));  // nearest wins; the passes' depth test
 }
 #endif
 
 #if defined(PASS_MEANS) || defined(PASS_SYSTEM)
-// Weight of sample i at r for the reference normal n_r (surface.gather): false outside its
-// support. `facing` tells whether its normal lies on n_r's side.
-bool kernel(int i, vec3 r, out float w, out float d2, out bool facing) {
-    vec4 ph = points[3 * i];
+// Weight of the disc's sample at r for the reference normal n_r (surface.gather): false
+// outside its support. `facing` tells whether its normal lies on n_r's side.
+bool kernel(vec3 r, out float w, out float d2, out bool facing) {
+    vec4 ph = v_point[0];
     vec3 delta = ph.xyz - r;
     d2 = dot(delta, delta);
     if (d2 >= SUPPORT * SUPPORT * ph.w * ph.w) return false;
-    vec3 normal = points[3 * i + 2].xyz;
+    vec3 normal = v_point[2].xyz;
     float cosine = dot(normal, texelFetch(u_reference, ivec2(gl_FragCoord.xy), 0).xyz);
     float residual = dot(normal, delta);  // r's distance from the sample's tangent plane
     facing = cosine > 0.0;
@@ -286,14 +297,13 @@ void main() {
     vec3 r;
     float t, w, d2;
     bool facing;
-    if (!current_hit(r, t) || !kernel(v_index, r, w, d2, facing)) discard;
-    int i = v_index;
-    vec3 x = (points[3 * i].xyz - r) / u_scale;
-    float s = u_domain * points[3 * i + 1].w;
+    if (!current_hit(r, t) || !kernel(r, w, d2, facing)) discard;
+    vec3 x = (v_point[0].xyz - r) / u_scale;
+    float s = u_domain * v_point[1].w;
     out_sum = vec4(w * x, w);
-    out_normal = vec4(w * points[3 * i + 2].xyz, facing ? 1.0 : 0.0);
+    out_normal = vec4(w * v_point[2].xyz, facing ? 1.0 : 0.0);
     out_inside = vec4(facing && d2 < s * s ? 1.0 : 0.0, 0.0, 0.0, 0.0);
-    out_color = vec4(w * points[3 * i + 1].rgb, w * points[3 * i].w / u_scale);
+    out_color = vec4(w * v_point[1].rgb, w * v_point[0].w / u_scale);
 }
 #endif
 
@@ -345,13 +355,13 @@ void main() {
     vec3 r;
     float t, w, d2;
     bool facing;
-    if (!current_hit(r, t) || !kernel(v_index, r, w, d2, facing)) discard;
+    if (!current_hit(r, t) || !kernel(r, w, d2, facing)) discard;
     ivec2 pix = ivec2(gl_FragCoord.xy);
     vec4 n = texelFetch(u_n, pix, 0);
     if (n.w == 0.0) discard;
     vec3 e1, e2;
     tangent_frame(n.xyz, e1, e2);
-    vec3 x = (points[3 * v_index].xyz - texelFetch(u_q, pix, 0).xyz) / n.w;
+    vec3 x = (v_point[0].xyz - texelFetch(u_q, pix, 0).xyz) / n.w;
     float u = dot(x, e1), v = dot(x, e2), f = dot(x, n.xyz);
     float uu = u * u, uv = u * v, vv = v * v;
     out_m0 = w * vec4(1.0, u, v, uu);
@@ -365,16 +375,16 @@ void main() {
     vec3 mean = texelFetch(u_q, pix, 0).xyz - r;
     vec3 away = dot(mean, n.xyz) * n.xyz - mean;
     float reach = length(away);
-    vec3 offset = points[3 * v_index].xyz - r;
+    vec3 offset = v_point[0].xyz - r;
     float forward = dot(offset, away) / max(reach, 1e-30), across = dot(offset, n.xyz);
-    bool same_sheet = dot(points[3 * v_index + 2].xyz, n.xyz) > u_edge_cos;
+    bool same_sheet = dot(v_point[2].xyz, n.xyz) > u_edge_cos;
     float sideways2 = dot(offset, offset) - forward * forward - across * across;
     bool alongside = sideways2 <= u_edge_lateral * u_edge_lateral * n.w * n.w;
     bool beyond = reach <= 1e-6 * n.w || (same_sheet && forward >= 0.0 && alongside);
     out_m5 = vec4(w * f * vv, beyond ? 1.0 : 0.0, 0.0, 0.0);
-    float h = points[3 * v_index].w;  // h_i^2: the area the sample stands for, up to a factor (edges.py)
+    float h = v_point[0].w;  // h_i^2: the area the sample stands for, up to a factor (edges.py)
     float wa = h * h * w * exp(d2 * (1.0 / (h * h) - 1.0 / (n.w * n.w)));
-    out_m6 = wa * vec4((points[3 * v_index].xyz - r) / n.w, 1.0);
+    out_m6 = wa * vec4((v_point[0].xyz - r) / n.w, 1.0);
 }
 #endif
 
