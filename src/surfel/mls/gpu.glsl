@@ -115,8 +115,9 @@ void tangent_frame(vec3 n, out vec3 e1, out vec3 e2) {
 // ---------------------------------------------------------------------------------------------
 #ifdef VERTEX_SHADER
 #ifdef DISC
-// The point's rows (and in PASS_INTERSECT its polynomial's), read once a vertex: llvmpipe loads
-// a storage buffer one lane at a time, and its fragment shaders read flat varyings as constants
+// The point's rows (and in PASS_INTERSECT its polynomial's), read by each of its quad's vertices
+// instead of each fragment: llvmpipe loads a storage buffer one lane at a time, and its
+// fragment shaders read flat varyings as constants
 flat out vec4 v_point[3];
 #ifdef PASS_INTERSECT
 flat out vec4 v_poly[6];
