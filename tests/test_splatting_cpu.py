@@ -416,7 +416,7 @@ def test_the_hot_loops_compile_to_simd():
     packed = np.zeros((t.PACKED, count), np.float32)
     camera = tuple(np.float32(v) for v in (1, 0, 0, 0, 1, 0, 0, 0, 1, 0, 0, -5, 500, 500, 256, 256, 0, 0.1, 100))
     assert _packed_float_ops(bins.bound_block, packed, extras, camera, np.float32(1.0), np.float32(1.0), False,
-                             np.float32(32.0), 512, 512, np.zeros(5 * bins.BOUND_BLOCK, np.int32),
+                             np.float32(32.0), 512, 512, np.zeros(4 * bins.BOUND_BLOCK, np.int32),
                              np.zeros(count, np.float32), 0, count) >= 16
 
 

@@ -75,8 +75,8 @@ def bound_splats(packed, extras, m, radius_scale, lowpass, backface, depth_clamp
     In the same pass, binning's count: counts (2 chunks, tiles) gets how many splats of each
     chunk of the cloud (one thread each) meet each TILE x TILE tile, those facing the camera in
     row `chunk`, the others in row chunks + chunk (so that a tile's list holds the first before
-    the others). scratch (chunks, 5 BOUND_BLOCK) int32: each chunk's boxes of BOUND_BLOCK splats
-    and whether they face away, computed in one SIMD loop before they are counted."""
+    the others). scratch (chunks, 4 BOUND_BLOCK) int32: each chunk's boxes of BOUND_BLOCK splats,
+    computed in one SIMD loop before they are counted."""
     n = packed.shape[1]
     cam = camera_scalars(m)
     chunks = counts.shape[0] // 2
@@ -98,7 +98,7 @@ def bound_splats(packed, extras, m, radius_scale, lowpass, backface, depth_clamp
                 box[0, i], box[1, i], box[2, i], box[3, i] = x0, x1, y0, y1
                 if x0 > x1:
                     continue
-                row = back_row if hiding and bounds[slot + 4 * BOUND_BLOCK] else front_row
+                row = back_row if hiding and nearest[i] != FRONT else front_row  # as place_splats sorts them
                 for ty in range(y0 >> TILE_BITS, (y1 >> TILE_BITS) + 1):
                     for tx in range(x0 >> TILE_BITS, (x1 >> TILE_BITS) + 1):
                         row[ty * tiles_x + tx] += 1
@@ -129,7 +129,6 @@ def bound_block(packed, extras, cam, radius_scale, lowpass, backface, depth_clam
         culled = (backface & away) | (perspective & (depth + reach < near))  # or wholly behind the near plane
         # the margins cover the rounding of the same arithmetic in splatting_kernels._setup
         nearest[i] = depth * NEAREST_SHRINK - EXTENT_MARGIN * depth_clamp * max(lu, lv) if away else FRONT
-        bounds[index - first + 4 * BOUND_BLOCK] = 1 if away else 0
         if extras is not None:  # cut away whole (a point on a crease)
             culled |= (extras[EC0, i] < -1) | (extras[EC1, i] < -1)
         whole = perspective & (depth - abs(uz) - abs(vz) < near)  # a corner behind it: the whole image

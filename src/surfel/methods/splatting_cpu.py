@@ -157,7 +157,7 @@ class CpuSplatBuffers:
         tiles = self.tiles_x * self.tiles_y
         # per chunk, a row for its splats facing the camera and one for the others (bins.bound_splats)
         self.counts = np.empty((2 * threads * BIN_CHUNKS_PER_THREAD, tiles), np.int64)
-        self.bounds = np.empty((threads * BIN_CHUNKS_PER_THREAD, 5 * bins.BOUND_BLOCK), np.int32)
+        self.bounds = np.empty((threads * BIN_CHUNKS_PER_THREAD, 4 * bins.BOUND_BLOCK), np.int32)
         self.tile_start = np.empty(tiles, np.int64)
         self.tile_count = np.empty(tiles, np.int64)
         self.tile_front = np.empty(tiles, np.int64)
