@@ -637,6 +637,35 @@ def test_compiled_border_and_cap_kernels_match_numpy():
                 assert np.array_equal(cap, reference) and (cap < 1).sum() > 10
 
 
+def test_border_prefilter_bins_hold_every_direction_within_its_error():
+    """The border kernel's early answer bins each near neighbour's direction (`_near_angles`)
+    within ATAN_ERROR of its angle, and a gap of BORDER_GAP between two directions then leaves
+    ANGLE_RUN + 1 whole bins empty: so the early answer drops no border (the kernel's gaps are
+    checked against numpy's in the test above)."""
+    from surfel.preprocess import borders
+
+    width = 2 * np.pi / borders.ANGLE_BINS
+    assert (borders.ANGLE_RUN + 2) * width <= borders.BORDER_GAP - 2 * borders.ATAN_ERROR
+    rng = np.random.default_rng(8)
+    angles = np.concatenate([rng.uniform(0, 2 * np.pi, 20_000), np.arange(16) * np.pi / 8])
+    scale = np.exp(rng.uniform(-20, 5, len(angles)))
+    found = []
+    for angle, length in zip(angles, scale, strict=True):
+        offsets = np.zeros((7, 2))
+        offsets[0:2, 0] = length * np.cos(angle), length * np.sin(angle)
+        offsets[5, 0] = 1.0  # the neighbour's normal, as the point's
+        offsets[6] = np.inf, -1.0  # the second: the point itself, which counts as no neighbour
+        bits = borders._near_angles(offsets, 2, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, np.inf, np.inf,
+                                    borders.SHEET_COS, borders.FLAT_SIN2)
+        assert bin(int(bits)).count("1") == 1
+        found.append(int(bits).bit_length() - 1)
+    found = np.array(found)
+    lowest = np.floor((angles - borders.ATAN_ERROR) / width)
+    highest = np.floor((angles + borders.ATAN_ERROR) / width)
+    assert np.all((found == lowest % borders.ANGLE_BINS) | (found == highest % borders.ANGLE_BINS))
+    assert (found != np.floor(angles / width) % borders.ANGLE_BINS).sum() > 0  # the error shows
+
+
 def test_bound_semi_axes_is_numpys_formula():
     """The compiled sampling bound gives numpy's values to the bit: semi-axes and radii capped
     at BOUND_FACTOR x spacing, and the mask of the capped splats."""

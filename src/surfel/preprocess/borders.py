@@ -101,6 +101,13 @@ KEY_BIN = 4.0 / KEY_BINS
 EMPTY_RUN = 11
 BORDER_RUN = 14
 ALL_BINS = np.uint64(0xFFFFFFFFFFFFFFFF)
+# The angles of a point's near neighbours in ANGLE_BINS bins of the circle, computed within
+# ATAN_ERROR radians: a gap of BORDER_GAP between them leaves at least ANGLE_RUN + 1 consecutive
+# bins empty (those wholly inside it, less the error at each end)
+ANGLE_BINS = 64
+ATAN_SLOPE = 0.273
+ATAN_ERROR = 0.005
+ANGLE_RUN = int((BORDER_GAP - 2.0 * ATAN_ERROR) / (2.0 * math.pi / ANGLE_BINS)) - 2
 ROW_SECTORS = 8                     # sectors of the pseudo-angle in which near neighbours lie in a row
 ROW_DEPTH = 0.5                     # a neighbour 30 degrees or more off the border line: a row inside
 
@@ -126,7 +133,11 @@ def _border_outwards(points, normals, index, rows, frames, sheet_cos, flat_sin2,
 @numba.njit(cache=True, nogil=True)
 def _outwards_rows(first, stop, points, normals, index, rows, frames, sheet_cos, flat_sin2, layers, closing2,
                    outwards, reach):  # pragma: no cover - compiled
-    """Rows first:stop of `_border_outwards`."""
+    """Rows first:stop of `_border_outwards`. A point whose near neighbours' directions leave
+    no ANGLE_RUN + 1 consecutive ANGLE_BINS empty is no border (`_point_outwards` counts those
+    neighbours and more): known from its neighbours gathered into rows and binned in SIMD code
+    (`_near_angles`), before the per-neighbour branches of `_point_outwards` (a partition of
+    1.4M points sampled at random from a surface, on one core: the pass 0.60 -> 0.38 s)."""
     k = index.shape[1]
     # one set of buffers per call: an allocation per point costs as much as its work
     found = np.empty((5, k))  # key, x, y, squared distance and closing distance as they come
@@ -134,9 +145,54 @@ def _outwards_rows(first, stop, points, normals, index, rows, frames, sheet_cos,
     xs = np.empty(k)
     ys = np.empty(k)
     far = np.empty((2, k))  # x, y of the fold's far side
+    offsets = np.empty((7, k))  # a point's neighbours' offsets, normals and closing distances, gathered
     for i in range(first, stop):
+        p = rows[i]
+        for j in range(k):
+            q = index[i, j]
+            for a in range(3):
+                offsets[a, j] = points[q, a] - points[p, a]
+                offsets[3 + a, j] = normals[q, a]
+            offsets[6, j] = closing2[q] if q != p else -1.0
+        bins = _near_angles(offsets, k, frames[i, 0, 0], frames[i, 0, 1], frames[i, 0, 2], frames[i, 1, 0],
+                            frames[i, 1, 1], frames[i, 1, 2], normals[p, 0], normals[p, 1], normals[p, 2],
+                            layers[p], closing2[p], sheet_cos, flat_sin2)
+        if _no_wide_gap(bins, ANGLE_RUN):
+            continue
         _point_outwards(points, normals, index, rows, frames, sheet_cos, flat_sin2, layers, closing2, i, found,
                         keys, xs, ys, far, outwards, reach)
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _near_angles(offsets, k, tx, ty, tz, sx, sy, sz, mx, my, mz, layer, own, sheet_cos,
+                 flat_sin2):  # pragma: no cover - compiled
+    """The ANGLE_BINS bins holding the directions of the neighbours that `_point_outwards`
+    counts as near, as bits, from their gathered offsets[0:3], normals offsets[3:6] and closing
+    distances offsets[6] (negative: the point itself); p's tangent frame (t, s), normal m, layer
+    and own closing distance. A loop without branches over contiguous rows, which compiles to
+    SIMD code; the angles within ATAN_ERROR."""
+    bins = np.uint64(0)
+    for j in range(k):
+        dx, dy, dz = offsets[0, j], offsets[1, j], offsets[2, j]
+        facing = offsets[3, j] * mx + offsets[4, j] * my + offsets[5, j] * mz
+        x = dx * tx + dy * ty + dz * tz
+        y = dx * sx + dy * sy + dz * sz
+        antisymmetric = dx * (mx + offsets[3, j]) + dy * (my + offsets[4, j]) + dz * (mz + offsets[5, j])
+        height = dx * mx + dy * my + dz * mz
+        distance2 = x * x + y * y
+        far_side = (facing < sheet_cos) & (height * height > flat_sin2 * (distance2 + height * height))
+        near = ((not far_side) & (offsets[6, j] >= 0.0) & ((x != 0.0) | (y != 0.0))
+                & (not 0.5 * abs(antisymmetric) > layer) & (distance2 <= max(own, offsets[6, j])))
+        ax = abs(x)
+        ay = abs(y)
+        t = min(ax, ay) / max(ax, ay, 1e-300)
+        octant = t * (0.25 * math.pi + ATAN_SLOPE * (1.0 - t))  # atan(t) within ATAN_ERROR
+        angle = octant if ax >= ay else 0.5 * math.pi - octant
+        angle = angle if x >= 0.0 else math.pi - angle
+        angle = angle if y >= 0.0 else 2.0 * math.pi - angle
+        bit = np.uint64(1) << np.uint64(int(angle * (ANGLE_BINS / (2.0 * math.pi)) + ANGLE_BINS) & (ANGLE_BINS - 1))
+        bins |= bit if near else np.uint64(0)
+    return bins
 
 
 @numba.njit(cache=True, inline="always")
