@@ -666,6 +666,45 @@ def test_border_prefilter_bins_hold_every_direction_within_its_error():
     assert (found != np.floor(angles / width) % borders.ANGLE_BINS).sum() > 0  # the error shows
 
 
+def test_clip_kernel_early_answer_keeps_every_candidate():
+    """A point none of whose neighbours `_cutting_neighbours` counts gets no clip line: every
+    neighbour that makes a crease, rim, turn or border candidate (`_crease_candidates`,
+    `_border_candidates`) is counted, over random neighbours of every kind (a turn's normal
+    lies more than SHARP_ANGLE from p's: its neighbour is more than 45 degrees below p's plane
+    and p below the neighbour's)."""
+    from surfel.preprocess import cell_kernels
+    from surfel.preprocess.frames import orthonormal_basis
+    from surfel.preprocess.sharp_features import SharpFeatures
+
+    rng = np.random.default_rng(21)
+    index = np.array([[0, 1]])
+    candidates = np.empty((4, 3))
+    kinds = {"flat": 0, "curved": 0, "border": 0}  # which neighbours made candidates
+    for _ in range(4000):
+        points = np.zeros((2, 3))
+        points[1] = rng.normal(size=3)
+        normal = rng.normal(size=3)
+        if rng.uniform() < 0.5:  # the neighbour's plane near p's: only turns and borders cut
+            normal = normal * [0.2, 0.2, 1.0] + [0.0, 0.0, 1.0]
+        normals = np.array([[0.0, 0.0, 1.0], normal / np.linalg.norm(normal)])
+        features = SharpFeatures(rng.uniform(size=2) < 0.5, np.zeros(2, bool), *SharpFeatures.none(2)[2:])
+        axes = orthonormal_basis(normals[:1]) * rng.uniform(0.2, 2.0)
+        on_border = rng.uniform(size=2) < 0.1
+        outwards = np.zeros((2, 3))
+        tangents = rng.normal(size=(2, 3)) * [1, 1, 0]
+        outwards[on_border] = (tangents / np.linalg.norm(tangents, axis=1, keepdims=True))[on_border]
+        layers = np.full(2, np.inf)
+        creases = cell_kernels._crease_candidates(points, normals, index, axes, 0, 0, features, layers, candidates)
+        borders = cell_kernels._border_candidates(points, index, axes, 0, 0, outwards, on_border, np.zeros(2), 0.0,
+                                                  candidates, 0)
+        gathered = np.vstack([(points - points[0]).T, normals.T, on_border[None].astype(float)])
+        counted = cell_kernels._cutting_neighbours(gathered, 2, 0.0, 0.0, 1.0, features.sharp_cos)
+        assert counted > 0 or creases + borders == 0
+        kinds["flat" if features.flat[1] else "curved"] += creases > 0
+        kinds["border"] += borders > 0
+    assert min(kinds.values()) > 50, kinds
+
+
 def test_bound_semi_axes_is_numpys_formula():
     """The compiled sampling bound gives numpy's values to the bit: semi-axes and radii capped
     at BOUND_FACTOR x spacing, and the mask of the capped splats."""

@@ -518,6 +518,28 @@ def _nearest_creases(candidates, count, lines, i):  # pragma: no cover - compile
         used += 1
 
 
+@numba.njit(cache=True, nogil=True)
+def _cutting_neighbours(gathered, k, nx, ny, nz, sharp_cos):  # pragma: no cover - compiled
+    """How many of p's k neighbours (offsets gathered[0:3], normals gathered[3:6], border marks
+    gathered[6]; p's normal n) may make one of its clip lines: a crease's or a rim's (normals
+    more than SHARP_ANGLE apart), a turn's (a neighbour more than 45 degrees below p's plane,
+    with p below its plane), a border's (`_crease_candidates`, `_border_candidates`). A loop
+    without branches over contiguous rows, which compiles to SIMD code: the points no
+    neighbour can cut (most) skip those loops' branches (a 1.4M-point build partition on one
+    core: `cells.clip_lines` 0.59 -> 0.17-0.26 s)."""
+    count = 0
+    for j in range(k):
+        dx, dy, dz = gathered[0, j], gathered[1, j], gathered[2, j]
+        qx, qy, qz = gathered[3, j], gathered[4, j], gathered[5, j]
+        facing = qx * nx + qy * ny + qz * nz
+        height = dx * nx + dy * ny + dz * nz
+        across = dx * qx + dy * qy + dz * qz
+        distance2 = dx * dx + dy * dy + dz * dz
+        turn = (height < 0.0) & (2.0 * height * height > distance2) & (across > 0.0)
+        count += (facing < sharp_cos) | turn | (gathered[6, j] != 0.0)
+    return count
+
+
 def cell_clip_lines(points, normals, index, start, axes, features, layers, outwards, on_border, reach, margin):
     """CLIP_LINES clip lines (a, b, c) per splat, in its local coordinates (u, v) (1 on the rim):
     the crease and turn half-planes that end its cell (neighbours of another of the `layers`
@@ -533,7 +555,9 @@ def cell_clip_lines(points, normals, index, start, axes, features, layers, outwa
 def _clip_rows(first, stop, points, normals, index, start, axes, features, layers, outwards, on_border, reach, margin,
                lines):  # pragma: no cover - compiled
     """Rows first:stop of `cell_clip_lines`."""
-    candidates = np.empty((2 * index.shape[1], 3))  # one per call: an allocation per point costs as much
+    k = index.shape[1]
+    candidates = np.empty((2 * k, 3))  # one per call: an allocation per point costs as much
+    gathered = np.empty((7, k))  # a point's neighbours' offsets, normals and border marks, in rows
     for i in range(first, stop):
         p = start + i
         dropped = features.crease[p]
@@ -542,6 +566,14 @@ def _clip_rows(first, stop, points, normals, index, start, axes, features, layer
             lines[i, line, 1] = 0.0 if dropped else INACTIVE_CLIP[1]
             lines[i, line, 2] = -2.0 if dropped else INACTIVE_CLIP[2]
         if not dropped:
+            for j in range(k):
+                q = index[i, j]
+                for a in range(3):
+                    gathered[a, j] = points[q, a] - points[p, a]
+                    gathered[3 + a, j] = normals[q, a]
+                gathered[6, j] = 1.0 if on_border[q] else 0.0
+            if _cutting_neighbours(gathered, k, normals[p, 0], normals[p, 1], normals[p, 2], features.sharp_cos) == 0:
+                continue  # no neighbour can make a clip line (most points)
             count = _crease_candidates(points, normals, index, axes, i, p, features, layers, candidates)
             count = _border_candidates(points, index, axes, i, p, outwards, on_border, reach, margin, candidates,
                                        count)
