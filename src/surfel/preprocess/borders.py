@@ -145,16 +145,16 @@ def _outwards_rows(first, stop, points, normals, index, rows, frames, sheet_cos,
     xs = np.empty(k)
     ys = np.empty(k)
     far = np.empty((2, k))  # x, y of the fold's far side
-    offsets = np.empty((7, k))  # a point's neighbours' offsets, normals and closing distances, gathered
+    gathered = np.empty((7, k))  # a point's neighbours' offsets, normals and closing distances, in rows
     for i in range(first, stop):
         p = rows[i]
         for j in range(k):
             q = index[i, j]
             for a in range(3):
-                offsets[a, j] = points[q, a] - points[p, a]
-                offsets[3 + a, j] = normals[q, a]
-            offsets[6, j] = closing2[q] if q != p else -1.0
-        bins = _near_angles(offsets, k, frames[i, 0, 0], frames[i, 0, 1], frames[i, 0, 2], frames[i, 1, 0],
+                gathered[a, j] = points[q, a] - points[p, a]
+                gathered[3 + a, j] = normals[q, a]
+            gathered[6, j] = closing2[q] if q != p else -1.0
+        bins = _near_angles(gathered, k, frames[i, 0, 0], frames[i, 0, 1], frames[i, 0, 2], frames[i, 1, 0],
                             frames[i, 1, 1], frames[i, 1, 2], normals[p, 0], normals[p, 1], normals[p, 2],
                             layers[p], closing2[p], sheet_cos, flat_sin2)
         if _no_wide_gap(bins, ANGLE_RUN):
@@ -164,25 +164,25 @@ def _outwards_rows(first, stop, points, normals, index, rows, frames, sheet_cos,
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _near_angles(offsets, k, tx, ty, tz, sx, sy, sz, mx, my, mz, layer, own, sheet_cos,
+def _near_angles(gathered, k, tx, ty, tz, sx, sy, sz, mx, my, mz, layer, own, sheet_cos,
                  flat_sin2):  # pragma: no cover - compiled
     """The ANGLE_BINS bins holding the directions of the neighbours that `_point_outwards`
-    counts as near, as bits, from their gathered offsets[0:3], normals offsets[3:6] and closing
-    distances offsets[6] (negative: the point itself); p's tangent frame (t, s), normal m, layer
+    counts as near, as bits, from their offsets gathered[0:3], normals gathered[3:6] and closing
+    distances gathered[6] (negative: the point itself); p's tangent frame (t, s), normal m, layer
     and own closing distance. A loop without branches over contiguous rows, which compiles to
     SIMD code; the angles within ATAN_ERROR."""
     bins = np.uint64(0)
     for j in range(k):
-        dx, dy, dz = offsets[0, j], offsets[1, j], offsets[2, j]
-        facing = offsets[3, j] * mx + offsets[4, j] * my + offsets[5, j] * mz
+        dx, dy, dz = gathered[0, j], gathered[1, j], gathered[2, j]
+        facing = gathered[3, j] * mx + gathered[4, j] * my + gathered[5, j] * mz
         x = dx * tx + dy * ty + dz * tz
         y = dx * sx + dy * sy + dz * sz
-        antisymmetric = dx * (mx + offsets[3, j]) + dy * (my + offsets[4, j]) + dz * (mz + offsets[5, j])
+        antisymmetric = dx * (mx + gathered[3, j]) + dy * (my + gathered[4, j]) + dz * (mz + gathered[5, j])
         height = dx * mx + dy * my + dz * mz
         distance2 = x * x + y * y
         far_side = (facing < sheet_cos) & (height * height > flat_sin2 * (distance2 + height * height))
-        near = ((not far_side) & (offsets[6, j] >= 0.0) & ((x != 0.0) | (y != 0.0))
-                & (not 0.5 * abs(antisymmetric) > layer) & (distance2 <= max(own, offsets[6, j])))
+        near = ((not far_side) & (gathered[6, j] >= 0.0) & ((x != 0.0) | (y != 0.0))
+                & (not 0.5 * abs(antisymmetric) > layer) & (distance2 <= max(own, gathered[6, j])))
         ax = abs(x)
         ay = abs(y)
         t = min(ax, ay) / max(ax, ay, 1e-300)
