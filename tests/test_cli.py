@@ -121,6 +121,11 @@ def test_info_reports_attributes_and_estimates():
     info = json.loads(proc.stdout)
     assert info["points"] == 110000 and info["geospatial"]
     assert "colors" in info["attributes"] and "normals" in info["would_estimate"]
+    # a file without scanner positions says so, not what to do when OpenGL is missing
+    lines = run("info", DATA / "autzen_trim.laz").stdout.splitlines()
+    assert info["sensors"] is None
+    assert [line.split(None, 1)[1] for line in lines if line.startswith("sensors ")] == [
+        "none (the file holds no scanner positions)"]
 
 
 def test_an_output_named_for_another_format_is_refused(tmp_path):

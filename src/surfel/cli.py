@@ -206,10 +206,12 @@ def info(input, as_json):
     if as_json:
         click.echo(json.dumps(report, indent=2))
         return
+    absent = {"sensors": "none (the file holds no scanner positions)",
+              "opengl": "unavailable (use --backend cpu)"}
     for key, value in report.items():
         if key == "schema":
             value = "".join(f"\n  {line}" for line in summary_lines(value)) or "none"
-        click.echo(f"{key:15s} {value if value is not None else 'unavailable (use --backend cpu)'}")
+        click.echo(f"{key:15s} {value if value is not None else absent.get(key, 'none')}")
 
 
 @main.command(context_settings=CONTEXT)
