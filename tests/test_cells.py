@@ -705,6 +705,36 @@ def test_clip_kernel_early_answer_keeps_every_candidate():
     assert min(kinds.values()) > 50, kinds
 
 
+def test_crease_points_are_pairs_of_flat_neighbours_sharply_apart():
+    """`_crease_points` (with its early answer, `_far_flat_neighbours`) against its rule written
+    in numpy: a point is a crease point when two of its flat neighbours, p in both their planes
+    and neither facing away, have normals more than SHARP_ANGLE apart; over random neighbours
+    whose planes pass through p or miss it, near p's normal or not."""
+    from surfel.preprocess import sharp_features as sf
+
+    rng = np.random.default_rng(34)
+    k = 6
+    found = []
+    for _ in range(3000):
+        points = np.vstack([np.zeros(3), rng.normal(size=(k - 1, 3))])
+        normals = rng.normal(size=(k, 3)) * [1.0, 1.0, rng.uniform(0.5, 6.0)]
+        normals[0] = [0.0, 0.0, 1.0]
+        through = rng.uniform(size=k) < 0.8  # planes through p: normals across (p - q)
+        towards = points / np.maximum(np.linalg.norm(points, axis=1, keepdims=True), 1e-12)
+        normals[through] -= np.sum(normals * towards, axis=1, keepdims=True)[through] * towards[through]
+        normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+        flat = rng.uniform(size=k) < 0.8
+        got = sf._crease_points(points, np.arange(k)[None], 0, normals, flat)[0]
+        offset = points[0] - points[1:]
+        side = np.sum(offset * normals[1:], axis=1)
+        counted = (flat[1:] & (side ** 2 <= sf.ON_PLANE_SIN2 * np.sum(offset ** 2, axis=1))
+                   & (normals[1:] @ normals[0] >= sf.SHEET_COS))
+        pairs = normals[1:][counted] @ normals[1:][counted].T
+        assert got == bool((pairs < sf.SHARP_COS).any())
+        found.append(got)
+    assert 300 < sum(found) < 2700
+
+
 def test_bound_semi_axes_is_numpys_formula():
     """The compiled sampling bound gives numpy's values to the bit: semi-axes and radii capped
     at BOUND_FACTOR x spacing, and the mask of the capped splats."""

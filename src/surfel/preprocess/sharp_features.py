@@ -119,8 +119,17 @@ def _crease_points_rows(first, stop, points, index, start, normals, flat, crease
     # SHARP_ANGLE of p's (NEAR_COS) and the others; one buffer per call: an allocation
     # per point costs as much as its work
     near, far = np.empty(k, np.int64), np.empty(k, np.int64)
+    gathered = np.empty((7, k))  # a point's neighbours' offsets to it, normals and flat marks, in rows
     for i in range(first, stop):
         p = start + i
+        for j in range(k):
+            q = index[i, j]
+            for a in range(3):
+                gathered[a, j] = points[p, a] - points[q, a]
+                gathered[3 + a, j] = normals[q, a]
+            gathered[6, j] = 1.0 if flat[q] and q != p else 0.0
+        if _far_flat_neighbours(gathered, k, normals[p, 0], normals[p, 1], normals[p, 2]) == 0:
+            continue  # every flat neighbour within half SHARP_ANGLE of p: no pair to compare (most points)
         nears = fars = 0
         for j in range(k):
             q = index[i, j]
@@ -154,6 +163,26 @@ def _crease_points_rows(first, stop, points, index, start, normals, flat, crease
             else:
                 far[fars] = q
                 fars += 1
+
+
+@numba.njit(cache=True, nogil=True)
+def _far_flat_neighbours(gathered, k, nx, ny, nz):  # pragma: no cover - compiled
+    """How many of p's k neighbours (offsets to p gathered[0:3], normals gathered[3:6], flat and
+    not p gathered[6]; p's normal n) `_crease_points_rows` compares and files as far: flat, p in
+    their plane, not facing away, normals more than half SHARP_ANGLE from p's. Without one, no
+    two it compares lie SHARP_ANGLE apart. A loop without branches over contiguous rows, which
+    compiles to SIMD code (a 1.4M-point build partition on one core: `find_sharp_features`
+    0.32-0.41 -> 0.25-0.28 s)."""
+    count = 0
+    for j in range(k):
+        dx, dy, dz = gathered[0, j], gathered[1, j], gathered[2, j]
+        qx, qy, qz = gathered[3, j], gathered[4, j], gathered[5, j]
+        side = dx * qx + dy * qy + dz * qz
+        distance2 = dx * dx + dy * dy + dz * dz
+        towards_p = qx * nx + qy * ny + qz * nz
+        count += ((gathered[6, j] != 0.0) & (not side * side > ON_PLANE_SIN2 * distance2)
+                  & (not towards_p < SHEET_COS) & (not towards_p >= NEAR_COS))
+    return count
 
 
 def find_sharp_features(nbh: Neighbourhood, normals: np.ndarray, k: int) -> SharpFeatures:
