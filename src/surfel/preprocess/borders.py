@@ -180,9 +180,9 @@ def _near_angles(gathered, k, tx, ty, tz, sx, sy, sz, mx, my, mz, layer, own, sh
         antisymmetric = dx * (mx + gathered[3, j]) + dy * (my + gathered[4, j]) + dz * (mz + gathered[5, j])
         height = dx * mx + dy * my + dz * mz
         distance2 = x * x + y * y
-        far_side = (facing < sheet_cos) & (height * height > flat_sin2 * (distance2 + height * height))
-        near = ((not far_side) & (gathered[6, j] >= 0.0) & ((x != 0.0) | (y != 0.0))
-                & (not 0.5 * abs(antisymmetric) > layer) & (distance2 <= max(own, gathered[6, j])))
+        near = ((not _far_side(facing, x, y, height, sheet_cos, flat_sin2)) & (gathered[6, j] >= 0.0)
+                & ((x != 0.0) | (y != 0.0)) & (not 0.5 * abs(antisymmetric) > layer)
+                & (distance2 <= max(own, gathered[6, j])))
         ax = abs(x)
         ay = abs(y)
         t = min(ax, ay) / max(ax, ay, 1e-300)
