@@ -87,8 +87,9 @@ class SplatBuffers:
 
     def texels(self) -> list:
         """The kept chunks' rows as (texture, count): TEXELS texels a splat, TEXTURE_ROW splats
-        a row; made on the first call (only compute programs read them), so that a cloud the
-        compute passes draw takes its rows twice on the GPU (buffers for the rasterized passes)."""
+        a row; made on the first call, since only compute programs read them. A cloud the
+        compute passes draw then holds its rows twice on the GPU (the buffers serve the
+        rasterized passes)."""
         if self.textures is None:
             ctx = get_context()
             self.textures = []
