@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from surfel.cloud import stable_order
+from surfel.cloud import scatter_rows, stable_order
 from surfel.preprocess.grid_knn import k_nearest, sorted_k_nearest
 from surfel.preprocess.neighbourhood import Neighbourhood
 from surfel.preprocess.unsettled import scan_all_nearest
@@ -65,6 +65,23 @@ def test_neighbourhood_sorts_and_unsorts():
     expected, _ = cKDTree(points).query(points, k=12)
     found = np.linalg.norm(nbh.points[nbh.index] - nbh.points[:, None], axis=2)
     assert np.allclose(np.sort(found, axis=1), nbh.sort(expected), atol=1e-12)
+
+
+@pytest.mark.parametrize("values", [
+    rng.integers(0, 255, 1_001).astype(np.uint8),            # rows of one byte
+    rng.integers(-999, 999, (1_001, 3)).astype(np.int16),     # rows of 6 bytes
+    rng.random((1_001, 3)),
+    rng.random((1_001, 2, 3)).astype(np.float32),
+    rng.random((1_001, 6))[:, ::2],                           # strided
+    rng.random(1_001) < 0.5,
+    np.zeros((0, 3), np.float32),
+])
+def test_scatter_rows_moves_each_row_to_its_destination(values):
+    destination = rng.permutation(len(values))
+    expected = np.empty_like(values)
+    expected[destination] = values
+    moved = scatter_rows(values, destination)
+    assert moved.dtype == values.dtype and moved.shape == values.shape and np.array_equal(moved, expected)
 
 
 def test_first_neighbours_are_contiguous():

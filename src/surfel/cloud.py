@@ -18,6 +18,7 @@ from contextvars import ContextVar
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 
+import numba
 import numpy as np
 
 from .attributes import (
@@ -94,6 +95,29 @@ def take_rows(values: np.ndarray, index) -> np.ndarray:
     if integers is None or integers.dtype.kind not in "iu":
         return values[index]
     return np.take(values, integers, axis=0)
+
+
+def scatter_rows(values: np.ndarray, destination: np.ndarray) -> np.ndarray:
+    """values with row i moved to row destination[i] (a permutation of the rows). It reads the
+    rows in order: where the destination keeps runs of rows together (siblings in a tree,
+    points of one cell), it takes half the time of gathering them (`take_rows` with the
+    inverse), whose every run is a cache miss the next load waits for."""
+    values = np.ascontiguousarray(values)
+    moved = np.empty_like(values)
+    row_bytes = values.itemsize * (values.size // len(values) if len(values) else 0)
+    _scatter_bytes(values.reshape(-1).view(np.uint8).reshape(len(values), row_bytes),
+                   np.asarray(destination, np.int64), moved.reshape(-1).view(np.uint8).reshape(len(values), row_bytes))
+    return moved
+
+
+@numba.njit(cache=True)
+def _scatter_bytes(rows, destination, out):  # pragma: no cover - compiled
+    """out[destination[i]] = rows[i], the rows as raw bytes: one kernel for every dtype."""
+    width = rows.shape[1]
+    for i in range(len(rows)):
+        to = destination[i]
+        for byte in range(width):
+            out[to, byte] = rows[i, byte]
 
 
 def _contiguous(value, dtype) -> np.ndarray:

@@ -19,11 +19,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
-import numba
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..cloud import take_rows
+from ..cloud import scatter_rows, take_rows
 from .chunked import map_chunks, progress_bar
 from .grid_knn import Grid, sorted_k_nearest
 
@@ -108,21 +107,4 @@ class Neighbourhood:
 
     def unsort(self, values: np.ndarray) -> np.ndarray:
         """Per-point values in the sorted order, put back into the input's order."""
-        values = np.asarray(values)
-        if values.ndim > 1 and values.size and values.flags.c_contiguous and values.dtype.kind in "biuf":
-            # rows of several values (axes, clip lines): numpy's scatter of them takes twice as long
-            return _scatter_rows(values.reshape(len(values), -1), self.order).reshape(values.shape)
-        out = np.empty_like(values)
-        out[self.order] = values
-        return out
-
-
-@numba.njit(cache=True)
-def _scatter_rows(values, order):  # pragma: no cover - compiled
-    """out[order[i]] = values[i] for the rows of values (N, c)."""
-    out = np.empty_like(values)
-    for i in range(len(order)):
-        row = order[i]
-        for c in range(values.shape[1]):
-            out[row, c] = values[i, c]
-    return out
+        return scatter_rows(np.asarray(values), self.order)
