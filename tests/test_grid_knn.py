@@ -7,7 +7,7 @@ import pytest
 from scipy.spatial import cKDTree
 
 from surfel.cloud import scatter_rows, stable_order
-from surfel.preprocess.grid_knn import k_nearest, sorted_k_nearest
+from surfel.preprocess.grid_knn import sorted_k_nearest
 from surfel.preprocess.neighbourhood import Neighbourhood
 from surfel.preprocess.unsettled import scan_all_nearest
 
@@ -15,7 +15,7 @@ from surfel.preprocess.unsettled import scan_all_nearest
 def assert_exact(points: np.ndarray, k: int) -> None:
     """The grid's k nearest of every point are at the k-d tree's k nearest distances, the
     point itself first, and the order is a permutation."""
-    order, index = k_nearest(points, k)
+    order, index, _ = sorted_k_nearest(points, k)
     assert np.array_equal(np.sort(order), np.arange(len(points)))
     ordered = points[order]
     assert index.shape == (len(points), k) and index.dtype == np.int32
