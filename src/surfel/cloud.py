@@ -104,9 +104,12 @@ def scatter_rows(values: np.ndarray, destination: np.ndarray) -> np.ndarray:
     inverse), whose every run is a cache miss the next load waits for."""
     values = np.ascontiguousarray(values)
     moved = np.empty_like(values)
-    row_bytes = values.itemsize * (values.size // len(values) if len(values) else 0)
-    _scatter_bytes(values.reshape(-1).view(np.uint8).reshape(len(values), row_bytes),
-                   np.asarray(destination, np.int64), moved.reshape(-1).view(np.uint8).reshape(len(values), row_bytes))
+    row_bytes = values.itemsize * math.prod(values.shape[1:])
+
+    def as_bytes(array: np.ndarray) -> np.ndarray:
+        return array.reshape(-1).view(np.uint8).reshape(len(array), row_bytes)
+
+    _scatter_bytes(as_bytes(values), np.asarray(destination, np.int64), as_bytes(moved))
     return moved
 
 

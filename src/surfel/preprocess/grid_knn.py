@@ -11,13 +11,13 @@ table of the occupied cells' keys (open addressing) finds a cell's run.
 
 Search: a point p of cell q scans the 3 x 3 x 3 block of cells around q (gathered once per cell
 for all its points; the runs of the cells it shares with the block gathered before are taken
-from that one, not looked up again) and keeps its k nearest candidates. It computes the distances to all of
-them at once (a loop that compiles to SIMD), and offers only the candidates within a bound:
-whenever k - 1 others lie within it, the k nearest are among them, offered in the order they
-are found, so ties are broken as offering all would break them. The bound is d + s / 4, else
-d + s, else none, with d the distance from the point before (in cell order) to its k-th
-nearest and s the step between the two points: by the triangle inequality the k nearest of
-the point before lie within d + s. On a scanned surface about 24 of 105 candidates are
+from that one, not looked up again) and keeps its k nearest candidates. It computes the
+distances to all of them at once (a loop that compiles to SIMD), and offers only the candidates
+within a bound: whenever k - 1 others lie within it, the k nearest are among them, offered in
+the order they are found, so ties are broken as offering all would break them. The bound is
+d + s / 4, else d + s, else none, with d the distance from the point before (in cell order) to
+its k-th nearest and s the step between the two points: by the triangle inequality the k nearest
+of the point before lie within d + s. On a scanned surface about 24 of 105 candidates are
 offered; each insertion into a sorted list costs a mispredicted branch, so a search of 16
 nearest took 60-65% of the time that offering every candidate took. Up to RANKED offered
 candidates are instead placed by their ranks (how many lie nearer, or as near and before),
@@ -312,9 +312,9 @@ def _within(dist, m, bound, near_d, near_c):  # pragma: no cover - compiled
 def _search_run(points, starts, run_keys, slots, run, lo, h, k, index, best_d, best_i, spare_d, spare_i, block,
                 runs, dist, near_d, near_c, previous):  # pragma: no cover - compiled
     """Rows of index for the points of one cell (a run of the sorted points): the 3 x 3 x 3
-    block around it, gathered once into `block` (`_gather_block`, with `runs`), then shells of cells while
-    the k-th found may lie nearer outside (module docstring); -1 in column 0 where the shells
-    up to RINGS do not settle it. `previous` (reach, x, y, z), carried from point to point:
+    block around it, gathered once into `block` (`_gather_block`, with `runs`), then shells of
+    cells while the k-th found may lie nearer outside (module docstring); -1 in column 0 where
+    the shells up to RINGS do not settle it. `previous` (reach, x, y, z), carried from point to point:
     the distance to the k-th nearest of the point before, and that point."""
     inv_h = 1.0 / h
     first = starts[run]
