@@ -718,6 +718,14 @@ def test_non_finite_coordinates(tmp_path, name, content):
     assert "NaN" in str(raises_input_error(tmp_path / name))
 
 
+@pytest.mark.parametrize("bad, subject", [(1, "1 point has"), (2, "2 points have")])
+def test_a_count_of_bad_points_reads_as_a_sentence(tmp_path, bad, subject):
+    lines = "".join("0 nan 0\n" if i < bad else f"{i} 0 0\n" for i in range(4))
+    path = tmp_path / "nan.xyz"
+    path.write_text(lines)
+    assert str(raises_input_error(path)) == f"{path}: {subject} NaN coordinates"
+
+
 def test_non_finite_coordinates_binary_ply(tmp_path):
     xyz = [("x", "double"), ("y", "double"), ("z", "double")]
     ply_file(tmp_path / "inf.ply", "binary_big_endian", [("vertex", xyz, [(0, float("inf"), 0)])])

@@ -32,7 +32,7 @@ from .attributes import (
     KINDS,
     Schema,
 )
-from .errors import InputError
+from .errors import InputError, points_have
 
 
 def read_only(array: np.ndarray) -> np.ndarray:
@@ -236,7 +236,7 @@ class PointCloud:
             bad = ~np.isfinite(pos).all(axis=1)
             nan = int(np.isnan(pos).any(axis=1).sum())
             what = "NaN" if nan == int(bad.sum()) else "NaN or infinite"
-            raise InputError(src, f"{int(bad.sum())} points have {what} coordinates")
+            raise InputError(src, f"{points_have(int(bad.sum()))} {what} coordinates")
 
         def per_point(name, value, tail, dtype=np.float32, finite=True):
             if value is None:
@@ -248,7 +248,7 @@ class PointCloud:
                 return arr
             if finite and arr.dtype.kind == "f" and not np.isfinite(arr).all():
                 count = int((~np.isfinite(arr.reshape(n, -1))).any(axis=1).sum())
-                raise InputError(src, f"{count} points have NaN or infinite {name}")
+                raise InputError(src, f"{points_have(count)} NaN or infinite {name}")
             return arr
 
         def attribute(name, value):
@@ -275,7 +275,7 @@ class PointCloud:
                 length = np.linalg.norm(normals[off].astype(np.float64), axis=1)
                 zero = length < 1e-12
                 if zero.any():
-                    raise InputError(src, f"{int(zero.sum())} points have zero-length normals")
+                    raise InputError(src, f"{points_have(int(zero.sum()))} zero-length normals")
                 normals = normals.copy()
                 normals[off] = (normals[off] / length[:, None]).astype(np.float32)
         given_colors = self.colors
@@ -286,7 +286,7 @@ class PointCloud:
             raise InputError(src, "colors must lie in [0, 1] (or be uint8, 0 to 255)")
         radii = per_point("radii", self.radii, ())
         if radii is not None and not known(self.radii, radii) and not (radii > 0).all():
-            raise InputError(src, f"{int((radii <= 0).sum())} points have non-positive radii")
+            raise InputError(src, f"{points_have(int((radii <= 0).sum()))} non-positive radii")
         axes = per_point("axes", self.axes, (2, 3))
         faces = self.faces
         if faces is not None:

@@ -18,5 +18,10 @@ class InputError(SurfelError):
         super().__init__(f"{self.path}: {problem}" if self.path else problem)
 
 
+def points_have(count: int) -> str:
+    """'1 point has' or 'N points have': the subject of a message that counts bad points."""
+    return "1 point has" if count == 1 else f"{count} points have"
+
+
 class NoOpenGLError(SurfelError):
     """No OpenGL context could be created."""

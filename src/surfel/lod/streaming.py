@@ -28,7 +28,7 @@ import numpy as np
 
 from ..attributes import CATEGORICAL, CONTINUOUS, DERIVED, MAX_CATEGORIES, AttributeSpec, known_name, resolve_kind
 from ..cloud import corners, file_normals
-from ..errors import InputError, SurfelError
+from ..errors import InputError, SurfelError, points_have
 
 # points read and binned at once: a chunk's arrays (about 200 bytes a point) are memory the
 # process touches for the first time, which costs more than the binning itself (with huge
@@ -218,7 +218,7 @@ def checked(path: str, positions: np.ndarray, normals: np.ndarray | None, colors
         # zero vectors are placeholders (cloud.file_normals): the scan pass drops such normals
         if not np.isfinite(normals).all():  # counted only then: a reduction along rows is slow
             bad = ~np.isfinite(normals).all(axis=1)
-            raise InputError(path, f"{int(bad.sum())} points in a chunk have NaN or infinite normals")
+            raise InputError(path, f"{points_have(int(bad.sum()))} NaN or infinite normals (in one chunk)")
     for name, values in attributes.items():
         if values.dtype.kind == "f" and not np.isfinite(values).all():
             raise InputError(path, f"points have NaN or infinite {name}")
