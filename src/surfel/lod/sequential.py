@@ -93,13 +93,13 @@ def to_sequential_cloud(tree: LodTree) -> PointCloud:
     def permuted(values: np.ndarray | None, dtype=None) -> np.ndarray | None:
         return None if values is None else scatter_rows(np.asarray(values, dtype), destination)
 
+    e_g = np.asarray(tree.e_g, np.float32)  # each node's own error, and its parent's
     parent = permuted(tree.parent)
-    emax = np.where(parent >= 0, take_rows(np.asarray(tree.e_g, np.float32), np.maximum(parent, 0)),
-                    np.float32(ROOT_PARENT_ERROR))
+    emax = np.where(parent >= 0, take_rows(e_g, np.maximum(parent, 0)), np.float32(ROOT_PARENT_ERROR))
     dparent = permuted(tree.d_parent, np.float32)
     dsuffix = np.maximum.accumulate(dparent[::-1])[::-1]
     attributes = {name: permuted(values) for name, values in tree.attributes.items()}
-    attributes.update(lod_emin=permuted(tree.e_g, np.float32), lod_emax=emax, lod_dparent=dparent,
+    attributes.update(lod_emin=permuted(e_g), lod_emax=emax, lod_dparent=dparent,
                       lod_dsuffix=dsuffix)
     if tree.clip_lines is not None:
         attributes["clip_lines"] = permuted(tree.clip_lines, np.float32)
