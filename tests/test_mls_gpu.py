@@ -112,18 +112,18 @@ def test_agrees_with_cpu_mls_on_coarse_spot():
 
 def test_agrees_with_cpu_mls_on_the_crease_part(turned_part):
     """The crease test on the GPU (issue 17): the turned CAD part's vertices, obliquely, as
-    close to its mesh as the CPU tracer's render and to that render (measured 34.1 dB against
-    the mesh, 31.8 without the test; 39.4 dB against the CPU, whose rims differ by a line of
-    pixels since H's normal is the samples' mean normal: 43.6 with the covariance's, and 32.8
-    against the mesh)."""
+    close to its mesh as the CPU tracer's render and to that render (measured 39.4 dB against
+    the mesh, and 43.7 dB against the CPU, whose rims differ by a line of pixels since H's
+    normal is the samples' mean normal; shaded by the surface's own fits, 33.6 dB against the
+    mesh, 31.8 without the test, and 42.1 dB against the CPU)."""
     cloud = turned_part.with_(faces=None)
     cam = frame(cloud.center, cloud.bounding_radius, azimuth=60.0, elevation=20.0, size=(256, 256))
     options = RenderOptions(shading="lambert")
     gpu = mls_gl(cloud, cam, options)
     cpu = mls_cpu(cloud, cam, options)
-    assert compare_results(render(turned_part, cam, "mesh", shading="lambert"), gpu)["psnr"] >= 32.3
+    assert compare_results(render(turned_part, cam, "mesh", shading="lambert"), gpu)["psnr"] >= 38.5
     metrics = compare_results(cpu, gpu)
-    assert metrics["psnr"] >= 38.5 and metrics["holes"] <= 0.001 and metrics["spill"] <= 0.001
+    assert metrics["psnr"] >= 42.0 and metrics["holes"] <= 0.001 and metrics["spill"] <= 0.001
     both = np.isfinite(cpu.depth) & np.isfinite(gpu.depth)
     assert np.median(np.abs(cpu.depth[both] - gpu.depth[both]) / cpu.depth[both]) <= 1e-5
 
@@ -166,7 +166,7 @@ def test_agrees_with_cpu_mls_where_kernels_span_a_gap():
     the part whole and where the CPU tracer puts it. Rays that pass the rings settle nowhere:
     without the last step's height bound (gpu.glsl LAST_HEIGHT) and the false position they
     left wisps at the rings' silhouettes (38.1 dB against the CPU tracer in the default 3
-    projection steps); measured 44.2 dB."""
+    projection steps); measured 49.5 dB (44.2 with the surface's own fits shading the hits)."""
     cloud = coarse_tail(12, 0.5)
     cam = frame(cloud.center, cloud.bounding_radius, eye=[0, 0, 3.0], target=[0, 0, 0], up=[0, 1.0, 0],
                 size=(128, 128))

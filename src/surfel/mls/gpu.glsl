@@ -10,7 +10,9 @@
 //   PASS_FRAME       full screen: weighted mean q, weighted mean normal n of the samples,
 //                    local kernel width l and the half-disc offset
 //   PASS_SYSTEM      discs of the kernel supports: moments of the quadratic's normal equations
-//   PASS_SOLVE       full screen: solve the 6x6 system, re-intersect the ray with the quadratic
+//   PASS_SOLVE       full screen: solve the 6x6 system, re-intersect the ray with the quadratic;
+//                    with SHADING_NORMAL: the gradient at the hit of the fit that passes 2 to 4
+//                    made under the shading weights (surface.py: shading normal)
 //   PASS_KEEP        full screen: the candidate's surface point, normal and colour where it
 //                    converged
 //   PASS_RETRY       full screen: the t of the candidate where its fits failed, for the next one
@@ -397,6 +399,9 @@ uniform sampler2D u_m3;
 uniform sampler2D u_m4;
 uniform sampler2D u_m5;
 uniform sampler2D u_m6;
+#ifdef SHADING_NORMAL
+layout(location = 0) out vec4 out_normal;  // the shading fit's normal at r; w: 1, or 0 where the fit failed
+#else
 uniform sampler2D u_color;  // w rgb of the means pass
 uniform sampler2D u_weight; // (w x, w) of the means pass
 // (t, height) of the last iterates above and below their fits (t < 0: none): raytrace.trace_ray's
@@ -407,27 +412,13 @@ layout(location = 1) out vec4 out_reference;  // reference normal of the next fi
 layout(location = 2) out vec4 out_normal;     // local world normal of the surface at the new point
 layout(location = 3) out vec4 out_albedo;     // weighted mean colour of the neighbours
 layout(location = 4) out vec4 out_bracket;
+#endif
 
-void main() {
-    out_state = vec4(FAR, 0.0, 0.0, 0.0);
-    out_bracket = vec4(-1.0, 0.0, -1.0, 0.0);
-    out_reference = vec4(0.0);
-    out_normal = vec4(0.0);
-    out_albedo = vec4(0.0);
-    gl_FragDepth = 0.0;  // a miss: the next disc passes skip the pixel
-    vec3 r;
-    float t;
-    ivec2 pix = ivec2(gl_FragCoord.xy);
-    vec4 q = texelFetch(u_q, pix, 0), n = texelFetch(u_n, pix, 0);
-    if (!current_hit(r, t) || n.w == 0.0) return;
+// The pixel's quadratic over its frame (q, n: n.w its local width l) from the moments of its
+// normal equations; false where they are singular even regularised (degenerate).
+bool solved_quadratic(ivec2 pix, vec4 q, vec4 n, out Quadratic g) {
     vec4 m0 = texelFetch(u_m0, pix, 0), m1 = texelFetch(u_m1, pix, 0), m2 = texelFetch(u_m2, pix, 0);
     vec4 m3 = texelFetch(u_m3, pix, 0), m4 = texelFetch(u_m4, pix, 0), m5 = texelFetch(u_m5, pix, 0);
-    if (u_last) {  // the half-disc and extent tests where the projection converged: past the edge of its sheet?
-        vec4 m6 = texelFetch(u_m6, pix, 0);
-        vec3 mean = m6.xyz / m6.w;
-        if (length(mean - dot(mean, n.xyz) * n.xyz) > u_boundary || m5.y == 0.0)
-            return;
-    }
     // moments by degree k and power of v j at index k (k + 1) / 2 + j
     double mom[15] = double[15](m0.x, m0.y, m0.z, m0.w, m1.x, m1.y, m1.z, m1.w, m2.x, m2.y, m2.z, m2.w,
                                 m3.x, m3.y, m3.z);
@@ -463,7 +454,7 @@ void main() {
             }
         }
     }
-    if (!solved) return;  // degenerate
+    if (!solved) return false;
     for (int i = 0; i < 6; i++) {
         double s = b[i];
         for (int k = 0; k < i; k++) s -= a[i][k] * b[k];
@@ -474,12 +465,47 @@ void main() {
         for (int k = i + 1; k < 6; k++) s -= a[k][i] * b[k];
         b[i] = s / a[i][i];
     }
-    Quadratic g;
     g.q = q.xyz;
     g.n = n.xyz;
     g.l = n.w;
     tangent_frame(g.n, g.e1, g.e2);
     g.c = float[6](float(b[0]), float(b[1]), float(b[2]), float(b[3]), float(b[4]), float(b[5]));
+    return true;
+}
+
+#ifdef SHADING_NORMAL
+// The gradient of the fit under the shading weights at the pixel's hit (surface.py: shading normal)
+void main() {
+    out_normal = vec4(0.0);
+    vec3 r;
+    float t;
+    ivec2 pix = ivec2(gl_FragCoord.xy);
+    vec4 q = texelFetch(u_q, pix, 0), n = texelFetch(u_n, pix, 0);
+    Quadratic g;
+    if (current_hit(r, t) && n.w != 0.0 && solved_quadratic(pix, q, n, g))
+        out_normal = vec4(quadratic_normal(g, r), 1.0);
+}
+#else
+void main() {
+    out_state = vec4(FAR, 0.0, 0.0, 0.0);
+    out_bracket = vec4(-1.0, 0.0, -1.0, 0.0);
+    out_reference = vec4(0.0);
+    out_normal = vec4(0.0);
+    out_albedo = vec4(0.0);
+    gl_FragDepth = 0.0;  // a miss: the next disc passes skip the pixel
+    vec3 r;
+    float t;
+    ivec2 pix = ivec2(gl_FragCoord.xy);
+    vec4 q = texelFetch(u_q, pix, 0), n = texelFetch(u_n, pix, 0);
+    if (!current_hit(r, t) || n.w == 0.0) return;
+    if (u_last) {  // the half-disc and extent tests where the projection converged: past the edge of its sheet?
+        vec4 m6 = texelFetch(u_m6, pix, 0);
+        vec3 mean = m6.xyz / m6.w;
+        if (length(mean - dot(mean, n.xyz) * n.xyz) > u_boundary || texelFetch(u_m5, pix, 0).y == 0.0)
+            return;
+    }
+    Quadratic g;
+    if (!solved_quadratic(pix, q, n, g)) return;  // degenerate
     // r's height over its fit, kept on the side it lies (raytrace.trace_ray: the Illinois weight
     // halves an end kept twice)
     vec3 rl = (r - g.q) / g.l;
@@ -519,6 +545,7 @@ void main() {
     out_albedo = vec4(texelFetch(u_color, pix, 0).rgb / weight.w, 1.0);
 }
 #endif
+#endif
 
 #ifdef PASS_CULL
 void main() {
@@ -533,6 +560,7 @@ uniform sampler2D u_albedo;
 #endif
 
 #ifdef PASS_KEEP
+uniform sampler2D u_shading_normal;  // PASS_SOLVE with SHADING_NORMAL's
 layout(location = 0) out vec4 out_state;
 layout(location = 1) out vec4 out_normal;
 layout(location = 2) out vec4 out_albedo;
@@ -540,7 +568,8 @@ void main() {
     ivec2 pix = ivec2(gl_FragCoord.xy);
     out_state = texelFetch(u_state, pix, 0);
     if (out_state.r >= MISS) discard;  // what an earlier candidate found stays
-    out_normal = texelFetch(u_normal, pix, 0);
+    vec4 shading = texelFetch(u_shading_normal, pix, 0);
+    out_normal = shading.w > 0.0 ? shading : texelFetch(u_normal, pix, 0);
     out_albedo = texelFetch(u_albedo, pix, 0);
 }
 #endif

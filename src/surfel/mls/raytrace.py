@@ -28,13 +28,17 @@ those that pass near the surface would descend the hierarchy for nothing. Per ra
    gains 0.07 dB more there but takes up to 17 fits where 4 did (kernels spanning gaps on
    a thin part, which converge slowly but surely).
 
-Colour is the fit's weighted mean of the neighbours' colours, the normal the gradient of
-the last polynomial (n - g_u e1 - g_v e2). Parameters (`MlsParams`):
+Colour is the last fit's weighted mean of the neighbours' colours, the normal the gradient
+(n - g_u e1 - g_v e2) of one more fit at the hit, for the last polynomial's normal there,
+under the wider shading weights (surface.py: shading normal), else of the last polynomial
+where that fit fails. Parameters (`MlsParams`):
     h_scale (1.1)       kernel width h_i = h_scale * local spacing s_i (surface.MlsKernel)
     domain (2.0)        domain test / sphere radius in units of s_i (surface.MlsKernel)
     normal_sigma (0.6)  width of the normal-agreement weight (surface.MlsKernel)
     residual_sigma (0.25) width of the residual weight, in units of h_i (surface.MlsKernel)
     boundary (0.7)      half-disc test bound, in units of the local width l (surface.MlsKernel)
+    shading_normal_sigma (1.2), shading_residual_sigma (0.5)
+                        the shading normal's fit's widths (surface.MlsKernel)
     tolerance (1e-3)    eps, as a fraction of the local kernel width l
     max_iterations (8)  fits per candidate sphere before giving up on it
     shadows (False)     a shadow ray to the directional key light of shading.py (eye space
@@ -190,13 +194,14 @@ def queue_pop(keys, items, size):
 
 @numba.njit(cache=True, fastmath=True)
 def trace_ray(o, d, t_min, t_max, samples, polys, radius, boxes, tolerance, max_iter,
-              keys, items, scratch, poly, x, y, nref, normal, color):
+              keys, items, scratch, poly, x, y, nref, normal, color, shading):
     """Nearest intersection of o + t d (|d| = 1) with the MLS surface in [t_min, t_max].
 
     The bounding spheres are visited in order of the ray's entry into them, lazily: a queue
     ordered by entry parameter holds tree nodes (item >= 0) and spheres (item = -1 - sample),
     and a node is opened only when it comes first. Returns (t, fits); t < 0 when the ray
-    misses. On a hit `normal` and `color` are set.
+    misses. On a hit `normal` (of the fit under the `shading` weights, where it succeeds) and
+    `color` are set.
     """
     points, normals = samples.points, samples.normals
     inv_d = np.empty(3)
@@ -258,6 +263,8 @@ def trace_ray(o, d, t_min, t_max, samples, polys, radius, boxes, tolerance, max_
                 poly_normal(poly, x, normal)
                 for a in range(3):
                     color[a] = poly[P_COLOR + a]
+                if fit(x, normal, shading, poly, scratch) == FIT_OK:  # for the sheet the hit lies on
+                    poly_normal(poly, x, normal)
                 return t, fits
             # x's height over its fit: the ray crosses the surface between an iterate above
             # and one below (false position, with the Illinois weight, which halves an end
@@ -290,7 +297,7 @@ def trace_ray(o, d, t_min, t_max, samples, polys, radius, boxes, tolerance, max_
 
 @numba.njit(cache=True, parallel=True, fastmath=True)
 def trace_rays(origins, directions, t_min, t_max, samples, polys, radius, boxes, tolerance, max_iter,
-               out_t, out_normal, out_color, out_fits):
+               out_t, out_normal, out_color, out_fits, shading):
     """trace_ray for every ray, in parallel blocks that each own their scratch buffers."""
     n = len(origins)
     for block in numba.prange((n + BLOCK - 1) // BLOCK):
@@ -304,7 +311,7 @@ def trace_rays(origins, directions, t_min, t_max, samples, polys, radius, boxes,
         for r in range(block * BLOCK, min(n, (block + 1) * BLOCK)):
             t, fits = trace_ray(origins[r], directions[r], t_min, t_max, samples, polys, radius, boxes,
                                 tolerance, max_iter, keys, items, scratch, poly, x, y, nref,
-                                out_normal[r], out_color[r])
+                                out_normal[r], out_color[r], shading)
             out_t[r] = t
             out_fits[r] = fits
 
@@ -380,7 +387,7 @@ def trace(scene: MLSScene, origins: np.ndarray, directions: np.ndarray, t_min: f
     trace_rays(np.ascontiguousarray(origins, np.float64), np.ascontiguousarray(directions, np.float64),
                float(t_min), float(t_max), scene.surface.samples, scene.polys,
                scene.radius, scene.boxes, float(tolerance), int(max_iter),
-               hits.t, hits.normals, hits.colors, hits.fits)
+               hits.t, hits.normals, hits.colors, hits.fits, scene.surface.shading)
     return hits
 
 
