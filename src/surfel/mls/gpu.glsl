@@ -11,11 +11,12 @@
 //                    local kernel width l and the half-disc offset
 //   PASS_SYSTEM      discs of the kernel supports: moments of the quadratic's normal equations
 //   PASS_SOLVE       full screen: solve the 6x6 system, re-intersect the ray with the quadratic;
-//                    with SHADING_NORMAL: the gradient at the hit of the fit that passes 2 to 4
-//                    made under the shading weights (surface.py: shading normal)
+//                    with SHADING_NORMAL: the gradient at the kept hit of the fit that passes 2
+//                    to 4 made there under the shading weights (surface.py: shading normal)
 //   PASS_KEEP        full screen: the candidate's surface point, normal and colour where it
 //                    converged
 //   PASS_RETRY       full screen: the t of the candidate where its fits failed, for the next one
+//   PASS_DEPTH       full screen: the kept hits' depths (0: none), for the shading normal's passes
 //   PASS_SHADE       full screen: normal, colour and depth into the G-buffer layout
 // The weights are surface.py's: w = exp(-|p - r|^2 / h^2 - |n_i - n_r|^2 / sigma_n^2
 // - (n_i . (r - p))^2 / (sigma_r h)^2) within SUPPORT h. Sums over a support are in units of
@@ -560,7 +561,6 @@ uniform sampler2D u_albedo;
 #endif
 
 #ifdef PASS_KEEP
-uniform sampler2D u_shading_normal;  // PASS_SOLVE with SHADING_NORMAL's
 layout(location = 0) out vec4 out_state;
 layout(location = 1) out vec4 out_normal;
 layout(location = 2) out vec4 out_albedo;
@@ -568,8 +568,7 @@ void main() {
     ivec2 pix = ivec2(gl_FragCoord.xy);
     out_state = texelFetch(u_state, pix, 0);
     if (out_state.r >= MISS) discard;  // what an earlier candidate found stays
-    vec4 shading = texelFetch(u_shading_normal, pix, 0);
-    out_normal = shading.w > 0.0 ? shading : texelFetch(u_normal, pix, 0);
+    out_normal = texelFetch(u_normal, pix, 0);
     out_albedo = texelFetch(u_albedo, pix, 0);
 }
 #endif
@@ -586,7 +585,15 @@ void main() {
 }
 #endif
 
+#ifdef PASS_DEPTH
+void main() {
+    float t = texelFetch(u_state, ivec2(gl_FragCoord.xy), 0).r;
+    gl_FragDepth = t < MISS ? window_depth(vec3(0.0, 0.0, -t)) : 0.0;
+}
+#endif
+
 #ifdef PASS_SHADE
+uniform sampler2D u_shading_normal;  // PASS_SOLVE with SHADING_NORMAL's; w = 0 where that fit failed
 layout(location = 0) out vec4 out_shaded;
 layout(location = 1) out vec4 out_eye_normal;
 layout(location = 2) out vec4 out_depth;
@@ -599,7 +606,8 @@ void main() {
     if (t >= MISS) return;
     vec3 oe, de;
     pixel_ray(gl_FragCoord.xy, oe, de);
-    vec3 n = normalize(mat3(u_view) * texelFetch(u_normal, pix, 0).xyz);
+    vec4 shading = texelFetch(u_shading_normal, pix, 0);
+    vec3 n = normalize(mat3(u_view) * (shading.w > 0.0 ? shading : texelFetch(u_normal, pix, 0)).xyz);
     if (dot(n, -de) < 0.0) n = -n;  // two-sided: face the viewer
     vec3 albedo = blended_albedo(texelFetch(u_albedo, pix, 0).rgb);  // colour modes: colors.glsl
     out_shaded = vec4(shade(u_shading, albedo, n, t, u_depth_range.x, u_depth_range.y), 1.0);

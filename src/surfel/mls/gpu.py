@@ -48,18 +48,20 @@ Then `iterations` times (default 3), at r = o + t d:
    32.36 dB (the CPU tracer's 31.64), its oblique view within 0.05 dB. The fit's normal at
    the new point is the next n_r for the first REFERENCE_UPDATES steps, as on the CPU. At the
    last step the half-disc and extent tests reject a hit past the edge of its sheet.
-6. shading normal: passes 2 to 4 once more at the hit under the shading weights, for the last
-   step's normal as n_r, and the gradient of that quadratic at the hit (the pass-5 source with
+6. keep / retry: converged pixels keep their hit; where the fits failed, the next candidate
+   (`candidates`, default 8) is the nearest intersection beyond the failed one -- the CPU
+   tracer's walk on to the next bounding sphere, bounded here to a few candidates. An
+   occlusion query counts the pixels that failed, and the walk stops when none did: the
+   later candidates' passes would draw every support for nothing.
+7. shading normal, once for the kept hits of all candidates: their window depths (the
+   supports' culling reads them), passes 2 to 4 under the shading weights for each hit's
+   normal as n_r, and the gradient of that quadratic at the hit (the pass-5 source with
    SHADING_NORMAL defined), as the CPU tracer shades (surface.py: shading normal); where that
-   fit fails, the last step's normal. It costs about one more step per candidate: the bunny
-   at 512 x 512 on llvmpipe (2 cores) 11.3 -> 15.7 s (`surfel bench --methods mls-gpu@gl`).
-7. keep / retry: converged pixels keep their hit and its shading normal; where the fits
-   failed, the next candidate (`candidates`, default 8) is the nearest intersection beyond the
-   failed one -- the CPU tracer's walk on to the next bounding sphere, bounded here to a few
-   candidates. An occlusion query counts the pixels that failed, and the walk stops when none
-   did: the later candidates' passes would draw every support for nothing.
-8. shading (full screen): the kept normal, the last fit's weighted neighbour colour, eye depth
-   t, into the G-buffer layout; supersampled 2x2 by default and box filtered
+   fit fails, the last step's normal stays. Done once per frame rather than per candidate:
+   the bunny at 512 x 512 on llvmpipe (2 cores), run back to back, 15.1 s without the shading
+   normal, 20.6 s with it per candidate, 14.7 s once (`surfel bench --methods mls-gpu@gl`).
+8. shading (full screen): the normal, the last fit's weighted neighbour colour, eye depth t,
+   into the G-buffer layout; supersampled 2x2 by default and box filtered
    (RenderResult.from_samples) for anti-aliased silhouettes.
 
 Parameters (`MlsGpuParams`): the surface's (surface.MlsKernel: h_scale, domain, normal_sigma,
@@ -229,16 +231,17 @@ def render_mls_gl(cloud: PointCloud, camera: Camera, options: RenderOptions, par
               "u_ridge": RIDGE, "u_min_neighbours": float(MIN_NEIGHBOURS), "u_tolerance": TOLERANCE,
               "u_guard": 0.0}
     programs = {name: renderer.program(SHADER, {f"PASS_{name.upper()}": True})
-                for name in ("intersect", "cull", "means", "frame", "system", "solve", "keep", "retry", "shade")}
+                for name in ("intersect", "cull", "means", "frame", "system", "solve", "keep", "retry", "depth",
+                             "shade")}
     programs["shading"] = renderer.program(SHADER, {"PASS_SOLVE": True, "SHADING_NORMAL": True})
     for program in programs.values():
         apply_common(program, camera, surface.origin, ss, options, **common)
     renderer.use_color_table(options)
     vaos = {name: ctx.vertex_array(prog, []) for name, prog in programs.items()}
 
-    def fit(current: int, reference) -> None:
-        """Passes 2 to 4 at every pixel's hit, for the reference normals in the texture
-        `reference`, under the weights the programs hold."""
+    def fit(state, reference) -> None:
+        """Passes 2 to 4 at the hits of the texture `state`, for the reference normals of the
+        texture `reference`, under the weights the programs hold."""
         # 2. weighted sums about r; the depth test (read only) culls supports behind r
         ctx.enable(ctx.BLEND | ctx.DEPTH_TEST)
         ctx.depth_func = "<="
@@ -246,13 +249,13 @@ def render_mls_gl(cloud: PointCloud, camera: Camera, options: RenderOptions, par
         ctx.blend_func = ctx.ONE, ctx.ONE
         targets.means.use()
         targets.means.clear(0.0, 0.0, 0.0, 0.0)
-        _bind(programs["means"], {"u_state": targets.state[current], "u_reference": reference,
+        _bind(programs["means"], {"u_state": state, "u_reference": reference,
                                   "u_failed": targets.failed})
         discs("means")
         # 3. reference plane
         ctx.disable(ctx.BLEND | ctx.DEPTH_TEST)
         targets.frame_fbo.use()
-        _bind(programs["frame"], {"u_state": targets.state[current], "u_reference": reference,
+        _bind(programs["frame"], {"u_state": state, "u_reference": reference,
                                   "u_sum": targets.sums[0], "u_normal_sum": targets.sums[1],
                                   "u_inside": targets.sums[2], "u_color": targets.sums[3]})
         full_screen("frame")
@@ -260,19 +263,13 @@ def render_mls_gl(cloud: PointCloud, camera: Camera, options: RenderOptions, par
         ctx.enable(ctx.BLEND | ctx.DEPTH_TEST)
         targets.system_fbo.use()
         targets.system_fbo.clear(0.0, 0.0, 0.0, 0.0)
-        _bind(programs["system"], {"u_state": targets.state[current], "u_reference": reference,
+        _bind(programs["system"], {"u_state": state, "u_reference": reference,
                                    "u_q": targets.frame[0], "u_n": targets.frame[1], "u_failed": targets.failed})
         discs("system")
 
-    def weigh(samples) -> None:
-        """The weights of passes 2 and 4: the surface's, or the shading normal's (surface.py)."""
-        for name in ("means", "system"):
-            set_uniforms(programs[name], u_normal_weight=samples.normal_weight,
-                         u_residual_weight=samples.residual_weight)
-
     def iterate(step: int, current: int) -> int:
         """One projection step of every pixel's hit: passes 2 to 5; returns the new state's index."""
-        fit(current, targets.reference[current])
+        fit(targets.state[current], targets.reference[current])
         # 5. solve and move along the ray onto the quadratic, rewriting the hit depths
         ctx.disable(ctx.BLEND)
         ctx.depth_func = "1"
@@ -316,20 +313,11 @@ def render_mls_gl(cloud: PointCloud, camera: Camera, options: RenderOptions, par
             current = 0
             for step in range(iterations):
                 current = iterate(step, current)
-            # 6. the shading normal: passes 2 to 4 again under its weights, and the fit's gradient at the hit
-            weigh(surface.shading)
-            fit(current, targets.normal)  # for the sheet the hit lies on: its normal there
-            weigh(weights)
-            ctx.disable(ctx.BLEND | ctx.DEPTH_TEST)
-            targets.shading.use()
-            _bind(programs["shading"], {"u_state": targets.state[current], "u_q": targets.frame[0],
-                                        "u_n": targets.frame[1], **{f"u_m{k}": targets.system[k] for k in range(6)}})
-            full_screen("shading")
-            # 7. keep what converged; the t of the candidates that failed bounds the next ones
+            # 6. keep what converged; the t of the candidates that failed bounds the next ones
             ctx.disable(ctx.DEPTH_TEST)
             targets.keep.use()
             _bind(programs["keep"], {"u_state": targets.state[current], "u_normal": targets.normal,
-                                     "u_shading_normal": targets.shading_normal, "u_albedo": targets.albedo})
+                                     "u_albedo": targets.albedo})
             full_screen("keep")
             if candidate + 1 < params.candidates:
                 targets.retry.use()
@@ -341,10 +329,27 @@ def render_mls_gl(cloud: PointCloud, camera: Camera, options: RenderOptions, par
                 if targets.retries.samples == 0:  # every pixel hit or missed for good: no later candidate
                     break
                 targets.failed.build_mipmaps()
+        # 7. the shading normal of every kept hit: the hits' depths (the supports' culling reads
+        # them), passes 2 to 4 under its weights for the hit's normal, and that fit's gradient
+        ctx.enable(ctx.DEPTH_TEST)
+        ctx.depth_func = "1"
+        targets.cull.use()
+        _bind(programs["depth"], {"u_state": targets.kept[0]})
+        full_screen("depth")
+        for name in ("means", "system"):  # the frame's next call sets the surface's weights again
+            set_uniforms(programs[name], u_retry=False, u_normal_weight=surface.shading.normal_weight,
+                         u_residual_weight=surface.shading.residual_weight)
+        fit(targets.kept[0], targets.kept[1])
+        ctx.disable(ctx.BLEND | ctx.DEPTH_TEST)
+        targets.shading.use()
+        _bind(programs["shading"], {"u_state": targets.kept[0], "u_q": targets.frame[0], "u_n": targets.frame[1],
+                                    **{f"u_m{k}": targets.system[k] for k in range(6)}})
+        full_screen("shading")
         # 8. shading into the G-buffer
         targets.gbuffer.fbo.use()
         targets.gbuffer.clear()
         _bind(programs["shade"], {"u_state": targets.kept[0], "u_normal": targets.kept[1],
+                                  "u_shading_normal": targets.shading_normal,
                                   "u_albedo": targets.kept[2]})
         full_screen("shade")
         ctx.finish()
