@@ -4,19 +4,20 @@
 //                    the nearest t kept by the depth test, with the sample's normal as the
 //                    reference normal n_r of the fits to come (on a retry: the nearest beyond
 //                    the candidate the pixel's fits failed from)
-//   PASS_CULL        full screen: pixels without a candidate get depth 0, so that no support
-//                    disc reaches their fragment shader
+//   PASS_CULL        full screen: each pixel's depth from its hit's t, 0 where it has none, so
+//                    that no support disc reaches the fragment shader there (after the
+//                    intersections, and for the kept hits before the shading normal's passes)
 //   PASS_MEANS       discs of the kernel supports: weighted sums about the hit point r
 //   PASS_FRAME       full screen: weighted mean q, weighted mean normal n of the samples,
 //                    local kernel width l and the half-disc offset
 //   PASS_SYSTEM      discs of the kernel supports: moments of the quadratic's normal equations
 //   PASS_SOLVE       full screen: solve the 6x6 system, re-intersect the ray with the quadratic;
 //                    with SHADING_NORMAL: the gradient at the kept hit of the fit that passes 2
-//                    to 4 made there under the shading weights (surface.py: shading normal)
+//                    to 4 made there under the shading weights (surface.py: shading normal),
+//                    written over the kept normal where that fit succeeds
 //   PASS_KEEP        full screen: the candidate's surface point, normal and colour where it
 //                    converged
 //   PASS_RETRY       full screen: the t of the candidate where its fits failed, for the next one
-//   PASS_DEPTH       full screen: the kept hits' depths (0: none), for the shading normal's passes
 //   PASS_SHADE       full screen: normal, colour and depth into the G-buffer layout
 // The weights are surface.py's: w = exp(-|p - r|^2 / h^2 - |n_i - n_r|^2 / sigma_n^2
 // - (n_i . (r - p))^2 / (sigma_r h)^2) within SUPPORT h. Sums over a support are in units of
@@ -401,7 +402,7 @@ uniform sampler2D u_m4;
 uniform sampler2D u_m5;
 uniform sampler2D u_m6;
 #ifdef SHADING_NORMAL
-layout(location = 0) out vec4 out_normal;  // the shading fit's normal at r; w: 1, or 0 where the fit failed
+layout(location = 0) out vec4 out_normal;  // the shading fit's normal at r (the kept normal stays where it fails)
 #else
 uniform sampler2D u_color;  // w rgb of the means pass
 uniform sampler2D u_weight; // (w x, w) of the means pass
@@ -477,14 +478,13 @@ bool solved_quadratic(ivec2 pix, vec4 q, vec4 n, out Quadratic g) {
 #ifdef SHADING_NORMAL
 // The gradient of the fit under the shading weights at the pixel's hit (surface.py: shading normal)
 void main() {
-    out_normal = vec4(0.0);
     vec3 r;
     float t;
     ivec2 pix = ivec2(gl_FragCoord.xy);
     vec4 q = texelFetch(u_q, pix, 0), n = texelFetch(u_n, pix, 0);
     Quadratic g;
-    if (current_hit(r, t) && n.w != 0.0 && solved_quadratic(pix, q, n, g))
-        out_normal = vec4(quadratic_normal(g, r), 1.0);
+    if (!current_hit(r, t) || n.w == 0.0 || !solved_quadratic(pix, q, n, g)) discard;
+    out_normal = vec4(quadratic_normal(g, r), 1.0);
 }
 #else
 void main() {
@@ -550,8 +550,8 @@ void main() {
 
 #ifdef PASS_CULL
 void main() {
-    if (texelFetch(u_state, ivec2(gl_FragCoord.xy), 0).r < MISS) discard;
-    gl_FragDepth = 0.0;
+    float t = texelFetch(u_state, ivec2(gl_FragCoord.xy), 0).r;
+    gl_FragDepth = t < MISS ? window_depth(vec3(0.0, 0.0, -t)) : 0.0;
 }
 #endif
 
@@ -585,15 +585,7 @@ void main() {
 }
 #endif
 
-#ifdef PASS_DEPTH
-void main() {
-    float t = texelFetch(u_state, ivec2(gl_FragCoord.xy), 0).r;
-    gl_FragDepth = t < MISS ? window_depth(vec3(0.0, 0.0, -t)) : 0.0;
-}
-#endif
-
 #ifdef PASS_SHADE
-uniform sampler2D u_shading_normal;  // PASS_SOLVE with SHADING_NORMAL's; w = 0 where that fit failed
 layout(location = 0) out vec4 out_shaded;
 layout(location = 1) out vec4 out_eye_normal;
 layout(location = 2) out vec4 out_depth;
@@ -606,8 +598,7 @@ void main() {
     if (t >= MISS) return;
     vec3 oe, de;
     pixel_ray(gl_FragCoord.xy, oe, de);
-    vec4 shading = texelFetch(u_shading_normal, pix, 0);
-    vec3 n = normalize(mat3(u_view) * (shading.w > 0.0 ? shading : texelFetch(u_normal, pix, 0)).xyz);
+    vec3 n = normalize(mat3(u_view) * texelFetch(u_normal, pix, 0).xyz);
     if (dot(n, -de) < 0.0) n = -n;  // two-sided: face the viewer
     vec3 albedo = blended_albedo(texelFetch(u_albedo, pix, 0).rgb);  // colour modes: colors.glsl
     out_shaded = vec4(shade(u_shading, albedo, n, t, u_depth_range.x, u_depth_range.y), 1.0);

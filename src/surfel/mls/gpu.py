@@ -164,7 +164,6 @@ class CasterTargets:
         self.frame = [texture(), texture()]
         self.system = [texture() for _ in range(7)]
         self.normal, self.albedo = texture(), texture()
-        self.shading_normal = texture()
         self.first = texture()  # t of a candidate
         # t of a candidate whose fits failed, and 1 there: a power-of-two size for mipmaps
         # whose texels cover whole blocks of pixels (gpu.glsl nothing_to_retry)
@@ -179,7 +178,7 @@ class CasterTargets:
                                          depth_attachment=self.depth)
         self.cull = ctx.framebuffer(depth_attachment=self.depth)
         self.keep = ctx.framebuffer(color_attachments=self.kept)
-        self.shading = ctx.framebuffer(color_attachments=[self.shading_normal])
+        self.shading = ctx.framebuffer(color_attachments=[self.kept[1]])  # the shading normal over the kept one
         self.retry = ctx.framebuffer(color_attachments=[self.failed])
         self.means = ctx.framebuffer(color_attachments=self.sums, depth_attachment=self.depth)
         self.frame_fbo = ctx.framebuffer(color_attachments=self.frame)
@@ -192,7 +191,7 @@ class CasterTargets:
 
     def release(self) -> None:
         for obj in (*self.state, *self.reference, *self.bracket, *self.sums, *self.frame, *self.system, self.normal,
-                    self.albedo, self.shading_normal, self.first, self.failed, *self.kept, self.depth, *self.solve,
+                    self.albedo, self.first, self.failed, *self.kept, self.depth, *self.solve,
                     self.intersect, self.cull, self.means, self.frame_fbo, self.system_fbo, self.keep, self.shading,
                     self.retry):
             obj.release()
@@ -231,8 +230,7 @@ def render_mls_gl(cloud: PointCloud, camera: Camera, options: RenderOptions, par
               "u_ridge": RIDGE, "u_min_neighbours": float(MIN_NEIGHBOURS), "u_tolerance": TOLERANCE,
               "u_guard": 0.0}
     programs = {name: renderer.program(SHADER, {f"PASS_{name.upper()}": True})
-                for name in ("intersect", "cull", "means", "frame", "system", "solve", "keep", "retry", "depth",
-                             "shade")}
+                for name in ("intersect", "cull", "means", "frame", "system", "solve", "keep", "retry", "shade")}
     programs["shading"] = renderer.program(SHADER, {"PASS_SOLVE": True, "SHADING_NORMAL": True})
     for program in programs.values():
         apply_common(program, camera, surface.origin, ss, options, **common)
@@ -334,8 +332,8 @@ def render_mls_gl(cloud: PointCloud, camera: Camera, options: RenderOptions, par
         ctx.enable(ctx.DEPTH_TEST)
         ctx.depth_func = "1"
         targets.cull.use()
-        _bind(programs["depth"], {"u_state": targets.kept[0]})
-        full_screen("depth")
+        _bind(programs["cull"], {"u_state": targets.kept[0]})
+        full_screen("cull")
         for name in ("means", "system"):  # the frame's next call sets the surface's weights again
             set_uniforms(programs[name], u_retry=False, u_normal_weight=surface.shading.normal_weight,
                          u_residual_weight=surface.shading.residual_weight)
@@ -349,7 +347,6 @@ def render_mls_gl(cloud: PointCloud, camera: Camera, options: RenderOptions, par
         targets.gbuffer.fbo.use()
         targets.gbuffer.clear()
         _bind(programs["shade"], {"u_state": targets.kept[0], "u_normal": targets.kept[1],
-                                  "u_shading_normal": targets.shading_normal,
                                   "u_albedo": targets.kept[2]})
         full_screen("shade")
         ctx.finish()
