@@ -79,6 +79,17 @@ the decimated ogre 28.1 -> 29.1, cow 30.8 -> 31.4; dense models lose a little de
 -> 42.5, teapot 35.1 -> 34.8 dB), and a large face sampled only along its rim takes in some of
 its side faces' normals (a decimated bust's base seen from below, 27.2 -> 25.7 dB).
 
+Limits. A small flat face sampled only along its rim, at right angles to the faces beside it,
+has few samples that carry its normal (a rim vertex's normal averages the faces that meet
+there): no fit both reaches into the face and keeps to it, and the surface stops short of the
+rim or leaves it open. A horse's hoof soles are such faces (in a close-up, even the
+48,485-vertex mesh's); decimated to 2,500, 4,000 and 6,000 vertices, they leave more than 0.1%
+of the outline uncovered in 13, 10 and 3 of 18 views (at most 0.48%; 512 x 512,
+benchmarks/scan_fidelity.py --vertices --oblique). Filling such rays from a second projection
+under the shading weights, or from the nearest sample's own polynomial within a spacing of it,
+covered most of those pixels but spread the hooves past their outline as much (-0.5 to -1.3 dB
+on those horses, down to -0.7 dB on other decimated figures), so neither was kept.
+
 Domain. A fit needs MIN_NEIGHBOURS = 3 samples facing n_r (n_i . n_r > 0) in its support (a plane:
 inside a coarse part's large flat triangles only the corners' supports reach; below six the ridge
 makes the quadratic lean to H), and one within `domain * s_i` of r (Adamson & Alexa's domain
