@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+
 import numba
 import numpy as np
 import pytest
@@ -46,3 +50,42 @@ def test_every_row_is_run_once(rows, grain, threads):
 def test_a_kernel_error_reaches_the_caller():
     with pytest.raises(ValueError, match="row out of order"):
         over_rows(_fail_at, 10_000, 9_000, grain=16)
+
+
+# in a fresh interpreter: the statement, then a parallel kernel twice, then the CPU time the
+# process takes while its main thread sleeps 0.3 s (OpenMP's idle workers spinning)
+IDLE_PROBE = """
+import os, time
+import numba, numpy as np
+{}
+from surfel.lod.binning import fine_cells
+points = np.random.default_rng(0).random((2_000_000, 3))
+for _ in range(2):
+    fine_cells(points, np.zeros(3), 128.0, 128)
+start = time.process_time()
+time.sleep(0.3)
+print(numba.threading_layer(), os.environ.get("OMP_WAIT_POLICY"), 1000 * (time.process_time() - start))
+"""
+
+
+def _idle_cpu(statement: str, **environment: str) -> tuple[str, str, float]:
+    env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"} | environment
+    result = subprocess.run([sys.executable, "-c", IDLE_PROBE.format(statement)], capture_output=True, text=True,
+                            check=True, env=env)
+    layer, policy, milliseconds = result.stdout.split()[-3:]
+    return layer, policy, float(milliseconds)
+
+
+def test_a_command_lets_idle_openmp_workers_sleep():
+    """A command sets OMP_WAIT_POLICY=PASSIVE before numba starts its threads, so that its
+    OpenMP workers take no CPU between parallel kernels (by default they spin about 10 ms after
+    each); a policy the environment gives stays."""
+    command = "from surfel.cli import main; main(['methods'], standalone_mode=False)"
+    layer, policy, idle = _idle_cpu(command)
+    assert policy == "PASSIVE"
+    if layer == "omp":
+        assert idle < 2.0, f"{idle:.1f} ms of CPU while idle"
+    layer, policy, idle = _idle_cpu(command, OMP_WAIT_POLICY="ACTIVE")
+    assert policy == "ACTIVE"
+    if layer == "omp":  # the workers spin the whole 0.3 s
+        assert idle > 100.0, f"{idle:.1f} ms of CPU while idle"

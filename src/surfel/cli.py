@@ -28,6 +28,7 @@ from .request import (
     VIEW_SIZE,
     refuse_folder,
 )
+from .threads import passive_openmp_workers
 
 CONTEXT = {"help_option_names": ["-h", "--help"], "max_content_width": 100}
 
@@ -94,6 +95,7 @@ def main():
       surfel bench --methods points,deferred --points 1000000 --size 1024x1024
     """
     no_huge_pages()
+    passive_openmp_workers()
     click.get_current_context().with_resource(compile_notice(sys.stderr))
 
 
