@@ -87,5 +87,5 @@ def test_a_command_lets_idle_openmp_workers_sleep():
         assert idle < 2.0, f"{idle:.1f} ms of CPU while idle"
     layer, policy, idle = _idle_cpu(command, OMP_WAIT_POLICY="ACTIVE")
     assert policy == "ACTIVE"
-    if layer == "omp":  # the workers spin the whole 0.3 s
+    if layer == "omp" and numba.config.NUMBA_NUM_THREADS > 1:  # the other workers spin the whole 0.3 s
         assert idle > 100.0, f"{idle:.1f} ms of CPU while idle"
