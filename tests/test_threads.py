@@ -1,4 +1,5 @@
-"""`threads.over_rows`: serial kernels run over pieces of the rows on numba's threads."""
+"""`threads`: serial kernels run over pieces of the rows on numba's threads; commands let idle
+OpenMP workers sleep."""
 
 from __future__ import annotations
 
