@@ -194,14 +194,14 @@ def queue_pop(keys, items, size):
 
 @numba.njit(cache=True, fastmath=True)
 def trace_ray(o, d, t_min, t_max, samples, polys, radius, boxes, tolerance, max_iter,
-              keys, items, scratch, poly, x, y, nref, normal, color, shading):
+              keys, items, scratch, poly, x, y, nref, normal, color, shading, shade):
     """Nearest intersection of o + t d (|d| = 1) with the MLS surface in [t_min, t_max].
 
     The bounding spheres are visited in order of the ray's entry into them, lazily: a queue
     ordered by entry parameter holds tree nodes (item >= 0) and spheres (item = -1 - sample),
     and a node is opened only when it comes first. Returns (t, fits); t < 0 when the ray
-    misses. On a hit `normal` (of the fit under the `shading` weights, where it succeeds) and
-    `color` are set.
+    misses. On a hit `normal` (with `shade`, of the fit under the `shading` weights, where it
+    succeeds) and `color` are set; a shadow ray, which needs only whether it hits, skips that fit.
     """
     points, normals = samples.points, samples.normals
     inv_d = np.empty(3)
@@ -263,7 +263,7 @@ def trace_ray(o, d, t_min, t_max, samples, polys, radius, boxes, tolerance, max_
                 poly_normal(poly, x, normal)
                 for a in range(3):
                     color[a] = poly[P_COLOR + a]
-                if fit(x, normal, shading, poly, scratch) == FIT_OK:  # for the sheet the hit lies on
+                if shade and fit(x, normal, shading, poly, scratch) == FIT_OK:  # for the sheet the hit lies on
                     poly_normal(poly, x, normal)
                 return t, fits
             # x's height over its fit: the ray crosses the surface between an iterate above
@@ -297,7 +297,7 @@ def trace_ray(o, d, t_min, t_max, samples, polys, radius, boxes, tolerance, max_
 
 @numba.njit(cache=True, parallel=True, fastmath=True)
 def trace_rays(origins, directions, t_min, t_max, samples, polys, radius, boxes, tolerance, max_iter,
-               out_t, out_normal, out_color, out_fits, shading):
+               out_t, out_normal, out_color, out_fits, shading, shade):
     """trace_ray for every ray, in parallel blocks that each own their scratch buffers."""
     n = len(origins)
     for block in numba.prange((n + BLOCK - 1) // BLOCK):
@@ -311,7 +311,7 @@ def trace_rays(origins, directions, t_min, t_max, samples, polys, radius, boxes,
         for r in range(block * BLOCK, min(n, (block + 1) * BLOCK)):
             t, fits = trace_ray(origins[r], directions[r], t_min, t_max, samples, polys, radius, boxes,
                                 tolerance, max_iter, keys, items, scratch, poly, x, y, nref,
-                                out_normal[r], out_color[r], shading)
+                                out_normal[r], out_color[r], shading, shade)
             out_t[r] = t
             out_fits[r] = fits
 
@@ -380,14 +380,15 @@ class Hits:
 
 
 def trace(scene: MLSScene, origins: np.ndarray, directions: np.ndarray, t_min: float, t_max: float,
-          tolerance: float = 1e-3, max_iter: int = 8) -> Hits:
-    """Trace rays given in the surface's local coordinates (directions unit length)."""
+          tolerance: float = 1e-3, max_iter: int = 8, shade: bool = True) -> Hits:
+    """Trace rays given in the surface's local coordinates (directions unit length); without
+    `shade` the hits' normals are the last fit's (enough to know whether a ray is blocked)."""
     n = len(origins)
     hits = Hits(np.empty(n), np.zeros((n, 3)), np.zeros((n, 3)), np.zeros(n, np.int64))
     trace_rays(np.ascontiguousarray(origins, np.float64), np.ascontiguousarray(directions, np.float64),
                float(t_min), float(t_max), scene.surface.samples, scene.polys,
                scene.radius, scene.boxes, float(tolerance), int(max_iter),
-               hits.t, hits.normals, hits.colors, hits.fits, scene.surface.shading)
+               hits.t, hits.normals, hits.colors, hits.fits, scene.surface.shading, shade)
     return hits
 
 
@@ -521,7 +522,8 @@ def render_mls_cpu(cloud, camera, options, params: MlsParams, renderer) -> Rende
         light = KEY_LIGHT @ rot  # eye-space key light to world
         facing = n_world @ light > 0
         start = x_local + offset * np.where(facing[:, None], n_world, -n_world)
-        blocked = trace(scene, start, np.broadcast_to(light, start.shape), 0.0, t_max, tolerance, max_iter).hit
+        blocked = trace(scene, start, np.broadcast_to(light, start.shape), 0.0, t_max, tolerance, max_iter,
+                        shade=False).hit
         shadowed = blocked | ~facing
         shaded_hit[shadowed] = 0.2 * albedo[shadowed]
         stats["shadowed"] = int(shadowed.sum())
