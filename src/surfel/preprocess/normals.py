@@ -29,11 +29,11 @@ r^4 (the model above), so a coarse sampling of a smooth surface, which scatters 
 much as noise does, scatters more at the widest scale than at the first. The median scattering
 at k = 48 over that at k = 16: 0.50-0.81 on raw scans of seven meshes (`surfel scan`'s
 defaults), 1.3-47 on the vertices of 15 meshes, among them figures decimated to 2,000-3,300
-vertices that scatter up to 0.18 at 16. Their normals taken at each point's scale were worse than at 16
-(the decimated ogre's 21 degrees from the mesh's, 34% of them flipped, against 19 degrees and
-27%): rendered from their points alone, six such figures, 18 views each at 512 x 512, gained
-0.1 to 1.7 dB with `deferred` (5 renders over 0.1% holes instead of 9) and -0.04 to +2.4 dB with
-`mls` (40 instead of 46).
+vertices that scatter up to 0.18 at 16. Their normals taken at each point's scale were worse
+than at 16 (the decimated ogre's 21 degrees from the mesh's, 34% of them flipped, against 19
+degrees and 27%): rendered from their points alone, six such figures, 18 views each at 512 x
+512, gained 0.1 to 1.7 dB with `deferred` (5 renders over 0.1% holes instead of 9) and -0.04 to
++2.4 dB with `mls` (40 instead of 46).
 
 Orientation: towards a viewpoint when the sensor position is known; otherwise consistently by
 propagation (Hoppe, DeRose, Duchamp, McDonald & Stuetzle 1992, "Surface reconstruction from
@@ -185,7 +185,7 @@ def is_noisy(eigenvalues: np.ndarray) -> bool:
 def scale_selected_normals(nbh: Neighbourhood, progress: bool | None, scales: tuple[int, ...] = SCALES
                            ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """pca_normals at each point's scale of least expected error (module docstring): unoriented
-    normals (N, 3), the degenerate mask, the eigenvalues (N, 3) of the chosen scales; None where
+    normals (N, 3), the degenerate mask, the eigenvalues (N, 3) of the chosen scales; None when
     the scattering does not fall from the first scale to the widest (curvature, not noise)."""
     wide = nbh.widened(max(scales), progress=progress)
     fits = [pca_normals(wide, k, progress) for k in scales]
