@@ -4,8 +4,9 @@
 command): one k-nearest-neighbour search, k = max(k_normals, RADIUS_NEIGHBOURS,
 FIELD_NEIGHBOURS), serves every estimation, in this order, each using the ones before:
 
-  1. normals (`normals.py`): u x v of given axes, else PCA (each point's neighbourhood size
-     selected when the cloud is noisy and not geospatial, and k_normals is the default),
+  1. normals (`normals.py`): u x v of given axes, else PCA (when the cloud is not geospatial
+     and k_normals is the default: each point's neighbourhood size selected if it is noisy,
+     refined by quadrics (`jets.py`) if it is clean),
      oriented towards the sensor when its position is known (`sensor`, or the cloud's
      `sensors`), else by propagation, each connected part facing up (+Z) for geospatial clouds
      (aerial scans, seen from above) or outward; with them, from the same PCA, the points
@@ -143,8 +144,8 @@ def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np
     else:
         towards, how = None, f"oriented by MST propagation, {'facing up (+Z)' if cloud.geospatial else 'outward'}"
     up = UP if cloud.geospatial else None
-    # geospatial tiles keep one scale: millions of points, and aerial noise is not an object's
-    select = not cloud.geospatial and k_normals == NORMAL_NEIGHBOURS
+    # geospatial tiles keep one scale and the plane: millions of points, and aerial noise is not an object's
+    adaptive = not cloud.geospatial and k_normals == NORMAL_NEIGHBOURS
     estimated: dict = {}
     attributes = dict(cloud.attributes)
     normals = given["normals"]
@@ -165,7 +166,7 @@ def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np
         elif given["axes"] is not None:
             guide = from_axes
         else:
-            guide, _, eigenvalues, noisy = oriented_normals(nbh, k_normals, towards, progress, select, up)
+            guide, _, eigenvalues, noisy = oriented_normals(nbh, k_normals, towards, progress, adaptive, up)
             if planeless is None:
                 planeless = screen_facing(eigenvalues, raw_scan=scans_surroundings(located))
         moved = smoothed_points(nbh, guide, progress)
@@ -182,9 +183,10 @@ def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np
         normals = estimated["normals"] = from_axes
         report["normals"] = "from the splat axes (u x v)"
     elif normals is None:
-        normals, ambiguous, eigenvalues, noisy_now = oriented_normals(nbh, k_normals, towards, progress, select, up)
+        normals, ambiguous, eigenvalues, noisy_now = oriented_normals(nbh, k_normals, towards, progress, adaptive, up)
         estimated["normals"] = normals
-        scale = f"k per point in {SCALES[0]}..{SCALES[-1]} (noisy)" if noisy_now else f"k={k_normals}"
+        scale = f"k per point in {SCALES[0]}..{SCALES[-1]} (noisy)" if noisy_now else \
+            f"k={k_normals}, refined by quadrics" if adaptive else f"k={k_normals}"
         noisy = noisy or noisy_now
         report["normals"] = f"estimated (PCA, {scale}, {how})"
         report["ambiguous_normals"] = int(ambiguous.sum())

@@ -33,7 +33,8 @@ vertices that scatter up to 0.18 at 16. Their normals taken at each point's scal
 than at 16 (the decimated ogre's 21 degrees from the mesh's, 34% of them flipped, against 19
 degrees and 27%): rendered from their points alone, six such figures, 18 views each at 512 x
 512, gained 0.1 to 1.7 dB with `deferred` (5 renders over 0.1% holes instead of 9) and -0.04 to
-+2.4 dB with `mls` (40 instead of 46).
++2.4 dB with `mls` (40 instead of 46). A clean cloud's PCA normals are refined by quadrics
+instead (`jets.py`), which follow the curvature that tilts the plane.
 
 Orientation: towards a viewpoint when the sensor position is known; otherwise consistently by
 propagation (Hoppe, DeRose, Duchamp, McDonald & Stuetzle 1992, "Surface reconstruction from
@@ -72,6 +73,7 @@ import numpy as np
 
 from ..threads import over_rows
 from .chunked import map_chunks
+from .jets import jet_normals
 from .neighbourhood import Neighbourhood, as_points
 
 NORMAL_NEIGHBOURS = 16   # neighbours of the PCA
@@ -365,40 +367,43 @@ def orient_by_propagation(nbh: Neighbourhood, normals: np.ndarray, up: np.ndarra
 
 
 def oriented_normals(nbh: Neighbourhood, k: int, towards: np.ndarray | None,
-                     progress: bool | None, select_scale: bool = False, up: np.ndarray | None = None
+                     progress: bool | None, adaptive: bool = False, up: np.ndarray | None = None
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool]:
     """Unit normals (N, 3) float64 facing `towards` ((3,) or (N, 3), in the sorted order), or
     propagated if None, each component outward, or facing `up` (3,) where it rises or falls
-    (module docstring); the ambiguous mask; the covariance eigenvalues (N, 3);
-    whether the scale was selected. select_scale: a noisy cloud's normals take each point's
-    scale (module docstring), else k."""
+    (module docstring); the ambiguous mask; the covariance eigenvalues (N, 3); whether the
+    cloud is noisy. adaptive: a noisy cloud's normals take each point's scale (module
+    docstring), a clean one's are refined by quadrics (`jets.py`); else PCA over k."""
     normals, ambiguous, eigenvalues = pca_normals(nbh, k, progress)
-    chosen = scale_selected_normals(nbh, progress) if select_scale and is_noisy(eigenvalues) else None
-    selected = chosen is not None
-    if selected:
+    chosen = scale_selected_normals(nbh, progress) if adaptive and is_noisy(eigenvalues) else None
+    noisy = chosen is not None
+    if noisy:
         normals, ambiguous, eigenvalues = chosen
+    elif adaptive:
+        normals = jet_normals(nbh.points, nbh.first(k), normals, ambiguous)
     if towards is not None:
         ambiguous |= orient_towards(normals, towards)
     else:
         ambiguous |= orient_by_propagation(nbh, normals, up)
-    return normals, ambiguous, eigenvalues, selected
+    return normals, ambiguous, eigenvalues, noisy
 
 
 def estimate_normals(positions: np.ndarray, k: int = NORMAL_NEIGHBOURS, viewpoint: np.ndarray | None = None,
                      workers: int = -1, progress: bool | None = None,
-                     select_scale: bool = False) -> tuple[np.ndarray, int]:
+                     adaptive: bool = False) -> tuple[np.ndarray, int]:
     """PCA normals over the k nearest neighbours, oriented: (normals (N, 3) float32, ambiguous).
 
     viewpoint: sensor position (3,) or per-point sensor positions (N, 3) to face; None orients
     consistently by minimum-spanning-tree propagation, each component facing outward.
     ambiguous: the number of points whose orientation is a guess (see the module docstring).
-    select_scale: if the cloud is noisy, each point's neighbourhood size is chosen from SCALES
-    (Mitra & Nguyen's error bound, see the module docstring) instead of k.
+    adaptive: if the cloud is noisy, each point's neighbourhood size is chosen from SCALES
+    (Mitra & Nguyen's error bound, see the module docstring) instead of k; if it is clean, the
+    normals of quadrics fitted over the k neighbours refine the PCA's (`jets.py`).
     progress: None shows a progress bar above chunked.PROGRESS_MIN_POINTS points; True/False
     force it.
     """
     pts = as_points(positions)
     nbh = Neighbourhood.build(pts, k, workers, progress)
     towards = None if viewpoint is None else nbh.sort(np.asarray(viewpoint, np.float64) - pts)
-    normals, ambiguous, _, _ = oriented_normals(nbh, k, towards, progress, select_scale)
+    normals, ambiguous, _, _ = oriented_normals(nbh, k, towards, progress, adaptive)
     return nbh.unsort(normals.astype(np.float32)), int(ambiguous.sum())
