@@ -7,13 +7,15 @@ at 512 x 512 with lambert shading, from the front and from azimuth 60, elevation
 25), which see parts of the model that the scan's views saw at grazing angles or not at all.
 
     python benchmarks/scan_fidelity.py MESH.obj [MESH.ply ...] [--methods deferred,phong]
-        [--smooth [--prepared] | --vertices] [--oblique] [--json]
+        [--smooth [--prepared] | --vertices | --bare] [--oblique] [--json]
 
 --smooth denoises the scan first: the positions of `surfel prepare --smooth` (normals and
 splats are then estimated by each method's completion, as for the raw scan); with
 --prepared, the whole cloud `surfel prepare --smooth --elliptical --normal-field` writes
 (its normals, splats and clip lines), as a user who prepares the scan first renders it. --vertices
-renders the mesh's own vertices (with the mesh's normals) instead of a scan.
+renders the mesh's own vertices (with the mesh's normals) instead of a scan; --bare, the same
+vertices without normals, which each method's completion then estimates (as for a point file
+without normals).
 Prints one row per model and view, then the median PSNR of each method over all of them.
 """
 
@@ -26,6 +28,7 @@ import time
 import numpy as np
 
 from surfel.camera import frame
+from surfel.cloud import PointCloud
 from surfel.io import load
 from surfel.metrics import compare_results
 from surfel.options import RenderOptions
@@ -40,9 +43,11 @@ OBLIQUE_VIEWS = {f"az{azimuth}el{elevation}": (float(azimuth), float(elevation))
 
 
 def measure(path: str, methods: list[str], smooth: bool, vertices: bool, renderer: Renderer,
-            prepared: bool = False, views: dict = VIEWS) -> list[dict]:
+            prepared: bool = False, views: dict = VIEWS, bare: bool = False) -> list[dict]:
     mesh = load(path)
-    cloud = mesh.take(np.arange(len(mesh))) if vertices else scan(mesh, ScanSettings(), renderer)
+    cloud = mesh.take(np.arange(len(mesh))) if vertices or bare else scan(mesh, ScanSettings(), renderer)
+    if bare:
+        cloud = PointCloud(cloud.positions)
     if smooth and prepared:
         cloud = prepare(cloud, smooth=True, elliptical=True, normal_field=True)[0]
     elif smooth:
@@ -69,6 +74,7 @@ def main() -> None:
     mode = parser.add_mutually_exclusive_group()
     mode.add_argument("--smooth", action="store_true")
     mode.add_argument("--vertices", action="store_true")
+    mode.add_argument("--bare", action="store_true")
     parser.add_argument("--prepared", action="store_true")
     parser.add_argument("--oblique", action="store_true")
     parser.add_argument("--json", action="store_true")
@@ -80,7 +86,7 @@ def main() -> None:
     views = {**VIEWS, **OBLIQUE_VIEWS} if args.oblique else VIEWS
     rows = []
     for path in args.meshes:
-        for row in measure(path, methods, args.smooth, args.vertices, renderer, args.prepared, views):
+        for row in measure(path, methods, args.smooth, args.vertices, renderer, args.prepared, views, args.bare):
             rows.append(row)
             if not args.json:
                 print("  ".join(f"{key} {value}" for key, value in row.items()), flush=True)

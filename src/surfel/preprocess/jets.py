@@ -30,7 +30,8 @@ and rocker-arm decimated to 2,500), angle from the mesh's normals:
   * without the residual test, 3.9-16.3 on the figures (the unweighted fit 4.3-18.0), but 206
     of the 37,831 normals, at creases and tips, ended more than 30 degrees further from the
     mesh's than PCA's, and `deferred` showed more than 0.1% holes in 43 of 180 renders, not 25.
-Rendered from those vertices, 18 views each at 512 x 512 (lambert), against the mesh:
+Rendered from those vertices, 18 views each at 512 x 512 (lambert), against the mesh
+(`benchmarks/scan_fidelity.py MESH ... --bare --oblique --methods deferred,mls`):
 `deferred` 25.85 -> 26.74 dB median (every model +0.2 to +3.1 dB; renders over 0.1% holes 25 ->
 32, the decimated rocker-arm's 3 -> 9, which its mesh's own normals leave at 8); `mls` +0.1 to
 +1.1 dB on nine of them and -0.1 on the horse, renders over 0.1% holes 58 -> 41.
