@@ -85,11 +85,12 @@ def test_georeferenced_coordinates_keep_precision():
     assert np.allclose(estimate_radii(local), estimate_radii(local + offset), rtol=1e-4)
 
 
-def quadric_refined(p: np.ndarray) -> np.ndarray:
-    """The PCA normals over 16 neighbours refined by quadrics, unoriented."""
+def pca_and_quadric_normals(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unoriented PCA normals over 16 neighbours, and the same refined by quadrics (jets.py)."""
     nbh = Neighbourhood.build(as_points(p), NORMAL_NEIGHBOURS, -1, False)
     normals, degenerate, _ = pca_normals(nbh, NORMAL_NEIGHBOURS, False)
-    return nbh.unsort(jet_normals(nbh.points, nbh.first(NORMAL_NEIGHBOURS), normals, degenerate))
+    refined = jet_normals(nbh.points, nbh.first(NORMAL_NEIGHBOURS), normals, degenerate)
+    return nbh.unsort(normals), nbh.unsort(refined)
 
 
 def test_scale_selection_on_a_noisy_sphere():
@@ -104,7 +105,7 @@ def test_scale_selection_on_a_noisy_sphere():
     assert np.percentile(selected_error, 95) < 4
     clean = sphere(20_000)
     adaptive, _ = estimate_normals(clean, adaptive=True)
-    assert np.allclose(np.abs(np.einsum("ij,ij->i", adaptive, quadric_refined(clean))), 1, atol=1e-6)
+    assert np.allclose(np.abs(np.einsum("ij,ij->i", adaptive, pca_and_quadric_normals(clean)[1])), 1, atol=1e-6)
 
 
 def test_a_coarse_mesh_s_vertices_are_not_noisy():
@@ -117,7 +118,7 @@ def test_a_coarse_mesh_s_vertices_are_not_noisy():
         first = Neighbourhood.build(as_points(p), SCALES[0], -1, False)
         assert is_noisy(pca_normals(first, SCALES[0], False)[2])
         adaptive, _ = estimate_normals(p, adaptive=True)
-        assert np.allclose(np.abs(np.einsum("ij,ij->i", adaptive, quadric_refined(p))), 1, atol=1e-6)
+        assert np.allclose(np.abs(np.einsum("ij,ij->i", adaptive, pca_and_quadric_normals(p)[1])), 1, atol=1e-6)
         _, report = prepare(PointCloud(p))
         assert report["normals"].startswith("estimated (PCA, k=16, refined by quadrics,")
     assert angles(estimate_normals(np.asarray(mesh.positions))[0], mesh.normals).mean() < 6
@@ -130,14 +131,6 @@ def test_quadrics_bring_a_coarse_figure_s_normals_nearer_the_mesh_s():
     p = np.asarray(mesh.positions)
     plain, adaptive = estimate_normals(p)[0], estimate_normals(p, adaptive=True)[0]
     assert angles(adaptive, mesh.normals).mean() < 0.65 * angles(plain, mesh.normals).mean()
-
-
-def pca_and_quadric_normals(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Unoriented PCA normals over 16 neighbours, and the same refined by quadrics (jets.py)."""
-    nbh = Neighbourhood.build(as_points(p), NORMAL_NEIGHBOURS, -1, False)
-    normals, degenerate, _ = pca_normals(nbh, NORMAL_NEIGHBOURS, False)
-    refined = jet_normals(nbh.points, nbh.first(NORMAL_NEIGHBOURS), normals, degenerate)
-    return nbh.unsort(normals), nbh.unsort(refined)
 
 
 def test_quadrics_follow_a_coarsely_sampled_curved_patch():
