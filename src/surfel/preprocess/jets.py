@@ -34,7 +34,10 @@ Rendered from those vertices, 18 views each at 512 x 512 (lambert), against the 
 (`benchmarks/scan_fidelity.py MESH ... --bare --oblique --methods deferred,mls`):
 `deferred` 25.85 -> 26.74 dB median (every model +0.2 to +3.1 dB; renders over 0.1% holes 25 ->
 32, the decimated rocker-arm's 3 -> 9, which its mesh's own normals leave at 8); `mls` +0.1 to
-+1.1 dB on nine of them and -0.1 on the horse, renders over 0.1% holes 58 -> 41.
++1.1 dB on nine of them and -0.1 on the horse, renders over 0.1% holes 58 -> 41. Denser
+clouds gain too: the whole meshes' vertices (bunny, igea, homer, ogre; `--bare`, front and
+azimuth 60) went 37.02 -> 38.88 dB median with `deferred` (39.53 with the meshes' own normals)
+and 37.64 -> 40.24 dB with `phong`, without holes either way.
 
 A quadric follows noise more readily than a plane: on raw range scans (`surfel scan` of bunny,
 ogre, fandisk, rocker-arm: 0.1% range noise) the median error went 3.1-5.7 degrees -> 3.6-5.8
