@@ -76,13 +76,13 @@ def _jet_rows(first, stop, points, index, normals, degenerate, out):  # pragma: 
     a = np.empty((6, 6))
     b = np.empty(6)
     phi = np.empty(6)
-    offsets = np.empty((k, 3))
-    rows = np.empty((k, 4))
+    rows = np.empty((k, 4))  # (u, v, f, w) of each neighbour
     for p in range(first, stop):
         if degenerate[p]:
             continue
         n0, n1, n2 = normals[p, 0], normals[p, 1], normals[p, 2]
-        # e1: n x (the axis least along n), e2 = n x e1
+        # e1: n x (the axis least along n), e2 = n x e1 (frames.py's basis is another module's,
+        # which a kernel here may not read: see _cholesky_solve)
         if abs(n0) <= abs(n1) and abs(n0) <= abs(n2):
             e10, e11, e12 = 0.0, n2, -n1
         elif abs(n1) <= abs(n2):
@@ -93,11 +93,13 @@ def _jet_rows(first, stop, points, index, normals, degenerate, out):  # pragma: 
         e10, e11, e12 = e10 / length, e11 / length, e12 / length
         e20, e21, e22 = n1 * e12 - n2 * e11, n2 * e10 - n0 * e12, n0 * e11 - n1 * e10
         mean2 = 0.0
-        for j in range(k):
+        for j in range(k):  # the offsets in the frame, unscaled; the frame keeps their lengths
             q = index[p, j]
-            for c in range(3):
-                offsets[j, c] = points[q, c] - points[p, c]
-            mean2 += offsets[j, 0] ** 2 + offsets[j, 1] ** 2 + offsets[j, 2] ** 2
+            dx, dy, dz = points[q, 0] - points[p, 0], points[q, 1] - points[p, 1], points[q, 2] - points[p, 2]
+            rows[j, 0] = dx * e10 + dy * e11 + dz * e12
+            rows[j, 1] = dx * e20 + dy * e21 + dz * e22
+            rows[j, 2] = dx * n0 + dy * n1 + dz * n2
+            mean2 += rows[j, 0] ** 2 + rows[j, 1] ** 2 + rows[j, 2] ** 2
         mean2 /= k
         if mean2 <= 0.0:
             continue
@@ -106,11 +108,8 @@ def _jet_rows(first, stop, points, index, normals, degenerate, out):  # pragma: 
         b[:] = 0.0
         weights = 0.0
         for j in range(k):
-            dx, dy, dz = offsets[j, 0], offsets[j, 1], offsets[j, 2]
-            w = math.exp(-(dx * dx + dy * dy + dz * dz) / mean2)
-            u = (dx * e10 + dy * e11 + dz * e12) * inv_h
-            v = (dx * e20 + dy * e21 + dz * e22) * inv_h
-            f = (dx * n0 + dy * n1 + dz * n2) * inv_h
+            u, v, f = rows[j, 0] * inv_h, rows[j, 1] * inv_h, rows[j, 2] * inv_h
+            w = math.exp(-(u * u + v * v + f * f))  # exp(-|q_j - p|^2 / h^2)
             rows[j, 0], rows[j, 1], rows[j, 2], rows[j, 3] = u, v, f, w
             phi[0], phi[1], phi[2], phi[3], phi[4], phi[5] = 1.0, u, v, u * u, u * v, v * v
             for r in range(6):
