@@ -18,6 +18,7 @@ One module per estimation, each citing its source, with its tuning constants at 
   smoothing.py       denoised positions: projection onto the MLS surface (Adamson & Alexa 2003)
   spacing.py         the sampling bound: splats no larger than the local and the acquisition's
                      point spacing warrant
+  coincident.py      points that repeat a position (a mesh's seams): estimated once per position
   complete.py        `prepare`: fill in what a cloud lacks; `complete`: the one policy for what
                      a method gets estimated
 

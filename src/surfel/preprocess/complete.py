@@ -2,7 +2,8 @@
 
 `prepare(cloud, ...)` fills in what a cloud lacks with explicit choices (the `surfel prepare`
 command): one k-nearest-neighbour search, k = max(k_normals, RADIUS_NEIGHBOURS,
-FIELD_NEIGHBOURS), serves every estimation, in this order, each using the ones before:
+FIELD_NEIGHBOURS), serves every estimation (once per position where points coincide,
+`coincident.py`), in this order, each using the ones before:
 
   1. normals (`normals.py`): u x v of given axes, else PCA (when the cloud is not geospatial
      and k_normals is the default: each point's neighbourhood size selected if it is noisy,
@@ -46,6 +47,7 @@ from ..cloud import PointCloud
 from .borders import NOISY_MARGIN, border_outwards
 from .cell_kernels import INACTIVE_CLIP
 from .cells import RADIUS_MARGIN, RADIUS_NEIGHBOURS, clip_lines, covering_ellipses, covering_radii
+from .coincident import coincident_groups
 from .frames import tangent_frames, unit
 from .neighbourhood import Neighbourhood
 from .normal_field import FIELD_NEIGHBOURS, field_slopes, has_normal_field
@@ -123,9 +125,13 @@ def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np
     sharp_features: when radii and axes are estimated, cells end at creases and
     attributes["clip_lines"] (N, CLIP_LINES, 3) cut the splats there and at the borders of open
     surfaces (`cells.py`).
-    Given attributes are kept as they are. The report names every estimated attribute and
-    how, plus "ambiguous_normals" when normals were estimated, "screen_facing" (how many
-    points face the camera) and "splat_bound" (the spacing model and how many splats it capped).
+    Where the splats are estimated, coincident points (`coincident.py`: a mesh's vertices
+    repeated along its seams) are estimated once per position and drawn alike, with their
+    mean normal (`_prepare_per_position`); other given attributes are kept as they are.
+    The report names every estimated attribute and how, plus "ambiguous_normals" when normals
+    were estimated, "screen_facing" (how many points face the camera),
+    "splat_bound" (the spacing model and how many splats it capped) and "coincident" (how many
+    points repeat another's position).
     """
     report: dict = {}
     need_field = normal_field and not has_normal_field(cloud)
@@ -135,6 +141,11 @@ def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np
     k_estimations = max(k_normals, RADIUS_NEIGHBOURS, FIELD_NEIGHBOURS if need_field else 1)
     k = max(k_estimations, SMOOTH_NEIGHBOURS if smooth else 1)
     nbh = Neighbourhood.build(cloud.positions, k, -1, progress)
+    groups = coincident_groups(cloud, nbh) if _estimates_splats(cloud) else None  # the cells are what copies upset
+    if groups is not None:
+        return _prepare_per_position(cloud, *groups, reference_spacing, k_normals=k_normals, sensor=sensor,
+                                     elliptical=elliptical, normal_field=normal_field,
+                                     sharp_features=sharp_features, progress=progress, smooth=smooth)
     given = {name: None if getattr(cloud, name) is None else nbh.sort(getattr(cloud, name))
              for name in ("normals", "radii", "axes")}
     sensors = cloud.sensor_positions() if sensor is None else np.broadcast_to(sensor, cloud.positions.shape)
@@ -292,3 +303,22 @@ def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np
     if positions is not None:
         changes["positions"] = positions
     return cloud.with_(**changes), report
+
+
+def _prepare_per_position(cloud: PointCloud, first: np.ndarray, inverse: np.ndarray, normals: np.ndarray | None,
+                          reference_spacing: np.ndarray | None, **options) -> tuple[PointCloud, dict]:
+    """`prepare` once per group of coincident points (coincident.py), splats estimated: each copy
+    gets its group's estimates, the group's mean normal among them (two splats in one place
+    facing a little apart would fight over each pixel and speckle the shading), and keeps its
+    own colour and attributes."""
+    spacing = None if reference_spacing is None else np.asarray(reference_spacing)[first]
+    distinct = cloud.take(first)
+    if normals is not None:
+        distinct = distinct.with_(normals=normals)
+    prepared, report = prepare(distinct, reference_spacing=spacing, **options)
+    every = prepared.take(inverse)
+    copies = len(cloud) - len(first)
+    report["coincident"] = (f"{copies} {'point repeats' if copies == 1 else 'points repeat'} another sample's "
+                            "position: estimated once per position")
+    every = every.with_(colors=cloud.colors, attributes={**every.attributes, **cloud.attributes}, faces=cloud.faces)
+    return every, report
