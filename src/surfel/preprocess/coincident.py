@@ -26,6 +26,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..cloud import PointCloud
+from .frames import unit
 from .neighbourhood import Neighbourhood
 from .sharp_features import SHARP_ANGLE
 
@@ -68,4 +69,4 @@ def coincident_groups(cloud: PointCloud, nbh: Neighbourhood
         return first, inverse, None
     summed = np.zeros((len(first), 3))
     np.add.at(summed, inverse, normals)
-    return first, inverse, summed / np.linalg.norm(summed, axis=1, keepdims=True)
+    return first, inverse, unit(summed)
