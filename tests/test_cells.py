@@ -377,7 +377,7 @@ def test_a_face_below_a_concave_fillet_keeps_its_cell():
 
     nbh, sorted_normals, features, centre = _panel_features()
     radius = nbh.unsort(covering_radii(nbh, sorted_normals, False, features=features))[centre]
-    semi_axes = np.linalg.norm(nbh.unsort(covering_ellipses(nbh, sorted_normals, False, features=features))[centre],
+    semi_axes = np.linalg.norm(nbh.unsort(covering_ellipses(nbh, sorted_normals, False, features=features)[0])[centre],
                                axis=1)
     half_row = 0.006  # rows and columns lie 0.012 apart
     assert radius >= 0.999 * RADIUS_MARGIN * np.hypot(half_row, half_row)
@@ -559,6 +559,30 @@ def test_a_face_of_sparse_rows_beside_a_dense_strip_has_no_border():
 
     assert not clipped(strip, row, next_row, other_strip).any()
     assert clipped(strip, row).all()
+
+
+def test_a_lopsided_cell_cuts_its_splat_at_its_short_side():
+    """A row of points 0.05 from the next row on one side and 0.01 from a dense strip on the
+    other: its cells end 0.005 from it on the strip's side and reach 0.025 the other way. The
+    ellipses, centred on the points, reached as far into the strip, where a curved surface
+    stands them out of it (the beads along the Newell teapot's lid); a clip line at
+    SHORT_MARGIN times the short side's distance ends them there, and the plane stays covered."""
+    from surfel.preprocess.cells import SHORT_MARGIN
+
+    sparse, row, strip = _rows((-0.3, -0.05), 0.05, 0.03), _rows((0.0, 0.0), 1.0, 0.03), _rows((0.01, 0.1), 0.01, 0.03)
+    points = np.concatenate([sparse, row, strip])
+    prepared, _ = prepare(PointCloud(points, normals=np.tile([0.0, 0.0, 1.0], (len(points), 1))), elliptical=True)
+    members = np.arange(len(sparse), len(sparse) + len(row))[3:-3]  # away from the rows' ends
+    rng = np.random.default_rng(13)
+    into_strip = np.c_[rng.uniform(SHORT_MARGIN * 0.005 + 1e-4, 0.025, 4000), rng.uniform(-0.2, 0.2, 4000),
+                       np.zeros(4000)]
+    assert not covered_by(prepared, members, into_strip).any()
+    inside = np.c_[rng.uniform(-0.3, 0.1, 20000), rng.uniform(-0.25, 0.25, 20000), np.zeros(20000)]
+    assert covered_by(prepared, np.arange(len(points)), inside).all()
+    # without the line the row's ellipses reach into the strip
+    inactive = np.broadcast_to(np.float32(INACTIVE_CLIP), prepared.attributes["clip_lines"].shape)
+    whole = prepared.with_(attributes={**prepared.attributes, "clip_lines": inactive})
+    assert covered_by(whole, members, into_strip).mean() > 0.3
 
 
 def test_closed_surfaces_and_aerial_scans_have_no_borders():

@@ -30,6 +30,7 @@ RIM_MARGIN = 0.5               # a face's clip line at a curved rim: beyond the 
                                # share of its distance from the splat's centre
 BEYOND_MARGIN = 0.1            # a concave crease lies beyond p when q projects on p's side of its
                                # line by this share of q's distance (not just rounding: a right angle)
+LOPSIDED = 2.0                 # a cell reaching this many times farther past a bisector: its short side
 SKIP_MARGIN = 1.0 + 1e-6       # a line this much farther than the farthest vertex (squared) misses the cell
 
 
@@ -331,17 +332,18 @@ def _radii_rows(first, stop, points, normals, index, start, frames, features, sh
 
 
 def cell_ellipses(points, normals, index, start, frames, features, sheet_cos, layers, reach_bound):
-    """The covering radius of each point's cell, and the semi-axes (m, 2) and direction
+    """The covering radius of each point's cell, the semi-axes (m, 2) and direction
     (m, 2: cos, sin in the frame) of its covering ellipse (zero semi-axes for degenerate cells),
-    fitted to the part of the cell within reach_bound (N,) of the point (cells.py)."""
+    fitted to the part of the cell within reach_bound (N,) of the point; its short side (m, 3, `_short_side`)."""
     m = len(index)
     radius = np.zeros(m)
     semi = np.zeros((m, 2))
     direction = np.zeros((m, 2))
     direction[:, 0] = 1.0
+    short = np.zeros((m, 3))
     over_rows(_ellipse_rows, m, points, normals, index, start, frames, features, sheet_cos, layers, reach_bound,
-              radius, semi, direction, grain=CELL_BLOCK)
-    return radius, semi, direction
+              radius, semi, direction, short, grain=CELL_BLOCK)
+    return radius, semi, direction, short
 
 
 @numba.njit(cache=True, inline="always")
@@ -355,9 +357,26 @@ def _clip_to_disc(polygon, spare, vertices, reach):  # pragma: no cover - compil
     return polygon, vertices
 
 
+@numba.njit(cache=True, inline="always")
+def _short_side(polygon, vertices, lines, bisectors):  # pragma: no cover - compiled
+    """The cell polygon's short side: the bisector a x + b y <= c (of lines[:bisectors], (a, b)
+    made unit) the other way from which the polygon reaches farthest in proportion to c, more
+    than LOPSIDED c; c = 0 where none does (a bisector missing the cell has a larger c)."""
+    best_a, best_b, best_c, best_ratio = 0.0, 0.0, 0.0, LOPSIDED
+    for j in range(bisectors):
+        length = math.sqrt(lines[j, 0] * lines[j, 0] + lines[j, 1] * lines[j, 1])
+        a, b, c = lines[j, 0] / length, lines[j, 1] / length, lines[j, 2] / length
+        opposite = 0.0
+        for v in range(vertices):
+            opposite = max(opposite, -(a * polygon[v, 0] + b * polygon[v, 1]))
+        if opposite > best_ratio * c:
+            best_a, best_b, best_c, best_ratio = a, b, c, opposite / c
+    return best_a, best_b, best_c
+
+
 @numba.njit(cache=True, nogil=True)
 def _ellipse_rows(first, stop, points, normals, index, start, frames, features, sheet_cos, layers, reach_bound,
-                  radius, semi, direction):  # pragma: no cover - compiled
+                  radius, semi, direction, short):  # pragma: no cover - compiled
     """Rows first:stop of `cell_ellipses`."""
     k = index.shape[1]
     lines, creases, bounding = np.empty((k, 3)), np.empty((k, 3)), np.empty(k, np.int64)
@@ -385,6 +404,7 @@ def _ellipse_rows(first, stop, points, normals, index, start, frames, features, 
             theta = curvature_theta
         co = math.cos(theta)
         si = math.sin(theta)
+        short[i, 0], short[i, 1], short[i, 2] = _short_side(cell, vertices, lines, bisectors)
         semi[i, 0], semi[i, 1] = _covering_ellipse(cell, vertices, co, si)
         direction[i, 0] = co
         direction[i, 1] = si

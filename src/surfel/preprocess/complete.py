@@ -24,8 +24,9 @@ FIELD_NEIGHBOURS), serves every estimation (once per position where points coinc
      (`structure.py`);
   8. clip lines at the sharp features, where the surface turns sharply away (a thin part's
      rim), and at the borders of open surfaces (`borders.py`, `cells.py`; a margin out where
-     the normals were estimated on a noisy cloud, also when `smooth` denoised it first), none
-     on screen-facing splats;
+     the normals were estimated on a noisy cloud, also when `smooth` denoised it first), then
+     at the short sides of fitted ellipses' lopsided cells (`cells.py`), none on screen-facing
+     splats;
   9. Phong splatting's normal fields (`normal_field.py`): the shading's and the curved
      surface's, flat on screen-facing splats;
 
@@ -208,6 +209,7 @@ def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np
     drawn_facing = facing if "screen_facing" not in cloud.attributes else \
         nbh.sort(cloud.attributes["screen_facing"] > 0.5)
     radii, axes = given["radii"], given["axes"]
+    short_sides = None
     # what is estimated from the positions is bounded by their sampling (circles of given radii keep them)
     bound_radii = radii is None
     bound_axes = axes is None and (bound_radii or elliptical)
@@ -251,7 +253,7 @@ def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np
             lifted_spacing, _ = anisotropic_spacing(nbh, unit_normals, spacing,  # where the bound will be lifted
                                                     np.flatnonzero(radii > BOUND_FACTOR * spacing))
             bound = BOUND_FACTOR * lifted_spacing
-        axes = covering_ellipses(nbh, unit_normals, progress, features, layers=thickness, bound=bound)
+        axes, short_sides = covering_ellipses(nbh, unit_normals, progress, features, layers=thickness, bound=bound)
         report["axes"] = f"fitted ellipses (k={RADIUS_NEIGHBOURS})"
     elif axes is None:
         axes = tangent_frames(normals, radii)
@@ -284,7 +286,7 @@ def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np
                            else border_outwards(nbh, unit_normals, nbh.first(RADIUS_NEIGHBOURS), progress, thickness,
                                                 spacing))
         lines = clip_lines(nbh, unit_normals, axes, features, outwards, reach, progress,
-                           margin=NOISY_MARGIN if noisy else 0.0, layers=thickness)
+                           margin=NOISY_MARGIN if noisy else 0.0, layers=thickness, short_sides=short_sides)
         if facing is not None:
             lines[facing] = INACTIVE_CLIP  # a disk facing the camera has no crease to end at
         attributes["clip_lines"] = nbh.unsort(lines)
