@@ -566,7 +566,8 @@ def test_a_lopsided_cell_cuts_its_splat_at_its_short_side():
     other: its cells end 0.005 from it on the strip's side and reach 0.025 the other way. The
     ellipses, centred on the points, reached as far into the strip, where a curved surface
     stands them out of it (the beads along the Newell teapot's lid); a clip line at
-    SHORT_MARGIN times the short side's distance ends them there, and the plane stays covered."""
+    SHORT_MARGIN times the short side's distance ends them there, and the plane stays covered
+    (not a scan's: its cells stay whole)."""
     from surfel.preprocess.cells import SHORT_MARGIN
 
     sparse, row, strip = _rows((-0.3, -0.05), 0.05, 0.03), _rows((0.0, 0.0), 1.0, 0.03), _rows((0.01, 0.1), 0.01, 0.03)
@@ -583,6 +584,10 @@ def test_a_lopsided_cell_cuts_its_splat_at_its_short_side():
     inactive = np.broadcast_to(np.float32(INACTIVE_CLIP), prepared.attributes["clip_lines"].shape)
     whole = prepared.with_(attributes={**prepared.attributes, "clip_lines": inactive})
     assert covered_by(whole, members, into_strip).mean() > 0.3
+    # a scan's cells stay whole: the same rows as an aerial survey's
+    survey, _ = prepare(PointCloud(points, normals=np.tile([0.0, 0.0, 1.0], (len(points), 1)), geospatial=True),
+                        elliptical=True)
+    assert covered_by(survey, members, into_strip).mean() > 0.3
 
 
 def test_closed_surfaces_and_aerial_scans_have_no_borders():

@@ -25,8 +25,8 @@ FIELD_NEIGHBOURS), serves every estimation (once per position where points coinc
   8. clip lines at the sharp features, where the surface turns sharply away (a thin part's
      rim), and at the borders of open surfaces (`borders.py`, `cells.py`; a margin out where
      the normals were estimated on a noisy cloud, also when `smooth` denoised it first), then
-     at the short sides of fitted ellipses' lopsided cells (`cells.py`), none on screen-facing
-     splats;
+     at the short sides of lopsided cells (`cells.py`; fitted ellipses of points sampled from a
+     surface), none on screen-facing splats;
   9. Phong splatting's normal fields (`normal_field.py`): the shading's and the curved
      surface's, flat on screen-facing splats;
 
@@ -247,13 +247,16 @@ def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np
                            f"x{RADIUS_MARGIN}, mean {float(np.mean(radii)):.4g})")
     if axes is None and elliptical:
         bound = None
-        # the cells of points sampled from a surface end at the bound (cells.py); a scan's, bounded
-        # by its acquisition's spacing (a sensor's, a survey's, a COPC level's), keep the whole cell
-        if spacing is not None and towards_sensor is None and reference_spacing is None and not cloud.geospatial:
+        # the cells of points sampled from a surface end at the bound and at their short sides
+        # (cells.py); a scan's, bounded by its acquisition's spacing (a sensor's, a survey's, a
+        # COPC level's), keep the whole cell
+        sampled = spacing is not None and towards_sensor is None and reference_spacing is None and not cloud.geospatial
+        if sampled:
             lifted_spacing, _ = anisotropic_spacing(nbh, unit_normals, spacing,  # where the bound will be lifted
                                                     np.flatnonzero(radii > BOUND_FACTOR * spacing))
             bound = BOUND_FACTOR * lifted_spacing
         axes, short_sides = covering_ellipses(nbh, unit_normals, progress, features, layers=thickness, bound=bound)
+        short_sides = short_sides if sampled else None
         report["axes"] = f"fitted ellipses (k={RADIUS_NEIGHBOURS})"
     elif axes is None:
         axes = tangent_frames(normals, radii)
