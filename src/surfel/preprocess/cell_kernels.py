@@ -30,7 +30,7 @@ RIM_MARGIN = 0.5               # a face's clip line at a curved rim: beyond the 
                                # share of its distance from the splat's centre
 BEYOND_MARGIN = 0.1            # a concave crease lies beyond p when q projects on p's side of its
                                # line by this share of q's distance (not just rounding: a right angle)
-LOPSIDED = 2.0                 # a cell reaching this many times farther past a bisector: its short side
+LOPSIDED = 2.0                 # a cell reaching this many times farther the other way: a bisector on its short side
 SKIP_MARGIN = 1.0 + 1e-6       # a line this much farther than the farthest vertex (squared) misses the cell
 
 

@@ -68,7 +68,7 @@ Short sides (`cell_kernels._short_side`): an ellipse is centred on its point, so
     ends near the point on one side (a dense row beside it) and far on the other (a sparse row)
     gets an ellipse that reaches as far past the near side as the far side needs. On a curved
     surface that part stands out of the surface: the Newell teapot's lid edge and rolled rim,
-    rows 0.04 apart beside rows 0.16 apart, wore a ring of beads over the lid. Where a cell
+    rows 0.04 apart beside rows 0.16 apart, stood out over the lid and past its outline. Where a cell
     reaches LOPSIDED times farther the other way than to one of its bisectors, the splat is cut
     by that bisector's line moved out to SHORT_MARGIN times its distance (past the neighbour
     whose bisector it is, whose splat covers the rest), if the splat reaches more than
@@ -76,10 +76,11 @@ Short sides (`cell_kernels._short_side`): an ellipse is centred on its point, so
     only: a crease's or a turn's end of the cell has its own line. Points sampled from a surface
     only, as for the bound above: a scan's cells stay whole (cut, a LiDAR tile's footprint left
     0.01% more of its pixels uncovered). (Vertices, 18 views at 512 x 512: the teapot 30.87 ->
-    34.27 dB with `phong`, 30.76 -> 33.80 dB with `deferred`; with `phong` seven decimated
-    figures +0.1 to +0.5 dB, 11 other models -0.08 to +0.1 dB, no view newly over 0.1% of holes.
-    At SHORT_MARGIN 1.2 to 2.0, with every edge of the cell a candidate, views opened holes past
-    0.1% on the cow's tail and a decimated head's chin.)
+    34.27 dB with `phong`, 30.76 -> 33.80 dB with `deferred`; seven decimated figures +0.06 to
+    +0.47 dB with `phong`, five +0.06 to +0.49 dB with `deferred`; 12 other models -0.08 to
+    +0.11 dB; no view newly over 0.1% of holes. At SHORT_MARGIN 1.2 to 2.0, with every edge of
+    the cell a candidate, views opened holes past 0.1% on the cow's tail and a decimated head's
+    chin.)
 
 Cells at creases (Zwicker et al. 2002, Pauly et al. 2003; which points are flat and which lie on
 creases: `sharp_features.py`):
