@@ -1,7 +1,6 @@
 """The compiled kernels of `cells.py`, whose docstring states what they compute: the tangent-plane
-Voronoi cell of each point (its covering radius, `cell_radii`, or ellipse, `cell_ellipses`) and
-each splat's clip lines at creases and borders (`cell_clip_lines`), over one chunk of points
-each (cells.py runs them chunk by chunk).
+Voronoi cell of each point (its covering radius, `cell_radii`, or ellipse, `cell_ellipses`) and each
+splat's clip lines at creases and borders (`cell_clip_lines`), one chunk of points per call.
 
 The cells and the clip lines share the crease geometry (`_crease_half_plane`), hence one module:
 numba's on-disk cache does not see a change to a function in another file, nor to a constant
@@ -44,10 +43,7 @@ def _crease_half_plane(points, p, q, normal_q, frame, on_plane_sin2):  # pragma:
     """Where splat p meets the tangent plane of its neighbour q across a crease: the half-plane
     a x + b y <= c of p's plane points p + x e1 + y e2, (e1, e2) = frame (orthogonal, of any
     lengths: a cell's unit frame or a splat's semi-axes), that p keeps."""
-    side = 0.0
-    ga = 0.0
-    gb = 0.0
-    distance2 = 0.0
+    side = ga = gb = distance2 = 0.0
     for a in range(3):
         offset = points[p, a] - points[q, a]
         side += offset * normal_q[a]
@@ -70,10 +66,7 @@ def _crease_half_plane(points, p, q, normal_q, frame, on_plane_sin2):  # pragma:
 def _frame_coordinates(points, frame, p, q):  # pragma: no cover - compiled
     """(x, y) of q projected into p's plane p + x e1 + y e2, (e1, e2) = frame orthogonal, of
     any lengths: its offsets along them over their lengths squared (0 along a degenerate axis)."""
-    x = 0.0
-    y = 0.0
-    e1_length2 = 0.0
-    e2_length2 = 0.0
+    x = y = e1_length2 = e2_length2 = 0.0
     for a in range(3):
         offset = points[q, a] - points[p, a]
         x += offset * frame[0, a]
@@ -144,10 +137,9 @@ def _cell_bounds(points, normals, index, frames, i, p, features, sheet_cos, laye
 
 @numba.njit(cache=True, inline="always")
 def _clip(polygon, count, a, b, c, out):  # pragma: no cover - compiled
-    """Clip the convex polygon[:count] to the half-plane a x + b y <= c into out (room for
-    count + 2 rows: one written past the last kept); returns its number of vertices. Each
-    vertex and each edge's crossing is written, and kept by counting it (no branch: which
-    vertices a line cuts off is unpredictable), each vertex's side computed once."""
+    """Clip the convex polygon[:count] to the half-plane a x + b y <= c into out (room for count + 2
+    rows: one written past the last kept); returns its number of vertices. Each vertex and crossing
+    is written, kept by counting it (no branch: which vertices a line cuts off is unpredictable)."""
     kept = 0
     first = a * polygon[0, 0] + b * polygon[0, 1] - c
     si = first
@@ -168,13 +160,11 @@ def _clip(polygon, count, a, b, c, out):  # pragma: no cover - compiled
 @numba.njit(cache=True, inline="always")
 def _cell_polygon(lines, count, reach, polygon, spare):  # pragma: no cover - compiled
     """The cell: the regular CAP_SIDES-gon inscribed in the circle of radius `reach`, clipped to
-    lines[:count] in order, built in the scratch polygon and spare (CAP_SIDES + k + 1, 2) (each
-    clip of a convex polygon adds at most one vertex). Returns (the one of them holding it, its
-    number of vertices). A line that no vertex lies beyond cuts nothing: it is skipped before
-    the clip, whose division per vertex costs several times the test (most bisectors of the
-    farther neighbours miss the cell); first, without visiting the vertices, a line farther
-    from the centre than the farthest vertex (c^2 >= r^2 (a^2 + b^2), with SKIP_MARGIN for
-    roundings: such a line the vertex test would skip too)."""
+    lines[:count] in order, in the scratch polygon and spare (CAP_SIDES + k + 1, 2: a clip adds at
+    most one vertex). Returns (the one holding it, its number of vertices). A line no vertex lies
+    beyond is skipped before the clip, which costs several times the test (most bisectors of the
+    farther neighbours miss the cell); first, unvisited, one farther than the farthest vertex
+    (c^2 >= r^2 (a^2 + b^2), SKIP_MARGIN for roundings)."""
     for c in range(CAP_SIDES):
         angle = 2.0 * math.pi * c / CAP_SIDES
         polygon[c, 0] = reach * math.cos(angle)
@@ -211,16 +201,13 @@ def _covering_radius(polygon, vertices):  # pragma: no cover - compiled
 def _spread_direction(lines, bisectors):  # pragma: no cover - compiled
     """The angle in the tangent frame of the principal direction of the bounding neighbours'
     offsets lines[:bisectors, :2]."""
-    mx = 0.0
-    my = 0.0
+    mx = my = 0.0
     for j in range(bisectors):
         mx += lines[j, 0]
         my += lines[j, 1]
     mx /= max(bisectors, 1)
     my /= max(bisectors, 1)
-    sxx = 0.0
-    syy = 0.0
-    sxy = 0.0
+    sxx = syy = sxy = 0.0
     for j in range(bisectors):
         sxx += (lines[j, 0] - mx) ** 2
         syy += (lines[j, 1] - my) ** 2
@@ -412,8 +399,7 @@ def _ellipse_rows(first, stop, points, normals, index, start, frames, features, 
 
 @numba.njit(cache=True, inline="always")
 def _append_unit_line(candidates, count, a, b, c, length):  # pragma: no cover - compiled
-    """Append the line a u + b v <= c, divided by length = |(a, b)|, as row `count` of
-    candidates; returns the new count."""
+    """Append a u + b v <= c, divided by length = |(a, b)|, as row `count` of candidates; the new count."""
     candidates[count, 0] = a / length
     candidates[count, 1] = b / length
     candidates[count, 2] = c / length
@@ -423,8 +409,7 @@ def _append_unit_line(candidates, count, a, b, c, length):  # pragma: no cover -
 @numba.njit(cache=True, inline="always")
 def _in_plane(points, normals, p, q, flat_sin2):  # pragma: no cover - compiled
     """Whether neighbour q lies in p's tangent plane: ((q - p) . n_p)^2 <= flat_sin2 |q - p|^2."""
-    height = 0.0
-    distance2 = 0.0
+    height = distance2 = 0.0
     for a in range(3):
         offset = points[q, a] - points[p, a]
         height += offset * normals[p, a]
@@ -443,9 +428,7 @@ def _crease_candidates(points, normals, index, axes, i, p, features, layers, can
         q = index[i, j]
         if features.crease[q]:
             continue
-        facing = 0.0
-        height = 0.0
-        distance2 = 0.0
+        facing = height = distance2 = 0.0
         across = 0.0  # (q - p) . n_q
         for a in range(3):
             offset = points[q, a] - points[p, a]
@@ -490,19 +473,37 @@ def _crease_candidates(points, normals, index, axes, i, p, features, layers, can
 
 
 @numba.njit(cache=True, inline="always")
-def _border_candidates(points, index, axes, i, p, outwards, on_border, reach, margin, candidates,
-                       count):  # pragma: no cover - compiled
+def _goes_on_past(points, normals, index, i, p, q, outwards, on_border, reach, sharp_cos):  # pragma: no cover
+    """Whether p's side goes on past the border line of q, a neighbour facing away: a neighbour
+    facing p's way (within SHARP_ANGLE), not on a border itself, lies beyond it (cells.py)."""
+    for j in range(index.shape[1]):
+        r = index[i, j]
+        beyond, facing = -reach[q], 0.0
+        for a in range(3):
+            beyond += (points[r, a] - points[q, a]) * outwards[q, a]
+            facing += normals[r, a] * normals[p, a]
+        if beyond > 0.0 and facing >= sharp_cos and not on_border[r]:
+            return True
+    return False
+
+
+@numba.njit(cache=True, inline="always")
+def _border_candidates(points, normals, index, axes, i, p, features, outwards, on_border, reach, margin,
+                       candidates, count):  # pragma: no cover - compiled
     """Append the border half-planes that cut splat p as unit (a, b, c) rows of candidates in its
-    axes (u, v) = axes[i]: for each neighbour q on a border (its own included), the side of the
-    line across its outward direction w_q, reach[q] beyond q, that holds the surface,
-    (p + u u_axis + v v_axis - q) . w_q <= reach[q], moved out by `margin` in (u, v). Returns
-    the new count."""
+    axes (u, v) = axes[i]: for each neighbour q on a border (its own included; not one facing away
+    where p's side goes on past its line, `_goes_on_past`), the side of the line across w_q that
+    holds the surface, (p + u u_axis + v v_axis - q) . w_q <= reach[q], moved out by `margin` in
+    (u, v); returns the new count."""
     for j in range(index.shape[1]):
         q = index[i, j]
         if not on_border[q]:  # no outward direction, no line: most neighbours (a seventh of the pass)
             continue
-        wa = 0.0
-        wb = 0.0
+        facing = normals[q, 0] * normals[p, 0] + normals[q, 1] * normals[p, 1] + normals[q, 2] * normals[p, 2]
+        if facing < features.sheet_cos and _goes_on_past(points, normals, index, i, p, q, outwards, on_border, reach,
+                                                         features.sharp_cos):
+            continue
+        wa = wb = 0.0
         inside = reach[q]
         for a in range(3):
             wa += axes[i, 0, a] * outwards[q, a]
@@ -543,10 +544,9 @@ def _cutting_neighbours(gathered, k, nx, ny, nz, sharp_cos):  # pragma: no cover
     """How many of p's k neighbours (offsets gathered[0:3], normals gathered[3:6], border marks
     gathered[6]; p's normal n) may make one of its clip lines: a crease's or a rim's (normals
     more than SHARP_ANGLE apart), a turn's (a neighbour more than 45 degrees below p's plane,
-    with p below its plane), a border's (`_crease_candidates`, `_border_candidates`). A loop
-    without branches over contiguous rows, which compiles to SIMD code: the points no
-    neighbour can cut (most) skip those loops' branches (a 1.4M-point build partition on one
-    core: `cells.clip_lines` 0.59 -> 0.17-0.26 s)."""
+    with p below its plane), a border's (`_crease_candidates`, `_border_candidates`). Branch-free
+    over contiguous rows (SIMD): the points none can cut (most) skip those loops' branches (a
+    1.4M-point build partition, one core: `cells.clip_lines` 0.59 -> 0.17-0.26 s)."""
     count = 0
     for j in range(k):
         dx, dy, dz = gathered[0, j], gathered[1, j], gathered[2, j]
@@ -595,6 +595,6 @@ def _clip_rows(first, stop, points, normals, index, start, axes, features, layer
             if _cutting_neighbours(gathered, k, normals[p, 0], normals[p, 1], normals[p, 2], features.sharp_cos) == 0:
                 continue  # no neighbour can make a clip line (most points)
             count = _crease_candidates(points, normals, index, axes, i, p, features, layers, candidates)
-            count = _border_candidates(points, index, axes, i, p, outwards, on_border, reach, margin, candidates,
-                                       count)
+            count = _border_candidates(points, normals, index, axes, i, p, features, outwards, on_border, reach,
+                                       margin, candidates, count)
             _nearest_creases(candidates, count, lines, i)

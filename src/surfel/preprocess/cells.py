@@ -131,6 +131,13 @@ Borders of open surfaces (`borders.py`, as the boundary clipping of Pauly et al.
     through q moved out by its fold's reach f_q (0 on an open sheet), is a clip-line candidate
     of every splat near it, beside the creases; a noisy cloud's lines move out further, by a
     margin m of the splat's extent across them (its local u, v: the line a u + b v <= c + m).
+    A thin part's two sides both end at its rim, so the line of a q facing away cuts p too,
+    unless p's side goes on past it: a neighbour facing p's way (within SHARP_ANGLE), not on a
+    border itself, lies beyond the line (`cell_kernels._goes_on_past`). The open edge of a
+    rolled rim's inner wall had cut the outer wall's splats in half there, a band of holes
+    around the Newell teapot and an ogre's belly under its belt (decimated ogre, `deferred`,
+    18 views at 512 x 512: worst holes 0.106 -> 0.060%; 14 models' vertices within -0.06 to
+    +0.08 dB, their raw scans within -0.05 to +0.02 dB).
 """
 
 from __future__ import annotations
