@@ -21,6 +21,7 @@ from .request import (
     PAGE_COMMAND,
     RENDER,
     RENDER_COMMAND,
+    SAMPLE,
     SCAN,
     TURNTABLE_COMMAND,
     TURNTABLE_ELEVATION,
@@ -113,16 +114,25 @@ def render(**values):
       surfel render bunny.obj -o bunny.png --method deferred --size 512x512
       surfel render big.lod -o far.png --lod-error 1 --point-budget 5000000
     """
+    from .cloud import PointCloud
+    from .preprocess.mesh_samples import OPEN_SHARE, large_face_share
     from .rendering import Renderer
     from .request import parse_render
 
     request = parse_render(values)
     request.check_outputs()
-    result = request.render(Renderer())
+    cloud = request.open_input()
+    result = request.render(Renderer(), cloud)
     request.write(result)
     s = result.stats
     click.echo(f"{request.outputs.png}: {result.width}x{result.height} {request.method}@{s['backend']} "
                f"{s['splats']} splats in {s['ms']:.0f} ms", err=True)
+    if isinstance(cloud, PointCloud) and cloud.is_mesh and request.method != "mesh":
+        share = large_face_share(cloud)
+        if share > OPEN_SHARE:
+            click.echo(f"{request.input}: {share:.0%} of its area lies in faces far larger than the spacing of its "
+                       f"vertices (a CAD export?), which leave them open; `surfel sample {request.input} -o "
+                       "POINTS.ply` spreads points over them", err=True)
 
 
 @main.command("export-html", context_settings=CONTEXT)
@@ -311,6 +321,32 @@ def scan(mesh, output, **values):
 
     cloud = scan_command(mesh, output, values)
     click.echo(f"{output}: {len(cloud)} points from {len(cloud.sensors)} views", err=True)
+
+
+@main.command(context_settings=CONTEXT)
+@click.argument("mesh", type=click.Path(dir_okay=False))
+@click.option("-o", "--output", required=True, help="PLY to write: positions, normals, the mesh's colours.")
+@table_options(*SAMPLE)
+def sample(mesh, output, **values):
+    """Spread points evenly over MESH's faces, for a mesh whose vertices do not sample its
+    surface (a CAD part's STL: its flat faces have vertices only on their outlines). Normals
+    keep the mesh's edges sharper than --crease-angle; colours come from its vertices.
+
+    \b
+    Example:
+      surfel sample part.stl -o part.ply --points 200000
+      surfel render part.ply -o part.png --view iso
+    """
+    from .files import check_output
+    from .io import load, write_ply
+    from .preprocess.mesh_samples import SampleSettings, sample_surface
+    from .request import parse_values
+
+    settings = SampleSettings(**parse_values(values, SAMPLE))
+    check_output(output, "--output", (".ply",))
+    cloud = sample_surface(load(mesh), settings)
+    write_ply(cloud, output)
+    click.echo(f"{output}: {len(cloud)} points", err=True)
 
 
 @main.command(context_settings=CONTEXT)

@@ -71,7 +71,7 @@ class Option:
     """One option: `parse` turns its text into its value (None: an on/off flag, given as a bool).
 
     sets: "input", "camera", "options" (a RenderOptions field), "params" (a parameter of the
-    method), "output", "method" (the method and backend), "turntable" or "scan". `field`: the
+    method), "output", "method" (the method and backend), "turntable", "scan" or "sample". `field`: the
     RenderOptions field or parameter it sets, when not `name`; `value` maps a flag's bool to it.
     `default`: text parsed like a given value, for the options whose default is not that of
     the dataclass they set (CameraSpec, RenderOptions, the method's parameters); else None.
@@ -218,6 +218,11 @@ OPTIONS: dict[str, Option] = {o.name: o for o in [
            "scan", metavar="DEG", shown="80"),
     Option("seed", integer, "Random seed of the noise, the lost samples and the misregistration.", "scan",
            metavar="N", shown="0"),
+    # points spread over a mesh's faces (`surfel sample`; mesh_samples.SampleSettings checks the ranges)
+    Option("points", integer, "Points to spread evenly over the mesh's faces (about as many remain).", "sample",
+           metavar="N", shown="200000"),
+    Option("crease_angle", number, "Faces meeting at a sharper angle than this keep their own normals (an edge); "
+           "flatter ones are shaded smoothly.", "sample", metavar="DEG", shown="30"),
 ]}
 
 CAMERA = tuple(name for name, o in OPTIONS.items() if o.sets == "camera")
@@ -232,6 +237,7 @@ PAGE_COMMAND = ("input", "demo", "output", "method", *CAMERA, "shading", "color"
                 "phong_normals")
 PAGE_MAX_SUPERSAMPLE = 4
 SCAN = tuple(name for name, o in OPTIONS.items() if o.sets == "scan")
+SAMPLE = tuple(name for name, o in OPTIONS.items() if o.sets == "sample")
 TURNTABLE_COMMAND = ("input", "sensor", "output", "frames", "fps", "elevation", "size", "method", "backend", *RENDER)
 
 
@@ -548,5 +554,5 @@ def parse_render(values: Mapping[str, object], *, where: str = "", require_outpu
                          parsed.get("sensor"))
 
 
-__all__ = ["OPTIONS", "SCAN", "Option", "CameraSpec", "Outputs", "RenderRequest", "default", "method_and_backend",
-           "open_input", "options_from", "parse_render", "parse_values", "render_options"]
+__all__ = ["OPTIONS", "SAMPLE", "SCAN", "Option", "CameraSpec", "Outputs", "RenderRequest", "default",
+           "method_and_backend", "open_input", "options_from", "parse_render", "parse_values", "render_options"]

@@ -19,6 +19,8 @@ One module per estimation, each citing its source, with its tuning constants at 
   spacing.py         the sampling bound: splats no larger than the local and the acquisition's
                      point spacing warrant
   coincident.py      points that repeat a position (a mesh's seams): estimated once per position
+  mesh_samples.py    points spread evenly over a mesh's faces (dart throwing, Cook 1986) with
+                     crease-angle normals: `surfel sample`, for CAD exports
   complete.py        `prepare`: fill in what a cloud lacks; `complete`: the one policy for what
                      a method gets estimated
 
