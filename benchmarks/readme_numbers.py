@@ -352,6 +352,20 @@ def section_scans(ctx: Context) -> str:
     return "\n".join(rows)
 
 
+def section_cad(ctx: Context) -> str:
+    """A CAD export (tests/data/octagonal_pocket.stl): its vertices, and `surfel sample`'s points."""
+    part = ROOT / "tests" / "data" / "octagonal_pocket.stl"
+    rows = ["| input | reference | deferred | phong |", "|---|---|---|---|"]
+    inputs = (("its 1,658 vertices", ("--vertices",)), ("`surfel sample`, 200,000 points", ("--sampled", "200000")))
+    for label, mode in inputs:
+        for shading, extra in (("the mesh's vertex normals", ()), ("crease normals", ("--crease-reference",))):
+            result = json.loads(ctx.script("scan_fidelity.py", part, *mode, "--oblique", *extra, "--json"))
+            cells = [f"{result['median_psnr'][m]:.1f} dB, {result['max_holes_percent'][m]:.2f}%"
+                     for m in ("deferred", "phong")]
+            rows.append(f"| {label} | {shading} | " + " | ".join(cells) + " |")
+    return "\n".join(rows)
+
+
 def section_copc(ctx: Context) -> str:
     copc, stats = ctx.scratch / "autzen.copc.laz", ctx.scratch / "far.json"
     ctx.surfel("lod", "build", ctx.data / "autzen_trim.laz", "-o", copc)
@@ -450,6 +464,7 @@ SECTIONS = {
     "page-match": Section(section_page_match, "30 s", "the page's picture against surfel render"),
     "batch": Section(section_batch, "2 min", "24 turntable frames: surfel batch against surfel render"),
     "scans": Section(section_scans, "2 min", "range scans of the shared models: median PSNR, worst holes"),
+    "cad": Section(section_cad, "1 min", "a CAD part's STL: its vertices against surfel sample's points"),
     "copc": Section(section_copc, "30 s", "bytes a far COPC view reads"),
     "firstrun": Section(section_firstrun, "3 min", "the demo render, first (compiling) and later"),
     "build20m": Section(section_build20m, "5 min, 0.5 GB disk", "a 20M-point build: first, after the demo, later"),

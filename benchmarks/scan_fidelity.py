@@ -7,7 +7,7 @@ at 512 x 512 with lambert shading, from the front and from azimuth 60, elevation
 25), which see parts of the model that the scan's views saw at grazing angles or not at all.
 
     python benchmarks/scan_fidelity.py MESH.obj [MESH.ply ...] [--methods deferred,phong]
-        [--smooth [--prepared] | --vertices | --bare] [--oblique] [--json]
+        [--smooth [--prepared] | --vertices | --bare | --sampled N] [--oblique] [--crease-reference] [--json]
 
 --smooth denoises the scan first: the positions of `surfel prepare --smooth` (normals and
 splats are then estimated by each method's completion, as for the raw scan); with
@@ -15,7 +15,10 @@ splats are then estimated by each method's completion, as for the raw scan); wit
 (its normals, splats and clip lines), as a user who prepares the scan first renders it. --vertices
 renders the mesh's own vertices (with the mesh's normals) instead of a scan; --bare, the same
 vertices without normals, which each method's completion then estimates (as for a point file
-without normals).
+without normals); --sampled N, about N points that `surfel sample` spreads evenly over the
+mesh's faces (with its crease-angle normals), as for a CAD export whose vertices lie only on its
+faces' outlines. --crease-reference shades the mesh it compares with by those crease-angle
+normals instead of its vertex normals (which blend across a CAD part's 90 degree edges).
 Prints one row per model and view, then the median PSNR of each method over all of them.
 """
 
@@ -33,6 +36,7 @@ from surfel.io import load
 from surfel.metrics import compare_results
 from surfel.options import RenderOptions
 from surfel.preprocess import prepare
+from surfel.preprocess.mesh_samples import SampleSettings, corner_normals, sample_surface
 from surfel.rendering import Renderer
 from surfel.scan import ScanSettings, scan
 
@@ -42,10 +46,22 @@ OBLIQUE_VIEWS = {f"az{azimuth}el{elevation}": (float(azimuth), float(elevation))
                  for elevation in (-25, 25) for azimuth in range(0, 360, 45)}
 
 
+def crease_shaded(mesh: PointCloud) -> PointCloud:
+    """The mesh with a vertex per face corner, each with `surfel sample`'s crease-angle normal."""
+    normals = corner_normals(mesh.positions, mesh.faces, SampleSettings().crease_angle)
+    return PointCloud(mesh.positions[mesh.faces].reshape(-1, 3), normals=normals.reshape(-1, 3),
+                      faces=np.arange(3 * len(mesh.faces)).reshape(-1, 3), source=mesh.source)
+
+
 def measure(path: str, methods: list[str], smooth: bool, vertices: bool, renderer: Renderer,
-            prepared: bool = False, views: dict = VIEWS, bare: bool = False) -> list[dict]:
+            prepared: bool = False, views: dict = VIEWS, bare: bool = False, sampled: int = 0,
+            crease_reference: bool = False) -> list[dict]:
     mesh = load(path)
-    cloud = mesh.take(np.arange(len(mesh))) if vertices or bare else scan(mesh, ScanSettings(), renderer)
+    truth = crease_shaded(mesh) if crease_reference else mesh
+    if sampled:
+        cloud = sample_surface(mesh, SampleSettings(points=sampled))
+    else:
+        cloud = mesh.take(np.arange(len(mesh))) if vertices or bare else scan(mesh, ScanSettings(), renderer)
     if bare:
         cloud = PointCloud(cloud.positions)
     if smooth and prepared:
@@ -56,7 +72,7 @@ def measure(path: str, methods: list[str], smooth: bool, vertices: bool, rendere
     rows = []
     for view, (azimuth, elevation) in views.items():
         camera = frame(mesh.center, mesh.bounding_radius, azimuth=azimuth, elevation=elevation, size=SIZE)
-        reference = renderer.render(mesh, camera, "mesh", options=options)
+        reference = renderer.render(truth, camera, "mesh", options=options)
         for method in methods:
             start = time.perf_counter()
             result = renderer.render(cloud, camera, method, options=options)
@@ -75,8 +91,10 @@ def main() -> None:
     mode.add_argument("--smooth", action="store_true")
     mode.add_argument("--vertices", action="store_true")
     mode.add_argument("--bare", action="store_true")
+    mode.add_argument("--sampled", type=int, default=0, metavar="N")
     parser.add_argument("--prepared", action="store_true")
     parser.add_argument("--oblique", action="store_true")
+    parser.add_argument("--crease-reference", action="store_true")
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args()
     if args.prepared and not args.smooth:
@@ -86,7 +104,8 @@ def main() -> None:
     views = {**VIEWS, **OBLIQUE_VIEWS} if args.oblique else VIEWS
     rows = []
     for path in args.meshes:
-        for row in measure(path, methods, args.smooth, args.vertices, renderer, args.prepared, views, args.bare):
+        for row in measure(path, methods, args.smooth, args.vertices, renderer, args.prepared, views, args.bare,
+                           args.sampled, args.crease_reference):
             rows.append(row)
             if not args.json:
                 print("  ".join(f"{key} {value}" for key, value in row.items()), flush=True)
