@@ -116,6 +116,14 @@ def test_rendering_a_cad_export_points_to_sample(tmp_path):
     assert result.exit_code == 0 and "surfel sample" not in result.output
 
 
+def test_info_gives_the_share_of_large_faces():
+    import json
+
+    part = json.loads(invoke("info", POCKETS, "--json").output)
+    organic = json.loads(invoke("info", SPOT, "--json").output)
+    assert part["large_faces"] == pytest.approx(0.444, abs=0.001) and organic["large_faces"] == 0.0
+
+
 def test_cli_writes_the_samples(tmp_path):
     out = tmp_path / "part.ply"
     result = invoke("sample", POCKETS, "-o", out, "--points", "5000", "--crease-angle", "45")

@@ -194,6 +194,7 @@ def info(input, as_json):
     from .gl.context import gl_available, renderer_string
     from .io import load
     from .lod.source import open_source
+    from .preprocess.mesh_samples import large_face_share
 
     source = open_source(input)
     if source is not None:  # described from its metadata, without loading its points
@@ -209,6 +210,8 @@ def info(input, as_json):
         estimate = [name for name in ("normals", "radii", "axes") if getattr(cloud, name) is None]
         report = {
             "file": str(input), "points": len(cloud), "faces": 0 if cloud.faces is None else len(cloud.faces),
+            # a CAD export's share of area in faces its vertices leave open (`surfel sample` them)
+            "large_faces": round(large_face_share(cloud), 3) if cloud.is_mesh else None,
             "bounds_min": lo.tolist(), "bounds_max": hi.tolist(), "local_origin": cloud.local_origin.tolist(),
             "attributes": cloud.attribute_names(), "schema": summarize(cloud.attributes, cloud.schema),
             "would_estimate": estimate, "geospatial": cloud.geospatial,
