@@ -80,6 +80,22 @@ def test_colours_follow_the_vertices():
     assert np.allclose(np.abs(cloud.normals[:, 2]), 1.0)
 
 
+def test_attributes_blend_by_their_kind():
+    """Intensity (continuous) is the samples' barycentric mix, rounded to its integer type; a
+    class (categorical) is the nearest corner's, never a blend."""
+    corners = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    triangle = PointCloud(corners, faces=np.array([[0, 1, 2]]),
+                          attributes={"intensity": np.array([0, 1000, 2000], np.uint16),
+                                      "classification": np.array([2, 5, 9], np.uint8)})
+    cloud = sample_surface(triangle, SampleSettings(points=500))
+    x, y = cloud.positions[:, 0], cloud.positions[:, 1]
+    intensity = cloud.attributes["intensity"]
+    assert intensity.dtype == np.uint16 and np.abs(intensity - (1000 * x + 2000 * y)).max() <= 0.5 + 1e-6
+    nearest = np.argmax(np.stack([1 - x - y, x, y], axis=1), axis=1)
+    assert np.array_equal(cloud.attributes["classification"], np.array([2, 5, 9], np.uint8)[nearest])
+    assert cloud.schema["classification"].kind == "categorical"
+
+
 @requires_gl
 def test_a_cad_part_renders_closed_from_its_samples():
     """The plate's flat faces have vertices only on their outlines: its vertices leave most of it
