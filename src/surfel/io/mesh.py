@@ -108,6 +108,13 @@ def mesh_normals(positions: np.ndarray, faces: np.ndarray) -> np.ndarray | None:
     return normals if normals.any() else None
 
 
+def face_vectors(positions: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(F, 3) float64: each face's normal scaled by twice its area, the cross product of two of
+    its edges (counter-clockwise faces, seen from outside, give outward normals)."""
+    corners = np.asarray(positions, dtype=np.float64)[faces]
+    return np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+
+
 def area_weighted_vertex_normals(positions: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """(N, 3) float64 unit vertex normals: each the sum of its faces' normals weighted by area.
 
@@ -123,9 +130,7 @@ def area_weighted_vertex_normals(positions: np.ndarray, faces: np.ndarray) -> np
     positions = np.asarray(positions, dtype=np.float64)
     faces = np.asarray(faces, dtype=np.int64)
     n = len(positions)
-    corners = positions[faces]
-    face_normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
-    normals = _sum_per_vertex(faces, face_normals, n)
+    normals = _sum_per_vertex(faces, face_vectors(positions, faces), n)
     length = np.linalg.norm(normals, axis=1)
     defined = length > 0
     normals[defined] /= length[defined, None]

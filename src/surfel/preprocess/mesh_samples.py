@@ -43,6 +43,7 @@ from scipy.spatial import cKDTree
 from ..attributes import CATEGORICAL, DERIVED
 from ..cloud import PointCloud
 from ..errors import SurfelError
+from ..io.mesh import face_vectors
 
 DEFAULT_POINTS = 200_000
 MAX_POINTS = 10_000_000  # 3 N candidates (0.7 GB) and their some 10 N close pairs (1.6 GB) at the limit
@@ -73,8 +74,7 @@ def corner_normals(positions: np.ndarray, faces: np.ndarray, crease_angle: float
     """(F, 3, 3): each face corner's normal (module docstring, step 3): the corners around a
     vertex that edges no sharper than `crease_angle` degrees join share the normalised sum of
     their faces' 2 A_g n_g. An edge of more than two faces (non-manifold) joins none."""
-    triangles = positions[faces]
-    weighted = np.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0])  # 2 A_f n_f
+    weighted = face_vectors(positions, faces)  # 2 A_f n_f
     length = np.linalg.norm(weighted, axis=1, keepdims=True)
     unit = np.divide(weighted, length, out=np.zeros_like(weighted), where=length > 0)
     count = len(faces)
@@ -130,9 +130,9 @@ def large_face_share(mesh: PointCloud) -> float:
     vertices, its edges all alike, reads 0), at most 0.17 on 17 models of
     alecjacobson/common-3d-test-models and 10 decimations of them (ogre 0.17, the others 0.04
     or less)."""
-    triangles = np.asarray(mesh.positions, np.float64)[np.asarray(mesh.faces)]
+    triangles = np.asarray(mesh.positions, np.float64)[mesh.faces]
     edges = np.linalg.norm(triangles - np.roll(triangles, 1, axis=1), axis=2)
-    area = np.linalg.norm(np.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0]), axis=1)
+    area = np.linalg.norm(face_vectors(mesh.positions, mesh.faces), axis=1)
     total = area.sum()
     return float(area[edges.max(axis=1) > LARGE_FACE * np.median(edges)].sum() / total) if total > 0 else 0.0
 
@@ -145,7 +145,7 @@ def sample_surface(mesh: PointCloud, settings: SampleSettings = SampleSettings()
     positions = np.asarray(mesh.positions, np.float64)
     faces = np.asarray(mesh.faces, np.int64)
     triangles = positions[faces]
-    area = 0.5 * np.linalg.norm(np.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0]), axis=1)
+    area = 0.5 * np.linalg.norm(face_vectors(positions, faces), axis=1)
     total = float(area.sum())
     if not total > 0:
         raise SurfelError(f"{mesh.source}: the mesh's faces have no area to sample")
