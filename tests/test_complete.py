@@ -6,6 +6,7 @@ import numpy as np
 
 from models import spot
 from samples import sphere
+from surfel.attributes import FIELD_SLOPES
 from surfel.cloud import PointCloud
 from surfel.preprocess import complete, completes_with_clip_lines, prepare
 
@@ -17,7 +18,7 @@ def test_prepare_fills_exactly_what_is_missing():
     assert report["ambiguous_normals"] == 0 and "normals" in report and "radii" in report and "axes" in report
     assert np.allclose(np.cross(bare.axes[:, 0], bare.axes[:, 1]), bare.normals * bare.radii[:, None] ** 2, atol=1e-6)
 
-    given = PointCloud(p, normals=-p)  # inward on purpose: kept as given
+    given = PointCloud(p, normals=p)
     filled, report = prepare(given)
     assert np.array_equal(filled.normals, given.normals)
     assert "normals" not in report and "ambiguous_normals" not in report and "radii" in report
@@ -34,6 +35,24 @@ def test_prepare_fills_exactly_what_is_missing():
 
     axes_only, report = prepare(PointCloud(p, axes=bare.axes))
     assert np.allclose(axes_only.normals, bare.normals, atol=1e-5) and np.array_equal(axes_only.axes, bare.axes)
+
+
+def test_given_normals_facing_inward_are_turned_outward():
+    # a mesh wound the other way round gives its vertices inward normals, with which the cells
+    # read every convex edge as concave (normals.faces_inward)
+    model = spot()
+    outward, _ = prepare(model, elliptical=True, normal_field=True)
+    turned, report = prepare(model.with_(normals=-model.normals), elliptical=True, normal_field=True)
+    assert report["normals"] == "given, facing inward as a whole: turned to face outward"
+    for name in ("normals", "radii", "axes"):
+        assert np.array_equal(getattr(turned, name), getattr(outward, name))
+    for name in ("clip_lines", *FIELD_SLOPES):
+        assert np.array_equal(turned.attributes[name], outward.attributes[name])
+    # a sensor says which side was seen: a scan made inside a closed room keeps its normals
+    p = sphere(3_000)
+    inside = PointCloud(p, normals=-p)
+    kept, report = prepare(inside, sensor=np.zeros(3))
+    assert np.array_equal(kept.normals, inside.normals) and "normals" not in report
 
 
 def test_prepare_geospatial_faces_up():

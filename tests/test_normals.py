@@ -11,7 +11,7 @@ from surfel.cloud import PointCloud
 from surfel.preprocess import estimate_normals, estimate_radii, prepare
 from surfel.preprocess.jets import jet_normals
 from surfel.preprocess.neighbourhood import Neighbourhood, as_points
-from surfel.preprocess.normals import NORMAL_NEIGHBOURS, SCALES, is_noisy, pca_normals
+from surfel.preprocess.normals import NORMAL_NEIGHBOURS, SCALES, faces_inward, is_noisy, pca_normals
 
 
 def test_pca_normals_plane_and_sphere():
@@ -48,6 +48,19 @@ def test_orientation_matches_mesh():
     agree = np.einsum("ij,ij->i", normals, mesh_normals) > 0
     assert agree.mean() >= 0.99
     assert ambiguous < 0.01 * len(vertices)
+
+
+def test_whether_given_normals_face_inward():
+    p = sphere(5_000)
+    assert faces_inward(p, -p) and not faces_inward(p, p)
+    model = spot()
+    assert faces_inward(model.positions, -model.normals) and not faces_inward(model.positions, model.normals)
+    rng = np.random.default_rng(4)
+    plane = np.c_[rng.uniform(-1, 1, (5_000, 2)), np.zeros(5_000)]
+    up = np.tile([0.0, 0, 1], (5_000, 1))
+    assert not faces_inward(plane, up) and not faces_inward(plane, -up)  # no outside to face
+    signs = np.where(rng.random(5_000) < 0.5, -1.0, 1.0)[:, None]
+    assert not faces_inward(p, signs * p)  # half each way: no orientation to turn
 
 
 def test_orientation_towards_viewpoint():

@@ -11,7 +11,8 @@ FIELD_NEIGHBOURS), serves every estimation (once per position where points coinc
      oriented towards the sensor when its position is known (`sensor`, or the cloud's
      `sensors`), else by propagation, each connected part facing up (+Z) for geospatial clouds
      (aerial scans, seen from above) or outward; with them, from the same PCA, the points
-     drawn facing the camera (`structure.py`);
+     drawn facing the camera (`structure.py`); given normals that face inward as a whole,
+     with no sensor to face, are turned outward (`normals.faces_inward`);
   2. with the splats, the thickness of each point's layer (`thickness.py`), which caps z_t
      where another surface lies within a splat radius and keeps that surface's samples out of
      the cells (splats given with the cloud keep their z_t);
@@ -52,7 +53,7 @@ from .coincident import coincident_groups
 from .frames import tangent_frames, unit
 from .neighbourhood import Neighbourhood
 from .normal_field import FIELD_NEIGHBOURS, field_slopes, has_normal_field
-from .normals import NORMAL_NEIGHBOURS, SCALES, oriented_normals
+from .normals import NORMAL_NEIGHBOURS, SCALES, faces_inward, oriented_normals
 from .sharp_features import SHARP_ANGLE, find_sharp_features
 from .smoothing import SMOOTH_NEIGHBOURS, smoothed_points
 from .spacing import BOUND_FACTOR, anisotropic_spacing, bound_semi_axes, reach_next_row, sampling_spacing
@@ -115,7 +116,8 @@ def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np
     normals: estimated if None: towards the sensor (`sensor` (3,), else the cloud's own
     `sensors`) if known; otherwise propagated, each part facing up (+Z) for geospatial clouds
     (aerial scans, seen from above) or outward. A cloud with axes but no normals gets u x v,
-    the orientation its splats already have. With estimated normals,
+    the orientation its splats already have. Given normals, without axes, sensors or an up
+    direction, are turned outward if they face inward as a whole. With estimated normals,
     attributes["screen_facing"] marks the points drawn as round splats facing the camera
     (`structure.py`).
     radii: estimated if None (covering radii of the tangent-plane Voronoi cells).
@@ -205,6 +207,10 @@ def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np
         facing = screen_facing(eigenvalues, raw_scan=scans_surroundings(located))
         attributes["screen_facing"] = nbh.unsort(facing.astype(np.float32))
         report["screen_facing"] = int(facing.sum())
+    elif towards is None and given["axes"] is None and not cloud.geospatial \
+            and faces_inward(nbh.points, unit(normals)):
+        normals = estimated["normals"] = -normals
+        report["normals"] = "given, facing inward as a whole: turned to face outward"
     # the points drawn facing the camera: as the cloud flags them, else as estimated now
     drawn_facing = facing if "screen_facing" not in cloud.attributes else \
         nbh.sort(cloud.attributes["screen_facing"] > 0.5)
