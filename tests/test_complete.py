@@ -43,16 +43,25 @@ def test_given_normals_facing_inward_are_turned_outward():
     model = spot()
     outward, _ = prepare(model, elliptical=True, normal_field=True)
     turned, report = prepare(model.with_(normals=-model.normals), elliptical=True, normal_field=True)
-    assert report["normals"] == "given, facing inward as a whole: turned to face outward"
+    assert report["normals"] == "given, a mesh's, facing inward as a whole: turned to face outward"
     for name in ("normals", "radii", "axes"):
         assert np.array_equal(getattr(turned, name), getattr(outward, name))
     for name in ("clip_lines", *FIELD_SLOPES):
         assert np.array_equal(turned.attributes[name], outward.attributes[name])
-    # a sensor says which side was seen: a scan made inside a closed room keeps its normals
+    # signs picked point by point, as a PCA never oriented leaves them: propagated, for MLS too,
+    # which needs nothing else
+    signs = np.where(np.random.default_rng(6).random(len(model)) < 0.5, -1.0, 1.0)[:, None]
+    unoriented = model.with_(normals=signs * model.normals)
+    for needs_radii in (True, False):
+        oriented, report = complete(unoriented, needs_radii=needs_radii)
+        assert report["normals"].startswith("given, with signs that disagree between neighbours")
+        assert (np.einsum("ij,ij->i", oriented.normals, model.normals) > 0.99).all()
+    # a point cloud keeps its sides: a scan made inside a closed room, normals facing the scanner
     p = sphere(3_000)
     inside = PointCloud(p, normals=-p)
-    kept, report = prepare(inside, sensor=np.zeros(3))
-    assert np.array_equal(kept.normals, inside.normals) and "normals" not in report
+    for sensor in (None, np.zeros(3)):
+        kept, report = prepare(inside, sensor=sensor)
+        assert np.array_equal(kept.normals, inside.normals) and "normals" not in report
 
 
 def test_prepare_geospatial_faces_up():

@@ -11,7 +11,15 @@ from surfel.cloud import PointCloud
 from surfel.preprocess import estimate_normals, estimate_radii, prepare
 from surfel.preprocess.jets import jet_normals
 from surfel.preprocess.neighbourhood import Neighbourhood, as_points
-from surfel.preprocess.normals import NORMAL_NEIGHBOURS, SCALES, faces_inward, is_noisy, pca_normals
+from surfel.preprocess.normals import (
+    NORMAL_NEIGHBOURS,
+    SCALES,
+    faces_inward,
+    is_noisy,
+    orient_given,
+    pca_normals,
+    signs_at_random,
+)
 
 
 def test_pca_normals_plane_and_sphere():
@@ -61,6 +69,29 @@ def test_whether_given_normals_face_inward():
     assert not faces_inward(plane, up) and not faces_inward(plane, -up)  # no outside to face
     signs = np.where(rng.random(5_000) < 0.5, -1.0, 1.0)[:, None]
     assert not faces_inward(p, signs * p)  # half each way: no orientation to turn
+
+
+def test_given_signs_at_random_are_told_from_a_consistent_orientation():
+    model = spot()
+    nbh = Neighbourhood.build(model.positions, 9)
+    normals = nbh.sort(model.normals.astype(np.float64))
+    signs = np.where(np.random.default_rng(5).random(len(normals)) < 0.5, -1.0, 1.0)[:, None]
+    assert signs_at_random(nbh, signs * normals)
+    assert not signs_at_random(nbh, normals) and not signs_at_random(nbh, -normals)
+    # a fifth flipped in patches (normals oriented towards one side, each region its own way) is kept
+    patches = np.where(nbh.points[:, 0] > np.quantile(nbh.points[:, 0], 0.8), -1.0, 1.0)[:, None]
+    assert not signs_at_random(nbh, patches * normals)
+    # a two-sided mesh repeats each vertex, facing away, for its back faces: no sign at random
+    doubled = Neighbourhood.build(np.concatenate([model.positions, model.positions]), 9)
+    assert not signs_at_random(doubled, doubled.sort(np.concatenate([model.normals, -model.normals])))
+    kept, how = orient_given(nbh, normals, wound=True)
+    assert kept is normals and how is None
+    turned, how = orient_given(nbh, -normals, wound=True)
+    assert np.array_equal(turned, normals) and how.startswith("a mesh's, facing inward")
+    kept, how = orient_given(nbh, -normals, wound=False)  # a point cloud's: maybe seen from inside
+    assert np.array_equal(kept, -normals) and how is None
+    oriented, how = orient_given(nbh, signs * normals, wound=False)
+    assert how.startswith("with signs that disagree") and (np.einsum("ij,ij->i", oriented, normals) > 0.99).all()
 
 
 def test_orientation_towards_viewpoint():

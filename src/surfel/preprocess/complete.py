@@ -11,8 +11,10 @@ FIELD_NEIGHBOURS), serves every estimation (once per position where points coinc
      oriented towards the sensor when its position is known (`sensor`, or the cloud's
      `sensors`), else by propagation, each connected part facing up (+Z) for geospatial clouds
      (aerial scans, seen from above) or outward; with them, from the same PCA, the points
-     drawn facing the camera (`structure.py`); given normals that face inward as a whole,
-     with no sensor to face, are turned outward (`normals.faces_inward`);
+     drawn facing the camera (`structure.py`); given normals, where no sensor says which
+     side was seen, are oriented by propagation if their signs disagree between neighbours,
+     or turned if they are a mesh's and face inward as a whole (`normals.orient_given`; also
+     on a cloud that needs nothing else);
   2. with the splats, the thickness of each point's layer (`thickness.py`), which caps z_t
      where another surface lies within a splat radius and keeps that surface's samples out of
      the cells (splats given with the cloud keep their z_t);
@@ -53,7 +55,7 @@ from .coincident import coincident_groups
 from .frames import tangent_frames, unit
 from .neighbourhood import Neighbourhood
 from .normal_field import FIELD_NEIGHBOURS, field_slopes, has_normal_field
-from .normals import NORMAL_NEIGHBOURS, SCALES, faces_inward, oriented_normals
+from .normals import NORMAL_NEIGHBOURS, ORIENT_NEIGHBOURS, SCALES, orient_given, oriented_normals
 from .sharp_features import SHARP_ANGLE, find_sharp_features
 from .smoothing import SMOOTH_NEIGHBOURS, smoothed_points
 from .spacing import BOUND_FACTOR, anisotropic_spacing, bound_semi_axes, reach_next_row, sampling_spacing
@@ -72,13 +74,29 @@ def complete(cloud: PointCloud, *, needs_radii: bool = True, elliptical: bool = 
     `needs_radii`: splats (radii and axes); `elliptical`: fitted ellipses rather than circles
     when the axes are estimated; `normal_field`: Phong splatting's normal fields. A cloud that
     lacks any of them is prepared (`prepare`, its defaults), which estimates normals, radii and
-    axes alike whichever was missing, so that one completed cloud serves every method.
+    axes alike whichever was missing, so that one completed cloud serves every method. One that
+    lacks nothing still has its given normals oriented as `prepare` would orient them.
     `reference_spacing`, `smooth`: as `prepare`'s (smooth: always prepared).
     """
     if not _prepares(cloud, needs_radii, normal_field, smooth):
-        return cloud, {}
+        return _given_normals_oriented(cloud, progress=progress)
     return prepare(cloud, elliptical=elliptical, normal_field=normal_field, progress=progress,
                    reference_spacing=reference_spacing, smooth=smooth)
+
+
+def _given_normals_oriented(cloud: PointCloud, nbh: Neighbourhood | None = None,
+                            progress: bool | None = None) -> tuple[PointCloud, dict]:
+    """`cloud` with its given normals oriented where nothing says which side was seen (no axes,
+    sensors or up direction; normals.orient_given, which turns inward normals only on a mesh's
+    vertices), and the report of it; `nbh`: the cloud's neighbourhood, else one is built."""
+    if cloud.normals is None or cloud.axes is not None or cloud.geospatial or cloud.sensors is not None:
+        return cloud, {}
+    if nbh is None:
+        nbh = Neighbourhood.build(cloud.positions, ORIENT_NEIGHBOURS + 1, -1, progress)
+    normals, how = orient_given(nbh, nbh.sort(cloud.normals), wound=cloud.is_mesh)
+    if how is None:
+        return cloud, {}
+    return cloud.with_(normals=nbh.unsort(np.asarray(normals, np.float32))), {"normals": f"given, {how}"}
 
 
 def completes_with_clip_lines(cloud: PointCloud, *, needs_radii: bool = True, normal_field: bool = False,
@@ -116,8 +134,9 @@ def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np
     normals: estimated if None: towards the sensor (`sensor` (3,), else the cloud's own
     `sensors`) if known; otherwise propagated, each part facing up (+Z) for geospatial clouds
     (aerial scans, seen from above) or outward. A cloud with axes but no normals gets u x v,
-    the orientation its splats already have. Given normals, without axes, sensors or an up
-    direction, are turned outward if they face inward as a whole. With estimated normals,
+    the orientation its splats already have. Given normals without axes, sensors or an up
+    direction are oriented where their signs disagree between neighbours, or where they are
+    a mesh's and face inward as a whole (normals.orient_given). With estimated normals,
     attributes["screen_facing"] marks the points drawn as round splats facing the camera
     (`structure.py`).
     radii: estimated if None (covering radii of the tangent-plane Voronoi cells).
@@ -144,11 +163,14 @@ def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np
     k_estimations = max(k_normals, RADIUS_NEIGHBOURS, FIELD_NEIGHBOURS if need_field else 1)
     k = max(k_estimations, SMOOTH_NEIGHBOURS if smooth else 1)
     nbh = Neighbourhood.build(cloud.positions, k, -1, progress)
+    if sensor is None:
+        cloud, report = _given_normals_oriented(cloud, nbh)
     groups = coincident_groups(cloud, nbh) if _estimates_splats(cloud) else None  # the cells are what copies upset
     if groups is not None:
-        return _prepare_per_position(cloud, *groups, reference_spacing, k_normals=k_normals, sensor=sensor,
-                                     elliptical=elliptical, normal_field=normal_field,
-                                     sharp_features=sharp_features, progress=progress, smooth=smooth)
+        prepared, per_position = _prepare_per_position(
+            cloud, *groups, reference_spacing, k_normals=k_normals, sensor=sensor, elliptical=elliptical,
+            normal_field=normal_field, sharp_features=sharp_features, progress=progress, smooth=smooth)
+        return prepared, {**report, **per_position}
     given = {name: None if getattr(cloud, name) is None else nbh.sort(getattr(cloud, name))
              for name in ("normals", "radii", "axes")}
     sensors = cloud.sensor_positions() if sensor is None else np.broadcast_to(sensor, cloud.positions.shape)
@@ -207,10 +229,6 @@ def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np
         facing = screen_facing(eigenvalues, raw_scan=scans_surroundings(located))
         attributes["screen_facing"] = nbh.unsort(facing.astype(np.float32))
         report["screen_facing"] = int(facing.sum())
-    elif towards is None and given["axes"] is None and not cloud.geospatial \
-            and faces_inward(nbh.points, unit(normals)):
-        normals = estimated["normals"] = -normals
-        report["normals"] = "given, facing inward as a whole: turned to face outward"
     # the points drawn facing the camera: as the cloud flags them, else as estimated now
     drawn_facing = facing if "screen_facing" not in cloud.attributes else \
         nbh.sort(cloud.attributes["screen_facing"] > 0.5)

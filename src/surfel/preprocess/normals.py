@@ -53,18 +53,35 @@ when the flux decides. Facing +Z point by point would flip half of every steep s
 random (walls, crowns, an object's sides), and neighbours facing apart read as the two sides
 of a sheet or a crease to every estimation after.
 
-Given normals keep their orientation, unless no sensor or up direction says which side is
-seen and they face inward as a whole: flux < -AMBIGUOUS_COS x sum_i |n_i . (p_i - c)|
-(`faces_inward`). A mesh wound the other way round (the Cyberware horse: flux -0.72 of the
-total; 15 other models of common-3d-test-models and 9 decimations of them: +0.19 to +1.0)
-gives its vertices inward normals, and the cells read every convex edge as concave
-(`cells.py`): splats at the horse's hooves stood out as wings across the view. They are
-turned outward, the orientation estimated normals take (`complete.prepare`). The horse's
-48,485 vertices and its decimations to 6,000 / 4,000 / 2,500, 18 views at 512 x 512:
-`deferred` 36.5 / 27.1 / 25.5 / 24.3 -> 38.6 / 31.1 / 29.5 / 27.6 dB, `phong` 39.6 / 27.3 /
-25.6 / 24.5 -> 40.5 / 31.4 / 29.7 / 27.7 dB. The coarsest now shows holes at its hooves'
-soles (10 views over 0.1% with `deferred`) that the wings covered: a sole is one polygon of
-five vertices, none inside it, whose normals lean 45 to 70 degrees into the walls.
+Given normals keep their orientation where a sensor or an up direction says which side was
+seen. Elsewhere (`orient_given`, on every cloud `complete.complete` passes on or prepares):
+  * signs picked point by point, as a PCA that was never oriented leaves them, are oriented as
+    estimated normals are, by propagation: more than RANDOM_SIGNS_SHARE of the pairs of
+    neighbours (ORIENT_NEIGHBOURS each) whose normals lie within 60 degrees of one line face
+    apart (`signs_at_random`). Only pairs on one surface count: the neighbour within
+    asin(IN_PLANE_SIN) of the point's tangent plane (a thin part's far side, 0.4 spacings
+    below, faces away), and not a copy in its place facing away (a two-sided mesh repeats each
+    vertex for its back faces). That share is 0.5 at random; on the vertices of 18 models of
+    common-3d-test-models and 10 decimations of them it is 0 to 0.021, 0.12 for the ogre
+    decimated to 3,096 vertices, whose loincloth lies over its body closer than its sampling.
+    Spot with its vertices' signs at random, three views at 512 x 512: `deferred` 25.4 to
+    27.9 dB, `phong` 25.8 to 28.3 dB, `mls` 36.0 to 37.3 dB, now as with its own normals
+    (36.3 to 39.2 dB).
+  * a mesh's vertex normals that face inward as a whole are turned: flux < -AMBIGUOUS_COS x
+    sum_i |n_i . (p_i - c)| (`faces_inward`). A mesh wound the other way round (the Cyberware
+    horse: flux -0.72 of the total; the 22 other meshes there with an inside: +0.19 to +1.0)
+    gives its vertices inward normals, and the cells read every convex edge as concave
+    (`cells.py`): splats at the horse's hooves stood out as wings across the view. The horse's
+    48,485 vertices and its decimations to 6,000 / 4,000 / 2,500, 18 views at 512 x 512:
+    `deferred` 36.5 / 27.1 / 25.5 / 24.3 -> 38.6 / 31.1 / 29.5 / 27.6 dB, `phong` 39.6 /
+    27.3 / 25.6 / 24.5 -> 40.5 / 31.4 / 29.7 / 27.7 dB. The coarsest now shows holes at its
+    hooves' soles (10 views over 0.1% with `deferred`) that the wings covered: a sole is one
+    polygon of five vertices, none inside it, whose normals lean 45 to 70 degrees into the
+    walls. A point cloud's normals keep their sides: the flux of a scan made inside a room or
+    a corridor, its normals facing the scanner, is as negative as an inside-out object's.
+Propagation is not the default for given normals: on 9 of those 26 meshes with an inside it
+flips more than a tenth of the vertices against the mesh's orientation (the cow 16%, the ogre
+32%), where consistent given normals are right.
 
 `ambiguous` counts the points whose orientation is a guess:
   * degenerate neighbourhoods without a tangent plane: the two smallest covariance
@@ -98,6 +115,8 @@ JACOBI_SWEEPS = 16       # cyclic Jacobi sweeps at most (a 3 x 3 converges in ab
 SCALES = (16, 24, 32, 48)  # candidate neighbourhood sizes of the scale selection
 CURVATURE_WEIGHT = 0.15  # a of E_j: the least mean error over the scans of benchmarks/scan_fidelity.py
 NOISE_SCATTERING = 0.01  # median lambda0 / lambda2 above which a cloud's normals select their scale
+RANDOM_SIGNS_SHARE = 0.35  # of neighbours' near-parallel normals facing apart: given signs at random
+IN_PLANE_SIN = 0.25        # a neighbour within asin(this) of a point's tangent plane lies on its surface
 
 
 def _pca(points, index, start):
@@ -239,6 +258,69 @@ def faces_inward(points: np.ndarray, normals: np.ndarray) -> bool:
     flux of p - c through a closed surface is 3 x its volume whatever c; a flat patch has none."""
     radial = np.einsum("ij,ij->i", normals, points - points.mean(axis=0))
     return bool(radial.sum() < -AMBIGUOUS_COS * np.abs(radial).sum())
+
+
+@numba.njit(cache=True, inline="always")
+def _same_position(points, i, q):  # pragma: no cover - compiled
+    return points[i, 0] == points[q, 0] and points[i, 1] == points[q, 1] and points[i, 2] == points[q, 2]
+
+
+@numba.njit(cache=True, nogil=True)
+def _facing_apart(points, index, normals, in_plane2):  # pragma: no cover - compiled
+    """Among the pairs (i, index[i, j]) of distinct positions whose normals lie within 60
+    degrees of one line, how many face apart, and how many there are. A point with a copy in
+    its place facing away is one side of a two-sided sheet (a mesh that repeats each vertex
+    for its back faces), where neighbours facing apart say nothing of the signs: left out."""
+    n, k = index.shape
+    two_sided = np.zeros(n, np.bool_)
+    for i in range(n):
+        for j in range(k):
+            q = index[i, j]
+            if _same_position(points, i, q) and (normals[i, 0] * normals[q, 0] + normals[i, 1] * normals[q, 1]
+                                                 + normals[i, 2] * normals[q, 2]) < -0.5:
+                two_sided[i] = True
+    apart = parallel = 0
+    for i in range(n):
+        if two_sided[i]:
+            continue
+        for j in range(k):
+            q = index[i, j]
+            if two_sided[q] or _same_position(points, i, q):
+                continue
+            dx, dy, dz = points[q, 0] - points[i, 0], points[q, 1] - points[i, 1], points[q, 2] - points[i, 2]
+            height = normals[i, 0] * dx + normals[i, 1] * dy + normals[i, 2] * dz
+            if height * height > in_plane2 * (dx * dx + dy * dy + dz * dz):
+                continue  # off the tangent plane: maybe another layer, a thin part's far side
+            dot = normals[i, 0] * normals[q, 0] + normals[i, 1] * normals[q, 1] + normals[i, 2] * normals[q, 2]
+            if abs(dot) > 0.5:
+                parallel += 1
+                apart += dot < 0.0
+    return apart, parallel
+
+
+def signs_at_random(nbh: Neighbourhood, normals: np.ndarray) -> bool:
+    """Whether the signs of unit `normals` (in the sorted order) disagree between neighbours as
+    signs picked at random do (module docstring: given normals)."""
+    nearest = nbh.first(ORIENT_NEIGHBOURS + 1)
+    if nearest.shape[1] == 1:
+        return False
+    apart, parallel = _facing_apart(nbh.points, np.ascontiguousarray(nearest[:, 1:]), np.ascontiguousarray(normals),
+                                    IN_PLANE_SIN ** 2)
+    return apart > RANDOM_SIGNS_SHARE * parallel
+
+
+def orient_given(nbh: Neighbourhood, normals: np.ndarray, wound: bool) -> tuple[np.ndarray, str | None]:
+    """Given `normals` (in the sorted order) where nothing says which side was seen (module
+    docstring): (normals, None) as given; or, with what was done, propagated where their signs
+    were picked at random, or turned where they are a mesh's (`wound`: its faces' winding says
+    which side is outside) and face inward as a whole."""
+    unit = normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
+    if signs_at_random(nbh, unit):
+        orient_by_propagation(nbh, unit)
+        return unit, "with signs that disagree between neighbours: oriented by MST propagation, outward"
+    if wound and faces_inward(nbh.points, unit):
+        return -normals, "a mesh's, facing inward as a whole: turned to face outward"
+    return normals, None
 
 
 @numba.njit(cache=True, inline="always")
