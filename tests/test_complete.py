@@ -37,9 +37,9 @@ def test_prepare_fills_exactly_what_is_missing():
     assert np.allclose(axes_only.normals, bare.normals, atol=1e-5) and np.array_equal(axes_only.axes, bare.axes)
 
 
-def test_given_normals_facing_inward_are_turned_outward():
+def test_given_normals_are_oriented_where_nothing_says_which_side_was_seen():
     # a mesh wound the other way round gives its vertices inward normals, with which the cells
-    # read every convex edge as concave (normals.faces_inward)
+    # read every convex edge as concave: turned (normals.orient_given)
     model = spot()
     outward, _ = prepare(model, elliptical=True, normal_field=True)
     turned, report = prepare(model.with_(normals=-model.normals), elliptical=True, normal_field=True)
