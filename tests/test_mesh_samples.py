@@ -10,7 +10,7 @@ from conftest import assert_refused, invoke, requires_gl
 from models import DATA, SPOT, mesh_cloud
 from surfel.cloud import PointCloud
 from surfel.io import load
-from surfel.preprocess.mesh_samples import SampleSettings, corner_normals, sample_surface
+from surfel.preprocess.mesh_samples import SampleSettings, corner_normals, open_face_share, sample_surface
 
 POCKETS = DATA / "octagonal_pocket.stl"  # trimesh's models: a CAD plate with octagonal pockets
 
@@ -121,23 +121,51 @@ def test_a_cad_part_renders_closed_from_its_samples():
     assert sampled["holes"] < 0.001 and sampled["psnr"] > 30.0
 
 
+def fan_capped_disc(sides: int = 64, thickness: float = 0.3) -> PointCloud:
+    """A disc of radius 1 as CAD exporters tessellate one: its rims' vertices only, each cap a
+    fan of long triangles from one rim vertex across to the others; no face is large against
+    the median edge (the longest, 2, is under 8 times the wall's height, 0.3)."""
+    angles = 2 * np.pi * np.arange(sides) / sides
+    rim = np.c_[np.cos(angles), np.sin(angles)]
+    vertices = np.concatenate([np.c_[rim, np.zeros(sides)], np.c_[rim, np.full(sides, thickness)]])
+    k = np.arange(1, sides - 1)
+    bottom = np.c_[np.zeros_like(k), k + 1, k]
+    top = np.c_[np.full_like(k, sides), sides + k, sides + k + 1]
+    j = np.arange(sides)
+    following = (j + 1) % sides
+    wall = np.concatenate([np.c_[j, following, sides + following], np.c_[j, sides + following, sides + j]])
+    return mesh_cloud(vertices, np.concatenate([bottom, top, wall]), "fan-capped disc")
+
+
+def test_open_faces_are_those_no_vertex_splat_reaches():
+    """A face is open where it is far larger than the mesh's median edge (the plate's pockets),
+    or where its point farthest from its corners lies past every corner's bound on its splat
+    (the disc's caps, whose fans are long but not against its median edge)."""
+    disc = fan_capped_disc()
+    cap, wall = 32 * np.sin(2 * np.pi / 64), 64 * 2 * np.sin(np.pi / 64) * 0.3
+    caps = 2 * cap / (2 * cap + wall)  # 0.769 of its area; the fans' first slivers are reached
+    assert 0.95 * caps < open_face_share(disc) <= caps + 1e-9
+    assert open_face_share(load(POCKETS)) == pytest.approx(0.772, abs=0.001)
+    assert open_face_share(load(SPOT)) == 0.0
+
+
 def test_rendering_a_cad_export_points_to_sample(tmp_path):
-    """`surfel render` of a mesh whose large faces hold much of its area says so, once, naming
+    """`surfel render` of a mesh whose open faces hold much of its area says so, once, naming
     the file and `surfel sample`; an organic mesh's render does not."""
     result = invoke("render", POCKETS, "-o", tmp_path / "part.png", "--size", "64x64")
     assert result.exit_code == 0, result.output
     notice = [line for line in result.output.splitlines() if "surfel sample" in line]
-    assert len(notice) == 1 and notice[0].startswith(f"{POCKETS}: 44% of its area")
+    assert len(notice) == 1 and notice[0].startswith(f"{POCKETS}: 77% of its area")
     result = invoke("render", SPOT, "-o", tmp_path / "spot.png", "--size", "64x64")
     assert result.exit_code == 0 and "surfel sample" not in result.output
 
 
-def test_info_gives_the_share_of_large_faces():
+def test_info_gives_the_share_of_open_faces():
     import json
 
     part = json.loads(invoke("info", POCKETS, "--json").output)
     organic = json.loads(invoke("info", SPOT, "--json").output)
-    assert part["large_faces"] == pytest.approx(0.444, abs=0.001) and organic["large_faces"] == 0.0
+    assert part["open_faces"] == pytest.approx(0.772, abs=0.001) and organic["open_faces"] == 0.0
 
 
 def test_cli_writes_the_samples(tmp_path):

@@ -115,7 +115,7 @@ def render(**values):
       surfel render big.lod -o far.png --lod-error 1 --point-budget 5000000
     """
     from .cloud import PointCloud
-    from .preprocess.mesh_samples import OPEN_SHARE, large_face_share
+    from .preprocess.mesh_samples import OPEN_SHARE, open_face_share
     from .rendering import Renderer
     from .request import parse_render
 
@@ -128,10 +128,10 @@ def render(**values):
     click.echo(f"{request.outputs.png}: {result.width}x{result.height} {request.method}@{s['backend']} "
                f"{s['splats']} splats in {s['ms']:.0f} ms", err=True)
     if isinstance(cloud, PointCloud) and cloud.is_mesh and request.method != "mesh":
-        share = large_face_share(cloud)
+        share = open_face_share(cloud)
         if share > OPEN_SHARE:
-            click.echo(f"{request.input}: {share:.0%} of its area lies in faces far larger than the spacing of its "
-                       f"vertices (a CAD export?), which leave them open; `surfel sample {request.input} -o "
+            click.echo(f"{request.input}: {share:.0%} of its area lies in faces larger than its vertices' splats "
+                       f"reach (a CAD export?), which leave them open; `surfel sample {request.input} -o "
                        "POINTS.ply` spreads points over them", err=True)
 
 
@@ -194,7 +194,7 @@ def info(input, as_json):
     from .gl.context import gl_available, renderer_string
     from .io import load
     from .lod.source import open_source
-    from .preprocess.mesh_samples import large_face_share
+    from .preprocess.mesh_samples import open_face_share
 
     source = open_source(input)
     if source is not None:  # described from its metadata, without loading its points
@@ -211,7 +211,7 @@ def info(input, as_json):
         report = {
             "file": str(input), "points": len(cloud), "faces": 0 if cloud.faces is None else len(cloud.faces),
             # a CAD export's share of area in faces its vertices leave open (`surfel sample` them)
-            "large_faces": round(large_face_share(cloud), 3) if cloud.is_mesh else None,
+            "open_faces": round(open_face_share(cloud), 3) if cloud.is_mesh else None,
             "bounds_min": lo.tolist(), "bounds_max": hi.tolist(), "local_origin": cloud.local_origin.tolist(),
             "attributes": cloud.attribute_names(), "schema": summarize(cloud.attributes, cloud.schema),
             "would_estimate": estimate, "geospatial": cloud.geospatial,

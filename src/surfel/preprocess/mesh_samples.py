@@ -44,6 +44,8 @@ from ..attributes import CATEGORICAL, DERIVED
 from ..cloud import PointCloud
 from ..errors import SurfelError
 from ..io.mesh import face_vectors
+from .neighbourhood import Neighbourhood
+from .spacing import BOUND_FACTOR, LOCAL_NEIGHBOURS, local_spacing
 
 DEFAULT_POINTS = 200_000
 MAX_POINTS = 10_000_000  # 3 N candidates (0.7 GB) and their some 10 N close pairs (1.6 GB) at the limit
@@ -51,8 +53,8 @@ DEFAULT_CREASE_ANGLE = 30.0  # degrees, as mesh viewers' auto smooth
 CANDIDATES = 3  # candidates per point kept
 COVERAGE = 0.33  # area that N disks of radius r / 2 cover: of 3 N candidates 97-98% of N remain
 SEED = 0  # one fixed seed: the same mesh always gives the same points
-LARGE_FACE = 8.0  # a face whose longest edge is this many times the mesh's median edge ...
-OPEN_SHARE = 0.25  # ... holding this share of its area: its vertices are no sample of its faces
+LARGE_FACE = 8.0  # a face whose longest edge is this many times the mesh's median edge is open
+OPEN_SHARE = 0.25  # open faces holding this share of a mesh's area: its vertices are no sample of it
 
 
 @dataclass(frozen=True)
@@ -123,18 +125,32 @@ def _throw_darts(first, second, count):
     return removed
 
 
-def large_face_share(mesh: PointCloud) -> float:
-    """The share of the mesh's area in faces whose longest edge exceeds LARGE_FACE times its
-    median edge. Above OPEN_SHARE its vertices leave those faces open: 0.26 to 0.98 on nine of
-    trimesh's CAD exports (a plate with pockets 0.44, a 41,837-vertex panel 0.96; a box of 8
-    vertices, its edges all alike, reads 0), at most 0.17 on 17 models of
-    alecjacobson/common-3d-test-models and 10 decimations of them (ogre 0.17, the others 0.04
-    or less)."""
-    triangles = np.asarray(mesh.positions, np.float64)[mesh.faces]
+def open_face_share(mesh: PointCloud) -> float:
+    """The share of the mesh's area in faces its vertices leave open (module docstring): faces
+    whose longest edge exceeds LARGE_FACE times the mesh's median edge, or whose point farthest
+    from its corners (the circumcentre; the longest edge's midpoint where the triangle is
+    obtuse) lies farther from them than any corner's splat may reach (BOUND_FACTOR times its
+    local spacing, spacing.py). Above OPEN_SHARE the vertices leave much of the surface open:
+    0.42 to 0.995 on nine of trimesh's CAD exports (the plate with pockets 0.77; a rod whose
+    wall is slivers as long as the rod 0.995, which long edges alone put at 0), at most 0.17
+    on 18 models of alecjacobson/common-3d-test-models and 10 decimations of them (ogre 0.17,
+    the others 0.041 or less). Boxes of 8 and 14 vertices read 0: their splats cover their
+    faces, and spill past them."""
+    positions = np.asarray(mesh.positions, np.float64)
+    triangles = positions[mesh.faces]
     edges = np.linalg.norm(triangles - np.roll(triangles, 1, axis=1), axis=2)
-    area = np.linalg.norm(face_vectors(mesh.positions, mesh.faces), axis=1)
+    area = 0.5 * np.linalg.norm(face_vectors(positions, mesh.faces), axis=1)
     total = area.sum()
-    return float(area[edges.max(axis=1) > LARGE_FACE * np.median(edges)].sum() / total) if total > 0 else 0.0
+    if not total > 0:
+        return 0.0
+    nbh = Neighbourhood.build(positions, min(2 * LOCAL_NEIGHBOURS + 1, len(positions)), progress=False)
+    reach = BOUND_FACTOR * nbh.unsort(local_spacing(nbh, progress=False))  # NaN without a distinct neighbour
+    squares = np.sort(edges**2, axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        farthest = np.where(squares[:, 2] > squares[:, 0] + squares[:, 1], 0.5 * np.sqrt(squares[:, 2]),
+                            edges.prod(axis=1) / (4 * area))  # circumradius abc / 4A
+    open_faces = (edges.max(axis=1) > LARGE_FACE * np.median(edges)) | (farthest > reach[mesh.faces].max(axis=1))
+    return float(area[open_faces].sum() / total)
 
 
 def sample_surface(mesh: PointCloud, settings: SampleSettings = SampleSettings()) -> PointCloud:
