@@ -143,6 +143,7 @@ def open_face_share(mesh: PointCloud) -> float:
     total = area.sum()
     if not total > 0:
         return 0.0
+    # room for LOCAL_NEIGHBOURS distinct neighbours past a vertex's copies along seams
     nbh = Neighbourhood.build(positions, min(2 * LOCAL_NEIGHBOURS + 1, len(positions)), progress=False)
     reach = BOUND_FACTOR * nbh.unsort(local_spacing(nbh, progress=False))  # NaN without a distinct neighbour
     squares = np.sort(edges**2, axis=1)
