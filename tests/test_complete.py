@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from models import spot
+from models import mesh_cloud, spot
 from samples import sphere
 from surfel.attributes import FIELD_SLOPES
 from surfel.cloud import PointCloud
@@ -43,7 +43,7 @@ def test_given_normals_are_oriented_where_nothing_says_which_side_was_seen():
     model = spot()
     outward, _ = prepare(model, elliptical=True, normal_field=True)
     turned, report = prepare(model.with_(normals=-model.normals), elliptical=True, normal_field=True)
-    assert report["normals"] == "given, a mesh's, facing inward as a whole: turned to face outward"
+    assert report["normals"] == "given, a closed mesh's, facing inward as a whole: turned to face outward"
     for name in ("normals", "radii", "axes"):
         assert np.array_equal(getattr(turned, name), getattr(outward, name))
     for name in ("clip_lines", *FIELD_SLOPES):
@@ -62,6 +62,33 @@ def test_given_normals_are_oriented_where_nothing_says_which_side_was_seen():
     for sensor in (None, np.zeros(3)):
         kept, report = prepare(inside, sensor=sensor)
         assert np.array_equal(kept.normals, inside.normals) and "normals" not in report
+    # so does an open mesh: a room without its ceiling, its faces facing in (io.mesh.opening 0.36)
+    room = open_room()
+    kept, report = prepare(room)
+    assert np.array_equal(kept.normals, room.normals) and "normals" not in report
+    assert prepare(room.with_(faces=np.concatenate([room.faces, ceiling(room)])))[1]["normals"].startswith(
+        "given, a closed mesh's")  # closed, it is taken for an object wound inside out
+
+
+def open_room() -> PointCloud:
+    """An 8 x 6 x 3 room without its ceiling, faces 0.5 across, wound to face in."""
+    from trimesh.creation import box
+
+    closed = box(extents=(8.0, 6.0, 3.0)).subdivide_to_size(0.5)
+    vertices, faces = np.asarray(closed.vertices), np.asarray(closed.faces)[:, ::-1]
+    inward = np.cross(vertices[faces[:, 1]] - vertices[faces[:, 0]], vertices[faces[:, 2]] - vertices[faces[:, 0]])
+    walls_and_floor = faces[~((vertices[faces][:, :, 2].min(axis=1) > 1.49) & (inward[:, 2] < 0))]
+    used = np.unique(walls_and_floor)
+    renumber = np.full(len(vertices), -1)
+    renumber[used] = np.arange(len(used))
+    return mesh_cloud(vertices[used], renumber[walls_and_floor], "room")
+
+
+def ceiling(room: PointCloud) -> np.ndarray:
+    """Faces that close `room` at its top rim: a fan from one rim vertex, facing in (down)."""
+    rim = np.flatnonzero(room.positions[:, 2] > 1.49)
+    order = rim[np.argsort(np.arctan2(room.positions[rim, 1], room.positions[rim, 0]))]
+    return np.c_[np.full(len(order) - 2, order[0]), order[1:-1], order[2:]][:, ::-1]
 
 
 def test_prepare_geospatial_faces_up():

@@ -84,13 +84,13 @@ def test_given_signs_at_random_are_told_from_a_consistent_orientation():
     # a two-sided mesh repeats each vertex, facing away, for its back faces: no sign at random
     doubled = Neighbourhood.build(np.concatenate([model.positions, model.positions]), 9)
     assert not signs_at_random(doubled, doubled.sort(np.concatenate([model.normals, -model.normals])))
-    kept, how = orient_given(nbh, normals, wound=True)
+    kept, how = orient_given(nbh, normals, closed_mesh=True)
     assert kept is normals and how is None
-    turned, how = orient_given(nbh, -normals, wound=True)
-    assert np.array_equal(turned, normals) and how.startswith("a mesh's, facing inward")
-    kept, how = orient_given(nbh, -normals, wound=False)  # a point cloud's: maybe seen from inside
+    turned, how = orient_given(nbh, -normals, closed_mesh=True)
+    assert np.array_equal(turned, normals) and how.startswith("a closed mesh's, facing inward")
+    kept, how = orient_given(nbh, -normals, closed_mesh=False)  # a point cloud's: maybe seen from inside
     assert np.array_equal(kept, -normals) and how is None
-    oriented, how = orient_given(nbh, signs * normals, wound=False)
+    oriented, how = orient_given(nbh, signs * normals, closed_mesh=False)
     assert how.startswith("with signs that disagree") and (np.einsum("ij,ij->i", oriented, normals) > 0.99).all()
 
 

@@ -13,8 +13,8 @@ FIELD_NEIGHBOURS), serves every estimation (once per position where points coinc
      (aerial scans, seen from above) or outward; with them, from the same PCA, the points
      drawn facing the camera (`structure.py`); given normals, where no sensor says which
      side was seen, are oriented by propagation if their signs disagree between neighbours,
-     or turned if they are a mesh's and face inward as a whole (`normals.orient_given`; also
-     on a cloud that needs nothing else);
+     or turned if they are a closed mesh's and face inward as a whole (`normals.orient_given`;
+     also on a cloud that needs nothing else);
   2. with the splats, the thickness of each point's layer (`thickness.py`), which caps z_t
      where another surface lies within a splat radius and keeps that surface's samples out of
      the cells (splats given with the cloud keep their z_t);
@@ -48,6 +48,7 @@ import numpy as np
 
 from ..attributes import FIELD_SLOPES, INFINITE_LENGTH
 from ..cloud import PointCloud
+from ..io.mesh import opening
 from .borders import NOISY_MARGIN, border_outwards
 from .cell_kernels import INACTIVE_CLIP
 from .cells import RADIUS_MARGIN, RADIUS_NEIGHBOURS, clip_lines, covering_ellipses, covering_radii
@@ -55,7 +56,7 @@ from .coincident import coincident_groups
 from .frames import tangent_frames, unit
 from .neighbourhood import Neighbourhood
 from .normal_field import FIELD_NEIGHBOURS, field_slopes, has_normal_field
-from .normals import NORMAL_NEIGHBOURS, ORIENT_NEIGHBOURS, SCALES, orient_given, oriented_normals
+from .normals import CLOSED_OPENING, NORMAL_NEIGHBOURS, ORIENT_NEIGHBOURS, SCALES, orient_given, oriented_normals
 from .sharp_features import SHARP_ANGLE, find_sharp_features
 from .smoothing import SMOOTH_NEIGHBOURS, smoothed_points
 from .spacing import BOUND_FACTOR, anisotropic_spacing, bound_semi_axes, reach_next_row, sampling_spacing
@@ -87,13 +88,14 @@ def complete(cloud: PointCloud, *, needs_radii: bool = True, elliptical: bool = 
 def _given_normals_oriented(cloud: PointCloud, nbh: Neighbourhood | None = None,
                             progress: bool | None = None) -> tuple[PointCloud, dict]:
     """`cloud` with its given normals oriented where nothing says which side was seen (no axes,
-    sensors or up direction; normals.orient_given, which turns inward normals only on a mesh's
-    vertices), and the report of it; `nbh`: the cloud's neighbourhood, else one is built."""
+    sensors or up direction; normals.orient_given, which turns inward normals only on a closed
+    mesh's vertices), and the report of it; `nbh`: the cloud's neighbourhood, else one is built."""
     if cloud.normals is None or cloud.axes is not None or cloud.geospatial or cloud.sensors is not None:
         return cloud, {}
     if nbh is None:
         nbh = Neighbourhood.build(cloud.positions, ORIENT_NEIGHBOURS + 1, -1, progress)
-    normals, how = orient_given(nbh, nbh.sort(cloud.normals), wound=cloud.is_mesh)
+    closed_mesh = cloud.is_mesh and opening(cloud.positions, cloud.faces) < CLOSED_OPENING
+    normals, how = orient_given(nbh, nbh.sort(cloud.normals), closed_mesh)
     if how is None:
         return cloud, {}
     return cloud.with_(normals=nbh.unsort(np.asarray(normals, np.float32))), {"normals": f"given, {how}"}
@@ -136,7 +138,7 @@ def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np
     (aerial scans, seen from above) or outward. A cloud with axes but no normals gets u x v,
     the orientation its splats already have. Given normals without axes, sensors or an up
     direction are oriented where their signs disagree between neighbours, or where they are
-    a mesh's and face inward as a whole (normals.orient_given). With estimated normals,
+    a closed mesh's and face inward as a whole (normals.orient_given). With estimated normals,
     attributes["screen_facing"] marks the points drawn as round splats facing the camera
     (`structure.py`).
     radii: estimated if None (covering radii of the tangent-plane Voronoi cells).
