@@ -268,6 +268,11 @@ def faces_inward(points: np.ndarray, normals: np.ndarray) -> bool:
 
 
 @numba.njit(cache=True, inline="always")
+def _row_dot(rows, i, j):  # pragma: no cover - compiled
+    return rows[i, 0] * rows[j, 0] + rows[i, 1] * rows[j, 1] + rows[i, 2] * rows[j, 2]
+
+
+@numba.njit(cache=True, inline="always")
 def _same_position(points, i, q):  # pragma: no cover - compiled
     return points[i, 0] == points[q, 0] and points[i, 1] == points[q, 1] and points[i, 2] == points[q, 2]
 
@@ -283,8 +288,7 @@ def _facing_apart(points, index, normals, in_plane2):  # pragma: no cover - comp
     for i in range(n):
         for j in range(k):
             q = index[i, j]
-            if _same_position(points, i, q) and (normals[i, 0] * normals[q, 0] + normals[i, 1] * normals[q, 1]
-                                                 + normals[i, 2] * normals[q, 2]) < -0.5:
+            if _same_position(points, i, q) and _row_dot(normals, i, q) < -0.5:
                 two_sided[i] = True
     apart = parallel = 0
     for i in range(n):
@@ -298,7 +302,7 @@ def _facing_apart(points, index, normals, in_plane2):  # pragma: no cover - comp
             height = normals[i, 0] * dx + normals[i, 1] * dy + normals[i, 2] * dz
             if height * height > in_plane2 * (dx * dx + dy * dy + dz * dz):
                 continue  # off the tangent plane: maybe another layer, a thin part's far side
-            dot = normals[i, 0] * normals[q, 0] + normals[i, 1] * normals[q, 1] + normals[i, 2] * normals[q, 2]
+            dot = _row_dot(normals, i, q)
             if abs(dot) > 0.5:
                 parallel += 1
                 apart += dot < 0.0
@@ -418,7 +422,7 @@ def _propagate(index, normals):  # pragma: no cover - compiled
             if via < 0:
                 sign[u] = 1
             else:
-                d = normals[u, 0] * normals[via, 0] + normals[u, 1] * normals[via, 1] + normals[u, 2] * normals[via, 2]
+                d = _row_dot(normals, u, via)
                 parent[u] = via
                 dots[u] = d
                 sign[u] = sign[via] if d >= 0.0 else -sign[via]
@@ -429,8 +433,7 @@ def _propagate(index, normals):  # pragma: no cover - compiled
                     if done[v] or v == u:
                         continue
                     # + epsilon as in Hoppe's graph: parallel normals still make an edge
-                    w = 1.0 - abs(normals[u, 0] * normals[v, 0] + normals[u, 1] * normals[v, 1]
-                                  + normals[u, 2] * normals[v, 2]) + 1e-6
+                    w = 1.0 - abs(_row_dot(normals, u, v)) + 1e-6
                     if w < key[v]:
                         key[v] = w
                         towards[v] = u
