@@ -11,7 +11,7 @@ One module per estimation, each citing its source, with its tuning constants at 
   outlier_cap.py     radii no larger than twice the median of the neighbours' on the same surface
   sharp_features.py  flat points and crease points (Zwicker et al. 2002, Pauly et al. 2003)
   borders.py         border points of open surfaces and their outward directions (Pauly et al.
-                     2003)
+                     2003), from the neighbours or a mesh's boundary edges
   normal_field.py    Phong splatting's linear normal fields (Botsch et al. 2004)
   structure.py       points on no surface (vegetation, wires, noise; Demantké et al. 2011) and
                      points without a tangent plane: round splats facing the camera

@@ -47,9 +47,9 @@ from dataclasses import replace
 import numpy as np
 
 from ..attributes import FIELD_SLOPES, INFINITE_LENGTH
-from ..cloud import PointCloud
+from ..cloud import PointCloud, any_per_row
 from ..io.mesh import opening
-from .borders import NOISY_MARGIN, border_outwards
+from .borders import NOISY_MARGIN, border_outwards, mesh_border_outwards
 from .cell_kernels import INACTIVE_CLIP
 from .cells import RADIUS_MARGIN, RADIUS_NEIGHBOURS, clip_lines, covering_ellipses, covering_radii
 from .coincident import coincident_groups
@@ -148,7 +148,7 @@ def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np
     normal_field: also fit the normal field (attributes FIELD_SLOPES) if missing.
     sharp_features: when radii and axes are estimated, cells end at creases and
     attributes["clip_lines"] (N, CLIP_LINES, 3) cut the splats there and at the borders of open
-    surfaces (`cells.py`).
+    surfaces (`cells.py`; a mesh's boundary edges among them, `borders.py`).
     Where the splats are estimated, coincident points (`coincident.py`: a mesh's vertices
     repeated along its seams) are estimated once per position and drawn alike, with their
     mean normal (`_prepare_per_position`); other given attributes are kept as they are.
@@ -314,6 +314,10 @@ def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np
         outwards, reach = ((np.zeros((len(nbh.points), 3)), np.zeros(len(nbh.points))) if cloud.geospatial
                            else border_outwards(nbh, unit_normals, nbh.first(RADIUS_NEIGHBOURS), progress, thickness,
                                                 spacing))
+        if cloud.is_mesh:  # its boundary edges are its borders, facing out of their faces (borders.py)
+            edge = nbh.sort(mesh_border_outwards(cloud.positions, cloud.faces, nbh.unsort(unit_normals)))
+            on_edge = any_per_row(edge != 0.0)
+            outwards[on_edge] = edge[on_edge]
         lines = clip_lines(nbh, unit_normals, axes, features, outwards, reach, progress,
                            margin=NOISY_MARGIN if noisy else 0.0, layers=thickness, short_sides=short_sides)
         if facing is not None:
@@ -344,6 +348,8 @@ def _prepare_per_position(cloud: PointCloud, first: np.ndarray, inverse: np.ndar
     own colour and attributes."""
     spacing = None if reference_spacing is None else np.asarray(reference_spacing)[first]
     distinct = cloud.take(first)
+    if cloud.is_mesh:  # the copies welded: its boundary edges are the borders (borders.py)
+        distinct = distinct.with_(faces=inverse[cloud.faces])
     if normals is not None:
         distinct = distinct.with_(normals=normals)
     prepared, report = prepare(distinct, reference_spacing=spacing, **options)
