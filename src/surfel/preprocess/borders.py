@@ -75,15 +75,14 @@ lying within CRACK_SHARE of its edges' length from a boundary edge not its own i
 side, no border: two patches meeting at T-junctions (a decimation's, a CAD export's) leave edges
 of one face each along their seam, with the surface going on across it; a crack wider than that
 is open, and a border on both sides. An outline's corner has one line, half-way between its
-edges' directions: past a convex corner its splat reaches a little beyond both edges, and the
-lines of a concave corner's edges run on past it and cut slivers from the sheet there. (18 views
-at 512 x 512 against the mesh, median PSNR `phong` / `deferred`: libigl's woody, a flat figure
-whose legs fork in a notch two spacings wide, 25.7 / 25.6 -> 34.5 / 33.9 dB; the alligator
-cut-out 33.7 / 33.2 -> 40.2 / 37.6 dB; the Newell teapot 34.3 / 33.9 -> 36.6 / 35.8 dB; a car
-body with its windows open, beetle-alt.obj, 37.6 / 35.9 -> 40.3 / 36.6 dB; the Stanford bunny,
-open at its base, 41.3 / 39.7 -> 42.1 / 39.8 dB; three decimated figures within -0.01 to +0.24
-dB, one view of a 2,014-vertex bunny 0.05 -> 0.10% holes; closed meshes prepare exactly as
-before.)
+edges' directions: past a convex corner its splat reaches a little beyond both edges (a concave
+corner's edges' lines stop at it, cells.py). (18 views at 512 x 512 against the mesh, median
+PSNR `phong` / `deferred`: libigl's woody, a flat figure whose legs fork in a notch two spacings
+wide, 25.7 / 25.6 -> 34.5 / 33.9 dB; the alligator cut-out 33.7 / 33.2 -> 40.2 / 37.6 dB; the
+Newell teapot 34.3 / 33.9 -> 36.6 / 35.8 dB; a car body with its windows open, beetle-alt.obj,
+37.6 / 35.9 -> 40.3 / 36.6 dB; the Stanford bunny, open at its base, 41.3 / 39.7 -> 42.1 / 39.8
+dB; three decimated figures within -0.01 to +0.24 dB, no view over 0.1% holes; closed meshes
+prepare exactly as before.)
 
 Aerial scan lines (geospatial clouds) get no borders (`complete.py`): a line with the next line
 on one side only looks like one.

@@ -17,19 +17,17 @@ import numpy as np
 from ..threads import over_rows
 
 ELLIPSE_MAX_ASPECT = 4.0       # no needles: major / minor semi-axis at most this
-CURVATURE_ANISOTROPY = 0.05    # radians by which the normals turn more one way than the other
-                               # across a cell, above which an ellipse follows the curvature
-CAP_SIDES = 8                  # a cell starts as a regular octagon inscribed in the circle through
-                               # the farthest neighbour: open cells (borders) stop there
+CURVATURE_ANISOTROPY = 0.05    # radians the normals turn more one way than the other: an ellipse follows the curvature
+CAP_SIDES = 8                  # a cell starts as this regular polygon through the farthest neighbour (open cells stop)
 CLIP_LINES = 2                 # clip lines per splat: an edge, or an edge and a corner
 INACTIVE_CLIP = (0.0, 0.0, 1.0)  # 0 u + 0 v <= 1: cuts nothing
 PARALLEL_COS = math.cos(math.radians(30.0))  # clip lines closer in direction are one edge
 CELL_BLOCK = 1024              # the fewest points per thread's piece of the cell kernels
-RIM_MARGIN = 0.5               # a face's clip line at a curved rim: beyond the rim point by this
-                               # share of its distance from the splat's centre
-BEYOND_MARGIN = 0.1            # a concave crease lies beyond p when q projects on p's side of its
-                               # line by this share of q's distance (not just rounding: a right angle)
+RIM_MARGIN = 0.5               # a face's clip line at a curved rim: past the rim point by this share of its distance
+BEYOND_MARGIN = 0.1            # q this share of its distance on p's side of a concave crease's line: it lies beyond p
 LOPSIDED = 2.0                 # a cell reaching this many times farther the other way: a bisector on its short side
+CHORD_SLACK = 0.25             # a mesh border's line cuts a splat it crosses within this (splat radii) of its vertex
+MESH_BORDER = 2                # on_border's mark of a mesh's boundary vertex (1: a border the neighbours show)
 SKIP_MARGIN = 1.0 + 1e-6       # a line this much farther than the farthest vertex (squared) misses the cell
 
 
@@ -233,17 +231,11 @@ def _curvature_direction(lines, bisectors, bounding, normals, frames, i, p):  # 
             ty += normals[q, a] * frames[i, 1, a]
         if abs(along) < 0.5:  # across a crease, as normal_field.ACROSS_COS
             continue
-        tx /= along
-        ty /= along
-        x = lines[j, 0]
-        y = lines[j, 1]
-        dxx += x * x
-        dxy += x * y
-        dyy += y * y
-        txx += tx * x
-        txy += tx * y
-        tyx += ty * x
-        tyy += ty * y
+        tx, ty = tx / along, ty / along
+        x, y = lines[j, 0], lines[j, 1]
+        dxx, dxy, dyy = dxx + x * x, dxy + x * y, dyy + y * y
+        txx, txy = txx + tx * x, txy + tx * y
+        tyx, tyy = tyx + ty * x, tyy + ty * y
     det = dxx * dyy - dxy * dxy
     if det <= 1e-30:
         return 0.0, 0.0
@@ -503,16 +495,23 @@ def _border_candidates(points, normals, index, axes, i, p, features, outwards, o
         if facing < features.sheet_cos and _goes_on_past(points, normals, index, i, p, q, outwards, on_border, reach,
                                                          features.sharp_cos):
             continue
-        wa = wb = 0.0
+        wa = wb = qu = qv = uu = vv = 0.0
         inside = reach[q]
         for a in range(3):
+            d = points[q, a] - points[p, a]
             wa += axes[i, 0, a] * outwards[q, a]
             wb += axes[i, 1, a] * outwards[q, a]
-            inside += (points[q, a] - points[p, a]) * outwards[q, a]
+            inside += d * outwards[q, a]
+            qu, qv = qu + d * axes[i, 0, a], qv + d * axes[i, 1, a]
+            uu, vv = uu + axes[i, 0, a] ** 2, vv + axes[i, 1, a] ** 2
         length = math.sqrt(wa * wa + wb * wb)
         moved = inside + margin * length
         # no border, a border seen edge-on, p beyond it (a concave border), or a line missing the splat
         if length < 1e-6 or inside < 0.0 or moved >= length:
+            continue
+        # a mesh's border ends with its edges: q farther along its line than its half chord across the splat
+        chord = math.sqrt(1.0 - (moved / length) ** 2) + CHORD_SLACK
+        if on_border[q] == MESH_BORDER and abs(qv * wa / vv - qu * wb / uu) > chord * length:
             continue
         count = _append_unit_line(candidates, count, wa, wb, moved, length)
     return count

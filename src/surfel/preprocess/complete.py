@@ -314,12 +314,14 @@ def prepare(cloud: PointCloud, *, k_normals: int = NORMAL_NEIGHBOURS, sensor: np
         outwards, reach = ((np.zeros((len(nbh.points), 3)), np.zeros(len(nbh.points))) if cloud.geospatial
                            else border_outwards(nbh, unit_normals, nbh.first(RADIUS_NEIGHBOURS), progress, thickness,
                                                 spacing))
+        on_edge = None
         if cloud.is_mesh:  # its boundary edges are its borders, facing out of their faces (borders.py)
             edge = nbh.sort(mesh_border_outwards(cloud.positions, cloud.faces, nbh.unsort(unit_normals)))
             on_edge = any_per_row(edge != 0.0)
             outwards[on_edge] = edge[on_edge]
         lines = clip_lines(nbh, unit_normals, axes, features, outwards, reach, progress,
-                           margin=NOISY_MARGIN if noisy else 0.0, layers=thickness, short_sides=short_sides)
+                           margin=NOISY_MARGIN if noisy else 0.0, layers=thickness, short_sides=short_sides,
+                           mesh_borders=on_edge)
         if facing is not None:
             lines[facing] = INACTIVE_CLIP  # a disk facing the camera has no crease to end at
         attributes["clip_lines"] = nbh.unsort(lines)
