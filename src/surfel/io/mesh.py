@@ -115,6 +115,19 @@ def face_vectors(positions: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
 
 
+def edge_runs(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The half-edges of triangles `faces` (F, 3) grouped by their edge: half-edge h = 3 f + k
+    runs from corner k of face f to corner k + 1, and an edge is its two vertices in either
+    order. Returns (order, first, uses): the half-edges order[first[e]:first[e] + uses[e]] are
+    those of edge e, in ascending order, the edges ordered by their vertices."""
+    start, end = faces, np.roll(faces, -1, axis=1)
+    span = int(faces.max()) + 1 if faces.size else 1
+    keys = (np.minimum(start, end) * span + np.maximum(start, end)).reshape(-1)
+    order = np.argsort(keys, kind="stable")
+    _, first, uses = np.unique(keys[order], return_index=True, return_counts=True)
+    return order, first, uses
+
+
 def opening(positions: np.ndarray, faces: np.ndarray) -> float:
     """How far a mesh is from closed: |sum of its faces' area vectors| / sum of their areas.
     0 for a closed surface (the flux of a constant field through it is 0), the share of an

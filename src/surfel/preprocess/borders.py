@@ -101,6 +101,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from ..cloud import any_per_row
+from ..io.mesh import edge_runs
 from ..threads import over_rows
 from .chunked import map_chunks
 from .frames import orthonormal_basis, unit
@@ -460,7 +461,7 @@ def mesh_border_outwards(positions: np.ndarray, faces: np.ndarray, normals: np.n
     the vertices' tangent planes."""
     positions = np.asarray(positions, np.float64)
     outwards = np.zeros((len(positions), 3))
-    starts, ends, _ = _boundary_edges(faces, len(positions))
+    starts, ends, _ = _boundary_edges(faces)
     if not len(starts):  # closed, as most meshes are: no weld needed
         return outwards
     # a seam's copies and a CAD export's rounded corners lie on such edges: weld those alone,
@@ -470,7 +471,7 @@ def mesh_border_outwards(positions: np.ndarray, faces: np.ndarray, normals: np.n
     _, first, group = np.unique(_welded(positions[loose], np.ptp(positions, axis=0)), return_index=True,
                                 return_inverse=True)
     weld[loose] = loose[first][group.reshape(-1)]
-    starts, ends, thirds = _boundary_edges(weld[faces], len(positions))
+    starts, ends, thirds = _boundary_edges(weld[faces])
     if not len(starts):
         return outwards
     a, b, c = positions[starts], positions[ends], positions[thirds]
@@ -491,15 +492,13 @@ def mesh_border_outwards(positions: np.ndarray, faces: np.ndarray, normals: np.n
     return outwards
 
 
-def _boundary_edges(faces: np.ndarray, vertices: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _boundary_edges(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The edges (starts, ends) of the triangles `faces` that only one of them has, and each one's
     corner across from it (thirds); faces with a corner twice are left out."""
     faces = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 2] != faces[:, 0])]
-    starts, ends, thirds = (np.roll(faces, -shift, axis=1).reshape(-1) for shift in range(3))
-    keys = np.minimum(starts, ends) * vertices + np.maximum(starts, ends)
-    _, edge, uses = np.unique(keys, return_inverse=True, return_counts=True)
-    once = uses[edge.reshape(-1)] == 1
-    return starts[once], ends[once], thirds[once]
+    order, first, uses = edge_runs(faces)
+    once = np.sort(order[first[uses == 1]])
+    return tuple(np.roll(faces, -shift, axis=1).reshape(-1)[once] for shift in range(3))
 
 
 def _crack_sides(positions: np.ndarray, starts: np.ndarray, ends: np.ndarray) -> np.ndarray:

@@ -43,7 +43,7 @@ from scipy.spatial import cKDTree
 from ..attributes import CATEGORICAL, DERIVED
 from ..cloud import PointCloud
 from ..errors import SurfelError
-from ..io.mesh import face_vectors
+from ..io.mesh import edge_runs, face_vectors
 from .neighbourhood import Neighbourhood
 from .spacing import BOUND_FACTOR, LOCAL_NEIGHBOURS, local_spacing
 
@@ -80,17 +80,8 @@ def corner_normals(positions: np.ndarray, faces: np.ndarray, crease_angle: float
     length = np.linalg.norm(weighted, axis=1, keepdims=True)
     unit = np.divide(weighted, length, out=np.zeros_like(weighted), where=length > 0)
     count = len(faces)
-    # each face's edge k runs from its corner k to corner k + 1; an edge's key is its vertices sorted
-    start, end = faces, np.roll(faces, -1, axis=1)
-    keys = np.stack([np.minimum(start, end), np.maximum(start, end)], axis=2).reshape(-1, 2)
-    order = np.lexsort((keys[:, 1], keys[:, 0]))
-    same = np.all(keys[order[1:]] == keys[order[:-1]], axis=1)
-    alone = np.ones(len(order), bool)  # not part of a run of three or more
-    runs = same[1:] & same[:-1]
-    alone[1:-1] &= ~runs
-    alone[2:] &= ~runs
-    alone[:-2] &= ~runs
-    pair = np.flatnonzero(same & alone[:-1] & alone[1:])
+    order, runs, uses = edge_runs(faces)
+    pair = runs[uses == 2]  # edges of two faces: a non-manifold one joins none
     first, second = order[pair], order[pair + 1]  # half-edges (face * 3 + k) of one edge
     f, g = first // 3, second // 3
     smooth = np.einsum("ij,ij->i", unit[f], unit[g]) >= math.cos(math.radians(crease_angle)) - 1e-9
