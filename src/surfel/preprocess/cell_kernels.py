@@ -510,8 +510,8 @@ def _border_candidates(points, normals, index, axes, i, p, features, outwards, o
         if length < 1e-6 or inside < 0.0 or moved >= length:
             continue
         # a mesh's border ends with its edges: q farther along its line than its half chord across the splat
-        chord = math.sqrt(1.0 - (moved / length) ** 2) + CHORD_SLACK
-        if on_border[q] == MESH_BORDER and abs(qv * wa / vv - qu * wb / uu) > chord * length:
+        if on_border[q] == MESH_BORDER and abs(qv * wa / vv - qu * wb / uu) > (
+                math.sqrt(1.0 - (moved / length) ** 2) + CHORD_SLACK) * length:
             continue
         count = _append_unit_line(candidates, count, wa, wb, moved, length)
     return count
