@@ -255,6 +255,10 @@ class SplatPasses:
         """The category pass's packed values (H, W, 2): front layer, back layer."""
         return read_texture(self.category)
 
+    def coverage(self) -> np.ndarray:
+        """How much of each pixel (H, W) the visibility pass's splats cover."""
+        return 1.0 - read_texture(self.visibility)[..., 1]
+
     def accumulators(self) -> np.ndarray:
         """The attribute pass's sums as one (H, W, 4 x layers) array, front layer first."""
         return np.concatenate([read_texture(t) for t in (*self.accum, *self.back_accum)], axis=-1)

@@ -3,7 +3,8 @@
 // rasterize_tiles so that the CPU and GL backends differ only in floating-point rounding.
 // One source, passes chosen by #define:
 //   PASS_VISIBILITY  the narrow visibility footprint N = J V J^T + v^2 I: per pixel the splat
-//                    plane's eye depth (clamped) + z_t, MIN-blended into the visibility target
+//                    plane's eye depth (clamped) + z_t and 1 - its coverage, MIN-blended into
+//                    the visibility target
 //   PASS_BACK        the nearest plane depth behind the visible surface (MIN-blended): the
 //                    depth of the back layer
 //   PASS_ATTRIBUTE   the resampling filter rho(x) = |det J| / sqrt(det M) exp(-1/2 x^T M^-1 x),
@@ -167,9 +168,21 @@ float plane_depth() {
 }
 
 #ifdef PASS_VISIBILITY
+// How much of the pixel the splat covers (ewa_kernels._coverage): 0.5 plus the pixel distance
+// to the rim sqrt(q) = COVERAGE_SIGMAS of its footprint's ellipse, clamped to [0, 1].
+const float COVERAGE_SIGMAS = 1.0;
+float coverage() {
+    float slope = length(vec2(v_conic.x * offset.x + v_conic.y * offset.y,
+                              v_conic.y * offset.x + v_conic.z * offset.y));
+    float root = sqrt(quadric);
+    if (slope <= 1e-20 * root) return 1.0;  // at the centre
+    return clamp(0.5 + (COVERAGE_SIGMAS - root) * root / slope, 0.0, 1.0);
+}
+
 layout(location = 0) out vec4 out_depth;
 void main() {
-    out_depth = vec4(plane_depth() + v_threshold, 0.0, 0.0, 0.0);  // MIN blending: the nearest
+    float depth = plane_depth() + v_threshold;
+    out_depth = vec4(depth, 1.0 - coverage(), 0.0, 0.0);  // MIN blending: the nearest, the most covering
 }
 #endif
 

@@ -13,7 +13,8 @@ box; the fragment stage evaluates the conic at the pixel centre. The CPU's visib
 three draws (z_t here is depth_offset x radius widened by the clamped depth range):
 
 1. visibility: Z = min over fragments of (clamped plane depth + z_t), over the narrow
-   footprint N = J V J^T + v^2 I (gl/passes.py, MIN blending);
+   footprint N = J V J^T + v^2 I, and the most any of them covers the pixel (gl/passes.py,
+   MIN blending of 1 - coverage);
 2. back layer: Z_b = min plane depth over the fragments behind Z (MIN blending);
 3. accumulation: w rgb, w, w n, w z of the fragments with depth <= Z into the front layer, of
    those with Z < depth <= Z_b + z_t into the back layer (additive blending into four RGBA32F
@@ -21,8 +22,8 @@ three draws (z_t here is depth_offset x radius widened by the clamped depth rang
    running z-buffer in draw order; this order-independent form is its end state, so the two
    differ only where draw order mattered there.
 
-The accumulators are read back and resolved by ewa.resolve_accumulators (normalisation,
-coverage from the weight sum, deferred shading), so both backends share that step exactly.
+The accumulators and the coverage are read back and resolved by ewa.resolve_accumulators
+(normalisation, alpha, deferred shading), so both backends share that step exactly.
 """
 
 from __future__ import annotations
@@ -76,7 +77,8 @@ def render_ewa_gl(cloud: PointCloud, camera: Camera, options: RenderOptions, par
             categories = passes.categories()
         acc = passes.accumulators()
         stats = {"splats": len(cloud), "fragments": int(fragments.samples)}
-        result = resolve_accumulators(acc, target, options, params, supersample, stats, categories)
+        result = resolve_accumulators(acc, passes.coverage(), target, options, params, supersample, stats,
+                                      categories)
         if options.dump_passes is not None:
             passes.dump(options.dump_passes, result)
     return result

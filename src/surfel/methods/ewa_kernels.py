@@ -10,7 +10,8 @@ Three stages, none of them a Python loop over splats:
    splats into screen tiles of TILE x TILE pixels, keeping draw order inside a tile.
 3. `rasterize_tiles` (parallel over tiles): each tile owns its pixels, so threads never
    write the same memory. Two passes per tile in tile-local buffers: visibility (the
-   nearest fragment depth plus its splat's threshold), then accumulation of
+   nearest fragment depth plus its splat's threshold, and the most any splat covers the
+   pixel), then accumulation of
    w, w*albedo, w*normal, w*depth into the front layer for the fragments not behind that
    depth and into the back layer (the nearest surface behind it) for the others.
 4. `normalise_layers` (parallel over rows): per-layer albedo, normal, depth and coverage.
@@ -45,6 +46,8 @@ LAYER = 8  # w*r, w*g, w*b, w, w*nx, w*ny, w*nz, w*depth
 ACC_CHANNELS = 2 * LAYER  # front layer, then back layer
 # Finite "no depth yet" sentinel: fastmath may assume no infinities.
 FAR = np.float32(3e38)
+# A pixel inside some kernel's ellipse of this many standard deviations is covered (ewa.py).
+COVERAGE_SIGMAS = np.float32(1.0)
 MIN_LAYER_COS = np.float32(0.05)  # gl/common.glsl's: the least |n . view| a layer's thickness is divided by
 
 
@@ -317,24 +320,41 @@ def _field_normal(s, e, dx, dy):
     return nx * inv, ny * inv, nz * inv
 
 
+@nb.njit(inline="always", fastmath=True)
+def _coverage(s, dx, dy, q):
+    """How much of the pixel at offset d = (dx, dy) the splat covers, anti-aliased over a
+    pixel: 0.5 plus the pixel distance to the rim sqrt(q) = COVERAGE_SIGMAS of its visibility
+    footprint's ellipse (q = d^T N^-1 d), (COVERAGE_SIGMAS - sqrt(q)) / |grad sqrt(q)| with
+    |grad sqrt(q)| = |N^-1 d| / sqrt(q), clamped to [0, 1]; ewa_gl.glsl's `coverage` too."""
+    gx = s[VA] * dx + s[VB] * dy
+    gy = s[VB] * dx + s[VC] * dy
+    slope = math.sqrt(gx * gx + gy * gy)
+    root = math.sqrt(q)
+    if slope <= np.float32(1e-20) * root:
+        return np.float32(1.0)  # at the centre
+    return min(max(np.float32(0.5) + (COVERAGE_SIGMAS - root) * root / slope, np.float32(0.0)), np.float32(1.0))
+
+
 @nb.njit(parallel=True, fastmath=True, cache=True)
-def rasterize_tiles(splats, extra, box, offsets, index, order, tiles_x, width, height, cutoff2,
-                    clip_lines, normal_field, categories, category_levels):
-    """Accumulators (H, W, ACC_CHANNELS) float32, the fragment count and, with
-    `category_levels` > 0, the packed heaviest category (surfel.colors) of each pixel's front
-    and back layer (H, W, 2) float32 (-1 where none; `categories` holds each splat's palette
-    index), else a (1, 1, 2) placeholder.
+def rasterize_tiles(splats, extra, box, offsets, index, order, tiles_x, width, height, cutoff2, clip_lines,
+                    normal_field, categories, category_levels):
+    """Accumulators (H, W, ACC_CHANNELS) float32, coverage (H, W) float32, the fragment count
+    and, with `category_levels` > 0, the packed heaviest category (surfel.colors) of each
+    pixel's front and back layer (H, W, 2) float32 (-1 where none; `categories` holds each
+    splat's palette index), else a (1, 1, 2) placeholder.
 
     Visibility (A-buffer in the spirit of Zwicker et al. 2001, Sec. 5): pass 1 stores per
     pixel Z = min over fragments of (depth + threshold of its splat); pass 2 blends every
     fragment with depth <= Z into the front layer (channels 0-7), independent of drawing
     order, and the others into the back layer (channels 8-15) with a running threshold
     z-buffer, so partly covered front pixels can be composited over the surface behind.
+    Pass 1 also keeps the most any splat covers each pixel (`_coverage`: ewa.py, coverage).
     With `clip_lines`, fragments beyond a splat's clip lines are dropped; with `normal_field`,
     a fragment's normal is the splat's linear normal field at its local coordinates (Botsch,
     Spernat & Kobbelt 2004, eq. 8), else the splat's normal (both from the `extra` table).
     """
     acc = np.zeros((height, width, ACC_CHANNELS), np.float32)
+    coverage = np.zeros((height, width), np.float32)
     with_categories = category_levels > 0
     best = np.full((height, width, 2) if with_categories else (1, 1, 2), -1.0, np.float32)
     fragments = np.zeros(order.shape[0], np.int64)
@@ -349,6 +369,7 @@ def rasterize_tiles(splats, extra, box, offsets, index, order, tiles_x, width, h
         ox, oy = (t % tiles_x) * TILE, (t // tiles_x) * TILE
         tw, th = min(TILE, width - ox), min(TILE, height - oy)
         zbuf = np.full((TILE, TILE), FAR, np.float32)
+        covered = np.zeros((TILE, TILE), np.float32)
         zback = np.full((TILE, TILE), FAR, np.float32)
         local = np.zeros((TILE, TILE, ACC_CHANNELS), np.float32)
         local_best = np.full((TILE, TILE, 2), -1.0, np.float32)
@@ -359,9 +380,11 @@ def rasterize_tiles(splats, extra, box, offsets, index, order, tiles_x, width, h
             for y in range(y_lo, y_hi + 1):
                 x0, x1, dy = _row(s, VA, small, np.float32(y) + half, x_lo, x_hi, cutoff2)
                 zrow = zbuf[y - oy]
+                crow = covered[y - oy]
                 for x in range(x0, x1 + 1):
                     dx = np.float32(x) + half - s[MX]
-                    if small and _quadric(s, VA, dx, dy) > cutoff2:
+                    q = _quadric(s, VA, dx, dy)
+                    if small and q > cutoff2:
                         continue
                     if clip_lines and _clipped(extra[i], dx, dy):
                         continue
@@ -369,6 +392,7 @@ def rasterize_tiles(splats, extra, box, offsets, index, order, tiles_x, width, h
                     z = s[ZC] + dz + s[ZT]
                     if z < zrow[x - ox]:
                         zrow[x - ox] = z
+                    crow[x - ox] = max(crow[x - ox], _coverage(s, dx, dy, q))
         count = 0
         for j in range(start, stop):
             i = index[j]
@@ -420,10 +444,11 @@ def rasterize_tiles(splats, extra, box, offsets, index, order, tiles_x, width, h
                             local_best[y - oy, x - ox, base // LAYER] = packed
                     count += 1
         acc[oy:oy + th, ox:ox + tw] = local[:th, :tw]
+        coverage[oy:oy + th, ox:ox + tw] = covered[:th, :tw]
         if with_categories:
             best[oy:oy + th, ox:ox + tw] = local_best[:th, :tw]
         fragments[k] = count
-    return acc, fragments.sum(), best
+    return acc, coverage, fragments.sum(), best
 
 
 @nb.njit(parallel=True, fastmath=True, cache=True)
