@@ -508,10 +508,10 @@ def _crack_sides(positions: np.ndarray, starts: np.ndarray, ends: np.ndarray) ->
     steps = np.linspace(0.0, 1.0, CRACK_STEPS + 1)
     along = positions[starts][:, None] * (1.0 - steps)[None, :, None] + positions[ends][:, None] * steps[None, :, None]
     owner = np.repeat(np.arange(len(starts)), len(steps))
-    vertices, counts = np.unique(np.concatenate([starts, ends]), return_counts=True)
+    touching = np.concatenate([starts, ends])  # each edge's two vertices
+    vertices, counts = np.unique(touching, return_counts=True)
     lengths = np.zeros(len(positions))
-    np.add.at(lengths, np.concatenate([starts, ends]), np.tile(np.linalg.norm(positions[ends] - positions[starts],
-                                                                            axis=1), 2))
+    np.add.at(lengths, touching, np.tile(np.linalg.norm(positions[ends] - positions[starts], axis=1), 2))
     nearest = min(CRACK_NEIGHBOURS, len(owner))
     distance, found = cKDTree(along.reshape(-1, 3)).query(positions[vertices], nearest)
     distance, found = distance.reshape(len(vertices), -1), found.reshape(len(vertices), -1)

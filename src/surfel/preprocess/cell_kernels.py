@@ -487,6 +487,8 @@ def _border_candidates(points, normals, index, axes, i, p, features, outwards, o
     where p's side goes on past its line, `_goes_on_past`), the side of the line across w_q that
     holds the surface, (p + u u_axis + v v_axis - q) . w_q <= reach[q], moved out by `margin` in
     (u, v); returns the new count."""
+    uu = axes[i, 0, 0] ** 2 + axes[i, 0, 1] ** 2 + axes[i, 0, 2] ** 2  # the axes' squared lengths (mesh borders)
+    vv = axes[i, 1, 0] ** 2 + axes[i, 1, 1] ** 2 + axes[i, 1, 2] ** 2
     for j in range(index.shape[1]):
         q = index[i, j]
         if not on_border[q]:  # no outward direction, no line: most neighbours (a seventh of the pass)
@@ -495,7 +497,7 @@ def _border_candidates(points, normals, index, axes, i, p, features, outwards, o
         if facing < features.sheet_cos and _goes_on_past(points, normals, index, i, p, q, outwards, on_border, reach,
                                                          features.sharp_cos):
             continue
-        wa = wb = qu = qv = uu = vv = 0.0
+        wa = wb = qu = qv = 0.0
         inside = reach[q]
         for a in range(3):
             d = points[q, a] - points[p, a]
@@ -503,7 +505,6 @@ def _border_candidates(points, normals, index, axes, i, p, features, outwards, o
             wb += axes[i, 1, a] * outwards[q, a]
             inside += d * outwards[q, a]
             qu, qv = qu + d * axes[i, 0, a], qv + d * axes[i, 1, a]
-            uu, vv = uu + axes[i, 0, a] ** 2, vv + axes[i, 1, a] ** 2
         length = math.sqrt(wa * wa + wb * wb)
         moved = inside + margin * length
         # no border, a border seen edge-on, p beyond it (a concave border), or a line missing the splat
